@@ -1,0 +1,3 @@
+from comp_daemon.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,19 @@
+"""Shared fixtures: paths to the shared specification, robots."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+SPEC_DIR = Path(__file__).resolve().parents[2] / "shared" / "spec"
+FALLBACK_SPEC_DIR = Path(__file__).resolve().parent / "spec"
+
+
+@pytest.fixture(scope="session")
+def spec_dir() -> Path:
+    """The shared specification folder (beside the checkout), or the copy kept in tests/spec."""
+    for candidate in (SPEC_DIR, FALLBACK_SPEC_DIR):
+        if (candidate / "kr210_fk_vectors.csv").is_file():
+            return candidate
+    pytest.fail("shared/spec/kr210_fk_vectors.csv not found beside the checkout nor in tests/spec")
