@@ -1,0 +1,72 @@
+"""Column names of the measurement data set (``shared/spec/dataset.md``) and the error a reader raises.
+
+Column names are case-sensitive and lower case, exactly as the spec writes them; surrounding
+whitespace in a header cell is ignored. A header cell that differs from a known column only in
+case (``A1``, ``X``) is refused with a hint rather than kept as an unknown column, so that a
+file written for another tool cannot silently lose its axis values.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "AXIS_COLUMNS",
+    "DIR_COLUMNS",
+    "GRATING_COLUMNS",
+    "KNOWN_COLUMNS",
+    "SCALAR_NUMBER_COLUMNS",
+    "TARGET_ABC_COLUMNS",
+    "TARGET_XYZ_COLUMNS",
+    "XYZ_COLUMNS",
+    "DatasetError",
+]
+
+AXIS_COLUMNS: tuple[str, ...] = ("a1", "a2", "a3", "a4", "a5", "a6")
+XYZ_COLUMNS: tuple[str, ...] = ("x", "y", "z")
+DIR_COLUMNS: tuple[str, ...] = ("dir1", "dir2", "dir3", "dir4", "dir5", "dir6")
+GRATING_COLUMNS: tuple[str, ...] = ("g1", "g2", "g3", "g4", "g5", "g6")
+TARGET_XYZ_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz")
+TARGET_ABC_COLUMNS: tuple[str, ...] = ("ta", "tb", "tc")
+SCALAR_NUMBER_COLUMNS: tuple[str, ...] = ("payload_kg", "temp_c", "t_s")
+
+KNOWN_COLUMNS: tuple[str, ...] = (
+    *AXIS_COLUMNS,
+    *XYZ_COLUMNS,
+    *DIR_COLUMNS,
+    *GRATING_COLUMNS,
+    *SCALAR_NUMBER_COLUMNS,
+    "split",
+    "repeat",
+    "pose_id",
+    *TARGET_XYZ_COLUMNS,
+    *TARGET_ABC_COLUMNS,
+)
+
+
+class DatasetError(ValueError):
+    """A data set that is refused as a whole.
+
+    ``row`` is the 1-based row of the file (header = row 1), or the 1-based record number for
+    JSON records (then ``row_label`` is ``"record"``); ``column`` is the column's name. Either is
+    ``None`` when the fault is not in one place (an empty file, too few rows).
+    """
+
+    def __init__(
+        self,
+        problem: str,
+        *,
+        source: str = "<data>",
+        row: int | None = None,
+        column: str | None = None,
+        row_label: str = "row",
+    ) -> None:
+        self.problem = problem
+        self.source = source
+        self.row = row
+        self.column = column
+        self.row_label = row_label
+        where = [source]
+        if row is not None:
+            where.append(f"{row_label} {row}")
+        if column is not None:
+            where.append(f"column '{column}'")
+        super().__init__(f"{', '.join(where)}: {problem}")
