@@ -1,0 +1,321 @@
+"""The daemon's RSI endpoint: a thin asyncio UDP protocol over :mod:`comp_daemon.rt.rsi_codec`.
+
+``datagram_received`` parses the telegram, calls the synchronous controller step
+``handler(telegram) -> SenReply`` and sends the reply to the sender before returning — no task, no
+queue, no await on the reply path.
+
+Newest-only answering: asyncio's datagram transport reads *one* datagram per readiness callback, so
+a backlog (the loop was busy for more than a cycle) would otherwise be answered telegram by telegram,
+each answer later than the last. On every receive the protocol therefore drains the socket with
+non-blocking ``recvfrom_into`` on a duplicate of the transport's socket (same kernel queue) and
+answers only the newest telegram from the controller; the older ones are counted as ``superseded``.
+When nothing is queued this costs one ``recvfrom`` returning EAGAIN. Comparing IPOCs alone would not
+do: every queued telegram is newer than the last one answered, so each would still be answered.
+
+Only datagrams from the configured controller address are accepted (host, and port if configured);
+others are counted as ``foreign``, logged (rate-limited) and never answered. Garbage is counted as
+``garbled`` and not answered (the controller counts the missing reply as late). If the handler
+raises or returns a reply for another IPOC — our bug — the reply is zero correction with ``Stop=1``.
+
+Times are integer nanoseconds from an injectable clock (``time.perf_counter_ns`` by default):
+``latency`` is receive callback entry → ``sendto`` returned; ``jitter`` is the inter-arrival time of
+answered telegrams minus the IPOC difference (the controller's own cycle), so skipped cycles do not
+show up as jitter. A reply whose latency exceeds ``late_after_ms`` (default: ``cycle_ms``) is counted
+as ``late``; the controller's own count arrives in ``Delay D`` and is kept as ``controller_delay``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import bisect
+import logging
+import socket
+import time
+from array import array
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, cast
+
+import numpy as np
+
+from comp_daemon.rt.rsi_codec import RobTelegram, RsiProtocolError, SenReply, build_sen, parse_rob
+
+__all__ = [
+    "LATENCY_BUCKETS_NS",
+    "RsiHandler",
+    "RsiServerConfig",
+    "RsiServerProtocol",
+    "RsiServerStats",
+    "SampleStats",
+    "start_rsi_server",
+]
+
+log = logging.getLogger(__name__)
+
+RsiHandler = Callable[[RobTelegram], SenReply]
+Clock = Callable[[], int]
+
+#: Upper bucket bounds (ns) for latency and |jitter| histograms; the last bucket is open.
+LATENCY_BUCKETS_NS: tuple[int, ...] = tuple(
+    int(us * 1000) for us in (10, 20, 50, 100, 200, 500, 1000, 2000, 4000, 8000, 12000, 24000, 100000)
+)
+
+_ZERO_AK = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+_MAX_DRAIN = 256  # datagrams read per receive callback at most
+
+
+@dataclass(frozen=True, slots=True)
+class RsiServerConfig:
+    """Settings of the RSI endpoint. Hosts are IP literals (the controller's address is compared as text)."""
+
+    controller_host: str
+    controller_port: int | None = None  # None: any source port of controller_host
+    bind_host: str = "0.0.0.0"
+    bind_port: int = 49152
+    cycle_ms: float = 12.0
+    late_after_ms: float | None = None  # None: cycle_ms
+    sen_type: str = "ImFree"  # used for the replies the server builds itself (handler failure)
+    stop_on_handler_error: bool = True
+    log_every: int = 1000  # after the first, log every n-th foreign/garbled datagram
+    samples: int = 65536  # ring size for latency/jitter percentiles
+
+
+class SampleStats:
+    """Count, min, max, sum, a fixed histogram of |value| and a ring of the last ``size`` values (ns)."""
+
+    __slots__ = ("_i", "bounds", "count", "histogram", "max", "min", "ring", "sum")
+
+    def __init__(self, size: int = 65536, bounds: tuple[int, ...] = LATENCY_BUCKETS_NS) -> None:
+        self.bounds = bounds
+        self.histogram = [0] * (len(bounds) + 1)
+        self.ring = array("q", bytes(8 * size))
+        self._i = 0
+        self.count = 0
+        self.sum = 0
+        self.min: int | None = None
+        self.max: int | None = None
+
+    def record(self, value: int) -> None:
+        ring = self.ring
+        ring[self._i] = value
+        self._i = (self._i + 1) % len(ring)
+        self.count += 1
+        self.sum += value
+        self.histogram[bisect.bisect_left(self.bounds, abs(value))] += 1
+        if self.max is None or value > self.max:
+            self.max = value
+        if self.min is None or value < self.min:
+            self.min = value
+
+    def recent(self) -> np.ndarray:
+        """The retained values, oldest first."""
+        n = min(self.count, len(self.ring))
+        values = np.frombuffer(self.ring, dtype=np.int64)
+        if self.count <= len(self.ring):
+            return values[:n].copy()
+        return np.concatenate([values[self._i :], values[: self._i]])
+
+    def percentiles(self, qs: tuple[float, ...] = (50.0, 99.0)) -> dict[str, float]:
+        """Percentiles (ns) of the retained values; empty dict before the first value."""
+        values = self.recent()
+        if values.size == 0:
+            return {}
+        return {f"p{q:g}": float(v) for q, v in zip(qs, np.percentile(values, qs), strict=True)}
+
+    def summary(self) -> dict[str, Any]:
+        return {
+            "count": self.count,
+            "min_ns": self.min,
+            "max_ns": self.max,
+            "mean_ns": self.sum / self.count if self.count else None,
+            **{f"{k}_ns": v for k, v in self.percentiles().items()},
+            "histogram_le_ns": dict(zip([*map(str, self.bounds), "inf"], self.histogram, strict=True)),
+        }
+
+
+class RsiServerStats:
+    """Counters of the RSI endpoint (mutable; read them from the same event loop)."""
+
+    __slots__ = (
+        "answered",
+        "controller_delay",
+        "foreign",
+        "garbled",
+        "handler_errors",
+        "ipoc_skipped",
+        "jitter",
+        "late",
+        "latency",
+        "received",
+        "send_errors",
+        "superseded",
+    )
+
+    def __init__(self, samples: int) -> None:
+        self.received = 0  # datagrams taken from the socket
+        self.answered = 0
+        self.garbled = 0
+        self.foreign = 0
+        self.superseded = 0  # older telegrams drained and not answered
+        self.handler_errors = 0
+        self.late = 0  # replies whose latency exceeded late_after_ms
+        self.ipoc_skipped = 0  # cycles missing between consecutive answered IPOCs
+        self.send_errors = 0
+        self.controller_delay: int | None = None  # last Delay D reported by the controller
+        self.latency = SampleStats(samples)
+        self.jitter = SampleStats(samples)
+
+    def snapshot(self) -> dict[str, Any]:
+        counts = {
+            name: getattr(self, name)
+            for name in self.__slots__
+            if name not in ("latency", "jitter", "controller_delay")
+        }
+        return {
+            **counts,
+            "controller_delay": self.controller_delay,
+            "latency": self.latency.summary(),
+            "jitter": self.jitter.summary(),
+        }
+
+
+class RsiServerProtocol(asyncio.DatagramProtocol):
+    """Answers RSI telegrams from one controller in the receive callback. See the module docstring."""
+
+    def __init__(self, handler: RsiHandler, config: RsiServerConfig, *, clock: Clock = time.perf_counter_ns):
+        self.handler = handler
+        self.config = config
+        self.clock = clock
+        self.stats = RsiServerStats(config.samples)
+        self.transport: asyncio.DatagramTransport | None = None
+        self._drain_sock: socket.socket | None = None
+        self._buf = bytearray(65536)
+        self._late_after_ns = int((config.late_after_ms or config.cycle_ms) * 1e6)
+        self._last_rx_ns: int | None = None
+        self._last_ipoc: int | None = None
+        self._foreign_seen: set[tuple[str, int]] = set()
+        self.closed = asyncio.Event()  # set when the transport has gone
+
+    # asyncio callbacks ---------------------------------------------------------------------------
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = cast(asyncio.DatagramTransport, transport)
+        trsock = transport.get_extra_info("socket")
+        if trsock is not None:
+            self._drain_sock = trsock.dup()  # same kernel receive queue; already non-blocking
+            self._drain_sock.setblocking(False)
+
+    def connection_lost(self, exc: Exception | None) -> None:
+        if self._drain_sock is not None:
+            self._drain_sock.close()
+            self._drain_sock = None
+        self.transport = None
+        self.closed.set()
+
+    def error_received(self, exc: Exception) -> None:
+        self.stats.send_errors += 1
+        if self.stats.send_errors == 1 or self.stats.send_errors % self.config.log_every == 0:
+            log.warning("rsi: socket error %r (%d so far)", exc, self.stats.send_errors)
+
+    def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
+        t_rx = self.clock()
+        stats = self.stats
+        stats.received += 1
+        newest: tuple[bytes, tuple[str, int]] | None = None
+        if self._accept(addr):
+            newest = (data, addr)
+        if self._drain_sock is not None:
+            newest = self._drain(newest)
+        if newest is None:
+            return
+        data, addr = newest
+        try:
+            telegram = parse_rob(data)
+        except RsiProtocolError as exc:
+            stats.garbled += 1
+            if stats.garbled == 1 or stats.garbled % self.config.log_every == 0:
+                log.warning("rsi: garbled telegram from %s:%s: %s (%d so far)", *addr[:2], exc, stats.garbled)
+            return
+        self._answer(telegram, addr, t_rx)
+
+    # internals -----------------------------------------------------------------------------------
+
+    def _accept(self, addr: tuple[str | Any, int]) -> bool:
+        cfg = self.config
+        if addr[0] == cfg.controller_host and (cfg.controller_port is None or addr[1] == cfg.controller_port):
+            return True
+        stats = self.stats
+        stats.foreign += 1
+        key = (str(addr[0]), int(addr[1]))
+        if key not in self._foreign_seen or stats.foreign % cfg.log_every == 0:
+            if len(self._foreign_seen) < 1024:
+                self._foreign_seen.add(key)
+            log.warning("rsi: ignored datagram from foreign address %s:%s (%d so far)", *key, stats.foreign)
+        return False
+
+    def _drain(self, newest: tuple[bytes, tuple[str, int]] | None) -> tuple[bytes, tuple[str, int]] | None:
+        sock = self._drain_sock
+        assert sock is not None
+        buf = self._buf
+        for _ in range(_MAX_DRAIN):  # bounded: a flood must not keep the callback busy
+            try:
+                n, addr = sock.recvfrom_into(buf)
+            except (BlockingIOError, InterruptedError):
+                return newest
+            except OSError as exc:  # e.g. ICMP port unreachable reported on the socket
+                self.error_received(exc)
+                continue
+            self.stats.received += 1
+            if self._accept(addr):
+                if newest is not None:
+                    self.stats.superseded += 1
+                newest = (bytes(buf[:n]), addr)
+        return newest
+
+    def _answer(self, telegram: RobTelegram, addr: tuple[str, int], t_rx: int) -> None:
+        stats = self.stats
+        try:
+            reply = self.handler(telegram)
+            if reply.ipoc != telegram.ipoc:
+                raise RuntimeError(f"handler replied for IPOC {reply.ipoc} to telegram IPOC {telegram.ipoc}")
+            datagram = build_sen(reply)
+        except Exception:
+            stats.handler_errors += 1
+            if stats.handler_errors == 1 or stats.handler_errors % self.config.log_every == 0:
+                log.exception("rsi: controller step failed on IPOC %d; zero correction sent", telegram.ipoc)
+            datagram = build_sen(
+                SenReply(telegram.ipoc, _ZERO_AK, self.config.stop_on_handler_error, self.config.sen_type)
+            )
+        transport = self.transport
+        if transport is None:
+            return
+        transport.sendto(datagram, addr)
+        t_tx = self.clock()
+        stats.answered += 1
+        latency = t_tx - t_rx
+        stats.latency.record(latency)
+        if latency > self._late_after_ns:
+            stats.late += 1
+        if telegram.delay is not None:
+            stats.controller_delay = telegram.delay
+        last_ipoc, last_rx = self._last_ipoc, self._last_rx_ns
+        if last_ipoc is not None and last_rx is not None:
+            gap_ms = telegram.ipoc - last_ipoc
+            cycles = round(gap_ms / self.config.cycle_ms)
+            if 0 < gap_ms <= 16 * self.config.cycle_ms:
+                stats.jitter.record((t_rx - last_rx) - int(gap_ms * 1_000_000))
+                if cycles > 1:
+                    stats.ipoc_skipped += cycles - 1
+        self._last_ipoc, self._last_rx_ns = telegram.ipoc, t_rx
+
+
+async def start_rsi_server(
+    handler: RsiHandler, config: RsiServerConfig, *, clock: Clock = time.perf_counter_ns
+) -> tuple[asyncio.DatagramTransport, RsiServerProtocol]:
+    """Bind the UDP endpoint (``bind_port`` 0 picks a free port) and return (transport, protocol)."""
+    loop = asyncio.get_running_loop()
+    protocol = RsiServerProtocol(handler, config, clock=clock)
+    transport, _ = await loop.create_datagram_endpoint(
+        lambda: protocol, local_addr=(config.bind_host, config.bind_port), family=socket.AF_INET
+    )
+    return transport, protocol

@@ -1,0 +1,188 @@
+"""RSI server adapter over real loopback UDP, with plain sockets playing the controller."""
+
+from __future__ import annotations
+
+import asyncio
+import socket
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterator
+from typing import Any
+
+import numpy as np
+import pytest
+
+from comp_daemon.rt.rsi_codec import RobTelegram, SenReply, build_rob, parse_sen
+from comp_daemon.rt.rsi_server import RsiServerConfig, RsiServerProtocol, SampleStats, start_rsi_server
+
+AK = (0.001, -0.002, 0.0, 0.0, 0.0, 0.0)
+
+
+def step(t: RobTelegram) -> SenReply:
+    return SenReply(t.ipoc, AK)
+
+
+def telegram(ipoc: int, delay: int = 0) -> bytes:
+    return build_rob(
+        ipoc, (0.0, -90.0, 90.0, 0.0, 90.0, 0.0), (0.0, -90.0, 90.0, 0.0, 90.0, 0.0), delay=delay
+    )
+
+
+@pytest.fixture
+def controller_sock() -> Iterator[socket.socket]:
+    s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    s.bind(("127.0.0.1", 0))
+    s.setblocking(False)
+    yield s
+    s.close()
+
+
+Server = tuple[asyncio.DatagramTransport, RsiServerProtocol, tuple[str, int]]
+MakeServer = Callable[..., Awaitable[Server]]
+
+
+@pytest.fixture
+async def make_server() -> AsyncIterator[MakeServer]:
+    made: list[asyncio.DatagramTransport] = []
+
+    async def make(handler: Callable[[RobTelegram], SenReply] = step, **settings: Any) -> Server:
+        config = RsiServerConfig(
+            **{"controller_host": "127.0.0.1", "bind_host": "127.0.0.1", "bind_port": 0, **settings}
+        )
+        transport, protocol = await start_rsi_server(handler, config)
+        made.append(transport)
+        return transport, protocol, transport.get_extra_info("sockname")[:2]
+
+    yield make
+    for t in made:
+        t.close()
+    await asyncio.sleep(0)
+
+
+async def recv(sock: socket.socket, timeout: float = 1.0) -> bytes:
+    loop = asyncio.get_running_loop()
+    data, _ = await asyncio.wait_for(loop.sock_recvfrom(sock, 4096), timeout)
+    return data
+
+
+async def nothing_arrives(sock: socket.socket, wait_s: float = 0.15) -> bool:
+    try:
+        await recv(sock, wait_s)
+    except TimeoutError:
+        return True
+    return False
+
+
+async def test_reply_echoes_ipoc_with_handler_correction(
+    make_server: MakeServer, controller_sock: socket.socket
+) -> None:
+    _, proto, addr = await make_server()
+    controller_sock.sendto(telegram(5490270, delay=2), addr)
+    reply = parse_sen(await recv(controller_sock))
+    assert reply == SenReply(5490270, AK, False, "ImFree")
+    s = proto.stats
+    assert (s.received, s.answered, s.garbled, s.foreign, s.superseded) == (1, 1, 0, 0, 0)
+    assert s.controller_delay == 2
+    assert s.latency.count == 1 and s.latency.max is not None and s.latency.max > 0
+
+
+async def test_foreign_port_and_foreign_host_are_never_answered(
+    make_server: MakeServer, controller_sock: socket.socket
+) -> None:
+    _, proto, addr = await make_server(controller_port=controller_sock.getsockname()[1])
+    other = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    other_host = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    try:
+        other.bind(("127.0.0.1", 0))
+        other.setblocking(False)
+        other_host.bind(("127.0.0.2", 0))
+        other_host.setblocking(False)
+        other.sendto(telegram(12), addr)
+        other_host.sendto(telegram(12), addr)
+        assert await nothing_arrives(other)
+        assert await nothing_arrives(other_host, 0.01)
+        assert proto.stats.foreign == 2 and proto.stats.answered == 0
+        controller_sock.sendto(telegram(24), addr)
+        assert parse_sen(await recv(controller_sock)).ipoc == 24
+    finally:
+        other.close()
+        other_host.close()
+
+
+async def test_only_the_newest_of_queued_telegrams_is_answered(
+    make_server: MakeServer, controller_sock: socket.socket
+) -> None:
+    seen: list[int] = []
+
+    def handler(t: RobTelegram) -> SenReply:
+        seen.append(t.ipoc)
+        return SenReply(t.ipoc, AK)
+
+    _, proto, addr = await make_server(handler)
+    for ipoc in (12, 24, 36):  # queued before the loop can run: no await in between
+        controller_sock.sendto(telegram(ipoc), addr)
+    assert parse_sen(await recv(controller_sock)).ipoc == 36
+    assert await nothing_arrives(controller_sock)
+    assert seen == [36]
+    assert (proto.stats.received, proto.stats.answered, proto.stats.superseded) == (3, 1, 2)
+
+
+async def test_garbled_telegram_is_counted_not_answered(
+    make_server: MakeServer, controller_sock: socket.socket
+) -> None:
+    _, proto, addr = await make_server()
+    controller_sock.sendto(b"<Rob><IPOC>12</IPOC>", addr)
+    assert await nothing_arrives(controller_sock)
+    assert proto.stats.garbled == 1 and proto.stats.answered == 0
+    controller_sock.sendto(telegram(24), addr)
+    assert parse_sen(await recv(controller_sock)).ipoc == 24
+
+
+@pytest.mark.parametrize("bug", ["raises", "wrong_ipoc", "nan"])
+async def test_handler_bug_answers_zero_correction_and_stop(
+    make_server: MakeServer, controller_sock: socket.socket, bug: str
+) -> None:
+    def handler(t: RobTelegram) -> SenReply:
+        if bug == "raises":
+            raise ZeroDivisionError("controller bug")
+        if bug == "wrong_ipoc":
+            return SenReply(t.ipoc - 12, AK)
+        return SenReply(t.ipoc, (float("nan"),) * 6)
+
+    _, proto, addr = await make_server(handler)
+    controller_sock.sendto(telegram(120), addr)
+    reply = parse_sen(await recv(controller_sock))
+    assert reply == SenReply(120, (0.0,) * 6, True, "ImFree")
+    assert proto.stats.handler_errors == 1
+
+
+async def test_latency_jitter_late_and_skipped_cycles_with_injected_clock(
+    controller_sock: socket.socket,
+) -> None:
+    # Clock readings: (rx, tx) per answered telegram, in ns.
+    readings = iter([0, 100_000, 12_500_000, 12_600_000, 36_000_000, 56_000_000])
+    config = RsiServerConfig("127.0.0.1", bind_host="127.0.0.1", bind_port=0, cycle_ms=12.0)
+    transport, proto = await start_rsi_server(step, config, clock=lambda: next(readings))
+    addr = transport.get_extra_info("sockname")[:2]
+    try:
+        for ipoc in (12, 24, 48):  # 36 is missing: one skipped cycle
+            controller_sock.sendto(telegram(ipoc), addr)
+            await recv(controller_sock)
+        s = proto.stats
+        assert list(s.latency.recent()) == [100_000, 100_000, 20_000_000]
+        assert s.late == 1  # 20 ms > cycle_ms
+        assert list(s.jitter.recent()) == [500_000, -500_000]  # 12.5 ms for 12; 23.5 ms for 24
+        assert s.ipoc_skipped == 1
+        snap = s.snapshot()
+        assert snap["answered"] == 3 and snap["latency"]["max_ns"] == 20_000_000
+        assert snap["latency"]["histogram_le_ns"]["100000"] == 2
+    finally:
+        transport.close()
+
+
+def test_sample_stats_ring_keeps_the_latest_values() -> None:
+    st = SampleStats(size=4)
+    for v in range(10):
+        st.record(v * 1000)
+    assert list(st.recent()) == [6000, 7000, 8000, 9000]
+    assert st.count == 10 and st.min == 0 and st.max == 9000 and st.sum == 45000
+    assert st.percentiles((50.0,)) == {"p50": float(np.median([6000, 7000, 8000, 9000]))}
+    assert sum(st.histogram) == 10
