@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from comp_daemon import __version__
 
-COMMAND_MODULES: tuple[str, ...] = ("robot", "data")
+COMMAND_MODULES: tuple[str, ...] = ("robot", "data", "sim")
 
 
 class UserError(Exception):

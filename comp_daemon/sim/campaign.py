@@ -1,0 +1,346 @@
+"""Measurement campaigns on the simulated cell: sampling, ISO 9283 multi-direction test, raw error figures.
+
+Sampling (seeds 000 and 001): a Latin hypercube over the six dimensions x, y, z (the scenario's box,
+robot base frame, mm) and A, B, C (its ranges, deg; KUKA angles of the tool frame, whose x is the
+flange's z, see :data:`FLANGE_R_KUKA_TOOL`). Inverse kinematics of the *nominal* robot (what the
+controller computes) turns each target into commanded axis values; a target without a solution
+inside the axis limits is redrawn uniformly. The poses are visited along a nearest-neighbour route
+(in axis travel time) by the plant's PTP motion, one block per payload, so the ``dir`` columns
+come from the motion. At each pose the plant settles, dwells, and the tracker measures the TCP.
+
+ISO 9283 (7.2.4 multi-directional pose accuracy variation, 7.2.3 pose repeatability): poses on the
+box diagonal, each approached ``n_cycles`` times from three mutually perpendicular directions
+(start points ``approach_mm`` along +x, +y, +z of the base frame). ``vAP`` is the largest distance
+between the barycentres of the three directions; ``RP = l̄ + 3·S_l`` the repeatability of one
+direction (l: distances of the attained positions to their barycentre).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from numpy.typing import NDArray
+from scipy.stats import qmc
+
+from comp_daemon.data.dataset import Dataset
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg, solve_ik
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
+from comp_daemon.sim.plant import RobotPlant
+from comp_daemon.sim.scenario import Scenario
+from comp_daemon.sim.tracker import LaserTracker
+
+__all__ = [
+    "FLANGE_R_KUKA_TOOL",
+    "GRATING_RESOLUTION_MM",
+    "Iso9283Result",
+    "RawErrorStats",
+    "SampledPoses",
+    "iso9283_multidirection",
+    "measure_at",
+    "nearest_neighbour_route",
+    "raw_error_stats",
+    "run_campaign",
+    "sample_poses",
+    "solve_axes",
+]
+
+# KUKA's tool frame in the flange frame of the robot files (z out of the flange): x_tool = z_flange,
+# y_tool = y_flange, z_tool = −x_flange, i.e. Ry(−90°).
+FLANGE_R_KUKA_TOOL = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+GRATING_RESOLUTION_MM = 50e-6
+DT_S = 0.012
+
+
+@dataclass(frozen=True, slots=True)
+class SampledPoses:
+    target_xyz_mm: NDArray[np.float64]  # (n, 3) robot base frame
+    target_abc_deg: NDArray[np.float64]  # (n, 3)
+    a_deg: NDArray[np.float64]  # (n, 6) commanded axis values (nominal inverse kinematics)
+    redrawn: int  # targets that had to be drawn again (unreachable)
+
+
+def _limits_q_rad(params: KinematicParams, limits_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+    return np.sort(axes_deg_to_q_rad(limits_deg, params.sign[:, None]), axis=1)
+
+
+def solve_axes(
+    scenario: Scenario,
+    xyz_mm: NDArray[np.float64],
+    abc_deg: NDArray[np.float64],
+    seed_axes_deg: NDArray[np.float64] | None = None,
+) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
+    """Nominal IK of TCP targets (xyz, KUKA A/B/C); returns axis values (n, 6) deg and ok (n,)."""
+    params: KinematicParams = scenario.robot.nominal_params()
+    limits = _limits_q_rad(params, scenario.robot.axis_limits_deg)
+    target_r = rotation_kuka_abc_deg(abc_deg) @ FLANGE_R_KUKA_TOOL.T
+    seed = scenario.campaign.home_deg if seed_axes_deg is None else seed_axes_deg
+    q_seed = np.broadcast_to(axes_deg_to_q_rad(np.asarray(seed, dtype=float), params.sign), (len(xyz_mm), 6))
+    res = solve_ik(params, limits, xyz_mm, target_r, q_seed)
+    return q_rad_to_axes_deg(res.q_rad, params.sign), res.ok
+
+
+def sample_poses(scenario: Scenario, n: int, rng: np.random.Generator, max_rounds: int = 20) -> SampledPoses:
+    """``n`` Latin-hypercube targets in the scenario's box and A/B/C ranges, with their axis values."""
+    if n < 1:
+        raise ValueError(f"n: need at least one pose, got {n}")
+    cam = scenario.campaign
+    lo = np.concatenate([cam.box_min_mm, cam.abc_min_deg])
+    hi = np.concatenate([cam.box_max_mm, cam.abc_max_deg])
+    unit = qmc.LatinHypercube(d=6, seed=rng).random(n)
+    x = lo + unit * (hi - lo)
+    a_deg, ok = solve_axes(scenario, x[:, :3], x[:, 3:])
+    redrawn = 0
+    for _ in range(max_rounds):
+        bad = np.flatnonzero(~ok)
+        if bad.size == 0:
+            break
+        redrawn += bad.size
+        x[bad] = lo + rng.random((bad.size, 6)) * (hi - lo)
+        a_deg[bad], ok[bad] = solve_axes(scenario, x[bad, :3], x[bad, 3:])
+    if not ok.all():
+        raise ValueError(
+            f"scenario {scenario.name}: {int((~ok).sum())} targets stay unreachable after {max_rounds} "
+            "redraws; the box or the A/B/C ranges lie outside the workspace"
+        )
+    return SampledPoses(x[:, :3].copy(), x[:, 3:].copy(), a_deg, redrawn)
+
+
+def nearest_neighbour_route(
+    a_deg: NDArray[np.float64], start_deg: NDArray[np.float64], v_max_deg_s: NDArray[np.float64]
+) -> NDArray[np.intp]:
+    """Visiting order: always the unvisited pose with the shortest synchronous PTP time (max |Δ|/v)."""
+    n = len(a_deg)
+    order = np.empty(n, dtype=np.intp)
+    left = np.ones(n, dtype=bool)
+    here = np.asarray(start_deg, dtype=float)
+    for k in range(n):
+        cost = np.abs(a_deg - here) / v_max_deg_s
+        time = np.where(left, cost.max(axis=1), np.inf)
+        nxt = int(np.argmin(time))
+        order[k] = nxt
+        left[nxt] = False
+        here = a_deg[nxt]
+    return order
+
+
+@dataclass(frozen=True, slots=True)
+class Measurement:
+    xyz_mm: NDArray[np.float64]  # (3,) tracker reading
+    tcp_true_mm: NDArray[np.float64]  # (3,) robot base frame, noise-free
+    dir: NDArray[np.int8]  # (6,)
+    g_deg: NDArray[np.float64]  # (6,) grating reading (quantised output angle)
+    t_s: float
+    temp_c: float
+
+
+def measure_at(
+    plant: RobotPlant, tracker: LaserTracker, a_deg: NDArray[np.float64], dwell_s: float, radius_mm: float
+) -> Measurement:
+    """Move to ``a_deg``, settle, dwell, and measure (tracker, directions, gratings, time, temperature)."""
+    plant.move_to(a_deg)
+    plant.run_until_settled(DT_S)
+    if dwell_s > 0.0:
+        plant.step(dwell_s)
+    true = plant.tcp_true_mm()
+    out = plant.output_angles_deg()
+    counts = np.round(np.deg2rad(out) * radius_mm / GRATING_RESOLUTION_MM)
+    return Measurement(
+        xyz_mm=tracker.measure(true),
+        tcp_true_mm=true,
+        dir=plant.approach_dir(),
+        g_deg=np.rad2deg(counts * GRATING_RESOLUTION_MM / radius_mm),
+        t_s=plant.time_s,
+        temp_c=plant.temperature_c(),
+    )
+
+
+def _tracker(scenario: Scenario, seed: int, in_tracker_frame: bool) -> LaserTracker:
+    frame = scenario.tracker_T_base() if in_tracker_frame else np.eye(4)
+    return LaserTracker(scenario.noise.tracker_sigma_mm, frame, seed=seed)
+
+
+def run_campaign(
+    scenario: Scenario,
+    n: int,
+    *,
+    seed: int | None = None,
+    repeats: int | None = None,
+    in_tracker_frame: bool = False,
+    gratings: bool = True,
+) -> Dataset:
+    """A measurement campaign of ``n`` poses (× ``repeats``) on the scenario's hidden robot.
+
+    ``seed`` (default: the scenario's campaign seed) drives the poses, the payload assignment, the
+    split and all noise; the hidden robot is the scenario's own. ``in_tracker_frame`` reports
+    x, y, z in the tracker frame of ``[cell]`` instead of the robot base frame. ``gratings`` adds
+    g columns for the scenario's grating joints.
+    """
+    cam = scenario.campaign
+    seed = cam.seed if seed is None else seed
+    repeats = cam.repeats if repeats is None else repeats
+    if repeats < 1:
+        raise ValueError(f"repeats: must be >= 1, got {repeats}")
+    rng = np.random.default_rng(seed)
+    poses = sample_poses(scenario, n, rng)
+    payload_of_pose = rng.permutation(np.resize(np.asarray(cam.payload_kg), n))
+    split_of_pose = np.full(n, "fit", dtype="<U5")
+    n_check = round(cam.check_fraction * n)
+    split_of_pose[rng.permutation(n)[:n_check]] = "check"
+
+    plant = RobotPlant.from_scenario(scenario, seed=seed + 1)
+    tracker = _tracker(scenario, seed + 2, in_tracker_frame)
+    order_parts = []
+    here = cam.home_deg
+    for load in cam.payload_kg:
+        members = np.flatnonzero(payload_of_pose == load)
+        if members.size == 0:
+            continue
+        sub = members[nearest_neighbour_route(poses.a_deg[members], here, scenario.motion.v_max_deg_s)]
+        order_parts.append(sub)
+        here = poses.a_deg[sub[-1]]
+    order = np.concatenate(order_parts)
+
+    rows_pose: list[int] = []
+    rows_rep: list[int] = []
+    meas: list[Measurement] = []
+    for rep in range(repeats):
+        for pose in order:
+            if plant.payload_kg != payload_of_pose[pose]:
+                plant.set_payload(float(payload_of_pose[pose]))
+            meas.append(
+                measure_at(
+                    plant,
+                    tracker,
+                    poses.a_deg[pose],
+                    scenario.motion.dwell_s,
+                    scenario.cell.grating_radius_mm,
+                )
+            )
+            rows_pose.append(int(pose))
+            rows_rep.append(rep)
+    idx = np.array(rows_pose)
+    g_deg = None
+    if gratings and scenario.cell.grating_joints:
+        g_deg = np.full((len(idx), 6), np.nan)
+        cols = np.array(scenario.cell.grating_joints) - 1
+        g_deg[:, cols] = np.array([m.g_deg for m in meas])[:, cols]
+    return Dataset(
+        a_deg=poses.a_deg[idx],
+        xyz_mm=np.array([m.xyz_mm for m in meas]),
+        dir=np.array([m.dir for m in meas]),
+        g_deg=g_deg,
+        payload_kg=payload_of_pose[idx],
+        temp_c=np.array([m.temp_c for m in meas]),
+        t_s=np.array([m.t_s for m in meas]),
+        split=split_of_pose[idx],
+        repeat=np.array(rows_rep),
+        pose_id=tuple(f"p{p + 1:04d}" for p in idx),
+        target_xyz_mm=poses.target_xyz_mm[idx],
+        target_abc_deg=poses.target_abc_deg[idx],
+        source=f"sim:{scenario.name}:seed{seed}",
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class RawErrorStats:
+    """Distances between the tracker and the nominal twin at the commanded axis values (mm)."""
+
+    n: int
+    max_mm: float
+    mean_mm: float
+    rms_mm: float
+    axis_mean_mm: NDArray[np.float64]  # (3,) signed mean per x, y, z
+    axis_max_abs_mm: NDArray[np.float64]  # (3,)
+
+
+def raw_error_stats(scenario: Scenario, dataset: Dataset) -> RawErrorStats:
+    """Raw error of a data set measured in the robot base frame: measured − nominal FK."""
+    if dataset.a_deg is None or dataset.xyz_mm is None:
+        raise ValueError("raw_error_stats: the data set needs a1..a6 and x, y, z")
+    params: KinematicParams = scenario.robot.nominal_params()
+    nominal = tcp_position_mm(params, axes_deg_to_q_rad(dataset.a_deg, params.sign))
+    err = dataset.xyz_mm - nominal
+    dist = np.linalg.norm(err, axis=1)
+    return RawErrorStats(
+        n=len(dist),
+        max_mm=float(dist.max()),
+        mean_mm=float(dist.mean()),
+        rms_mm=float(np.sqrt(np.mean(dist**2))),
+        axis_mean_mm=err.mean(axis=0),
+        axis_max_abs_mm=np.abs(err).max(axis=0),
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class Iso9283Result:
+    points_mm: NDArray[np.float64]  # (p, 3) test poses
+    vap_mm: NDArray[np.float64]  # (p,) multi-directional pose accuracy variation
+    rp_mm: NDArray[np.float64]  # (p, 3) unidirectional pose repeatability per direction
+    positions_mm: NDArray[np.float64]  # (p, 3, cycles, 3) attained positions (tracker)
+    dirs: NDArray[np.int8]  # (p, 3, 6) approach directions of the axes (first cycle)
+
+    @property
+    def ratio(self) -> NDArray[np.float64]:
+        """vAP / RP per pose (RP: the largest of the three directions)."""
+        return self.vap_mm / self.rp_mm.max(axis=1)
+
+
+def _rp(positions: NDArray[np.float64]) -> NDArray[np.float64]:
+    """ISO 9283 pose repeatability of (..., cycles, 3) positions: l̄ + 3·S_l."""
+    bary = positions.mean(axis=-2, keepdims=True)
+    dist = np.linalg.norm(positions - bary, axis=-1)
+    return dist.mean(axis=-1) + 3.0 * dist.std(axis=-1, ddof=1)
+
+
+def iso9283_multidirection(
+    scenario: Scenario,
+    *,
+    seed: int = 0,
+    n_cycles: int = 30,
+    approach_mm: float = 100.0,
+    fractions: tuple[float, ...] = (0.2, 0.5, 0.8),
+    payload_kg: float = 0.0,
+) -> Iso9283Result:
+    """ISO 9283 multi-directional pose accuracy variation on the scenario's hidden robot.
+
+    Test poses at ``fractions`` of the box diagonal with the A/B/C ranges' centre orientation;
+    each cycle approaches every pose from +x, +y and +z (``approach_mm`` away) in turn, after one
+    unrecorded warm-up cycle (so that every recorded approach has the same motion history).
+    """
+    if n_cycles < 2:
+        raise ValueError(f"n_cycles: at least 2 are needed for a repeatability, got {n_cycles}")
+    cam = scenario.campaign
+    points = np.array([cam.box_min_mm + f * (cam.box_max_mm - cam.box_min_mm) for f in fractions])
+    abc = 0.5 * (cam.abc_min_deg + cam.abc_max_deg)
+    offsets = np.eye(3) * approach_mm
+    targets = np.concatenate([points[:, None, :], points[:, None, :] + offsets[None]], axis=1)  # (p, 4, 3)
+    flat = targets.reshape(-1, 3)
+    a_flat, ok = solve_axes(scenario, flat, np.broadcast_to(abc, flat.shape))
+    if not ok.all():
+        raise ValueError(f"scenario {scenario.name}: ISO 9283 test poses not reachable")
+    a_deg = a_flat.reshape(len(points), 4, 6)
+    plant = RobotPlant.from_scenario(scenario, seed=seed + 1, payload_kg=payload_kg)
+    tracker = _tracker(scenario, seed + 2, False)
+    positions = np.empty((len(points), 3, n_cycles, 3))
+    dirs = np.zeros((len(points), 3, 6), dtype=np.int8)
+    radius = scenario.cell.grating_radius_mm
+    for p in range(len(points)):
+        for cycle in range(-1, n_cycles):  # cycle −1 is an unrecorded warm-up of the same sequence
+            for d in range(3):
+                measure_at(plant, tracker, a_deg[p, 1 + d], 0.0, radius)
+                m = measure_at(plant, tracker, a_deg[p, 0], scenario.motion.dwell_s, radius)
+                if cycle >= 0:
+                    positions[p, d, cycle] = m.xyz_mm
+                if cycle == 0:
+                    dirs[p, d] = m.dir
+    bary = positions.mean(axis=2)  # (p, 3 directions, 3)
+    gaps = np.linalg.norm(bary[:, :, None, :] - bary[:, None, :, :], axis=-1)
+    return Iso9283Result(
+        points_mm=points,
+        vap_mm=gaps.max(axis=(1, 2)),
+        rp_mm=_rp(positions),
+        positions_mm=positions,
+        dirs=dirs,
+    )
