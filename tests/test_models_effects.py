@@ -237,3 +237,22 @@ def test_names_get_and_with_values_round_trip() -> None:
 def test_bad_input_is_named(make, match: str) -> None:
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_compliance_columns_are_not_zero_where_every_compliance_is_zero() -> None:
+    """d tcp / d C_j at C = 0 is J_theta · tau, not 0."""
+    from comp_daemon.models.effects import EffectParams, effect_jacobian, twin_tcp_mm
+    from comp_daemon.robot.description import load_robot
+
+    robot = load_robot("kr210")
+    params = robot.nominal_params()
+    a = np.array([[0.0, -90.0, 90.0, 0.0, 30.0, 0.0], [10.0, -60.0, 100.0, 20.0, -30.0, 45.0]])
+    zero = EffectParams.zeros()
+    jac = effect_jacobian(robot, params, zero, ["C2", "C3"], a, payload_kg=50.0)
+    h = 1e-9
+    for k, name in enumerate(["C2", "C3"]):
+        plus = twin_tcp_mm(robot, params, zero.with_values([name], np.array([h])), a, payload_kg=50.0)
+        minus = twin_tcp_mm(robot, params, zero.with_values([name], np.array([-h])), a, payload_kg=50.0)
+        num = (plus - minus) / (2 * h)
+        assert np.abs(num).max() > 1.0
+        np.testing.assert_allclose(jac[:, :, k], num, rtol=1e-5, atol=1e-3)

@@ -327,8 +327,14 @@ def twin_state(
     dir: NDArray[np.float64] | None = None,
     payload_kg: NDArray[np.float64] | float = 0.0,
     temp_c: NDArray[np.float64] | None = None,
+    *,
+    with_torques: bool = False,
 ) -> TwinState:
-    """The twin of n poses with every intermediate kept; see the module docstring for the model."""
+    """The twin of n poses with every intermediate kept; see the module docstring for the model.
+
+    Gravity torques are computed when some compliance is non-zero or ``with_torques`` asks for them
+    (a Jacobian w.r.t. a compliance needs them even where every compliance is zero).
+    """
     mass = _mass_model(robot_or_arrays)
     a, d, payload, temp = _check_inputs(a_deg, dir, payload_kg, temp_c)
     n = a.shape[0]
@@ -336,7 +342,7 @@ def twin_state(
     if effects.n_harmonics:
         a_eff = a_eff + _cyclic_deg(effects, a)
     q = params.sign * np.deg2rad(a_eff)
-    if np.any(effects.compliance_rad_per_nm != 0.0):
+    if with_torques or np.any(effects.compliance_rad_per_nm != 0.0):
         q_cmd = params.sign * np.deg2rad(a)
         tau = gravity_torques_nm(params, q_cmd, mass.link_mass_kg, mass.link_com_mm, payload)
         q = q + effects.compliance_rad_per_nm * tau
@@ -438,6 +444,10 @@ def _effect_columns(
     return out
 
 
+def _needs_torques(names: Sequence[str]) -> bool:
+    return any(name.startswith("C") for name in names)
+
+
 def effect_jacobian(
     robot_or_arrays: RobotDescription | MassModel,
     params: KinematicParams,
@@ -452,7 +462,9 @@ def effect_jacobian(
 
     Columns are in mm per the parameter's unit (module docstring); exact for every name.
     """
-    st = twin_state(robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c)
+    st = twin_state(
+        robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, with_torques=_needs_torques(names)
+    )
     geo, j_theta = _jacobians(params, effects, st)
     return _effect_columns(params, effects, st, names, geo, j_theta)
 
@@ -472,7 +484,9 @@ def twin_jacobian(
     The geometric block is the derivative w.r.t. :meth:`KinematicParams.apply`'s vector at the
     twin's effective configuration (the gravity torque held fixed, see the module docstring).
     """
-    st = twin_state(robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c)
+    st = twin_state(
+        robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, with_torques=_needs_torques(names)
+    )
     geo, j_theta = _jacobians(params, effects, st)
     eff = _effect_columns(params, effects, st, names, geo, j_theta)
     return st.tcp_mm, np.concatenate([geo, eff], axis=2)
