@@ -1,0 +1,359 @@
+"""``comp-daemon fit | evaluate | compensate``: fit error models, compare them, compensate targets.
+
+- ``fit DATA --robot R --model kinematic|chebyshev [--order m] --out MODEL.json`` fits one model on
+  the data set's fit rows (every row when there is no ``split`` column) and writes the artifact.
+- ``evaluate DATA --robot R --models nominal,kinematic,chebyshev [--json OUT.json]`` fits each
+  model on the fit rows and prints seed 000's Table 2 on the check rows (drawn reproducibly when
+  the file has no ``split`` column).
+- ``compensate MODEL.json TARGETS.csv --out CORRECTED.csv`` writes, for every target, the axis
+  values whose predicted TCP (by the model) is the wanted one.
+
+A model is named ``kind`` or ``kind+effect+…`` (``kinematic+ratio+backlash``: the MDH calibration
+with seed 001's per-joint reduction-ratio error and backlash). Files ending in ``.json`` are read
+as JSON records, anything else as CSV.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from comp_daemon.cli import UserError
+from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
+from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
+from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
+from comp_daemon.models.chebyshev import ChebyshevModel
+from comp_daemon.models.compensation import compensate, nominal_targets
+from comp_daemon.models.effects import EFFECTS, effect_param_names
+from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
+from comp_daemon.models.fitting import FITTABLE_KINDS, fit_model, max_parameters
+from comp_daemon.robot.description import PRESETS, RobotDescription, load_robot
+from comp_daemon.sim.campaign import FLANGE_R_KUKA_TOOL
+
+__all__ = ["register"]
+
+ROBOT_HELP = f"preset ({', '.join(PRESETS)}) or path to a robot TOML file"
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    fit = subparsers.add_parser("fit", help="fit an error model on a measurement data set, write MODEL.json")
+    fit.add_argument("data", metavar="DATA", help="measurement data set (CSV, or .json records)")
+    fit.add_argument("--robot", required=True, help=ROBOT_HELP)
+    fit.add_argument(
+        "--model",
+        required=True,
+        help="kinematic | chebyshev | nominal, or kinematic+ratio+backlash (joint effects of seed 001)",
+    )
+    fit.add_argument("--order", type=int, default=None, help="Chebyshev order (default: cross-validation)")
+    _common(fit)
+    fit.add_argument("--out", required=True, help="model artifact to write (JSON)")
+    fit.set_defaults(func=_fit)
+
+    ev = subparsers.add_parser(
+        "evaluate", help="fit models on fit rows, print seed 000's Table 2 on check rows"
+    )
+    ev.add_argument("data", metavar="DATA", help="measurement data set (CSV, or .json records)")
+    ev.add_argument("--robot", required=True, help=ROBOT_HELP)
+    ev.add_argument(
+        "--models",
+        default="nominal,kinematic,chebyshev",
+        help="comma-separated models (default nominal,kinematic,chebyshev; e.g. kinematic+ratio+backlash)",
+    )
+    ev.add_argument("--order", type=int, default=None, help="Chebyshev order (default: cross-validation)")
+    _common(ev)
+    ev.add_argument("--json", default=None, metavar="OUT.json", help="write the statistics and fits as JSON")
+    ev.set_defaults(func=_evaluate)
+
+    comp = subparsers.add_parser("compensate", help="compensated axis values for targets, by a model")
+    comp.add_argument("model", metavar="MODEL.json", help="model artifact written by 'fit'")
+    comp.add_argument(
+        "targets",
+        metavar="TARGETS.csv",
+        help="targets: a1..a6 (nominal program) or tx,ty,tz[,ta,tb,tc] (robot base frame, mm / KUKA deg)",
+    )
+    comp.add_argument("--out", required=True, metavar="CORRECTED.csv", help="data set of compensated targets")
+    comp.add_argument("--robot", default=None, help="refuse the model unless it belongs to this robot")
+    comp.add_argument(
+        "--tol-mm", type=float, default=1e-6, help="predicted-position tolerance (default 1e-6 mm)"
+    )
+    comp.set_defaults(func=_compensate)
+
+
+def _common(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--frame",
+        choices=("auto", "base", "tracker"),
+        default="auto",
+        help="frame of x, y, z: robot base, tracker (registered first), or auto (default)",
+    )
+    parser.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of the cross-validation folds (default 0)")
+
+
+def _parse_model(token: str) -> tuple[str, list[str]]:
+    parts = [p.strip() for p in token.split("+") if p.strip()]
+    if not parts:
+        raise UserError("empty model name")
+    kind, effects = parts[0], parts[1:]
+    if kind not in FITTABLE_KINDS:
+        raise UserError(f"unknown model '{kind}' (known: {', '.join(FITTABLE_KINDS)})")
+    bad = [e for e in effects if e not in EFFECTS]
+    if bad:
+        raise UserError(f"model '{token}': unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECTS)})")
+    if effects and kind != "kinematic":
+        raise UserError(f"model '{token}': joint effects are offered by the kinematic model only")
+    if len(set(effects)) != len(effects):
+        raise UserError(f"model '{token}': an effect is named twice")
+    return kind, effects
+
+
+def _read(path: str, robot: RobotDescription, min_rows: int, kind: Any) -> Dataset:
+    reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
+    try:
+        return reader(path, limits_deg=robot.axis_limits_deg, min_rows=min_rows, kind=kind)
+    except DatasetError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _min_rows(kind: str, effects: list[str], order: int | None) -> int:
+    n_eff = len(effect_param_names(effects)) if effects else 0
+    return max_parameters(kind, order, n_eff)
+
+
+def _fit_rows(
+    dataset: Dataset, kind: str, effects: list[str], args: argparse.Namespace, rows: np.ndarray
+) -> Any:
+    assert dataset.a_deg is not None and dataset.xyz_mm is not None
+    dir_ = None if dataset.dir is None else dataset.dir[rows].astype(float)
+    temp = None if dataset.temp_c is None else dataset.temp_c[rows]
+    if "backlash" in effects and dir_ is None:
+        raise UserError(f"{dataset.source}: the backlash effect needs the dir1..dir6 columns")
+    if "thermal" in effects and temp is None:
+        raise UserError(f"{dataset.source}: the thermal effect needs the temp_c column")
+    return fit_model(
+        kind,
+        load_robot_cached(args),
+        dataset.a_deg[rows],
+        dataset.xyz_mm[rows],
+        dir=dir_,
+        payload_kg=dataset.payload_kg[rows],
+        temp_c=temp,
+        order=args.order,
+        effects=effects,
+        frame=args.frame,
+        cv_folds=args.folds,
+        seed=args.seed,
+    )
+
+
+def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
+    robot = getattr(args, "_robot", None)
+    if robot is None:
+        robot = load_robot(args.robot)
+        args._robot = robot
+    return robot
+
+
+def _check_order(order: int | None) -> None:
+    if order is not None and not 0 <= order <= 8:
+        raise UserError(f"--order must be between 0 and 8, got {order}")
+
+
+def _fit(args: argparse.Namespace) -> int:
+    kind, effects = _parse_model(args.model)
+    _check_order(args.order)
+    robot = load_robot_cached(args)
+    dataset = _read(args.data, robot, _min_rows(kind, effects, args.order), "measurement")
+    rows = dataset.fit_rows()
+    if len(rows) < 3:
+        raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
+    fitted = _fit_rows(dataset, kind, effects, args, rows)
+    fit_info = dict(fitted.info)
+    fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
+    fit_info["data_source"] = dataset.source
+    if kind == "kinematic" and len(rows) < fitted.info["identifiability"]["identifiable"]:
+        raise UserError(
+            f"{dataset.source}: {len(rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
+            "identifiable parameters"
+        )
+    save_model(fitted.model, args.out, data_sha256=dataset.content_sha256, frame=fitted.frame, fit=fit_info)
+    order = f", order {fitted.model.order}" if fitted.model.order is not None else ""
+    extra = ""
+    if "identifiability" in fitted.info:
+        ident = fitted.info["identifiability"]
+        extra = f", {ident['identifiable']} of {ident['candidates']} parameters identifiable"
+    print(
+        f"{args.model}{order}: {len(rows)} rows ({fitted.frame} frame), "
+        f"fit RMS {fitted.info['rms_mm']:.4f} mm{extra} -> {args.out}"
+    )
+    return 0
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    tokens = [t.strip() for t in args.models.split(",") if t.strip()]
+    if not tokens:
+        raise UserError("--models: name at least one model")
+    if len(set(tokens)) != len(tokens):
+        raise UserError("--models: a model is named twice")
+    parsed = [(t, *_parse_model(t)) for t in tokens]
+    _check_order(args.order)
+    robot = load_robot_cached(args)
+    min_rows = max(_min_rows(kind, eff, args.order) for _, kind, eff in parsed)
+    dataset = _read(args.data, robot, min_rows, "measurement")
+    if len(dataset) < 2:
+        raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
+    split = dataset.split_or_draw()
+    if split.drawn:
+        print(split.message, file=sys.stderr)
+    if len(split.check_rows) == 0:
+        raise UserError(f"{dataset.source}: no check rows to evaluate on")
+    assert dataset.a_deg is not None and dataset.xyz_mm is not None
+    check = split.check_rows
+    dir_check = None if dataset.dir is None else dataset.dir[check].astype(float)
+    temp_check = None if dataset.temp_c is None else dataset.temp_c[check]
+    table: dict[str, dict[str, Any]] = {}
+    fits: dict[str, dict[str, Any]] = {}
+    for token, kind, effects in parsed:
+        fitted = _fit_rows(dataset, kind, effects, args, split.fit_rows)
+        pred = fitted.model.predict_tcp_mm(
+            dataset.a_deg[check], dir_check, dataset.payload_kg[check], temp_check
+        )
+        table[token] = error_statistics(dataset.xyz_mm[check], pred)
+        fits[token] = {"frame": fitted.frame, **fitted.info}
+        if isinstance(fitted.model, ChebyshevModel):
+            fits[token]["check_rows_outside_range"] = int(
+                fitted.model.outside_range(dataset.a_deg[check]).sum()
+            )
+    print(
+        f"{dataset.source}: {len(split.fit_rows)} fit rows, {len(check)} check rows; "
+        "error = measured - model (mm)"
+    )
+    print(format_table2(table))
+    ref = "; ".join(
+        f"{k} " + "/".join(f"{s} {v:.2f}" for s, v in row.items()) for k, row in SEED000_TABLE2_MM.items()
+    )
+    print(f"seed 000 Table 2 (3-D, KR210, 104 points): {ref}")
+    if args.json:
+        doc = {
+            "data": dataset.source,
+            "data_sha256": dataset.content_sha256,
+            "robot": {"name": robot.name, "sha256": robot.sha256},
+            "split": {
+                "drawn": split.drawn,
+                "seed": split.seed,
+                "fit_rows": len(split.fit_rows),
+                "check_rows": len(check),
+                "message": split.message,
+            },
+            "error_definition": "measured - predicted, mm; per axis signed mean/std and max |component|; "
+            "3-D |error| mean/std/max (seed 000 eq. 27)",
+            "table2": table,
+            "fits": fits,
+            "seed000_table2_mm": SEED000_TABLE2_MM,
+        }
+        _write_json(args.json, doc)
+    return 0
+
+
+def _write_json(path: str, doc: dict[str, Any]) -> None:
+    text = json.dumps(doc, indent=1, allow_nan=False, default=_json_default) + "\n"
+    dest = Path(path)
+    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as handle:
+            handle.write(text)
+        os.replace(tmp, dest)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    raise TypeError(f"not JSON serialisable: {type(value).__name__}")
+
+
+def _compensate(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot) if args.robot else None
+    try:
+        loaded = load_model(args.model, robot)
+    except ModelArtifactError as exc:
+        raise UserError(str(exc)) from None
+    model = loaded.model
+    targets = _read(args.targets, model.robot, 0, "targets")
+    n = len(targets)
+    if n == 0:
+        raise UserError(f"{targets.source}: no targets")
+    if targets.target_xyz_mm is not None:
+        wanted = np.asarray(targets.target_xyz_mm)
+        rot = None
+        if targets.target_abc_deg is not None:
+            rot = rotation_kuka_abc_deg(targets.target_abc_deg) @ FLANGE_R_KUKA_TOOL.T
+        seed = targets.a_deg
+        if seed is None:
+            seed = np.broadcast_to(model.robot.axis_limits_deg.mean(axis=1), (n, 6))
+    else:
+        assert targets.a_deg is not None
+        wanted, rot = nominal_targets(model, targets.a_deg)
+        seed = targets.a_deg
+    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    try:
+        result = compensate(
+            model,
+            wanted,
+            rot,
+            a_seed_deg=seed,
+            dir=dir_,
+            payload_kg=targets.payload_kg,
+            temp_c=targets.temp_c,
+            tol_mm=args.tol_mm,
+        )
+    except UnreachableTargetError as exc:
+        raise UserError(f"{targets.source}: {exc}") from None
+    if not result.converged:
+        worst = int(np.argmax(result.residual_mm))
+        raise UserError(
+            f"{targets.source}: compensation did not converge (row {int(targets.row_numbers[worst])}: "
+            f"{result.residual_mm[worst]:.3g} mm left after {result.iterations} iterations)"
+        )
+    extra = dict(targets.extra)
+    for k in range(6):
+        extra[f"da{k + 1}"] = tuple(
+            repr(float(v)) for v in result.a_deg[:, k] - result.a_uncompensated_deg[:, k]
+        )
+    extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
+    extra["model_kind"] = (model.kind,) * n
+    out = Dataset(
+        a_deg=result.a_deg,
+        dir=targets.dir,
+        payload_kg=targets.payload_kg,
+        temp_c=targets.temp_c,
+        pose_id=targets.pose_id,
+        target_xyz_mm=wanted,
+        target_abc_deg=targets.target_abc_deg,
+        extra=extra,
+        source=args.out,
+    )
+    write_dataset(out, args.out)
+    outside = ""
+    if isinstance(model, ChebyshevModel) and model.order > 0:
+        n_out = int(model.outside_range(result.a_deg).sum())
+        if n_out:
+            outside = f"; {n_out} outside the fitted joint ranges (error held at the range edge)"
+    print(
+        f"{n} targets compensated with the {model.kind} model in {result.iterations} iterations "
+        f"(max predicted error {result.residual_mm.max():.2e} mm, "
+        f"max axis change {np.abs(result.a_deg - result.a_uncompensated_deg).max():.4f} deg)"
+        f"{outside} -> {args.out}"
+    )
+    return 0

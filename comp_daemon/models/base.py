@@ -1,0 +1,119 @@
+"""The interface every error model offers, and the nominal model.
+
+An error model predicts where the TCP really is (mm, in the measurement frame ``world``) when the
+controller is commanded to axis values ``a_deg`` (n, 6; controller convention), optionally with the
+approach directions ``dir`` (n, 6; −1/+1, 0 unknown), the payload (kg) and the temperature (°C):
+``predict_tcp_mm(a_deg, dir, payload_kg, temp_c) -> (n, 3)``. Models that ignore an input accept it.
+
+``registration`` (4, 4) is the robot base frame as registered in the measurement frame before any fit
+(identity when the data are in the robot base frame; the rigid fit of
+:mod:`comp_daemon.models.registration` for a tracker frame): it maps targets given in the robot base
+frame into the measurement frame. ``world_T_base`` is the model's own (possibly calibrated) base frame.
+``ik_params()`` are the kinematic parameters (measurement frame) that the compensation uses to invert
+the commanded axes.
+
+The nominal model is the robot description's geometry, nothing fitted but the frame.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
+from comp_daemon.robot.description import RobotDescription
+
+__all__ = ["ErrorModel", "NominalModel", "as_axes"]
+
+
+def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``a_deg`` as an (n, 6) float array (one pose may be given as (6,))."""
+    a = np.asarray(a_deg, dtype=float)
+    if a.ndim == 1:
+        a = a[None, :]
+    if a.ndim != 2 or a.shape[1] != 6:
+        raise ValueError(f"axis values must have shape (n, 6), got {np.shape(a_deg)}")
+    return a
+
+
+class ErrorModel(ABC):
+    """A fitted (or nominal) model of where the TCP really goes."""
+
+    kind: ClassVar[str]
+    robot: RobotDescription
+    world_T_base: NDArray[np.float64]
+    registration: NDArray[np.float64]
+
+    @abstractmethod
+    def predict_tcp_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        """(n, 3) predicted TCP (mm, measurement frame) at commanded axis values ``a_deg`` (n, 6)."""
+
+    def ik_params(self) -> KinematicParams:
+        """Kinematic parameters (measurement frame) the compensation inverts the axes with."""
+        return self.robot.nominal_params().with_base(self.world_T_base)
+
+    @abstractmethod
+    def to_payload(self) -> dict[str, Any]:
+        """The model's own content (parameters, coefficients) as JSON-ready values."""
+
+    @classmethod
+    @abstractmethod
+    def from_payload(
+        cls,
+        robot: RobotDescription,
+        payload: dict[str, Any],
+        order: int | None,
+        registration: NDArray[np.float64],
+    ) -> ErrorModel:
+        """The model back from :meth:`to_payload`'s content."""
+
+    @property
+    def order(self) -> int | None:
+        return None
+
+
+class NominalModel(ErrorModel):
+    """The robot description's nominal geometry in the frame ``world_T_base``."""
+
+    kind: ClassVar[str] = "nominal"
+
+    def __init__(self, robot: RobotDescription, registration: NDArray[np.float64] | None = None) -> None:
+        self.robot = robot
+        self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
+        self.world_T_base = self.registration
+        self._params = robot.nominal_params().with_base(self.world_T_base)
+
+    def predict_tcp_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        return tcp_position_mm(self._params, axes_deg_to_q_rad(as_axes(a_deg), self._params.sign))
+
+    def ik_params(self) -> KinematicParams:
+        return self._params
+
+    def to_payload(self) -> dict[str, Any]:
+        return {}
+
+    @classmethod
+    def from_payload(
+        cls,
+        robot: RobotDescription,
+        payload: dict[str, Any],
+        order: int | None,
+        registration: NDArray[np.float64],
+    ) -> NominalModel:
+        return cls(robot, registration)
