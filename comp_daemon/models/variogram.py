@@ -1,0 +1,298 @@
+"""Semivariograms of positioning error vs distance (seed 001 §2.1, eqs 12–13), empirical and fitted.
+
+The semivariogram of a field ``z`` (here one component of the positioning error, mm) is half the
+variance of the increment between two points ``h`` apart: ``γ(h) = ½·E[(z(x) − z(x+h))²]``. Its
+empirical estimate (Matheron's, seed 001 eq. 12) over the pairs whose distance falls in bin k is::
+
+    γ̂(h_k) = 1 / (2·N(h_k)) · Σ_{(i,j) ∈ bin k} (z_i − z_j)²
+
+with ``h_k`` the mean distance of those pairs and ``N(h_k)`` their number. Seed 001 splits the lag
+range into 12 equal bins (Fig. 4); that is the default. Small γ at small lags means "nearby states
+have similar errors" (error similarity); a large value at the first bins (a nugget) means they do
+not.
+
+Distances are whatever the caller's coordinates make them: the joint-space distance of seed 001 is
+the Euclidean distance of axis values in deg (see :mod:`comp_daemon.models.kriging` for the
+direction-aware version). Units: ``h`` in the coordinates' unit, ``γ`` in the value unit squared
+(mm²). Values may have several components (n, k); every component gets its own γ̂ column.
+
+Fitted models (``nugget`` c0, partial sill c, range a; ``γ(0) = 0``, for h > 0)::
+
+    spherical    γ = c0 + c·(1.5·h/a − 0.5·(h/a)³)  for h < a,  c0 + c beyond
+    exponential  γ = c0 + c·(1 − exp(−3h/a))         (a = practical range, 95 % of the sill)
+    gaussian     γ = c0 + c·(1 − exp(−3h²/a²))       (a = practical range)
+
+The correlation of the structured part is ``ρ(h) = 1 − (γ(h) − c0)/c`` for h > 0, ``ρ(0) = 1``.
+The spherical model is a valid covariance only up to three dimensions; in joint space (6 or more
+coordinates) only the exponential and Gaussian models are (:func:`valid_models`).
+
+Fitting is weighted least squares on the bins, with Cressie's weights ``N(h_k)/γ(h_k)²`` (the
+default) or the pair counts ``N(h_k)``.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import scipy.optimize
+from numpy.typing import NDArray
+
+__all__ = [
+    "VARIOGRAM_MODELS",
+    "EmpiricalVariogram",
+    "VariogramModel",
+    "empirical_semivariogram",
+    "fit_variogram",
+    "pairwise_distances",
+    "valid_models",
+]
+
+VARIOGRAM_MODELS: tuple[str, ...] = ("spherical", "exponential", "gaussian")
+Weighting = Literal["cressie", "npairs"]
+
+
+def valid_models(dim: int) -> tuple[str, ...]:
+    """The variogram models that are valid (conditionally negative definite) in ``dim`` dimensions."""
+    return VARIOGRAM_MODELS if dim <= 3 else ("exponential", "gaussian")
+
+
+def pairwise_distances(x: NDArray[np.float64], y: NDArray[np.float64] | None = None) -> NDArray[np.float64]:
+    """(n, m) Euclidean distances between the rows of ``x`` (n, d) and ``y`` (m, d) (``y = x`` if None)."""
+    x = np.asarray(x, dtype=float)
+    yy = x if y is None else np.asarray(y, dtype=float)
+    if x.ndim != 2 or yy.ndim != 2 or x.shape[1] != yy.shape[1]:
+        raise ValueError(f"coordinates must be (n, d) and (m, d), got {x.shape} and {yy.shape}")
+    # |x|² + |y|² − 2 x·y is fast but loses digits for near points; refine with the exact
+    # difference only where that matters (distances below 1e-4 of the coordinate scale)
+    sq = np.einsum("ij,ij->i", x, x)[:, None] + np.einsum("ij,ij->i", yy, yy)[None, :] - 2.0 * (x @ yy.T)
+    np.maximum(sq, 0.0, out=sq)
+    d = np.sqrt(sq)
+    scale = max(float(np.abs(x).max(initial=0.0)), float(np.abs(yy).max(initial=0.0)), 1e-300)
+    near = np.argwhere(d < 1e-4 * scale)
+    if near.size:
+        i, j = near[:, 0], near[:, 1]
+        d[i, j] = np.linalg.norm(x[i] - yy[j], axis=1)
+    if y is None:
+        np.fill_diagonal(d, 0.0)
+    return d
+
+
+@dataclass(frozen=True, slots=True)
+class VariogramModel:
+    """A fitted semivariogram: ``kind``, ``nugget`` and ``psill`` (value unit²), ``range`` (distance unit)."""
+
+    kind: str
+    nugget: float
+    psill: float
+    range: float
+
+    def __post_init__(self) -> None:
+        if self.kind not in VARIOGRAM_MODELS:
+            raise ValueError(f"variogram kind '{self.kind}' unknown (known: {', '.join(VARIOGRAM_MODELS)})")
+        for name in ("nugget", "psill", "range"):
+            value = float(getattr(self, name))
+            if not np.isfinite(value):
+                raise ValueError(f"variogram {name} must be finite, got {value}")
+            object.__setattr__(self, name, value)
+        if self.nugget < 0.0:
+            raise ValueError(f"variogram nugget must be >= 0, got {self.nugget}")
+        if self.psill <= 0.0:
+            raise ValueError(f"variogram partial sill must be > 0, got {self.psill}")
+        if self.range <= 0.0:
+            raise ValueError(f"variogram range must be > 0, got {self.range}")
+
+    @property
+    def sill(self) -> float:
+        return self.nugget + self.psill
+
+    def correlation(self, h: NDArray[np.float64]) -> NDArray[np.float64]:
+        """ρ(h) of the structured part (1 at h = 0, → 0 far away); ``h`` any shape."""
+        return _correlation(self.kind, np.asarray(h, dtype=float), self.range)
+
+    def gamma(self, h: NDArray[np.float64]) -> NDArray[np.float64]:
+        """γ(h) (value unit²); 0 at h = 0, ``nugget + psill·(1 − ρ(h))`` for h > 0."""
+        h = np.asarray(h, dtype=float)
+        out = self.nugget + self.psill * (1.0 - self.correlation(h))
+        return np.where(h > 0.0, out, 0.0)
+
+    def to_dict(self) -> dict[str, Any]:
+        return {"kind": self.kind, "nugget": self.nugget, "psill": self.psill, "range": self.range}
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> VariogramModel:
+        try:
+            return cls(str(data["kind"]), float(data["nugget"]), float(data["psill"]), float(data["range"]))
+        except KeyError as exc:
+            raise ValueError(f"variogram model: missing field {exc.args[0]!r}") from None
+
+
+def _correlation(kind: str, h: NDArray[np.float64], a: float) -> NDArray[np.float64]:
+    r = np.abs(h) / a
+    if kind == "spherical":
+        return np.where(r < 1.0, 1.0 - 1.5 * r + 0.5 * r**3, 0.0)
+    if kind == "exponential":
+        return np.exp(-3.0 * r)
+    return np.exp(-3.0 * r * r)
+
+
+@dataclass(frozen=True, slots=True)
+class EmpiricalVariogram:
+    """Binned semivariance: per bin the mean lag, γ̂ per component (k columns) and the pair count."""
+
+    edges: NDArray[np.float64]  # (n_bins + 1,)
+    lag: NDArray[np.float64]  # (n_bins,) mean pair distance in the bin (bin centre if empty)
+    gamma: NDArray[np.float64]  # (n_bins, k) semivariance, NaN where the bin is empty
+    count: NDArray[np.int64]  # (n_bins,) number of pairs
+
+    @property
+    def n_components(self) -> int:
+        return int(self.gamma.shape[1])
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "edges": self.edges.tolist(),
+            "lag": self.lag.tolist(),
+            "gamma": [[None if not np.isfinite(v) else float(v) for v in row] for row in self.gamma],
+            "count": self.count.tolist(),
+        }
+
+
+def empirical_semivariogram(
+    coords: NDArray[np.float64] | None,
+    values: NDArray[np.float64],
+    *,
+    n_bins: int = 12,
+    max_lag: float | None = None,
+    distances: NDArray[np.float64] | None = None,
+) -> EmpiricalVariogram:
+    """Seed 001 eq. 12 over all pairs of the n points, in ``n_bins`` equal bins of ``[0, max_lag]``.
+
+    ``coords`` (n, d) or precomputed ``distances`` (n, n); ``values`` (n,) or (n, k). ``max_lag``
+    defaults to half the largest pair distance (pairs farther apart are few and say nothing about
+    similarity; seed 001's Fig. 4 bins the whole range: pass ``max_lag=np.inf`` for that).
+    """
+    z = np.asarray(values, dtype=float)
+    if z.ndim == 1:
+        z = z[:, None]
+    if z.ndim != 2:
+        raise ValueError(f"values must be (n,) or (n, k), got shape {np.shape(values)}")
+    n = z.shape[0]
+    if n < 2:
+        raise ValueError(f"a semivariogram needs at least 2 points, got {n}")
+    if not np.all(np.isfinite(z)):
+        raise ValueError("values must be finite")
+    if n_bins < 1:
+        raise ValueError(f"n_bins must be >= 1, got {n_bins}")
+    if distances is None:
+        if coords is None:
+            raise ValueError("give coords or distances")
+        dist = pairwise_distances(np.asarray(coords, dtype=float))
+    else:
+        dist = np.asarray(distances, dtype=float)
+    if dist.shape != (n, n):
+        raise ValueError(f"distances must be ({n}, {n}) for {n} values, got {dist.shape}")
+    iu, ju = np.triu_indices(n, k=1)
+    h = dist[iu, ju]
+    top = 0.5 * float(h.max()) if max_lag is None else min(float(max_lag), float(h.max()))
+    if not top > 0.0:
+        raise ValueError("max_lag must be > 0 (are all points identical?)")
+    edges = np.linspace(0.0, top, n_bins + 1)
+    keep = h <= top
+    h, iu, ju = h[keep], iu[keep], ju[keep]
+    b = np.minimum(np.searchsorted(edges, h, side="right") - 1, n_bins - 1)
+    b = np.maximum(b, 0)
+    count = np.bincount(b, minlength=n_bins).astype(np.int64)
+    sq = 0.5 * (z[iu] - z[ju]) ** 2  # (pairs, k)
+    sums = np.stack([np.bincount(b, weights=sq[:, c], minlength=n_bins) for c in range(z.shape[1])], axis=1)
+    hsum = np.bincount(b, weights=h, minlength=n_bins)
+    filled = count > 0
+    gamma = np.full(sums.shape, np.nan)
+    gamma[filled] = sums[filled] / count[filled, None]
+    lag = 0.5 * (edges[:-1] + edges[1:])
+    lag[filled] = hsum[filled] / count[filled]
+    return EmpiricalVariogram(edges=edges, lag=lag, gamma=gamma, count=count)
+
+
+def _fit_one(
+    kind: str,
+    lag: NDArray[np.float64],
+    gam: NDArray[np.float64],
+    cnt: NDArray[np.float64],
+    weighting: Weighting,
+    nugget: bool,
+) -> tuple[VariogramModel, float]:
+    """Best fit of one model kind from a few starting ranges; returns the model and its cost."""
+    gmax = max(float(gam.max()), 1e-300)
+    hmax = float(lag.max())
+    floor = 1e-12 * gmax
+
+    def split(p: NDArray[np.float64]) -> tuple[float, float, float]:
+        return (float(p[0]), float(p[1]), float(p[2])) if nugget else (0.0, float(p[0]), float(p[1]))
+
+    def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        c0, c, a = split(p)
+        g = c0 + c * (1.0 - _correlation(kind, lag, a))
+        if weighting == "cressie":
+            return np.sqrt(cnt) * (gam / np.maximum(g, floor) - 1.0)
+        return np.sqrt(cnt) * (g - gam) / gmax
+
+    lo = np.array([0.0, 1e-9 * gmax, 1e-3 * hmax])
+    hi = np.array([gmax, 4.0 * gmax, 4.0 * hmax])
+    if not nugget:
+        lo, hi = lo[1:], hi[1:]
+    best: tuple[float, NDArray[np.float64]] | None = None
+    c0_start = 0.5 * float(gam[0])
+    for frac in (0.15, 0.35, 0.7, 1.5):
+        start = [c0_start, max(gmax - c0_start, 2.0 * lo[-2]), frac * hmax]
+        p0 = np.array(start if nugget else start[1:])
+        p0 = np.clip(p0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+        res = scipy.optimize.least_squares(resid, p0, bounds=(lo, hi), method="trf", x_scale="jac")
+        if best is None or float(res.cost) < best[0]:
+            best = (float(res.cost), res.x)
+    assert best is not None
+    c0, c, a = split(best[1])
+    return VariogramModel(kind, c0, c, a), best[0]
+
+
+def fit_variogram(
+    emp: EmpiricalVariogram,
+    component: int = 0,
+    *,
+    kind: str | Sequence[str] = "auto",
+    dim: int | None = None,
+    nugget: bool = True,
+    weighting: Weighting = "cressie",
+) -> VariogramModel:
+    """Fit a model to one component of an empirical semivariogram (weighted least squares).
+
+    ``kind``: one of :data:`VARIOGRAM_MODELS`, a list of them, or ``"auto"`` — every model valid in
+    ``dim`` dimensions (all three if ``dim`` is None), the one with the lowest weighted residual wins.
+    ``nugget=False`` fixes the nugget at 0.
+    """
+    if not 0 <= component < emp.n_components:
+        raise ValueError(f"component {component} out of range (the variogram has {emp.n_components})")
+    if isinstance(kind, str):
+        kinds: tuple[str, ...] = (
+            (valid_models(dim) if dim is not None else VARIOGRAM_MODELS) if kind == "auto" else (kind,)
+        )
+    else:
+        kinds = tuple(kind)
+    for k in kinds:
+        if k not in VARIOGRAM_MODELS:
+            raise ValueError(f"variogram kind '{k}' unknown (known: {', '.join(VARIOGRAM_MODELS)})")
+        if dim is not None and k not in valid_models(dim):
+            raise ValueError(f"the {k} model is not a valid variogram in {dim} dimensions")
+    if weighting not in ("cressie", "npairs"):
+        raise ValueError(f"weighting must be 'cressie' or 'npairs', got {weighting!r}")
+    g = emp.gamma[:, component]
+    ok = (emp.count > 0) & np.isfinite(g)
+    if int(ok.sum()) < 3:
+        raise ValueError(f"need at least 3 non-empty bins to fit a variogram, got {int(ok.sum())}")
+    lag, gam, cnt = emp.lag[ok], g[ok], emp.count[ok].astype(float)
+    if not float(gam.max()) > 0.0:
+        raise ValueError("the values do not vary: the semivariogram is zero everywhere")
+    fits = [_fit_one(k, lag, gam, cnt, weighting, nugget) for k in kinds]
+    return min(fits, key=lambda f: f[1])[0]

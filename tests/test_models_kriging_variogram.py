@@ -1,0 +1,137 @@
+"""Semivariograms (seed 001 eq. 12): the estimator, the fitted models, and error similarity with backlash."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.models.effects import EffectParams, twin_tcp_mm
+from comp_daemon.models.kriging import JointStateMetric, joint_space_semivariogram
+from comp_daemon.models.variogram import (
+    VariogramModel,
+    empirical_semivariogram,
+    fit_variogram,
+    pairwise_distances,
+    valid_models,
+)
+from comp_daemon.robot.description import load_robot
+
+
+def test_empirical_semivariogram_is_equation_12() -> None:
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0.0, 10.0, (30, 2))
+    z = rng.normal(size=(30, 2))
+    emp = empirical_semivariogram(x, z, n_bins=5, max_lag=8.0)
+    d = pairwise_distances(x)
+    for b in range(5):
+        lo, hi = emp.edges[b], emp.edges[b + 1]
+        pairs = [
+            (i, j)
+            for i in range(30)
+            for j in range(i + 1, 30)
+            if (lo < d[i, j] <= hi) or (b == 0 and d[i, j] == 0)
+        ]
+        assert emp.count[b] == len(pairs)
+        for c in range(2):
+            expect = sum((z[i, c] - z[j, c]) ** 2 for i, j in pairs) / (2 * len(pairs))
+            assert emp.gamma[b, c] == pytest.approx(expect, rel=1e-12)
+        assert emp.lag[b] == pytest.approx(np.mean([d[i, j] for i, j in pairs]), rel=1e-12)
+
+
+def test_default_bins_cover_half_the_largest_distance() -> None:
+    x = np.arange(20.0)[:, None]
+    emp = empirical_semivariogram(x, np.sin(x[:, 0]))
+    assert len(emp.lag) == 12
+    assert emp.edges[-1] == pytest.approx(9.5)
+    full = empirical_semivariogram(x, np.sin(x[:, 0]), max_lag=np.inf)
+    assert full.edges[-1] == pytest.approx(19.0)
+
+
+@pytest.mark.parametrize(
+    ("kind", "nugget"),
+    [("spherical", 0.0), ("exponential", 0.0), ("gaussian", 0.0), ("exponential", 1.0), ("spherical", 1.0)],
+)
+def test_fit_recovers_a_known_range_and_sill(kind: str, nugget: float) -> None:
+    """Gaussian random fields with a known covariance (8 realisations at 800 points), fitted back."""
+    rng = np.random.default_rng(3)
+    n = 800
+    x = rng.uniform(0.0, 200.0, (n, 2))
+    true = VariogramModel(kind, nugget, 4.0, 25.0)
+    cov = true.psill * true.correlation(pairwise_distances(x)) + (nugget + 1e-8) * np.eye(n)
+    z = np.linalg.cholesky(cov) @ rng.standard_normal((n, 8))
+    emp = empirical_semivariogram(x, z, n_bins=20, max_lag=60.0)
+    pooled = dataclasses.replace(emp, gamma=emp.gamma.mean(axis=1, keepdims=True))
+    fitted = fit_variogram(pooled, kind=kind, dim=2, nugget=nugget > 0.0)
+    assert fitted.kind == kind
+    assert fitted.sill == pytest.approx(true.sill, rel=0.1)
+    assert fitted.range == pytest.approx(true.range, rel=0.15)
+    assert fitted.nugget == pytest.approx(nugget, abs=0.35)
+
+
+def test_auto_picks_the_generating_model_and_spherical_is_refused_in_joint_space() -> None:
+    rng = np.random.default_rng(4)
+    x = rng.uniform(0.0, 200.0, (700, 2))
+    true = VariogramModel("gaussian", 0.0, 2.0, 30.0)
+    z = np.linalg.cholesky(true.psill * true.correlation(pairwise_distances(x)) + 1e-8 * np.eye(700)) @ (
+        rng.standard_normal(700)
+    )
+    emp = empirical_semivariogram(x, z, max_lag=90.0)
+    assert fit_variogram(emp, dim=2).kind == "gaussian"
+    assert valid_models(6) == ("exponential", "gaussian")
+    with pytest.raises(ValueError, match="spherical model is not a valid variogram in 6 dimensions"):
+        fit_variogram(emp, kind="spherical", dim=6)
+
+
+def test_model_values_and_round_trip() -> None:
+    for kind in ("spherical", "exponential", "gaussian"):
+        vg = VariogramModel(kind, 0.5, 2.0, 10.0)
+        h = np.array([0.0, 1e-9, 5.0, 10.0, 1e4])
+        g = vg.gamma(h)
+        assert g[0] == 0.0
+        assert g[1] == pytest.approx(0.5, abs=1e-6)  # the nugget right after 0
+        assert g[-1] == pytest.approx(2.5, rel=1e-9)  # the sill far away
+        assert np.all(np.diff(g) >= 0.0)
+        assert VariogramModel.from_dict(vg.to_dict()) == vg
+    with pytest.raises(ValueError, match="partial sill must be > 0"):
+        VariogramModel("gaussian", 0.0, 0.0, 1.0)
+    with pytest.raises(ValueError, match="unknown"):
+        VariogramModel("cubic", 0.0, 1.0, 1.0)
+
+
+def _joint_box(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    lo = np.array([-30.0, -110.0, 90.0, -60.0, -90.0, -90.0])
+    hi = np.array([30.0, -60.0, 150.0, 60.0, -20.0, 90.0])
+    a = lo + rng.random((n, 6)) * (hi - lo)
+    d = rng.choice([-1.0, 1.0], (n, 6))
+    return a, d
+
+
+def test_backlash_errors_are_not_similar_in_joint_space_but_are_with_direction() -> None:
+    """Seed 001 Figs 3–4: geometric errors are similar at small joint distances, backlash errors
+    (random approach directions) are not — unless the distance includes the direction."""
+    robot = load_robot("kr210")
+    nominal = robot.nominal_params()
+    a, d = _joint_box(500, 1)
+    rng = np.random.default_rng(2)
+    dx = np.zeros(N_PARAMS)
+    dx[:30] = rng.normal(0.0, 1.0, 30) * np.tile([np.deg2rad(0.01), 0.2, 0.2, np.deg2rad(0.01), 0.0], 6)
+    zero = EffectParams.zeros()
+    p_nom = twin_tcp_mm(robot, nominal, zero, a)
+    e_geo = twin_tcp_mm(robot, nominal.apply(dx), zero, a) - p_nom
+    e_bl = twin_tcp_mm(robot, nominal, EffectParams(backlash_deg=np.full(6, 0.005)), a, d) - p_nom
+
+    def small_lag_ratio(err: np.ndarray, metric: JointStateMetric) -> float:
+        """γ (three axes summed) at the shortest lag with 50 pairs, over the error's variance (the sill)."""
+        emp = joint_space_semivariogram(a, err, d, metric)
+        k = int(np.argmax(emp.count >= 50))
+        return float(np.sum(emp.gamma[k]) / np.sum(err.var(axis=0)))
+
+    blind = JointStateMetric.blind()
+    aware = JointStateMetric(dir_separation_deg=np.full(6, 40.0))
+    assert small_lag_ratio(e_geo, blind) < 0.15  # similar: γ small at small joint distance
+    assert small_lag_ratio(e_bl, blind) > 0.85  # no similarity: γ at the sill already
+    assert small_lag_ratio(e_bl, aware) < 0.3  # similar again once the direction is in the distance
