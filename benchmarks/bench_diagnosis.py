@@ -1,0 +1,72 @@
+"""Diagnosis of 500 poses on one core (aim: under 30 s).
+
+The campaign comes from the simulated plant's ``kr210-cell`` scenario (every effect of diagnose.md
+present, seed 000's drilling box, tracker noise and joint repeatability), 500 poses, 40 % check
+rows; the diagnosis runs against the nominal KR 210. Timed: the diagnosis (ladder, selection,
+where) and, separately, rendering the HTML report.
+
+Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.bench_diagnosis``
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import json
+import time
+
+import numpy as np
+
+from benchmarks.machine import machine_info, machine_line
+from comp_daemon.diagnosis import diagnose
+from comp_daemon.diagnosis.report import render_report_html
+from comp_daemon.sim.campaign import run_campaign
+from comp_daemon.sim.scenario import load_scenario
+
+
+def run(n: int, repeats: int, scenario: str) -> dict[str, object]:
+    sc = load_scenario(scenario)
+    dataset = run_campaign(sc, n, seed=1)
+    times, report_times = [], []
+    diag = None
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        diag = diagnose(dataset, sc.robot)
+        t1 = time.perf_counter()
+        render_report_html(diag)
+        t2 = time.perf_counter()
+        times.append(t1 - t0)
+        report_times.append(t2 - t1)
+    assert diag is not None
+    return {
+        "benchmark": "diagnose",
+        "scenario": scenario,
+        "poses": len(dataset),
+        "steps": [f"{s.effect}{s.joints}" for s in diag.steps],
+        "repeats": repeats,
+        "best_s": round(min(times), 3),
+        "median_s": round(float(np.median(times)), 3),
+        "report_median_s": round(float(np.median(report_times)), 3),
+        "aim_s": 30,
+        "date": dt.date.today().isoformat(),
+        "machine": machine_info(),
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--poses", type=int, default=500)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--scenario", default="kr210-cell")
+    args = parser.parse_args()
+    result = run(args.poses, args.repeats, args.scenario)
+    print(
+        f"diagnosis of {result['poses']} poses ({args.scenario}): best {result['best_s']} s, "
+        f"median {result['median_s']} s (aim < 30 s); HTML report {result['report_median_s']} s; "
+        f"on {machine_line()}"
+    )
+    print(json.dumps(result))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,277 @@
+"""Blind tests of the diagnosis over the full grid: hit rate and false-alarm rate.
+
+Each case is a synthetic campaign (``tests/diagnosis_campaigns.py``: nominal robot + random
+geometric errors + the withheld effects, tracker noise σ 0.01 mm per axis) diagnosed against the
+nominal twin. A case is a *hit* when ``unmodelled`` names exactly the withheld effects and each of
+their steps names exactly the withheld joints; a geometric-only campaign is a *false alarm* when
+``unmodelled`` is not empty.
+
+Sizes are the 3-D RMS of the effect's TCP signature that geometry cannot absorb, in multiples of the
+noise floor (the tracker's 3-D noise, 0.0173 mm): ``near`` = 1×, ``large`` = 10×; ``--limit`` adds
+a sweep of smaller sizes that shows where detection ends (not counted in the hit rate).
+
+Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.blind_diagnosis [--jobs 2]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from collections import defaultdict
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from diagnosis_campaigns import (
+    NOISE_FLOOR_MM,
+    PLANT_NOISE_FLOOR_MM,
+    make_campaign,
+    plant_campaign,
+)
+
+from comp_daemon.diagnosis import diagnose
+
+SIZES = {"near": 1.0, "large": 10.0}
+LIMIT_SIZES = {"0.25x": 0.25, "0.5x": 0.5}
+SINGLE = {
+    "kr210": [
+        ("backlash", 1),
+        ("backlash", 2),
+        ("backlash", 3),
+        ("backlash", 5),
+        ("ratio", 1),
+        ("ratio", 2),
+        ("ratio", 3),
+        ("ratio", 4),
+        ("cyclic", 1),
+        ("cyclic", 2),
+        ("cyclic", 3),
+        ("cyclic", 5),
+        ("compliance", 2),
+        ("compliance", 3),
+        ("compliance", 5),
+        ("thermal", None),
+    ],
+    "irb120": [
+        ("backlash", 1),
+        ("backlash", 3),
+        ("ratio", 2),
+        ("ratio", 5),
+        ("cyclic", 2),
+        ("cyclic", 4),
+        ("compliance", 2),
+        ("compliance", 3),
+        ("thermal", None),
+    ],
+}
+PLANT_SINGLE = [
+    ("backlash", 1),
+    ("backlash", 2),
+    ("backlash", 3),
+    ("backlash", 5),
+    ("ratio", 1),
+    ("ratio", 2),
+    ("ratio", 3),
+    ("cyclic", 1),
+    ("cyclic", 2),
+    ("cyclic", 3),
+    ("compliance", 2),
+    ("compliance", 3),
+    ("compliance", 5),
+    ("thermal", None),
+]
+PAIRS = [
+    (("backlash", 2), ("compliance", 3)),
+    (("ratio", 1), ("thermal", None)),
+    (("cyclic", 3), ("backlash", 1)),
+    (("compliance", 2), ("ratio", 4)),
+    (("backlash", 5), ("cyclic", 2)),
+]
+
+
+def plant_cases(seeds: int, nulls: int) -> list[dict[str, Any]]:
+    """The same blind test on campaigns of the simulated plant (kr210-geometric + withheld effects),
+    in seed 000's drilling box and in a wider calibration box."""
+    out: list[dict[str, Any]] = []
+    for box in ("drilling", "wide"):
+        for effect, joint in PLANT_SINGLE:
+            for size_name, size in SIZES.items():
+                for seed in range(seeds):
+                    out.append(
+                        {
+                            "kind": "plant",
+                            "robot": "kr210",
+                            "tracker": seed % 2 == 1,
+                            "size": size_name,
+                            "box": box,
+                            "seed": 4000 + seed,
+                            "withheld": [(effect, joint, size * PLANT_NOISE_FLOOR_MM)],
+                        }
+                    )
+    for seed in range(nulls):
+        out.append(
+            {
+                "kind": "plant-null",
+                "robot": "kr210",
+                "tracker": seed % 2 == 1,
+                "size": "-",
+                "box": ("drilling", "wide")[(seed // 2) % 2],
+                "seed": 5000 + seed,
+                "withheld": [],
+            }
+        )
+    return out
+
+
+def cases(seeds: int, nulls: int, limit: bool) -> list[dict[str, Any]]:
+    out: list[dict[str, Any]] = []
+    variants = [("kr210", False), ("kr210", True), ("irb120", False)]
+    sizes = dict(SIZES, **(LIMIT_SIZES if limit else {}))
+    for robot, tracker in variants:
+        for effect, joint in SINGLE[robot]:
+            for size_name, size in sizes.items():
+                for seed in range(seeds):
+                    out.append(
+                        {
+                            "kind": "single",
+                            "robot": robot,
+                            "tracker": tracker,
+                            "size": size_name,
+                            "seed": 1000 + seed,
+                            "withheld": [(effect, joint, size * NOISE_FLOOR_MM)],
+                        }
+                    )
+        for pair in PAIRS if robot == "kr210" else []:
+            for size_name, size in SIZES.items():
+                for seed in range(seeds):
+                    out.append(
+                        {
+                            "kind": "pair",
+                            "robot": robot,
+                            "tracker": tracker,
+                            "size": size_name,
+                            "seed": 2000 + seed,
+                            "withheld": [(e, j, size * NOISE_FLOOR_MM) for e, j in pair],
+                        }
+                    )
+    for seed in range(nulls):
+        robot, tracker = variants[seed % len(variants)]
+        joint_noise = 0.002 if seed % 2 else 0.0
+        out.append(
+            {
+                "kind": "null",
+                "robot": robot,
+                "tracker": tracker,
+                "size": "-",
+                "seed": 3000 + seed,
+                "withheld": [],
+                "joint_noise_deg": joint_noise,
+            }
+        )
+    return out
+
+
+def run_case(case: dict[str, Any]) -> dict[str, Any]:
+    if case["kind"].startswith("plant"):
+        camp = plant_campaign(
+            case["withheld"], case["seed"], wide=case["box"] == "wide", tracker=case["tracker"]
+        )
+    else:
+        camp = make_campaign(
+            case["robot"],
+            case["seed"],
+            case["withheld"],
+            tracker=case["tracker"],
+            joint_noise_deg=case.get("joint_noise_deg", 0.0),
+        )
+    t0 = time.perf_counter()
+    diag = diagnose(camp.dataset, camp.robot)
+    elapsed = time.perf_counter() - t0
+    doc = diag.to_json()
+    want = {e: sorted([] if j is None else [j]) for e, j, _ in case["withheld"]}
+    got = {s["effect"]: s["joints"] for s in doc["steps"][1:] if s["significant"]}
+    hit = got == want
+    return {
+        **case,
+        "withheld": [[e, j] for e, j, _ in case["withheld"]],
+        "hit": hit,
+        "named": got,
+        "seconds": round(elapsed, 3),
+        "unexplained_rms_mm": doc["unexplained_rms_mm"],
+        "noise_floor_mm": doc["noise_floor_mm"],
+        "first_p_times_m": doc["selection"][0]["best"][0]["p_value"] * doc["selection"][0]["candidates"]
+        if doc["selection"]
+        else None,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(
+        description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter
+    )
+    parser.add_argument("--seeds", type=int, default=3, help="random seeds per effect case (default 3)")
+    parser.add_argument("--nulls", type=int, default=120, help="geometric-only campaigns (default 120)")
+    parser.add_argument("--jobs", type=int, default=1, help="worker processes (default 1)")
+    parser.add_argument("--limit", action="store_true", help="add the detection-limit sweep (0.25x, 0.5x)")
+    parser.add_argument(
+        "--plant",
+        action="store_true",
+        help="also run the grid on campaigns of the simulated plant (kr210-geometric + effects)",
+    )
+    parser.add_argument(
+        "--plant-nulls", type=int, default=60, help="geometric-only plant campaigns (default 60)"
+    )
+    parser.add_argument("--json", type=Path, help="write every case's result here")
+    args = parser.parse_args()
+    todo = cases(args.seeds, args.nulls, args.limit)
+    if args.plant:
+        todo += plant_cases(args.seeds, args.plant_nulls)
+    t0 = time.perf_counter()
+    if args.jobs > 1:
+        with ProcessPoolExecutor(args.jobs) as pool:
+            results = list(pool.map(run_case, todo, chunksize=4))
+    else:
+        results = [run_case(c) for c in todo]
+    wall = time.perf_counter() - t0
+    table: dict[tuple[str, str, str], list[bool]] = defaultdict(list)
+    for r in results:
+        table[(r["kind"], r.get("box", "-"), r["size"])].append(r["hit"])
+    print(f"{len(results)} campaigns in {wall:.0f} s")
+    for (kind, box, size), hits in sorted(table.items()):
+        label = "false alarms" if kind.endswith("null") else "hits"
+        value = len(hits) - sum(hits) if kind.endswith("null") else sum(hits)
+        print(f"  {kind:10s} {box:8s} {size:6s} {label}: {value}/{len(hits)}")
+    for source, kinds in (("generator", ("single", "pair")), ("plant", ("plant",))):
+        counted = [r["hit"] for r in results if r["kind"] in kinds and r["size"] in SIZES]
+        nulls = [
+            not r["hit"] for r in results if r["kind"] == ("null" if source == "generator" else "plant-null")
+        ]
+        if counted:
+            print(
+                f"{source}: hit rate (near + large): {sum(counted)}/{len(counted)} = "
+                f"{100.0 * sum(counted) / len(counted):.1f} %"
+            )
+        if nulls:
+            print(
+                f"{source}: false-alarm rate (geometric only): {sum(nulls)}/{len(nulls)} = "
+                f"{100.0 * sum(nulls) / len(nulls):.1f} %"
+            )
+    misses = [r for r in results if not r["hit"] and (r["kind"].endswith("null") or r["size"] in SIZES)]
+    for r in misses:
+        print(
+            f"  miss: {r['kind']} {r.get('box', '')} {r['robot']}{' tracker' if r['tracker'] else ''} "
+            f"{r['size']} "
+            f"seed {r['seed']} withheld {r['withheld']} named {r['named']}"
+        )
+    secs = sorted(r["seconds"] for r in results)
+    print(f"diagnosis time per campaign: median {secs[len(secs) // 2]:.2f} s, max {secs[-1]:.2f} s")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,126 @@
+"""``comp-daemon diagnose DATA --robot ROBOT [--json OUT.json] [--report OUT.html]``: the gap diagnosis.
+
+Reads a measurement data set (CSV, or JSON records when the file name ends in ``.json``), runs the
+diagnosis of ``shared/spec/diagnose.md`` against the robot's nominal twin, and writes the JSON
+document (to ``--json``, else to stdout) and, with ``--report``, the self-contained HTML report.
+Outputs are written only when the whole diagnosis succeeded, each through a temporary file that is
+renamed into place.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+from comp_daemon.data.dataset import read_dataset, read_dataset_json
+from comp_daemon.diagnosis.ladder import DiagnoseOptions, diagnose
+from comp_daemon.diagnosis.report import render_report_html
+from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.robot.description import PRESETS, load_robot
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser(
+        "diagnose",
+        help="sim-to-real gap diagnosis: which unmodelled effect, on which joints, how far the error shrinks",
+        description="Diagnose the gap between a robot's nominal twin and tracker measurements: a ladder from "
+        "the nominal twin through geometric calibration and the significant non-geometric effects "
+        "(backlash, ratio, cyclic, compliance, thermal), chosen on fit rows by cross-validation and "
+        "judged on check rows.",
+    )
+    p.add_argument(
+        "data", metavar="DATA", help="measurement data set (CSV per the data set spec, or .json records)"
+    )
+    p.add_argument("--robot", required=True, help=f"preset ({', '.join(PRESETS)}) or path to a TOML file")
+    p.add_argument(
+        "--json",
+        dest="json_out",
+        type=Path,
+        metavar="OUT.json",
+        help="write the diagnosis here (default: print it)",
+    )
+    p.add_argument("--report", type=Path, metavar="OUT.html", help="also write the HTML report here")
+    p.add_argument(
+        "--frame",
+        choices=("auto", "base", "tracker"),
+        default="auto",
+        help="frame of x, y, z: robot base, the tracker's own (registered first), or auto (default)",
+    )
+    p.add_argument("--harmonics", type=int, default=2, help="harmonics K of the cyclic effect (default 2)")
+    p.add_argument(
+        "--folds", type=int, default=5, help="cross-validation folds inside the fit rows (default 5)"
+    )
+    p.add_argument(
+        "--alpha",
+        type=float,
+        default=DiagnoseOptions().alpha,
+        help="false-alarm level of the significance test per selection round (default %(default)s)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        default=DiagnoseOptions().seed,
+        help="seed of the folds and of drawn check rows (default %(default)s)",
+    )
+    p.set_defaults(func=_run)
+
+
+def _write_atomic(path: Path, text: str) -> None:
+    path = path.expanduser()
+    directory = path.parent if str(path.parent) else Path(".")
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
+    try:
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def _run(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot)
+    options = DiagnoseOptions(
+        frame=args.frame, harmonics=args.harmonics, folds=args.folds, alpha=args.alpha, seed=args.seed
+    )
+    path = Path(args.data)
+    reader = read_dataset_json if path.suffix.lower() == ".json" else read_dataset
+    dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=N_PARAMS, kind="measurement")
+    for target in (args.json_out, args.report):
+        if target is not None and not target.expanduser().parent.is_dir():
+            raise ValueError(f"cannot write {target}: no such directory")
+    diag = diagnose(dataset, robot, options)
+    doc = json.dumps(diag.to_json(), indent=2, ensure_ascii=False)
+    report = render_report_html(diag) if args.report is not None else None
+    if args.json_out is None:
+        print(doc)
+    else:
+        _write_atomic(args.json_out, doc + "\n")
+    if report is not None:
+        _write_atomic(args.report, report)
+    if args.json_out is not None:
+        out = sys.stdout
+        print(
+            f"{robot.name}: baseline {diag.baseline_check_rms_mm:.4f} mm RMS "
+            f"on {len(diag.check_rows)} check rows",
+            file=out,
+        )
+        for s in diag.steps:
+            joints = ",".join(map(str, s.joints)) or "-"
+            flag = "significant" if s.significant else "not significant"
+            print(
+                f"  {s.effect:<10s} joints {joints:<12s} check {s.check_rms_mm:.4f} mm "
+                f"(shrink {s.shrink_pct:5.1f} %)  {flag}",
+                file=out,
+            )
+        print(
+            f"unmodelled: {', '.join(diag.unmodelled) or 'none'}; "
+            f"unexplained {diag.unexplained_rms_mm:.4f} mm, "
+            f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})",
+            file=out,
+        )
+    return 0

@@ -1,0 +1,324 @@
+"""The diagnosis as one self-contained HTML page (inline SVG and CSS, no scripts, no external assets).
+
+Sections: summary; the ladder as a table and a bar chart (check RMS per step, noise floor as a
+line); for each significant effect, the residual before that step per axis (x, y, z, mm) against
+the variable that drives the effect (axis value, gravity torque or temperature) with the effect's
+fitted contribution drawn over it; per joint, the equivalent joint error of the post-geometric
+residual against the axis value, by approach direction, with the fitted effects' share drawn
+over it; histograms of the 3-D check error before and after; the ``where`` tables; what was
+skipped and why, and the parameters geometry could not identify.
+"""
+
+from __future__ import annotations
+
+import html
+import json
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.diagnosis.fitting import linearize, predict_mm
+from comp_daemon.diagnosis.ladder import Diagnosis, Step
+from comp_daemon.diagnosis.svg import Series, bar_chart, histograms, panel
+from comp_daemon.diagnosis.where import equivalent_joint_error_deg
+from comp_daemon.kinematics.forward import gravity_torques_nm
+from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.models.effects import MassModel
+
+__all__ = ["render_report_html"]
+
+FloatArray = NDArray[np.float64]
+GREY, RED, BLUE, DARK, GREEN, ORANGE = "#8a8a8a", "#d62728", "#1f77b4", "#222222", "#2ca02c", "#ff7f0e"
+
+CSS = """
+body{font-family:sans-serif;margin:24px;color:#222;max-width:1400px}
+h1{font-size:20px}h2{font-size:16px;margin-top:28px;border-bottom:1px solid #ccc}
+table{border-collapse:collapse;font-size:12px;margin:8px 0}
+td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}th{background:#f3f3f3}
+td.l,th.l{text-align:left}.sig{color:#1a7f37;font-weight:bold}.nsig{color:#999}
+.grid{display:flex;flex-wrap:wrap;gap:8px}
+.summary{background:#f7f7f2;padding:10px;border-left:4px solid #2ca02c}
+code{font-size:11px}
+"""
+
+
+def _e(text: object) -> str:
+    return html.escape(str(text))
+
+
+def _num(v: float | None, digits: int = 4) -> str:
+    if v is None:
+        return "–"
+    return f"{v:.{digits}g}"
+
+
+def _driver(diag: Diagnosis, step: Step) -> tuple[FloatArray, str]:
+    """The variable an effect depends on, per row, and its axis label."""
+    obs = diag.obs
+    if step.effect == "thermal":
+        if obs.temp_c is not None:
+            return obs.temp_c, "temp_c (°C)"
+        return np.arange(len(obs), dtype=float), "row"
+    j = step.joints[0] if step.joints else 1
+    if step.effect == "compliance":
+        params = diag.baseline_fit.params
+        mass = MassModel.from_robot(diag.robot)
+        tau = gravity_torques_nm(
+            params,
+            axes_deg_to_q_rad(obs.a_deg, params.sign),
+            mass.link_mass_kg,
+            mass.link_com_mm,
+            obs.payload_kg,
+        )
+        return tau[:, j - 1], f"gravity torque on joint {j} (N m)"
+    return obs.a_deg[:, j - 1], f"A{j} (deg)"
+
+
+def _ladder_table(diag: Diagnosis) -> str:
+    rows = [
+        "<tr><th class=l>step</th><th class=l>effect</th><th class=l>joints</th><th>significant</th>"
+        "<th>parameters (total)</th><th>p-value</th><th>CV RMS (fit rows)</th><th>check RMS</th>"
+        "<th>check max</th>"
+        "<th>shrink</th><th class=l>fitted values</th></tr>",
+        "<tr><td class=l>0</td><td class=l>nominal</td><td class=l>–</td><td>–</td><td>0</td><td>–</td>"
+        f"<td>–</td>"
+        f"<td>{diag.baseline_check_rms_mm:.4f}</td><td>{diag.baseline_check_max_mm:.4f}</td><td>–</td>"
+        f"<td class=l>{'registered to the tracker frame' if diag.frame == 'tracker' else ''}</td></tr>",
+    ]
+    for k, s in enumerate(diag.steps, start=1):
+        sig = "<span class=sig>yes</span>" if s.significant else "<span class=nsig>no</span>"
+        params = json.dumps(s.params, ensure_ascii=False)
+        if len(params) > 400:
+            params = params[:400] + " …"
+        rows.append(
+            f"<tr><td class=l>{k}</td><td class=l>{_e(s.effect)}</td>"
+            f"<td class=l>{_e(', '.join(str(j) for j in s.joints) or '–')}</td><td>{sig}</td>"
+            f"<td>{s.n_params}</td><td>{_num(s.p_value, 3)}</td><td>{_num(s.cv_rms_mm)}</td>"
+            f"<td>{s.check_rms_mm:.4f}</td><td>{s.check_max_mm:.4f}</td><td>{s.shrink_pct:.1f} %</td>"
+            f"<td class=l><code>{_e(params)}</code></td></tr>"
+        )
+    return "<table>" + "".join(rows) + "</table>"
+
+
+def _ladder_chart(diag: Diagnosis) -> str:
+    labels = ["nominal"] + [
+        f"{s.effect}{' J' + ','.join(map(str, s.joints)) if s.joints else ''}" for s in diag.steps
+    ]
+    values = [diag.baseline_check_rms_mm] + [s.check_rms_mm for s in diag.steps]
+    colors = [GREY] + [GREEN if s.significant else "#cccccc" for s in diag.steps]
+    title = (
+        f"Check RMS after each step (mm, log scale); light grey: not significant; "
+        f"dashed: noise floor {diag.noise_floor_mm:.4f} mm"
+    )
+    return bar_chart(
+        labels,
+        values,
+        colors,
+        title=title,
+        ylabel="check RMS (mm)",
+        hline=diag.noise_floor_mm,
+        width=max(560, 120 * len(labels)),
+    )
+
+
+def _effect_panels(diag: Diagnosis, preds: list[FloatArray]) -> str:
+    obs = diag.obs
+    out = []
+    for k, step in enumerate(diag.steps[1:], start=1):
+        before = obs.xyz_mm - preds[k - 1]
+        added = preds[k] - preds[k - 1]
+        x, xlabel = _driver(diag, step)
+        tag = "" if step.significant else " (not significant)"
+        joints = (
+            f" on joint{'s' if len(step.joints) > 1 else ''} {', '.join(map(str, step.joints))}"
+            if step.joints
+            else ""
+        )
+        out.append(f"<h3>Step {k + 1}: {_e(step.effect)}{_e(joints)}{_e(tag)}</h3><div class=grid>")
+        order = np.argsort(x, kind="stable")
+        for axis, name in enumerate("xyz"):
+            kind = "line" if step.effect in ("ratio", "cyclic") and len(step.joints) == 1 else "points"
+            series = [
+                Series(x, before[:, axis], GREY, f"residual before the step ({name})"),
+                Series(
+                    x[order],
+                    added[order, axis],
+                    RED,
+                    f"{step.effect} contribution",
+                    kind=kind,
+                    radius=1.6,
+                    opacity=0.9,
+                ),
+            ]
+            out.append(
+                panel(series, title=f"{name}: residual vs {xlabel}", xlabel=xlabel, ylabel=f"{name} (mm)")
+            )
+        out.append("</div>")
+    if len(diag.steps) == 1:
+        geo = obs.xyz_mm - preds[0]
+        rows = np.arange(len(obs), dtype=float)
+        out.append("<div class=grid>")
+        for axis, name in enumerate("xyz"):
+            out.append(
+                panel(
+                    [Series(rows, geo[:, axis], GREY, f"residual after geometric ({name})")],
+                    title=f"{name}: residual after geometric, in campaign order",
+                    xlabel="row",
+                    ylabel=f"{name} (mm)",
+                )
+            )
+        out.append("</div>")
+    return "".join(out)
+
+
+def _joint_panels(diag: Diagnosis, preds: list[FloatArray], final_index: int) -> str:
+    obs = diag.obs
+    geo = diag.steps[0].fit
+    resid, jac = linearize(MassModel.from_robot(diag.robot), geo.params, geo.effects, [], obs)
+    jac_theta = jac[:, :, 0:30:5]
+    e_resid = equivalent_joint_error_deg(resid, jac_theta)
+    e_model = equivalent_joint_error_deg(preds[final_index] - preds[0], jac_theta)
+    shares = {p["joint"]: p["share_pct"] for p in diag.where.get("per_joint", [])}
+    out = ["<div class=grid>"]
+    for j in range(1, 7):
+        a = obs.a_deg[:, j - 1]
+        if not np.isfinite(e_resid[:, j - 1]).any():
+            continue
+        series = []
+        if obs.dir is not None:
+            for sign, color, label in ((1.0, RED, f"dir{j} = +1"), (-1.0, BLUE, f"dir{j} = −1")):
+                sel = obs.dir[:, j - 1] == sign
+                series.append(Series(a[sel], e_resid[sel, j - 1], color, label, opacity=0.45))
+        else:
+            series.append(Series(a, e_resid[:, j - 1], GREY, "residual", opacity=0.45))
+        if final_index > 0:
+            series.append(Series(a, e_model[:, j - 1], DARK, "fitted effects", radius=1.3, opacity=0.9))
+        out.append(
+            panel(
+                series,
+                title=f"Joint {j}: equivalent error vs A{j} (share {shares.get(j, 0):.0f} %)",
+                xlabel=f"A{j} (deg)",
+                ylabel="equivalent joint error (deg)",
+                width=400,
+            )
+        )
+    out.append("</div>")
+    return "".join(out)
+
+
+def _histograms(diag: Diagnosis, preds: list[FloatArray], final_index: int) -> str:
+    obs = diag.obs.take(diag.check_rows)
+    base = np.linalg.norm(
+        obs.xyz_mm
+        - predict_mm(
+            MassModel.from_robot(diag.robot), diag.baseline_fit.params, diag.baseline_fit.effects, obs
+        ),
+        axis=1,
+    )
+    geo = np.linalg.norm(obs.xyz_mm - preds[0][diag.check_rows], axis=1)
+    final = np.linalg.norm(obs.xyz_mm - preds[final_index][diag.check_rows], axis=1)
+    charts = [
+        histograms(
+            [("nominal twin", base, GREY), ("after geometric", geo, BLUE)],
+            title="3-D check error: before and after geometric calibration",
+            xlabel="error (mm)",
+        )
+    ]
+    if final_index > 0:
+        charts.append(
+            histograms(
+                [("after geometric", geo, BLUE), ("after the significant effects", final, GREEN)],
+                title="3-D check error: before and after the effects",
+                xlabel="error (mm)",
+            )
+        )
+    return "<div class=grid>" + "".join(charts) + "</div>"
+
+
+def _where_tables(where: dict[str, Any]) -> str:
+    axis = where["axis_rms_mm"]
+    out = [
+        "<table><tr><th>x RMS</th><th>y RMS</th><th>z RMS</th><th>3-D RMS</th></tr>"
+        f"<tr><td>{axis['x']}</td><td>{axis['y']}</td><td>{axis['z']}</td><td>{where['rms_mm']}</td></tr></table>",
+        "<table><tr><th>joint</th><th>equivalent RMS (deg)</th><th>share of the gap (%)</th>"
+        "<th>mean dir +1 (deg)</th><th>mean dir −1 (deg)</th><th>step (deg)</th></tr>",
+    ]
+    for p in where["per_joint"]:
+        d = p.get("vs_dir", {})
+        out.append(
+            f"<tr><td>{p['joint']}</td><td>{_num(p['equivalent_rms_deg'])}</td><td>{p['share_pct']}</td>"
+            f"<td>{_num(d.get('plus', {}).get('mean_deg'))}</td>"
+            f"<td>{_num(d.get('minus', {}).get('mean_deg'))}</td>"
+            f"<td>{_num(d.get('step_deg'))}</td></tr>"
+        )
+    out.append(
+        "</table><table><tr><th class=l>region</th><th>poses</th><th class=l>centre (mm)</th>"
+        "<th>RMS (mm)</th><th>max (mm)</th></tr>"
+    )
+    for r in where["regions"]:
+        centre = ", ".join(f"{v:.0f}" for v in r["centre_mm"])
+        out.append(
+            f"<tr><td class=l>{_e(r['region'])}</td><td>{r['n']}</td><td class=l>{centre}</td>"
+            f"<td>{r['rms_mm']}</td><td>{r['max_mm']}</td></tr>"
+        )
+    out.append("</table>")
+    return "".join(out)
+
+
+def render_report_html(diag: Diagnosis) -> str:
+    """The HTML report of a diagnosis (a complete document, UTF-8 text)."""
+    mass = MassModel.from_robot(diag.robot)
+    preds = [predict_mm(mass, s.fit.params, s.fit.effects, diag.obs) for s in diag.steps]
+    final_index = max((k for k, s in enumerate(diag.steps) if s.significant), default=0)
+    doc = diag.to_json()
+    skipped = (
+        "".join(
+            f"<li>{_e(s['effect'])}"
+            f"{' on joints ' + _e(', '.join(map(str, s['joints']))) if s['joints'] else ''}"
+            f": {_e(s['reason'])}</li>"
+            for s in diag.skipped
+        )
+        or "<li>none</li>"
+    )
+    unident = "".join(f"<li><code>{_e(u)}</code></li>" for u in diag.unidentifiable) or "<li>none</li>"
+    rounds = "".join(f"<li><code>{_e(json.dumps(r, ensure_ascii=False))}</code></li>" for r in diag.selection)
+    unmodelled = ", ".join(doc["unmodelled"]) or "none"
+    body = [
+        "<!DOCTYPE html><html lang=en><head><meta charset=utf-8>",
+        f"<title>Gap diagnosis – {_e(diag.robot.name)}</title><style>{CSS}</style></head><body>",
+        f"<h1>Sim-to-real gap diagnosis: {_e(diag.robot.name)}</h1>",
+        f"<p>Data <code>{_e(diag.dataset.source)}</code> ({len(diag.fit_rows)} fit rows, "
+        f"{len(diag.check_rows)} check "
+        f"rows; {_e(diag.split_message)}). Measured in the {_e(diag.frame)} frame. "
+        f"Unmodelled effects: <b>{_e(unmodelled)}</b>; implicated joints: "
+        f"<b>{_e(', '.join(map(str, doc['joints'])) or 'none')}</b>. "
+        f"Unexplained {doc['unexplained_rms_mm']} mm RMS, "
+        f"noise floor {doc['noise_floor_mm']} mm ({_e(diag.noise_floor_source)}).</p>",
+        f"<p class=summary>{_e(diag.where['summary'])}</p>",
+        "<h2>The ladder</h2>",
+        _ladder_table(diag),
+        _ladder_chart(diag),
+        "<h2>Residuals per axis, with each added effect</h2>",
+        _effect_panels(diag, preds),
+        "<h2>Per joint: equivalent joint error after the geometric step</h2>",
+        "<p>The angle joint j alone would have to be off by to explain each pose's residual best; "
+        "colours give the "
+        "approach direction, dark points what the fitted effects account for.</p>",
+        _joint_panels(diag, preds, final_index),
+        "<h2>Before and after (check rows)</h2>",
+        _histograms(diag, preds, final_index),
+        "<h2>Where the gap lies after the geometric step (all rows)</h2>",
+        _where_tables(diag.where),
+        "<h2>Not tested</h2><ul>",
+        skipped,
+        "</ul>",
+        "<h2>Geometric parameters not identifiable from these poses</h2><ul>",
+        unident,
+        "</ul>",
+        "<h2>Selection rounds</h2><ol>",
+        rounds,
+        "</ol>",
+        "</body></html>",
+    ]
+    return "".join(body)

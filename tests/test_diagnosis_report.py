@@ -1,0 +1,109 @@
+"""The HTML report (self-contained, pictures) and ``comp-daemon diagnose`` end to end."""
+
+from __future__ import annotations
+
+import json
+import re
+from html.parser import HTMLParser
+from pathlib import Path
+
+import pytest
+from diagnosis_campaigns import NOISE_FLOOR_MM, make_campaign
+
+from comp_daemon.cli import main
+from comp_daemon.data.dataset import write_dataset
+from comp_daemon.diagnosis import diagnose
+from comp_daemon.diagnosis.report import render_report_html
+
+
+class _Tags(HTMLParser):
+    def __init__(self) -> None:
+        super().__init__()
+        self.stack: list[str] = []
+        self.counts: dict[str, int] = {}
+        self.urls: list[str] = []
+
+    def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
+        self.counts[tag] = self.counts.get(tag, 0) + 1
+        for name, value in attrs:
+            if name in ("src", "href") or (value and "url(" in value):
+                self.urls.append(f"{name}={value}")
+        if tag not in ("meta", "rect", "circle", "line", "polyline", "br", "path"):
+            self.stack.append(tag)
+
+    def handle_endtag(self, tag: str) -> None:
+        if tag in ("meta", "rect", "circle", "line", "polyline", "br", "path"):
+            return
+        assert self.stack and self.stack[-1] == tag, (
+            f"</{tag}> closes <{self.stack[-1] if self.stack else None}>"
+        )
+        self.stack.pop()
+
+
+@pytest.fixture(scope="module")
+def campaign():
+    return make_campaign(
+        "kr210", 71, [("backlash", 2, 8 * NOISE_FLOOR_MM), ("thermal", None, 5 * NOISE_FLOOR_MM)], n_poses=160
+    )
+
+
+def test_report_is_self_contained_and_draws_every_section(campaign) -> None:
+    diag = diagnose(campaign.dataset, campaign.robot)
+    page = render_report_html(diag)
+    tags = _Tags()
+    tags.feed(page)
+    tags.close()
+    assert tags.stack == []
+    assert tags.urls == []
+    assert "<script" not in page and "@import" not in page
+    assert re.findall(r"https?://[^\"' ]*", page) == ["http://www.w3.org/2000/svg"] * page.count("<svg")
+    # ladder bar chart + 3 axes per effect step + 6 joints + 2 histograms
+    n_effect_steps = len(diag.steps) - 1
+    assert page.count("<svg") == 1 + 3 * n_effect_steps + 6 + 2
+    for step in diag.steps:
+        assert f">{step.effect}<" in page
+    assert "backlash contribution" in page and "thermal contribution" in page
+    assert "temp_c (°C)" in page
+    assert diag.where["summary"][:60].replace("'", "&#x27;") in page
+
+
+def test_cli_writes_json_and_report(tmp_path: Path, campaign, capsys) -> None:
+    data = tmp_path / "campaign.csv"
+    write_dataset(campaign.dataset, data)
+    out, report = tmp_path / "diag.json", tmp_path / "diag.html"
+    rc = main(["diagnose", str(data), "--robot", "kr210", "--json", str(out), "--report", str(report)])
+    assert rc == 0
+    doc = json.loads(out.read_text())
+    assert sorted(doc["unmodelled"]) == ["backlash", "thermal"]
+    assert doc["where"]["joints"] == [2]
+    assert report.read_text().startswith("<!DOCTYPE html>")
+    printed = capsys.readouterr().out
+    assert "unmodelled: backlash, thermal" in printed
+
+
+def test_cli_prints_json_without_an_output_file(tmp_path: Path, capsys) -> None:
+    camp = make_campaign("irb120", 72, [], n_poses=80)
+    data = tmp_path / "c.csv"
+    write_dataset(camp.dataset, data)
+    assert main(["diagnose", str(data), "--robot", "irb120", "--frame", "base"]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["robot"] == "ABB IRB 120" and doc["unmodelled"] == []
+
+
+def test_cli_refuses_bad_data_and_writes_nothing(tmp_path: Path, capsys) -> None:
+    camp = make_campaign("kr210", 73, [], n_poses=60)
+    data = tmp_path / "bad.csv"
+    write_dataset(camp.dataset, data)
+    lines = data.read_text().splitlines()
+    header = lines[0].split(",")
+    cells = lines[5].split(",")
+    cells[header.index("a2")] = "20"  # outside A2's limits [-140, -5]
+    lines[5] = ",".join(cells)
+    data.write_text("\n".join(lines) + "\n")
+    out, report = tmp_path / "o.json", tmp_path / "o.html"
+    rc = main(["diagnose", str(data), "--robot", "kr210", "--json", str(out), "--report", str(report)])
+    assert rc == 2
+    err = capsys.readouterr().err
+    assert "row 6" in err and "'a2'" in err
+    assert not out.exists() and not report.exists()
+    assert list(tmp_path.iterdir()) == [data]
