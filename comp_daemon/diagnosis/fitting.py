@@ -79,24 +79,10 @@ def linearize(
     obs: Observations,
 ) -> tuple[FloatArray, FloatArray]:
     """Residual (n, 3) and Jacobian (n, 3, 39 + len(names)) of the twin at the observed poses."""
-    effects = _with_torque(effects, names)
     tcp, jac = twin_jacobian(
         mass, params, effects, list(names), obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c
     )
     return obs.xyz_mm - tcp, jac
-
-
-def _with_torque(effects: EffectParams, names: Sequence[str]) -> EffectParams:
-    """``effects`` with a compliance of 1e-300 rad/N m when all are zero and a ``C`` column is asked for.
-
-    The effect model computes the gravity torques only when some compliance is nonzero, and its
-    compliance columns (``∂p/∂θ·τ``) come out zero otherwise. A compliance of 1e-300 changes no
-    joint angle (it is far below the last bit of any angle) but makes the torques, and so the
-    columns, exact.
-    """
-    if any(n.startswith("C") for n in names) and not np.any(effects.compliance_rad_per_nm):
-        return effects.with_values(["C1"], [1e-300])
-    return effects
 
 
 @dataclass(frozen=True)

@@ -33,7 +33,7 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.forward import gravity_torques_nm, tcp_position_mm
+from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.effects import EFFECTS, EffectParams, effect_param_names, twin_jacobian, twin_tcp_mm
@@ -71,32 +71,6 @@ def _skew_batch(v: NDArray[np.float64]) -> NDArray[np.float64]:
     out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
     out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
     return out
-
-
-def _twin_jacobian(
-    robot: RobotDescription,
-    params: KinematicParams,
-    effects: EffectParams,
-    names: Sequence[str],
-    a_deg: NDArray[np.float64],
-    dir: NDArray[np.float64] | None,
-    payload_kg: NDArray[np.float64] | float,
-    temp_c: NDArray[np.float64] | None,
-) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    """:func:`twin_jacobian`, with the compliance columns also where every compliance is zero.
-
-    The compliance column of joint j is ``dTCP/dtheta_j · tau_j`` with ``tau`` the gravity torque at
-    the commanded configuration (the effects model); the effects module leaves ``tau`` uncomputed
-    (zero) while all compliances are zero, which would make ``C{j}`` look unidentifiable at the start.
-    """
-    tcp, jac = twin_jacobian(robot, params, effects, names, a_deg, dir, payload_kg, temp_c)
-    c_cols = [(k, int(name[1:])) for k, name in enumerate(names) if name[:1] == "C" and name[1:].isdigit()]
-    if c_cols and not np.any(effects.compliance_rad_per_nm != 0.0):
-        q_cmd = axes_deg_to_q_rad(a_deg, params.sign)
-        tau = gravity_torques_nm(params, q_cmd, robot.link_mass_kg, robot.link_com_mm, payload_kg)
-        for k, j in c_cols:
-            jac[:, :, N_PARAMS + k] = jac[:, :, 5 * (j - 1)] * tau[:, j - 1, None]
-    return tcp, jac
 
 
 class KinematicModel(ErrorModel):
@@ -235,7 +209,7 @@ class KinematicProblem:
 
     def jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         params, eff, dx = self.unpack(x)
-        tcp, jac = _twin_jacobian(
+        tcp, jac = twin_jacobian(
             self.robot, params, eff, self.eff_names, self.a, self.dir, self.payload, self.temp
         )
         # the base rotation is the rotation vector dx[33:36] applied on the left of the start frame
@@ -308,7 +282,7 @@ def calibrate_kinematic(
         if (fit_base or not name.startswith("base_")) and (fit_tool or not name.startswith("tool_"))
     ]
     all_names = (*PARAM_NAMES, *eff_names)
-    _, jac0 = _twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
+    _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
     report = analyze_identifiability(
         jac0,
         all_names,
