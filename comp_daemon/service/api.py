@@ -1,0 +1,354 @@
+"""The HTTP service: ``create_app(settings, store, daemon_view=None) -> FastAPI``.
+
+The daemon opens the store with :func:`open_store` (which runs the recovery), builds the app and
+serves it with uvicorn in its own event loop, beside the RSI loop. Nothing here blocks that loop:
+store calls go through ``asyncio.to_thread``, fits and diagnoses run in a process pool
+(:mod:`comp_daemon.service.jobs`), metrics are rendered in a thread.
+
+Routes (details in the OpenAPI description at ``/openapi.json``):
+
+- ``/health`` (liveness), ``/ready`` (200 or 503 with reasons), ``/metrics`` (Prometheus);
+- ``/api/status``, ``/api/events`` (server-sent events), ``/api/events/log``;
+- ``/api/datasets``, ``/api/fits``, ``/api/jobs``, ``/api/models``, ``/api/diagnoses``;
+- ``/api/batches``, ``/api/targets``;
+- ``/dashboard/`` (static files; ``/`` redirects there).
+
+Errors: every error body is ``{"error": code, "message": text, ...}``; an unexpected exception is
+logged with a fresh ``error_id`` and answered 500 with only that id (no internals).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import uuid
+from collections.abc import AsyncIterator, Sequence
+from contextlib import asynccontextmanager
+from pathlib import Path
+from typing import Any
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
+
+from comp_daemon import __version__
+from comp_daemon.data.columns import DatasetError
+from comp_daemon.robot.description import load_robot
+from comp_daemon.service import metrics
+from comp_daemon.service.auth import AuthError, TokenTable
+from comp_daemon.service.config import Settings
+from comp_daemon.service.daemon_view import DaemonView, DetachedDaemonView
+from comp_daemon.service.events import EventBus
+from comp_daemon.service.jobs import JobKind, JobRunner
+from comp_daemon.service.logging import get_logger
+from comp_daemon.service.state import ApiError, ServiceState
+from comp_daemon.service.store import (
+    TARGET_FINAL_STATES,
+    ConflictError,
+    EventRecord,
+    IdempotencyConflict,
+    NotFoundError,
+    Store,
+)
+
+__all__ = ["ApiError", "create_app", "open_store"]
+
+_log = get_logger("comp_daemon.api")
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+_MULTIPART_OVERHEAD_BYTES = 64 * 1024
+
+
+def open_store(settings: Settings) -> Store:
+    """Open the configured store, apply migrations, run the recovery and prune old events."""
+    store = Store(
+        settings.store.db_path,
+        synchronous=settings.store.synchronous,
+        busy_timeout_ms=settings.store.busy_timeout_ms,
+    )
+    report = store.recover()
+    pruned = store.prune_events(settings.store.event_retention_days * 86400.0)
+    _log.info(
+        "store opened",
+        path=str(settings.store.db_path),
+        schema_version=store.schema_version(),
+        interrupted_targets=report.interrupted_targets,
+        queued_targets=report.queued_targets,
+        failed_jobs=report.failed_jobs,
+        pruned_events=pruned,
+    )
+    return store
+
+
+# ----------------------------------------------------------------------------------- middleware
+
+
+class _BodyTooLarge(Exception):
+    pass
+
+
+class BodyLimitMiddleware:
+    """Refuse request bodies over ``limit_bytes`` with 413, by Content-Length or while streaming."""
+
+    def __init__(self, app: ASGIApp, limit_bytes: int) -> None:
+        self.app = app
+        self.limit = limit_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        for name, value in scope.get("headers", []):
+            if name == b"content-length":
+                try:
+                    declared = int(value)
+                except ValueError:
+                    declared = -1
+                if declared > self.limit or declared < 0:
+                    await _send_error(send, 413 if declared > 0 else 400, self._message(declared))
+                    return
+        received = 0
+        started = False
+
+        async def limited_receive() -> Message:
+            nonlocal received
+            message = await receive()
+            if message["type"] == "http.request":
+                received += len(message.get("body", b""))
+                if received > self.limit:
+                    raise _BodyTooLarge
+            return message
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, limited_receive, tracking_send)
+        except _BodyTooLarge:
+            if not started:
+                await _send_error(send, 413, self._message(received))
+
+    def _message(self, size: int) -> tuple[str, str]:
+        if size < 0:
+            return ("bad_request", "invalid Content-Length")
+        return (
+            "too_large",
+            f"request body of {size} bytes is over the limit of {self.limit} bytes (http.max_upload_bytes)",
+        )
+
+
+class InternalErrorMiddleware:
+    """Answer any unhandled exception with a generic 500 carrying an error id; log the details."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            await self.app(scope, receive, send)
+            return
+        started = False
+
+        async def tracking_send(message: Message) -> None:
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, receive, tracking_send)
+        except Exception:
+            error_id = uuid.uuid4().hex[:12]
+            metrics.HTTP_ERRORS.inc()
+            _log.exception(
+                "internal error", error_id=error_id, path=scope.get("path"), method=scope.get("method")
+            )
+            if not started:
+                await _send_error(send, 500, ("internal", "internal error"), error_id=error_id)
+
+
+async def _send_error(send: Send, status: int, code_message: tuple[str, str], **extra: Any) -> None:
+    response = JSONResponse(
+        {"error": code_message[0], "message": code_message[1], **extra}, status_code=status
+    )
+    body = response.body
+    await send({"type": "http.response.start", "status": status, "headers": response.raw_headers})
+    await send({"type": "http.response.body", "body": body})
+
+
+# ------------------------------------------------------------------------------- error handlers
+
+
+def _error(status: int, code: str, message: str, **extra: Any) -> JSONResponse:
+    headers = {"WWW-Authenticate": "Bearer"} if status == 401 else None
+    body = {"error": code, "message": message, **{k: v for k, v in extra.items() if v is not None}}
+    return JSONResponse(body, status_code=status, headers=headers)
+
+
+def _install_error_handlers(app: FastAPI) -> None:
+    @app.exception_handler(ApiError)
+    async def api_error(request: Request, exc: ApiError) -> JSONResponse:
+        return _error(exc.status, exc.code, exc.message, **exc.extra)
+
+    @app.exception_handler(AuthError)
+    async def auth_error(request: Request, exc: AuthError) -> JSONResponse:
+        return _error(exc.status, "unauthorized" if exc.status == 401 else "forbidden", exc.message)
+
+    @app.exception_handler(NotFoundError)
+    async def not_found(request: Request, exc: NotFoundError) -> JSONResponse:
+        return _error(404, "not_found", str(exc))
+
+    @app.exception_handler(IdempotencyConflict)
+    async def idempotency(request: Request, exc: IdempotencyConflict) -> JSONResponse:
+        return _error(409, "idempotency_conflict", str(exc))
+
+    @app.exception_handler(ConflictError)
+    async def conflict(request: Request, exc: ConflictError) -> JSONResponse:
+        return _error(409, "conflict", str(exc))
+
+    @app.exception_handler(DatasetError)
+    async def dataset_error(request: Request, exc: DatasetError) -> JSONResponse:
+        return _error(
+            422, "invalid_dataset", str(exc), row=exc.row, column=exc.column, row_label=exc.row_label
+        )
+
+    @app.exception_handler(RequestValidationError)
+    async def validation(request: Request, exc: RequestValidationError) -> JSONResponse:
+        details: list[dict[str, Any]] = []
+        locs: list[list[str]] = []
+        for err in exc.errors():
+            loc = [str(p) for p in err.get("loc", ())]
+            locs.append(loc)
+            details.append({"loc": loc, "message": str(err.get("msg", "invalid"))})
+        first_loc = locs[0] if locs else []
+        first_message = str(details[0]["message"]) if details else "invalid request"
+        where = ".".join(first_loc)
+        row: int | None = None
+        column: str | None = None
+        if len(first_loc) >= 4 and first_loc[:2] == ["body", "targets"] and first_loc[2].isdigit():
+            row, column = int(first_loc[2]) + 1, first_loc[3]
+        elif first_loc and first_loc[0] in ("query", "header", "path") and len(first_loc) > 1:
+            column = first_loc[1]
+        return _error(
+            422,
+            "invalid_request",
+            f"{where}: {first_message}" if where else first_message,
+            row=row,
+            column=column,
+            row_label="target" if row is not None else None,
+            details=details,
+        )
+
+    @app.exception_handler(StarletteHTTPException)
+    async def http_error(request: Request, exc: StarletteHTTPException) -> JSONResponse:
+        codes = {404: "not_found", 405: "method_not_allowed", 400: "bad_request", 413: "too_large"}
+        response = _error(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail))
+        if exc.headers:
+            response.headers.update(exc.headers)
+        return response
+
+
+# ------------------------------------------------------------------------------------- the app
+
+
+def _forward_store_events(state: ServiceState) -> Any:
+    bus = state.bus
+
+    def listener(event: EventRecord) -> None:
+        data = {"id": event.id, "target_id": event.target_id, "job_id": event.job_id, **event.message}
+        bus.publish(event.kind, data)
+        if event.kind.startswith("target."):
+            final = event.kind.removeprefix("target.")
+            if final in TARGET_FINAL_STATES:
+                metrics.TARGETS_FINISHED.labels(state=final).inc()
+
+    return listener
+
+
+def create_app(
+    settings: Settings,
+    store: Store,
+    daemon_view: DaemonView | None = None,
+    *,
+    bus: EventBus | None = None,
+    job_kinds: Sequence[JobKind] | None = None,
+) -> FastAPI:
+    """The FastAPI application over ``store``.
+
+    ``daemon_view`` is the running daemon (see :class:`DaemonView`); without one the service says the
+    loop is not running. ``bus`` is the event bus the daemon publishes to (one is made if omitted;
+    it is ``app.state.svc.bus``). ``job_kinds`` replaces the default job kinds (fit, diagnosis).
+    The process pool starts and stops with the app's lifespan.
+    """
+    from comp_daemon.service import job_kinds as default_kinds
+    from comp_daemon.service.routes import datasets, diagnoses, fits, system, targets
+
+    robot = load_robot(settings.robot.name)
+    state = ServiceState(
+        settings=settings,
+        store=store,
+        daemon=daemon_view if daemon_view is not None else DetachedDaemonView(),
+        bus=bus if bus is not None else EventBus(settings.http.sse_queue_events),
+        tokens=TokenTable(settings.auth),
+        runner=JobRunner(store, settings.jobs),
+        robot=robot,
+    )
+    for kind in job_kinds if job_kinds is not None else default_kinds.default_job_kinds():
+        state.runner.register(kind)
+    listener = _forward_store_events(state)
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        state.bus.bind_loop(asyncio.get_running_loop())
+        store.add_listener(listener)
+        metrics.set_queue_depth_source(store.queue_depth)
+        state.runner.start()
+        _log.info("http service started", robot=robot.name, job_kinds=state.runner.kinds())
+        try:
+            yield
+        finally:
+            state.bus.close()
+            await state.runner.drain()
+            await asyncio.to_thread(state.runner.shutdown)
+            store.remove_listener(listener)
+            metrics.set_queue_depth_source(None)
+            _log.info("http service stopped")
+
+    app = FastAPI(
+        title="comp-daemon",
+        version=__version__,
+        description=(
+            "Accuracy compensation for a robotic drilling cell: data sets, model fits, the MES target "
+            "queue, diagnosis reports and the live state of the closed loop. Authenticate with "
+            "`Authorization: Bearer <token>`; roles viewer < operator < engineer."
+        ),
+        lifespan=lifespan,
+        docs_url=None,  # Swagger UI and ReDoc load their scripts from a CDN; the cell is offline
+        redoc_url=None,
+    )
+    app.state.svc = state
+    app.state.tokens = state.tokens
+    _install_error_handlers(app)
+    app.add_middleware(
+        BodyLimitMiddleware, limit_bytes=settings.http.max_upload_bytes + _MULTIPART_OVERHEAD_BYTES
+    )
+    app.add_middleware(InternalErrorMiddleware)
+
+    app.include_router(system.router)
+    app.include_router(datasets.router, prefix="/api")
+    app.include_router(fits.router, prefix="/api")
+    app.include_router(diagnoses.router, prefix="/api")
+    app.include_router(targets.router, prefix="/api")
+
+    @app.get("/", include_in_schema=False)
+    async def root() -> RedirectResponse:
+        return RedirectResponse("/dashboard/")
+
+    with contextlib.suppress(RuntimeError):  # no static folder in a stripped install
+        app.mount("/dashboard", StaticFiles(directory=STATIC_DIR, html=True), name="dashboard")
+    return app

@@ -1,0 +1,335 @@
+"""Configuration of the daemon: one TOML file plus environment overrides.
+
+``load_settings(path)`` reads the file (see ``config.example.toml``, which documents every
+setting), then applies environment variables ``COMP_DAEMON_<SECTION>__<FIELD>`` (for example
+``COMP_DAEMON_HTTP__PORT=9000``; lists and tables as JSON, e.g.
+``COMP_DAEMON_RSI__CONTROLLER_ALLOW='["10.0.0.5"]'``). Precedence: explicit keyword arguments >
+environment > file > defaults.
+
+Units are in the field names (``_ms``, ``_s``, ``_deg``, ``_mm``, ``_nm``, ``_bytes``); every timeout
+and limit is a named setting. Relative paths given in the file (``store.data_dir``,
+``auth.tokens[].token_file``, ``robot.name`` when it is a path) are relative to the folder of the
+file; without a file, to the working directory. Unknown keys are refused by name.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import ipaddress
+from collections.abc import Iterator
+from contextlib import contextmanager
+from enum import IntEnum
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, SecretStr, field_validator, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+__all__ = [
+    "AuthSettings",
+    "ControllerSettings",
+    "EncoderJointSettings",
+    "EncoderSettings",
+    "HttpSettings",
+    "JobSettings",
+    "LogSettings",
+    "RobotSettings",
+    "Role",
+    "RsiSettings",
+    "Settings",
+    "StoreSettings",
+    "TokenSettings",
+    "load_settings",
+]
+
+ENV_PREFIX = "COMP_DAEMON_"
+ENV_NESTED_DELIMITER = "__"
+MIN_TOKEN_CHARS = 16
+
+_CONFIG_FILE: contextvars.ContextVar[Path | None] = contextvars.ContextVar("_CONFIG_FILE", default=None)
+
+
+def _base_dir() -> Path:
+    path = _CONFIG_FILE.get()
+    return path.parent if path is not None else Path.cwd()
+
+
+def _resolve(path: Path) -> Path:
+    path = path.expanduser()
+    return path if path.is_absolute() else (_base_dir() / path)
+
+
+class Role(IntEnum):
+    """Roles in increasing power: each role may do everything the ones below it may."""
+
+    viewer = 1
+    operator = 2
+    engineer = 3
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class HttpSettings(_Section):
+    host: str = "127.0.0.1"
+    port: int = Field(default=8080, ge=0, le=65535)
+    max_upload_bytes: int = Field(default=20_000_000, ge=1024)
+    max_batch_targets: int = Field(default=1000, ge=1)
+    max_page_items: int = Field(default=500, ge=1)
+    sse_keepalive_s: float = Field(default=15.0, gt=0)
+    sse_queue_events: int = Field(default=256, ge=8)
+
+
+class StoreSettings(_Section):
+    data_dir: Path = Path("var")
+    db_filename: str = "comp-daemon.sqlite3"
+    synchronous: Literal["full", "normal"] = "full"
+    busy_timeout_ms: int = Field(default=5000, ge=0)
+    event_retention_days: float = Field(default=90.0, gt=0)
+
+    @field_validator("data_dir")
+    @classmethod
+    def _relative_to_config(cls, value: Path) -> Path:
+        return _resolve(value)
+
+    @field_validator("db_filename")
+    @classmethod
+    def _plain_name(cls, value: str) -> str:
+        if not value or "/" in value or "\\" in value or value in {".", ".."}:
+            raise ValueError("must be a plain file name inside data_dir")
+        return value
+
+    @property
+    def db_path(self) -> Path:
+        return self.data_dir / self.db_filename
+
+
+class TokenSettings(_Section):
+    name: str = Field(min_length=1, max_length=64)
+    role: Literal["viewer", "operator", "engineer"]
+    token: SecretStr | None = None
+    token_file: Path | None = None
+
+    @model_validator(mode="after")
+    def _one_source(self) -> TokenSettings:
+        if (self.token is None) == (self.token_file is None):
+            raise ValueError(f"token '{self.name}': give exactly one of 'token' or 'token_file'")
+        if self.token_file is not None:
+            path = _resolve(self.token_file)
+            object.__setattr__(self, "token_file", path)
+            try:
+                text = path.read_text(encoding="utf-8").strip()
+            except OSError as exc:
+                raise ValueError(
+                    f"token '{self.name}': cannot read token_file {path}: {exc.strerror}"
+                ) from None
+            object.__setattr__(self, "token", SecretStr(text))
+        secret = self.token.get_secret_value() if self.token is not None else ""
+        if len(secret) < MIN_TOKEN_CHARS or any(c.isspace() for c in secret):
+            raise ValueError(
+                f"token '{self.name}': must be at least {MIN_TOKEN_CHARS} characters without whitespace"
+            )
+        return self
+
+    @property
+    def secret(self) -> str:
+        assert self.token is not None
+        return self.token.get_secret_value()
+
+    @property
+    def role_level(self) -> Role:
+        return Role[self.role]
+
+
+class AuthSettings(_Section):
+    tokens: list[TokenSettings] = Field(default_factory=list)
+    anonymous_read: bool = False
+    anonymous_metrics: bool = True
+
+    @model_validator(mode="after")
+    def _unique(self) -> AuthSettings:
+        names = [t.name for t in self.tokens]
+        dup = {n for n in names if names.count(n) > 1}
+        if dup:
+            raise ValueError(f"token names must be unique: {sorted(dup)}")
+        secrets = [t.secret for t in self.tokens]
+        if len(set(secrets)) != len(secrets):
+            raise ValueError("two tokens have the same value")
+        return self
+
+
+class JobSettings(_Section):
+    workers: int = Field(default=1, ge=1, le=64)
+    max_pending: int = Field(default=16, ge=1)
+    nice: int = Field(default=10, ge=0, le=19)
+    start_method: Literal["spawn", "forkserver"] = "spawn"
+    max_runtime_s: float = Field(default=3600.0, gt=0)
+
+
+class RsiSettings(_Section):
+    listen_host: str = "0.0.0.0"
+    listen_port: int = Field(default=49152, ge=0, le=65535)
+    controller_allow: list[str] = Field(default_factory=lambda: ["127.0.0.1"])
+    cycle_ms: int = 12
+    sen_type: str = Field(default="ImFree", min_length=1, max_length=64, pattern=r"^[A-Za-z0-9_]+$")
+    timeout_count: int = Field(default=10, ge=1)
+
+    @field_validator("cycle_ms")
+    @classmethod
+    def _cycle(cls, value: int) -> int:
+        if value not in (4, 12):
+            raise ValueError("the RSI cycle is 4 (#IPO_FAST) or 12 (#IPO) ms")
+        return value
+
+    @field_validator("controller_allow")
+    @classmethod
+    def _addresses(cls, value: list[str]) -> list[str]:
+        out = []
+        for item in value:
+            try:
+                out.append(str(ipaddress.ip_address(item.strip())))
+            except ValueError:
+                raise ValueError(f"not an IP address: {item!r}") from None
+        if not out:
+            raise ValueError("at least one controller address is needed")
+        return out
+
+
+class EncoderJointSettings(_Section):
+    joint: int = Field(ge=1, le=6)
+    port: str = Field(min_length=1)
+    radius_mm: float = Field(gt=0)
+    resolution_nm: float = Field(default=50.0, gt=0)
+    bits: Literal[26, 32] = 32
+
+
+class EncoderSettings(_Section):
+    poll_period_ms: float = Field(default=12.0, gt=0)
+    stale_after_ms: float = Field(default=36.0, gt=0)
+    reply_timeout_ms: float = Field(default=10.0, gt=0)
+    reconnect_initial_ms: float = Field(default=250.0, gt=0)
+    reconnect_max_ms: float = Field(default=5000.0, gt=0)
+    baudrate: int = Field(default=115200, gt=0)
+    joints: list[EncoderJointSettings] = Field(default_factory=list)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> EncoderSettings:
+        numbers = [j.joint for j in self.joints]
+        if len(set(numbers)) != len(numbers):
+            raise ValueError(f"each joint may have one grating: joints {numbers}")
+        ports = [j.port for j in self.joints]
+        if len(set(ports)) != len(ports):
+            raise ValueError("two joints share a serial port")
+        if self.reconnect_max_ms < self.reconnect_initial_ms:
+            raise ValueError("reconnect_max_ms must be >= reconnect_initial_ms")
+        return self
+
+
+class ControllerSettings(_Section):
+    kp: float = Field(default=0.05, ge=0)
+    kd: float = Field(default=0.65, ge=0)
+    rough_step_deg: float = Field(default=0.002, gt=0)
+    rough_threshold_deg: float = Field(default=0.007, gt=0)
+    max_step_deg: float = Field(default=0.01, gt=0)
+    max_total_deg: float = Field(default=0.5, gt=0)
+    settle_tolerance_deg: float = Field(default=0.001, gt=0)
+    settle_dwell_ms: float = Field(default=240.0, ge=0)
+    move_timeout_s: float = Field(default=120.0, gt=0)
+    settle_timeout_s: float = Field(default=10.0, gt=0)
+
+    @model_validator(mode="after")
+    def _consistent(self) -> ControllerSettings:
+        if self.max_step_deg < self.rough_step_deg:
+            raise ValueError("max_step_deg must be >= rough_step_deg")
+        if self.max_total_deg < self.max_step_deg:
+            raise ValueError("max_total_deg must be >= max_step_deg")
+        if self.settle_tolerance_deg >= self.rough_threshold_deg:
+            raise ValueError("settle_tolerance_deg must be < rough_threshold_deg")
+        return self
+
+
+class RobotSettings(_Section):
+    name: str = "kr210"
+
+    @field_validator("name")
+    @classmethod
+    def _preset_or_path(cls, value: str) -> str:
+        from comp_daemon.robot.description import PRESETS
+
+        if value in PRESETS:
+            return value
+        return str(_resolve(Path(value)))
+
+
+class LogSettings(_Section):
+    level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = "INFO"
+    format: Literal["json", "console"] = "json"
+
+
+class Settings(BaseSettings):
+    """Everything the daemon can be told; see ``config.example.toml``."""
+
+    model_config = SettingsConfigDict(
+        env_prefix=ENV_PREFIX,
+        env_nested_delimiter=ENV_NESTED_DELIMITER,
+        extra="forbid",
+        frozen=True,
+    )
+
+    http: HttpSettings = Field(default_factory=HttpSettings)
+    store: StoreSettings = Field(default_factory=StoreSettings)
+    auth: AuthSettings = Field(default_factory=AuthSettings)
+    jobs: JobSettings = Field(default_factory=JobSettings)
+    rsi: RsiSettings = Field(default_factory=RsiSettings)
+    encoders: EncoderSettings = Field(default_factory=EncoderSettings)
+    controller: ControllerSettings = Field(default_factory=ControllerSettings)
+    robot: RobotSettings = Field(default_factory=RobotSettings)
+    log: LogSettings = Field(default_factory=LogSettings)
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        path = _CONFIG_FILE.get()
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        if path is not None:
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=path))
+        return tuple(sources)
+
+
+@contextmanager
+def _config_file(path: Path | None) -> Iterator[None]:
+    token = _CONFIG_FILE.set(path)
+    try:
+        yield
+    finally:
+        _CONFIG_FILE.reset(token)
+
+
+def load_settings(path: str | Path | None = None, **overrides: Any) -> Settings:
+    """Settings from ``path`` (TOML) with environment overrides; ``overrides`` win over both.
+
+    Raises ``FileNotFoundError`` for a missing file, ``tomllib.TOMLDecodeError`` for bad TOML and
+    ``pydantic.ValidationError`` (naming the section and key) for bad values.
+    """
+    file_path = None
+    if path is not None:
+        file_path = Path(path).expanduser().resolve()
+        if not file_path.is_file():
+            raise FileNotFoundError(f"configuration file not found: {file_path}")
+        import tomllib
+
+        tomllib.loads(file_path.read_text(encoding="utf-8"))  # a clear syntax error before pydantic's
+    with _config_file(file_path):
+        return Settings(**overrides)

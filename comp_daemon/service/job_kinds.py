@@ -1,0 +1,221 @@
+"""The job kinds the service runs in its process pool: ``fit`` and ``diagnosis``.
+
+Worker functions take plain, picklable arguments (the data set as canonical CSV text, the robot's
+preset name or path) and return JSON-ready dicts; they never touch the store. Parent-side hooks
+turn a fit's result into a stored model.
+
+A fit is :func:`comp_daemon.models.fitting.fit_model` on the data set's fit rows (the ``split``
+column, or a reproducible draw), judged with seed 000's Table 2
+(:func:`comp_daemon.models.evaluation.error_statistics`) on the check rows next to the nominal
+twin; the model is stored as its artifact document (:func:`comp_daemon.models.artifact.model_document`),
+which the daemon loads back bit-exact. Model names are those of ``comp-daemon fit``: ``kinematic``,
+``chebyshev``, ``nominal``, or ``kinematic+ratio+backlash`` (joint effects of seed 001).
+
+Fit result (``job.result``) and model ``stats``::
+
+    {"model": name, "kind": kind, "effects": [...], "order": m, "frame": "base"|"tracker",
+     "rows": {"fit": n, "check": n}, "split": message,
+     "table2": {"nominal": T, "model": T}, "errors_3d_mm": {"nominal": [...], "model": [...]},
+     "fit": {...fit_model's summary...}}
+
+``T`` is ``error_statistics`` (mm, error = measured − predicted): per axis signed mean/std and max
+|component|, 3-D mean/std/max/rms; ``errors_3d_mm`` are the check rows' 3-D errors (the histogram
+of seed 000 Fig. 11).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Mapping
+from typing import Any
+
+import numpy as np
+
+from comp_daemon.service.jobs import JobKind
+from comp_daemon.service.store import JobRecord, ModelDraft
+
+__all__ = [
+    "DIAGNOSIS",
+    "FIT",
+    "default_job_kinds",
+    "diagnosis_job_args",
+    "fit_done",
+    "fit_job_args",
+    "fit_model_kinds",
+    "parse_model_name",
+    "run_diagnosis",
+    "run_fit",
+]
+
+FIT = "fit"
+DIAGNOSIS = "diagnosis"
+
+Progress = Callable[..., None]
+
+
+def fit_model_kinds() -> tuple[str, ...]:
+    """Model kinds a fit job can make (joint effects may be added to ``kinematic`` with ``+``)."""
+    from comp_daemon.models.fitting import FITTABLE_KINDS
+
+    return tuple(FITTABLE_KINDS)
+
+
+def parse_model_name(name: str) -> tuple[str, list[str]]:
+    """``kinematic+ratio+backlash`` -> ("kinematic", ["ratio", "backlash"]); ValueError naming the fault."""
+    from comp_daemon.models.effects import EFFECTS
+
+    parts = [p.strip() for p in name.split("+")]
+    kind, effects = parts[0], parts[1:]
+    kinds = fit_model_kinds()
+    if kind not in kinds:
+        raise ValueError(
+            f"unknown model '{kind}' (known: {', '.join(kinds)}; effects with +, e.g. kinematic+backlash)"
+        )
+    bad = [e or "(empty)" for e in effects if e not in EFFECTS]
+    if bad:
+        raise ValueError(f"model '{name}': unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECTS)})")
+    if effects and kind != "kinematic":
+        raise ValueError(f"model '{name}': joint effects are offered by the kinematic model only")
+    if len(set(effects)) != len(effects):
+        raise ValueError(f"model '{name}': an effect is named twice")
+    return kind, effects
+
+
+# -------------------------------------------------------------------------------------------- fit
+
+
+def fit_job_args(
+    csv_text: str, robot: str, model: str, order: int | None, dataset_id: int
+) -> tuple[Any, ...]:
+    return (csv_text, robot, model, order, dataset_id)
+
+
+def run_fit(
+    csv_text: str, robot_name: str, model: str, order: int | None, dataset_id: int, *, progress: Progress
+) -> dict[str, Any]:
+    """Fit ``model`` on the fit rows of the data set, judge it and the nominal twin on the check rows."""
+    from comp_daemon.data.dataset import parse_dataset
+    from comp_daemon.models.artifact import model_document
+    from comp_daemon.models.effects import effect_param_names
+    from comp_daemon.models.evaluation import error_statistics
+    from comp_daemon.models.fitting import fit_model, max_parameters
+    from comp_daemon.robot.description import load_robot
+
+    kind, effects = parse_model_name(model)
+    robot = load_robot(robot_name)
+    progress(0.02, "reading the data set")
+    n_effect = len(effect_param_names(effects)) if effects else 0
+    source = f"dataset {dataset_id}"
+    ds = parse_dataset(
+        csv_text,
+        source=source,
+        limits_deg=robot.axis_limits_deg,
+        min_rows=max_parameters(kind, order, n_effect),
+        kind="measurement",
+    )
+    assert ds.a_deg is not None and ds.xyz_mm is not None
+    if "backlash" in effects and ds.dir is None:
+        raise ValueError(f"{source}: the backlash effect needs the dir1..dir6 columns")
+    if "thermal" in effects and ds.temp_c is None:
+        raise ValueError(f"{source}: the thermal effect needs the temp_c column")
+    split = ds.split_or_draw()
+    fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
+    if len(check_rows) == 0:
+        raise ValueError(f"{source}: no check rows to judge the model on")
+    if len(fit_rows) < 3:
+        raise ValueError(f"{source}: {len(fit_rows)} fit rows; a fit needs at least 3")
+
+    def rows(idx: Any) -> dict[str, Any]:
+        return {
+            "dir": None if ds.dir is None else ds.dir[idx].astype(float),
+            "payload_kg": ds.payload_kg[idx],
+            "temp_c": None if ds.temp_c is None else ds.temp_c[idx],
+        }
+
+    a, p = ds.a_deg, ds.xyz_mm
+    progress(
+        0.05,
+        f"fitting {model}"
+        + (" (order by cross-validation)" if kind == "chebyshev" and order is None else ""),
+    )
+    fitted = fit_model(kind, robot, a[fit_rows], p[fit_rows], order=order, effects=effects, **rows(fit_rows))
+    if kind == "kinematic" and len(fit_rows) < fitted.info["identifiability"]["identifiable"]:
+        raise ValueError(
+            f"{source}: {len(fit_rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
+            "identifiable parameters"
+        )
+    progress(0.9, "judging on the check rows")
+    nominal = fit_model("nominal", robot, a[fit_rows], p[fit_rows])
+    check = rows(check_rows)
+    pred_model = fitted.model.predict_tcp_mm(
+        a[check_rows], check["dir"], check["payload_kg"], check["temp_c"]
+    )
+    pred_nominal = nominal.model.predict_tcp_mm(a[check_rows])
+    p_check = p[check_rows]
+    info = {**fitted.info, "data_source": ds.source, "data_rows_used": "fit rows"}
+    stats = {
+        "model": model,
+        "kind": kind,
+        "effects": effects,
+        "order": fitted.model.order,
+        "frame": fitted.frame,
+        "rows": {"fit": len(fit_rows), "check": len(check_rows)},
+        "split": split.message,
+        "table2": {
+            "nominal": error_statistics(p_check, pred_nominal),
+            "model": error_statistics(p_check, pred_model),
+        },
+        "errors_3d_mm": {
+            "nominal": np.linalg.norm(p_check - pred_nominal, axis=1).round(6).tolist(),
+            "model": np.linalg.norm(p_check - pred_model, axis=1).round(6).tolist(),
+        },
+        "fit": info,
+    }
+    artifact = model_document(fitted.model, data_sha256=ds.content_sha256, frame=fitted.frame, fit=info)
+    return {"stats": stats, "artifact": artifact}
+
+
+def fit_done(job: JobRecord, result: Mapping[str, Any]) -> ModelDraft:
+    stats = dict(result["stats"])
+    return ModelDraft(
+        kind=str(stats["kind"]),
+        order=stats.get("order"),
+        artifact=dict(result["artifact"]),
+        stats=stats,
+        dataset_id=job.dataset_id,
+    )
+
+
+# -------------------------------------------------------------------------------------- diagnosis
+
+
+def diagnosis_job_args(csv_text: str, robot: str, dataset_id: int) -> tuple[Any, ...]:
+    return (csv_text, robot, dataset_id)
+
+
+def run_diagnosis(csv_text: str, robot_name: str, dataset_id: int, *, progress: Progress) -> dict[str, Any]:
+    """The diagnosis of ``shared/spec/diagnose.md`` on the data set: JSON report and HTML report."""
+    from comp_daemon.data.dataset import parse_dataset
+    from comp_daemon.diagnosis import diagnose
+    from comp_daemon.diagnosis.report import render_report_html
+    from comp_daemon.robot.description import load_robot
+
+    robot = load_robot(robot_name)
+    progress(0.02, "reading the data set")
+    ds = parse_dataset(csv_text, source=f"dataset {dataset_id}", limits_deg=robot.axis_limits_deg, min_rows=1)
+    progress(0.05, "diagnosing")
+    diagnosis = diagnose(ds, robot)
+    progress(0.9, "writing the report")
+    return {"report": diagnosis.to_json(), "html": render_report_html(diagnosis)}
+
+
+def _fit_job_result(result: Mapping[str, Any]) -> dict[str, Any]:
+    """What a fit job's row keeps: the statistics (the artifact is kept with the model)."""
+    return {"stats": result["stats"]}
+
+
+def default_job_kinds() -> list[JobKind]:
+    """``fit`` (stores a model when done) and ``diagnosis``."""
+    return [
+        JobKind(FIT, run_fit, on_done=fit_done, job_result=_fit_job_result),
+        JobKind(DIAGNOSIS, run_diagnosis, on_done=None),
+    ]

@@ -1,0 +1,81 @@
+"""Structured logs: one JSON object per line (or a readable console form), through structlog.
+
+Every record carries ``timestamp`` (ISO 8601, UTC), ``level``, ``logger`` and ``event`` (the
+message), plus whatever is bound: use ``bound(target_id=…, job_id=…)`` around work on one target or
+job, and everything logged inside it (by any module, in that task or thread) carries those keys.
+Standard-library loggers (uvicorn, asyncio) go through the same renderer.
+"""
+
+from __future__ import annotations
+
+import logging
+import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
+from typing import IO, Any, Literal
+
+import structlog
+
+__all__ = ["bound", "configure_logging", "get_logger"]
+
+_HANDLER_MARK = "_comp_daemon_handler"
+
+
+def _shared_processors() -> list[Any]:
+    return [
+        structlog.contextvars.merge_contextvars,
+        structlog.stdlib.add_log_level,
+        structlog.stdlib.add_logger_name,
+        structlog.processors.TimeStamper(fmt="iso", utc=True),
+        structlog.processors.StackInfoRenderer(),
+    ]
+
+
+def configure_logging(
+    level: str = "INFO", fmt: Literal["json", "console"] = "json", stream: IO[str] | None = None
+) -> None:
+    """Route structlog and the standard library to one handler on ``stream`` (stderr by default)."""
+    shared = _shared_processors()
+    structlog.configure(
+        processors=[*shared, structlog.stdlib.ProcessorFormatter.wrap_for_formatter],
+        logger_factory=structlog.stdlib.LoggerFactory(),
+        wrapper_class=structlog.stdlib.BoundLogger,
+        cache_logger_on_first_use=False,
+    )
+    renderer: Any
+    if fmt == "json":
+        renderer = structlog.processors.JSONRenderer(default=repr)
+        final = [structlog.processors.format_exc_info, renderer]
+    else:
+        final = [
+            structlog.dev.ConsoleRenderer(colors=False, exception_formatter=structlog.dev.plain_traceback)
+        ]
+    formatter = structlog.stdlib.ProcessorFormatter(
+        foreign_pre_chain=shared,
+        processors=[structlog.stdlib.ProcessorFormatter.remove_processors_meta, *final],
+    )
+    handler = logging.StreamHandler(stream if stream is not None else sys.stderr)
+    handler.setFormatter(formatter)
+    setattr(handler, _HANDLER_MARK, True)
+    root = logging.getLogger()
+    for old in [h for h in root.handlers if getattr(h, _HANDLER_MARK, False)]:
+        root.removeHandler(old)
+    root.addHandler(handler)
+    root.setLevel(level.upper())
+    for name in ("uvicorn", "uvicorn.error", "uvicorn.access"):
+        lg = logging.getLogger(name)
+        lg.handlers.clear()
+        lg.propagate = True
+
+
+def get_logger(name: str | None = None, **initial: Any) -> Any:
+    """A structlog logger (``.info(event, **kv)`` etc.), optionally with keys bound."""
+    logger = structlog.get_logger(name)
+    return logger.bind(**initial) if initial else logger
+
+
+@contextmanager
+def bound(**keys: Any) -> Iterator[None]:
+    """Bind ``keys`` (e.g. ``target_id``, ``job_id``) to every log record inside the block."""
+    with structlog.contextvars.bound_contextvars(**keys):
+        yield

@@ -1,0 +1,212 @@
+"""Fits (jobs that make models), jobs in general, and models: list, compare, activate.
+
+A fit runs in the process pool; ``GET /api/jobs/{id}`` follows it (state, progress 0..1, result
+statistics). When it is done, the model it made is listed under ``/api/models`` (inactive);
+activating one makes the daemon compensate with it from its next target on.
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, Path, Query
+from fastapi.responses import JSONResponse
+
+from comp_daemon.service import job_kinds
+from comp_daemon.service.auth import Principal, require
+from comp_daemon.service.config import Role
+from comp_daemon.service.logging import get_logger
+from comp_daemon.service.schemas import ErrorOut, FitIn, JobOut, ModelOut
+from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.store import JobRecord
+
+router = APIRouter()
+_log = get_logger("comp_daemon.api.fits")
+
+State = Annotated[ServiceState, Depends(get_state)]
+Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
+Engineer = Annotated[Principal, Depends(require(Role.engineer))]
+JobId = Annotated[int, Path(ge=1, le=2**62, description="job id")]
+ModelId = Annotated[int, Path(ge=1, le=2**62, description="model id")]
+
+_NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
+
+
+async def launch_job(
+    svc: ServiceState, kind: str, params: dict[str, Any], dataset_id: int, make_args: Any
+) -> JobRecord:
+    """Create the job row and hand it to the pool; ``make_args(csv_text)`` builds the function's args."""
+    if not svc.runner.has_kind(kind):
+        raise ApiError(503, "unavailable", f"{kind} jobs are not available in this service")
+    dataset = await svc.run(svc.store.get_dataset, dataset_id, with_content=True)
+    job = await svc.run(
+        svc.store.create_job, kind, params, dataset_id=dataset_id, max_pending=svc.settings.jobs.max_pending
+    )
+    try:
+        await svc.run(svc.runner.launch, job, make_args(dataset.content or ""))
+    except Exception:
+        await svc.run(svc.store.fail_job, job.id, "could not be started (the job pool is not running)")
+        raise
+    return job
+
+
+@router.post(
+    "/fits",
+    status_code=202,
+    response_model=JobOut,
+    tags=["fits"],
+    summary="Start a fit of a model to a data set (engineer)",
+    responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+)
+async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
+    try:
+        job_kinds.parse_model_name(body.model)
+    except ValueError as exc:
+        raise ApiError(422, "invalid_request", str(exc), column="model") from None
+    params = {"model": body.model, "order": body.order, "dataset_id": body.dataset_id, "by": who.name}
+    robot_name = svc.settings.robot.name
+    job = await launch_job(
+        svc,
+        job_kinds.FIT,
+        params,
+        body.dataset_id,
+        lambda csv: job_kinds.fit_job_args(csv, robot_name, body.model, body.order, body.dataset_id),
+    )
+    _log.info("fit queued", job_id=job.id, model=body.model, order=body.order, by=who.name)
+    return JobOut.of(job)
+
+
+@router.get("/jobs", response_model=list[JobOut], tags=["jobs"], summary="List jobs (newest first)")
+async def list_jobs(
+    svc: State,
+    who: Viewer,
+    kind: Annotated[str | None, Query(max_length=32)] = None,
+    state: Literal["queued", "running", "done", "failed", "cancelled"] | None = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
+) -> list[JobOut]:
+    rows = await svc.run(
+        svc.store.list_jobs,
+        kind=kind,
+        state=state,
+        limit=min(limit, svc.settings.http.max_page_items),
+        offset=offset,
+    )
+    return [JobOut.of(r, with_result=r.kind != job_kinds.DIAGNOSIS) for r in rows]
+
+
+@router.get("/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="One job", responses=_NOT_FOUND)
+async def get_job(job_id: JobId, svc: State, who: Viewer) -> JobOut:
+    job = await svc.run(svc.store.get_job, job_id)
+    return JobOut.of(job, with_result=job.kind != job_kinds.DIAGNOSIS)
+
+
+@router.post(
+    "/jobs/{job_id}/cancel",
+    response_model=JobOut,
+    tags=["jobs"],
+    summary="Cancel a queued or running job (engineer)",
+    responses={404: {"model": ErrorOut}, 409: {"model": ErrorOut}},
+)
+async def cancel_job(job_id: JobId, svc: State, who: Engineer) -> JobOut:
+    job = await svc.run(svc.runner.cancel, job_id, by=who.name)
+    _log.info("job cancelled", job_id=job_id, by=who.name)
+    return JobOut.of(job, with_result=False)
+
+
+# ---------------------------------------------------------------------------------------- models
+
+
+@router.get("/models", response_model=list[ModelOut], tags=["models"], summary="List models (newest first)")
+async def list_models(
+    svc: State,
+    who: Viewer,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
+) -> list[ModelOut]:
+    rows = await svc.run(
+        svc.store.list_models, limit=min(limit, svc.settings.http.max_page_items), offset=offset
+    )
+    return [ModelOut.of(r) for r in rows]
+
+
+@router.get(
+    "/models/compare",
+    tags=["models"],
+    summary="Table 2 of several models side by side (per-axis and 3-D mean/std/max on check rows)",
+    responses=_NOT_FOUND,
+)
+async def compare_models(
+    svc: State,
+    who: Viewer,
+    ids: Annotated[list[int], Query(min_length=1, max_length=20, description="model ids")],
+) -> dict[str, Any]:
+    rows: list[dict[str, Any]] = []
+    baselines: dict[str, Any] = {}
+    for model_id in ids:
+        if not 1 <= model_id <= 2**62:
+            raise ApiError(422, "invalid_request", f"model id {model_id} is out of range", column="ids")
+        model = await svc.run(svc.store.get_model, model_id)
+        table = model.stats.get("table2", {})
+        rows.append(
+            {
+                "model_id": model.id,
+                "kind": model.kind,
+                "order": model.order,
+                "active": model.active,
+                "dataset_id": model.dataset_id,
+                "table2": table.get("model"),
+                "errors_3d_mm": model.stats.get("errors_3d_mm", {}).get("model"),
+            }
+        )
+        if model.dataset_id is not None and table.get("nominal") is not None:
+            baselines.setdefault(
+                str(model.dataset_id),
+                {
+                    "table2": table.get("nominal"),
+                    "errors_3d_mm": model.stats.get("errors_3d_mm", {}).get("nominal"),
+                },
+            )
+    return {"models": rows, "nominal_by_dataset": baselines}
+
+
+@router.get(
+    "/models/active", response_model=ModelOut | None, tags=["models"], summary="The active model, if any"
+)
+async def active_model(svc: State, who: Viewer) -> ModelOut | None:
+    model = await svc.run(svc.store.active_model, with_artifact=False)
+    return ModelOut.of(model) if model is not None else None
+
+
+@router.get(
+    "/models/{model_id}", response_model=ModelOut, tags=["models"], summary="One model", responses=_NOT_FOUND
+)
+async def get_model(model_id: ModelId, svc: State, who: Viewer) -> ModelOut:
+    return ModelOut.of(await svc.run(svc.store.get_model, model_id))
+
+
+@router.get(
+    "/models/{model_id}/artifact",
+    tags=["models"],
+    summary="The model artifact (JSON), as written by comp-daemon fit",
+    responses=_NOT_FOUND,
+)
+async def get_artifact(model_id: ModelId, svc: State, who: Viewer) -> JSONResponse:
+    model = await svc.run(svc.store.get_model, model_id, with_artifact=True)
+    return JSONResponse(
+        model.artifact,
+        headers={"Content-Disposition": f'attachment; filename="model-{model.id}-{model.kind}.json"'},
+    )
+
+
+@router.post(
+    "/models/{model_id}/activate",
+    response_model=ModelOut,
+    tags=["models"],
+    summary="Make this the model the daemon compensates with (engineer)",
+    responses=_NOT_FOUND,
+)
+async def activate_model(model_id: ModelId, svc: State, who: Engineer) -> ModelOut:
+    model = await svc.run(svc.store.activate_model, model_id, by=who.name)
+    _log.info("model activated", model_id=model_id, by=who.name)
+    return ModelOut.of(model)

@@ -1,0 +1,155 @@
+"""Health, readiness, metrics, the status overview and the live event stream."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+from collections.abc import AsyncIterator
+from typing import Annotated, Any
+
+from fastapi import APIRouter, Depends, Query
+from fastapi.responses import JSONResponse, Response, StreamingResponse
+
+from comp_daemon import __version__
+from comp_daemon.service import metrics
+from comp_daemon.service.auth import Principal, require
+from comp_daemon.service.config import Role
+from comp_daemon.service.events import CLOSING
+from comp_daemon.service.schemas import EventOut, ModelOut, ReadyOut
+from comp_daemon.service.state import ServiceState, get_state
+
+router = APIRouter()
+
+State = Annotated[ServiceState, Depends(get_state)]
+Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
+MetricsReader = Annotated[Principal, Depends(require(Role.viewer, anonymous_if="anonymous_metrics"))]
+
+NO_MODEL = "no model is active"
+
+
+async def _readiness(svc: ServiceState) -> list[str]:
+    reasons = list(svc.daemon.readiness_reasons())
+    active = await svc.run(svc.store.active_model, with_artifact=False)
+    if active is None:
+        reasons.append(NO_MODEL)
+    return reasons
+
+
+@router.get("/health", tags=["system"], summary="Liveness: the process answers")
+async def health() -> dict[str, str]:
+    return {"status": "ok", "version": __version__}
+
+
+@router.get(
+    "/ready",
+    tags=["system"],
+    summary="Readiness: loop running, encoders fresh, a model active",
+    response_model=ReadyOut,
+    responses={503: {"model": ReadyOut, "description": "not ready; the reasons say why"}},
+)
+async def ready(svc: State) -> JSONResponse:
+    reasons = await _readiness(svc)
+    body = ReadyOut(ready=not reasons, reasons=reasons)
+    return JSONResponse(body.model_dump(), status_code=200 if not reasons else 503)
+
+
+@router.get(
+    "/metrics",
+    tags=["system"],
+    summary="Prometheus metrics",
+    response_class=Response,
+    responses={200: {"content": {"text/plain": {}}}},
+)
+async def get_metrics(who: MetricsReader) -> Response:
+    body = await asyncio.to_thread(metrics.render)
+    return Response(body, media_type=metrics.CONTENT_TYPE_LATEST)
+
+
+@router.get("/api/status", tags=["system"], summary="Everything the dashboard shows at a glance")
+async def status(svc: State, who: Viewer) -> dict[str, Any]:
+    snapshot = svc.daemon.snapshot()
+    reasons = await _readiness(svc)
+    counts = await svc.run(svc.store.target_counts)
+    active = await svc.run(svc.store.active_model, with_artifact=False)
+    running = await svc.run(svc.store.list_jobs, state="running", limit=50)
+    queued = await svc.run(svc.store.list_jobs, state="queued", limit=50)
+    return {
+        "version": __version__,
+        "robot": svc.robot.name,
+        "cycle_ms": svc.settings.rsi.cycle_ms,
+        "controller": {
+            "settle_tolerance_deg": svc.settings.controller.settle_tolerance_deg,
+            "rough_threshold_deg": svc.settings.controller.rough_threshold_deg,
+        },
+        "daemon": snapshot.to_dict(),
+        "ready": not reasons,
+        "reasons": reasons,
+        "targets": counts,
+        "active_model": ModelOut.of(active).model_dump() if active is not None else None,
+        "jobs": {"running": len(running), "queued": len(queued)},
+        "you": {"name": who.name, "role": who.role.name},
+        "job_kinds": svc.runner.kinds(),
+    }
+
+
+@router.get(
+    "/api/events",
+    tags=["system"],
+    summary="Live updates as server-sent events",
+    response_class=StreamingResponse,
+    responses={200: {"content": {"text/event-stream": {}}}},
+)
+async def events(
+    svc: State,
+    who: Viewer,
+    kinds: Annotated[
+        str | None, Query(max_length=500, description="comma-separated kinds or prefixes, e.g. loop,target")
+    ] = None,
+) -> StreamingResponse:
+    wanted = frozenset(k.strip() for k in kinds.split(",") if k.strip()) if kinds else None
+    keepalive = svc.settings.http.sse_keepalive_s
+
+    async def stream() -> AsyncIterator[str]:
+        sub = svc.bus.subscribe(wanted)  # here, so that a client gone before the first byte leaks nothing
+        try:
+            hello = {"version": __version__, "daemon": svc.daemon.snapshot().to_dict()}
+            yield f"retry: 3000\nevent: hello\ndata: {json.dumps(hello, default=str)}\n\n"
+            while True:
+                event = await sub.get(timeout=keepalive)
+                if event is None:
+                    yield ": keepalive\n\n"
+                    continue
+                yield event.sse(sub.take_dropped())
+                if event.kind == CLOSING:
+                    return
+        finally:
+            sub.close()
+
+    return StreamingResponse(
+        stream(),
+        media_type="text/event-stream",
+        headers={"Cache-Control": "no-store", "X-Accel-Buffering": "no"},
+    )
+
+
+@router.get(
+    "/api/events/log", tags=["system"], summary="The persisted event log", response_model=list[EventOut]
+)
+async def event_log(
+    svc: State,
+    who: Viewer,
+    after_id: Annotated[int, Query(ge=0, le=2**62)] = 0,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    target_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+    job_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+    newest_first: bool = False,
+) -> list[EventOut]:
+    rows = await svc.run(
+        svc.store.list_events,
+        after_id=after_id,
+        limit=limit,
+        target_id=target_id,
+        job_id=job_id,
+        newest_first=newest_first,
+    )
+    return [EventOut.of(e) for e in rows]

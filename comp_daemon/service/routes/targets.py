@@ -1,0 +1,195 @@
+"""The MES target queue: post a batch of drilling points once, follow each target, cancel, requeue.
+
+``POST /api/batches`` needs an ``Idempotency-Key`` header. The first request with a key queues
+the batch (201); the same key with the same body returns that batch (200) without queueing
+anything again; the same key with another body is refused (409). Bodies are compared after
+validation (same targets, same values: same body, whatever the spacing or key order).
+
+Each target is validated like a row of a target file (``shared/spec/dataset.md``): axis values
+within the robot's limits, or a wanted TCP position; a refused batch names the target (1-based)
+and the field, and nothing of it is queued.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Sequence
+from typing import Annotated, Any, Literal
+
+from fastapi import APIRouter, Depends, Header, Path, Query, Response
+
+from comp_daemon.data.dataset import DatasetError, dataset_from_records
+from comp_daemon.service.auth import Principal, require
+from comp_daemon.service.config import Role
+from comp_daemon.service.logging import get_logger
+from comp_daemon.service.schemas import BatchIn, BatchOut, ErrorOut, TargetOut
+from comp_daemon.service.state import ApiError, ServiceState, get_state
+
+router = APIRouter(tags=["targets"])
+_log = get_logger("comp_daemon.api.targets")
+
+State = Annotated[ServiceState, Depends(get_state)]
+Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
+Operator = Annotated[Principal, Depends(require(Role.operator))]
+TargetId = Annotated[int, Path(ge=1, le=2**62, description="target id")]
+BatchId = Annotated[int, Path(ge=1, le=2**62, description="batch id")]
+TargetState = Literal[
+    "queued", "compensating", "moving", "settling", "done", "failed", "cancelled", "interrupted"
+]
+
+_CHANGE_ERRORS: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}, 409: {"model": ErrorOut}}
+
+
+def validate_targets(records: Sequence[dict[str, Any]], limits_deg: Any) -> None:
+    """Check every target as a target-file record; raise ``DatasetError`` naming target and field."""
+    groups: dict[tuple[str, ...], list[int]] = {}
+    for i, record in enumerate(records):
+        groups.setdefault(tuple(sorted(record)), []).append(i)
+    first: DatasetError | None = None
+    first_index = len(records)
+    for indices in groups.values():
+        try:
+            dataset_from_records(
+                [records[i] for i in indices],
+                source="batch",
+                limits_deg=limits_deg,
+                min_rows=1,
+                kind="targets",
+            )
+        except DatasetError as exc:
+            index = (
+                indices[exc.row - 1] if exc.row is not None and 0 < exc.row <= len(indices) else indices[0]
+            )
+            if index < first_index:
+                first_index = index
+                first = DatasetError(
+                    exc.problem, source="batch", row=index + 1, column=exc.column, row_label="target"
+                )
+    if first is not None:
+        raise first
+
+
+def request_sha256(records: Sequence[dict[str, Any]]) -> str:
+    canonical = json.dumps(list(records), sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+@router.post(
+    "/batches",
+    status_code=201,
+    response_model=BatchOut,
+    summary="Queue a batch of targets once per Idempotency-Key (operator)",
+    responses={
+        200: {"model": BatchOut, "description": "the batch queued earlier under this key"},
+        409: {"model": ErrorOut, "description": "the key was used with another body"},
+        422: {"model": ErrorOut, "description": "a target is refused; row = target number, column = field"},
+    },
+)
+async def post_batch(
+    body: BatchIn,
+    response: Response,
+    svc: State,
+    who: Operator,
+    idempotency_key: Annotated[
+        str,
+        Header(
+            alias="Idempotency-Key",
+            min_length=1,
+            max_length=200,
+            pattern=r"^[\x21-\x7e]+$",
+            description="the MES's unique key for this batch (printable ASCII, no spaces)",
+        ),
+    ],
+) -> BatchOut:
+    limit = svc.settings.http.max_batch_targets
+    if len(body.targets) > limit:
+        raise ApiError(
+            422,
+            "invalid_request",
+            f"batch of {len(body.targets)} targets is over the limit of {limit} (http.max_batch_targets)",
+            column="targets",
+        )
+    records = [t.model_dump(exclude_none=True) for t in body.targets]
+    await svc.run(validate_targets, records, svc.robot.axis_limits_deg)
+    batch, targets, created = await svc.run(
+        svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
+    )
+    if created:
+        _log.info("batch queued", batch_id=batch.id, size=batch.size, by=who.name)
+    else:
+        response.status_code = 200
+    return BatchOut.of(batch, targets)
+
+
+@router.get(
+    "/batches/{batch_id}",
+    response_model=BatchOut,
+    summary="A batch and its targets",
+    responses=_CHANGE_ERRORS,
+)
+async def get_batch(batch_id: BatchId, svc: State, who: Viewer) -> BatchOut:
+    batch, targets = await svc.run(svc.store.get_batch, batch_id)
+    return BatchOut.of(batch, targets)
+
+
+@router.post(
+    "/batches/{batch_id}/cancel",
+    response_model=list[TargetOut],
+    summary="Cancel every queued target of a batch (operator); returns those cancelled",
+    responses=_CHANGE_ERRORS,
+)
+async def cancel_batch(batch_id: BatchId, svc: State, who: Operator) -> list[TargetOut]:
+    cancelled = await svc.run(svc.store.cancel_batch, batch_id, by=who.name)
+    _log.info("batch cancelled", batch_id=batch_id, cancelled=len(cancelled), by=who.name)
+    return [TargetOut.of(t) for t in cancelled]
+
+
+@router.get("/targets", response_model=list[TargetOut], summary="Targets in queue order (or newest first)")
+async def list_targets(
+    svc: State,
+    who: Viewer,
+    batch_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+    state: Annotated[list[TargetState] | None, Query(description="one or more states")] = None,
+    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
+    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
+    newest_first: bool = False,
+) -> list[TargetOut]:
+    rows = await svc.run(
+        svc.store.list_targets,
+        batch_id=batch_id,
+        states=state,
+        limit=min(limit, svc.settings.http.max_page_items),
+        offset=offset,
+        newest_first=newest_first,
+    )
+    return [TargetOut.of(t) for t in rows]
+
+
+@router.get("/targets/{target_id}", response_model=TargetOut, summary="One target", responses=_CHANGE_ERRORS)
+async def get_target(target_id: TargetId, svc: State, who: Viewer) -> TargetOut:
+    return TargetOut.of(await svc.run(svc.store.get_target, target_id))
+
+
+@router.post(
+    "/targets/{target_id}/cancel",
+    response_model=TargetOut,
+    summary="Cancel a target that has not started, or an interrupted one (operator)",
+    responses=_CHANGE_ERRORS,
+)
+async def cancel_target(target_id: TargetId, svc: State, who: Operator) -> TargetOut:
+    target = await svc.run(svc.store.cancel_target, target_id, by=who.name)
+    _log.info("target cancelled", target_id=target_id, by=who.name)
+    return TargetOut.of(target)
+
+
+@router.post(
+    "/targets/{target_id}/requeue",
+    response_model=TargetOut,
+    summary="Put an interrupted target back at the end of the queue (operator)",
+    responses=_CHANGE_ERRORS,
+)
+async def requeue_target(target_id: TargetId, svc: State, who: Operator) -> TargetOut:
+    target = await svc.run(svc.store.requeue_target, target_id, by=who.name)
+    _log.info("target requeued", target_id=target_id, by=who.name)
+    return TargetOut.of(target)

@@ -1,0 +1,258 @@
+"""Request and response bodies of the HTTP API (pydantic; they make the OpenAPI description).
+
+Times are ISO 8601 strings in UTC; angles in degrees (``_deg``), lengths in mm (``_mm``).
+Errors have one shape, :class:`ErrorOut`: ``error`` (a stable code), ``message`` (for a person)
+and, for a refused data set or target batch, ``row`` / ``column`` naming the place.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from comp_daemon.service.store import (
+    BatchRecord,
+    DatasetRecord,
+    EventRecord,
+    JobRecord,
+    ModelRecord,
+    TargetRecord,
+)
+
+__all__ = [
+    "BatchIn",
+    "BatchOut",
+    "DatasetOut",
+    "DiagnosisIn",
+    "ErrorOut",
+    "EventOut",
+    "FitIn",
+    "JobOut",
+    "ModelOut",
+    "ReadyOut",
+    "TargetIn",
+    "TargetOut",
+    "iso",
+]
+
+
+def iso(t: float | None) -> str | None:
+    """UNIX seconds as an ISO 8601 UTC string (None stays None)."""
+    if t is None:
+        return None
+    return dt.datetime.fromtimestamp(t, tz=dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+class _Out(BaseModel):
+    model_config = ConfigDict(frozen=True)
+
+
+class ErrorOut(_Out):
+    error: str = Field(description="stable error code, e.g. not_found, conflict, invalid_dataset")
+    message: str
+    row: int | None = Field(None, description="1-based row (header = row 1) or record number at fault")
+    column: str | None = Field(None, description="column or field at fault")
+    row_label: str | None = Field(None, description="'row' (CSV) or 'record' (JSON)")
+    error_id: str | None = Field(None, description="for internal errors: the id under which it was logged")
+    details: list[dict[str, Any]] | None = None
+
+
+class DatasetOut(_Out):
+    id: int
+    name: str
+    format: Literal["csv", "json"]
+    sha256: str
+    rows: int
+    summary: dict[str, Any]
+    created_at: str | None
+
+    @classmethod
+    def of(cls, r: DatasetRecord) -> DatasetOut:
+        return cls(
+            id=r.id,
+            name=r.name,
+            format=r.format,
+            sha256=r.sha256,
+            rows=r.rows,
+            summary=r.summary,
+            created_at=iso(r.created_at),
+        )
+
+
+class JobOut(_Out):
+    id: int
+    kind: str
+    state: Literal["queued", "running", "done", "failed", "cancelled"]
+    progress: float = Field(description="0..1")
+    message: str | None
+    params: dict[str, Any]
+    dataset_id: int | None
+    result: dict[str, Any] | None = Field(
+        description="result statistics; omitted for diagnoses (see the report)"
+    )
+    error: str | None
+    created_at: str | None
+    started_at: str | None
+    finished_at: str | None
+
+    @classmethod
+    def of(cls, r: JobRecord, *, with_result: bool = True) -> JobOut:
+        result = r.result if with_result else None
+        return cls(
+            id=r.id,
+            kind=r.kind,
+            state=r.state,  # type: ignore[arg-type]
+            progress=r.progress,
+            message=r.message,
+            params=r.params,
+            dataset_id=r.dataset_id,
+            result=result,
+            error=r.error,
+            created_at=iso(r.created_at),
+            started_at=iso(r.started_at),
+            finished_at=iso(r.finished_at),
+        )
+
+
+class ModelOut(_Out):
+    id: int
+    kind: str
+    order: int | None
+    active: bool
+    dataset_id: int | None
+    job_id: int | None
+    stats: dict[str, Any]
+    created_at: str | None
+
+    @classmethod
+    def of(cls, r: ModelRecord) -> ModelOut:
+        return cls(
+            id=r.id,
+            kind=r.kind,
+            order=r.order,
+            active=r.active,
+            dataset_id=r.dataset_id,
+            job_id=r.job_id,
+            stats=r.stats,
+            created_at=iso(r.created_at),
+        )
+
+
+class FitIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    dataset_id: int = Field(ge=1, le=2**62)
+    model: str = Field(
+        description="kinematic, chebyshev or nominal; kinematic+ratio+backlash adds seed 001's joint effects",
+        min_length=1,
+        max_length=100,
+    )
+    order: int | None = Field(
+        None, ge=0, le=8, description="Chebyshev order; omitted: chosen by cross-validation"
+    )
+
+
+class DiagnosisIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    dataset_id: int = Field(ge=1, le=2**62)
+
+
+class TargetIn(BaseModel):
+    """One drilling point: axis values ``a1..a6`` (deg), or the wanted TCP ``tx, ty, tz`` (mm) with
+    optional orientation ``ta, tb, tc`` (deg, KUKA A, B, C), as in a target file of the data set spec."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    pose_id: str | None = Field(None, min_length=1, max_length=64)
+    a1: float | None = None
+    a2: float | None = None
+    a3: float | None = None
+    a4: float | None = None
+    a5: float | None = None
+    a6: float | None = None
+    tx: float | None = None
+    ty: float | None = None
+    tz: float | None = None
+    ta: float | None = None
+    tb: float | None = None
+    tc: float | None = None
+    payload_kg: float | None = Field(None, ge=0, le=10000)
+
+
+class BatchIn(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+    targets: list[TargetIn] = Field(min_length=1)
+
+
+class TargetOut(_Out):
+    id: int
+    batch_id: int
+    seq: int = Field(description="1-based position in its batch")
+    state: Literal[
+        "queued", "compensating", "moving", "settling", "done", "failed", "cancelled", "interrupted"
+    ]
+    reason: str | None
+    request: dict[str, Any]
+    commanded_axes_deg: list[float] | None
+    final_joint_errors_deg: dict[str, float | None] | None
+    created_at: str | None
+    updated_at: str | None
+    started_at: str | None
+    finished_at: str | None
+
+    @classmethod
+    def of(cls, r: TargetRecord) -> TargetOut:
+        return cls(
+            id=r.id,
+            batch_id=r.batch_id,
+            seq=r.seq,
+            state=r.state,  # type: ignore[arg-type]
+            reason=r.reason,
+            request=r.request,
+            commanded_axes_deg=r.commanded_axes_deg,
+            final_joint_errors_deg=r.final_joint_errors_deg,
+            created_at=iso(r.created_at),
+            updated_at=iso(r.updated_at),
+            started_at=iso(r.started_at),
+            finished_at=iso(r.finished_at),
+        )
+
+
+class BatchOut(_Out):
+    id: int
+    idempotency_key: str
+    size: int
+    source: str | None
+    created_at: str | None
+    targets: list[TargetOut]
+
+    @classmethod
+    def of(cls, b: BatchRecord, targets: list[TargetRecord]) -> BatchOut:
+        return cls(
+            id=b.id,
+            idempotency_key=b.idempotency_key,
+            size=b.size,
+            source=b.source,
+            created_at=iso(b.created_at),
+            targets=[TargetOut.of(t) for t in targets],
+        )
+
+
+class EventOut(_Out):
+    id: int
+    time: str | None
+    kind: str
+    target_id: int | None
+    job_id: int | None
+    message: dict[str, Any]
+
+    @classmethod
+    def of(cls, e: EventRecord) -> EventOut:
+        return cls(
+            id=e.id, time=iso(e.time), kind=e.kind, target_id=e.target_id, job_id=e.job_id, message=e.message
+        )
+
+
+class ReadyOut(_Out):
+    ready: bool
+    reasons: list[str]

@@ -1,0 +1,797 @@
+/* comp-daemon operator screen. Plain JavaScript, no build step, no external assets.
+ *
+ * Data: GET /api/status (every 5 s and on demand), lists from /api/targets, /api/models, /api/jobs,
+ * /api/datasets, /api/diagnoses; live updates from /api/events (server-sent events, read with fetch so
+ * that the bearer token travels in the Authorization header, never in a URL).
+ * Token: from the URL fragment (#token=...) or the sign-in dialog; kept in sessionStorage only.
+ * Units: angles in degrees, lengths in mm, latencies in ms.
+ */
+"use strict";
+
+(() => {
+  const TOKEN_KEY = "comp-daemon-token";
+  const ROLES = { anonymous: 0, viewer: 1, operator: 2, engineer: 3 };
+  const ACTIVE = ["compensating", "moving", "settling"];
+  const OPEN_STATES = ["queued", "compensating", "moving", "settling", "interrupted"];
+  const COLORS = ["#8796a5", "#4fa3e0", "#3fb950", "#d2a8ff", "#e3a008"];
+
+  const S = {
+    token: null,
+    role: "anonymous",
+    status: null,
+    snapshot: null,
+    latency: [],
+    targets: [],
+    models: [],
+    compareIds: [],
+    compare: null,
+    jobs: [],
+    datasets: [],
+    diagnoses: [],
+    diagId: null,
+    diagReport: null,
+    live: false,
+  };
+
+  const $ = (id) => document.getElementById(id);
+  const el = (tag, attrs = {}, ...children) => {
+    const node = document.createElement(tag);
+    for (const [k, v] of Object.entries(attrs)) {
+      if (k === "class") node.className = v;
+      else if (k.startsWith("on")) node.addEventListener(k.slice(2), v);
+      else if (v !== undefined && v !== null && v !== false) node.setAttribute(k, v === true ? "" : v);
+    }
+    for (const c of children) {
+      if (c === null || c === undefined) continue;
+      node.append(c instanceof Node ? c : document.createTextNode(String(c)));
+    }
+    return node;
+  };
+  const fmt = (x, digits = 3) => (x === null || x === undefined || Number.isNaN(x) ? "—" : Number(x).toFixed(digits));
+  const pill = (text, cls) => el("span", { class: `pill ${cls || text}` }, text);
+  const can = (role) => ROLES[S.role] >= ROLES[role];
+
+  // ------------------------------------------------------------------ token and requests
+
+  function initToken() {
+    const hash = new URLSearchParams(location.hash.replace(/^#/, ""));
+    const fromHash = hash.get("token");
+    if (fromHash) {
+      sessionStorage.setItem(TOKEN_KEY, fromHash);
+      history.replaceState(null, "", location.pathname + location.search);
+    }
+    S.token = sessionStorage.getItem(TOKEN_KEY);
+  }
+
+  function askToken() {
+    const dlg = $("signin");
+    if (dlg.open) return;
+    $("token-input").value = "";
+    dlg.showModal();
+  }
+
+  $("signin-form").addEventListener("submit", (ev) => {
+    if (ev.submitter && ev.submitter.value === "ok") {
+      const value = $("token-input").value.trim();
+      if (value) {
+        sessionStorage.setItem(TOKEN_KEY, value);
+        S.token = value;
+        restartStream();
+        refreshAll();
+      }
+    }
+  });
+  $("signin-btn").addEventListener("click", askToken);
+
+  class ApiError extends Error {
+    constructor(status, body) {
+      super((body && body.message) || `HTTP ${status}`);
+      this.status = status;
+      this.body = body;
+    }
+  }
+
+  async function api(path, options = {}) {
+    const headers = Object.assign({ Accept: "application/json" }, options.headers || {});
+    if (S.token) headers.Authorization = `Bearer ${S.token}`;
+    const response = await fetch(path, Object.assign({}, options, { headers }));
+    const type = response.headers.get("content-type") || "";
+    const body = type.includes("json") ? await response.json().catch(() => null) : await response.text();
+    if (response.status === 401) askToken();
+    if (!response.ok) throw new ApiError(response.status, typeof body === "object" ? body : { message: body });
+    return body;
+  }
+
+  function toast(message) {
+    const box = $("toast");
+    box.textContent = message;
+    box.classList.remove("hidden");
+    clearTimeout(toast.timer);
+    toast.timer = setTimeout(() => box.classList.add("hidden"), 6000);
+  }
+
+  async function act(path, body, headers) {
+    try {
+      const options = { method: "POST", headers: Object.assign({}, headers || {}) };
+      if (body !== undefined) {
+        options.headers["Content-Type"] = "application/json";
+        options.body = JSON.stringify(body);
+      }
+      return await api(path, options);
+    } catch (err) {
+      toast(err.message);
+      return null;
+    }
+  }
+
+  // ------------------------------------------------------------------ live stream (SSE over fetch)
+
+  let streamAbort = null;
+  let streamDelay = 1000;
+
+  function setLive(on) {
+    S.live = on;
+    $("live-dot").className = `dot ${on ? "ok" : "bad"}`;
+    $("live-text").textContent = on ? "live" : "reconnecting";
+  }
+
+  function restartStream() {
+    if (streamAbort) streamAbort.abort();
+    streamDelay = 1000;
+    stream();
+  }
+
+  async function stream() {
+    const controller = new AbortController();
+    streamAbort = controller;
+    const headers = { Accept: "text/event-stream" };
+    if (S.token) headers.Authorization = `Bearer ${S.token}`;
+    try {
+      const response = await fetch("/api/events", { headers, signal: controller.signal, cache: "no-store" });
+      if (response.status === 401) {
+        setLive(false);
+        askToken();
+        return;
+      }
+      if (!response.ok || !response.body) throw new Error(`HTTP ${response.status}`);
+      setLive(true);
+      streamDelay = 1000;
+      const reader = response.body.getReader();
+      const decoder = new TextDecoder();
+      let buffer = "";
+      for (;;) {
+        const { value, done } = await reader.read();
+        if (done) break;
+        buffer += decoder.decode(value, { stream: true });
+        let cut;
+        while ((cut = buffer.indexOf("\n\n")) >= 0) {
+          const block = buffer.slice(0, cut);
+          buffer = buffer.slice(cut + 2);
+          parseBlock(block);
+        }
+      }
+    } catch (err) {
+      if (controller.signal.aborted) return;
+    }
+    if (streamAbort !== controller) return;
+    setLive(false);
+    setTimeout(stream, streamDelay);
+    streamDelay = Math.min(streamDelay * 2, 15000);
+  }
+
+  function parseBlock(block) {
+    let kind = "message";
+    const data = [];
+    for (const line of block.split("\n")) {
+      if (line.startsWith(":")) continue;
+      if (line.startsWith("event:")) kind = line.slice(6).trim();
+      else if (line.startsWith("data:")) data.push(line.slice(5).trimStart());
+    }
+    if (!data.length) return;
+    let payload;
+    try {
+      payload = JSON.parse(data.join("\n"));
+    } catch (err) {
+      return;
+    }
+    dispatch(kind, payload);
+  }
+
+  const pending = new Map();
+  function schedule(name, fn, delay = 250) {
+    if (pending.has(name)) return;
+    pending.set(name, setTimeout(() => { pending.delete(name); fn(); }, delay));
+  }
+
+  function dispatch(kind, payload) {
+    if (kind === "hello") {
+      if (payload.daemon) applySnapshot(payload.daemon);
+      refreshAll();
+      return;
+    }
+    const data = payload.data || {};
+    if (kind === "daemon.snapshot") { applySnapshot(data); return; }
+    if (kind === "loop") {
+      applyLoop(data);
+      if (data.state) setStateBadge(data.state);
+      return;
+    }
+    if (kind === "joints") { mergeJoints(data.joints || []); return; }
+    logEvent(kind, payload);
+    if (kind === "server.closing") return;
+    if (kind.startsWith("target.") || kind.startsWith("batch.")) {
+      schedule("targets", refreshTargets);
+      schedule("status", refreshStatus, 500);
+    } else if (kind === "job.progress") {
+      const job = S.jobs.find((j) => j.id === data.job_id);
+      if (job) { job.progress = data.progress; job.message = data.message; renderJobs(); }
+    } else if (kind.startsWith("job.")) {
+      schedule("jobs", refreshJobs);
+      schedule("diagnoses", refreshDiagnoses);
+    } else if (kind.startsWith("model.")) {
+      schedule("models", refreshModels);
+      schedule("status", refreshStatus, 500);
+    } else if (kind.startsWith("dataset.")) {
+      schedule("datasets", refreshDatasets);
+    } else if (kind.startsWith("daemon.")) {
+      schedule("status", refreshStatus, 200);
+    }
+  }
+
+  // ------------------------------------------------------------------ status, loop, joints
+
+  async function refreshStatus() {
+    try {
+      const status = await api("/api/status");
+      S.status = status;
+      S.role = status.you ? status.you.role : "anonymous";
+      $("who").textContent = status.you ? `${status.you.name} · ${status.you.role}` : "—";
+      $("robot").textContent = status.robot;
+      applySnapshot(status.daemon);
+      renderReady(status);
+      renderQueueChips();
+      renderActions();
+    } catch (err) {
+      if (err.status !== 401) toast(`status: ${err.message}`);
+    }
+  }
+
+  function renderReady(status) {
+    $("ready-dot").className = `dot ${status.ready ? "ok" : "warn"}`;
+    $("ready-text").textContent = status.ready ? "ready" : "not ready";
+    const box = $("reasons");
+    box.replaceChildren();
+    if (!status.ready && status.reasons.length) {
+      box.append(el("ul", {}, ...status.reasons.map((r) => el("li", {}, r))));
+      box.classList.remove("hidden");
+    } else {
+      box.classList.add("hidden");
+    }
+  }
+
+  function stateClass(state) {
+    if (state === "idle") return "ok";
+    if (["compensating", "moving", "settling", "running", "calibrating gratings"].includes(state)) return "info";
+    if (["holding", "starting", "waiting for RSI"].includes(state)) return "warn";
+    if (["stopped", "fault", "not running"].includes(state)) return "bad";
+    return "";
+  }
+
+  function encoderClass(health) {
+    if (!health || health === "absent") return "absent";
+    if (health === "ok") return "ok";
+    if (["stale", "silent", "no_data"].includes(health)) return "stale";
+    return "fault";
+  }
+
+  function setStateBadge(state) {
+    const badge = $("state-badge");
+    badge.textContent = state;
+    badge.className = `badge ${stateClass(state)}`;
+  }
+
+  function mergeJoints(rows) {
+    // live rows cover the joints with gratings; the others keep the last snapshot's values
+    const byJoint = new Map(((S.snapshot && S.snapshot.joints) || []).map((j) => [j.joint, j]));
+    for (const row of rows) byJoint.set(row.joint, Object.assign({}, byJoint.get(row.joint) || {}, row));
+    const joints = [...byJoint.values()];
+    if (S.snapshot) S.snapshot.joints = joints;
+    renderJoints(joints);
+  }
+
+  function applySnapshot(snap) {
+    if (!snap) return;
+    S.snapshot = snap;
+    setStateBadge(snap.state);
+    $("hold").textContent = snap.hold_reason ? `corrections held: ${snap.hold_reason}` : "";
+    $("current-target").textContent = snap.current_target_id
+      ? `target ${snap.current_target_id}${snap.phase ? " · " + snap.phase : ""}` : "no target";
+    applyLoop(snap.loop || {});
+    renderJoints(snap.joints || []);
+  }
+
+  function applyLoop(loop) {
+    const cycle = loop.cycle_ms || (S.status && S.status.cycle_ms);
+    $("cycle").textContent = cycle ? `${cycle} ms cycle · ${loop.running ? "running" : "stopped"}` : "—";
+    $("lat-p50").textContent = fmt(loop.latency_p50_ms, 3);
+    $("lat-p99").textContent = fmt(loop.latency_p99_ms, 3);
+    $("lat-max").textContent = fmt(loop.latency_max_ms, 3);
+    $("cycles").textContent = loop.cycles ?? "—";
+    $("late").textContent = loop.late_replies ?? "—";
+    $("late-kpi").className = `kpi ${loop.late_replies > 0 ? "bad" : ""}`;
+    $("rejected").textContent = loop.rejected ?? "—";
+    if (loop.running && loop.latency_p99_ms !== null && loop.latency_p99_ms !== undefined) {
+      S.latency.push({ t: Date.now(), p99: loop.latency_p99_ms, max: loop.latency_max_ms });
+      if (S.latency.length > 600) S.latency.splice(0, S.latency.length - 600);
+    }
+    drawLatency();
+  }
+
+  function renderJoints(joints) {
+    const body = $("joints").tBodies[0];
+    const rows = [];
+    for (let j = 1; j <= 6; j++) {
+      const s = joints.find((x) => x.joint === j) || { joint: j, encoder: "absent" };
+      const err = s.error_deg;
+      const tol = settleTol();
+      const errCls = err === null || err === undefined ? "" : Math.abs(err) <= tol ? "ok" : Math.abs(err) <= roughTol() ? "warn" : "bad";
+      rows.push(el("tr", {},
+        el("td", {}, `J${j}`),
+        el("td", { class: "num" }, fmt(s.axis_deg, 4)),
+        el("td", { class: "num" }, fmt(s.target_deg, 4)),
+        el("td", { class: "num" }, fmt(s.grating_deg, 4)),
+        el("td", { class: "num", "data-testid": `error-j${j}` }, errCls ? el("span", { class: `pill ${errCls}` }, fmt(err, 4)) : "—"),
+        el("td", { class: "num" }, fmt(s.correction_deg, 4)),
+        el("td", { title: s.encoder_detail || "" }, pill(s.encoder || "absent", encoderClass(s.encoder))),
+        el("td", { class: "num" }, fmt(s.reading_age_ms, 1)),
+      ));
+    }
+    body.replaceChildren(...rows);
+    drawErrors(joints);
+  }
+
+  const settleTol = () => (S.status && S.status.controller ? S.status.controller.settle_tolerance_deg : 0.001);
+  const roughTol = () => (S.status && S.status.controller ? S.status.controller.rough_threshold_deg : 0.007);
+
+  // ------------------------------------------------------------------ canvas helpers
+
+  function canvasCtx(canvas) {
+    const ratio = window.devicePixelRatio || 1;
+    if (!canvas.dataset.h) {
+      // fix the CSS height once: with height auto a canvas keeps its aspect ratio and would grow
+      canvas.dataset.h = canvas.getAttribute("height") || "120";
+      canvas.style.height = `${canvas.dataset.h}px`;
+    }
+    const w = canvas.clientWidth || 300;
+    const h = Number(canvas.dataset.h);
+    if (canvas.width !== Math.round(w * ratio) || canvas.height !== Math.round(h * ratio)) {
+      canvas.width = Math.round(w * ratio);
+      canvas.height = Math.round(h * ratio);
+    }
+    const ctx = canvas.getContext("2d");
+    ctx.setTransform(ratio, 0, 0, ratio, 0, 0);
+    ctx.clearRect(0, 0, w, h);
+    ctx.font = "11px ui-monospace, monospace";
+    return { ctx, w, h };
+  }
+
+  function drawLatency() {
+    const { ctx, w, h } = canvasCtx($("latency-chart"));
+    const pad = { l: 42, r: 8, t: 8, b: 16 };
+    const data = S.latency;
+    const top = Math.max(1.2, ...data.map((d) => d.max || 0)) * 1.1;
+    const y = (v) => pad.t + (h - pad.t - pad.b) * (1 - Math.min(v, top) / top);
+    ctx.strokeStyle = "#2a3642";
+    ctx.fillStyle = "#8796a5";
+    for (const v of [0, top / 2, top]) {
+      ctx.beginPath(); ctx.moveTo(pad.l, y(v)); ctx.lineTo(w - pad.r, y(v)); ctx.stroke();
+      ctx.fillText(`${v.toFixed(2)} ms`, 2, y(v) + 4);
+    }
+    ctx.setLineDash([4, 3]); ctx.strokeStyle = "#f85149";
+    ctx.beginPath(); ctx.moveTo(pad.l, y(1)); ctx.lineTo(w - pad.r, y(1)); ctx.stroke();
+    ctx.setLineDash([]);
+    if (data.length < 2) {
+      ctx.fillText(data.length ? "collecting…" : "no loop data", pad.l + 8, h / 2);
+      return;
+    }
+    const x = (i) => pad.l + ((w - pad.l - pad.r) * i) / (data.length - 1);
+    for (const [key, color] of [["max", "#e3a008"], ["p99", "#4fa3e0"]]) {
+      ctx.strokeStyle = color; ctx.lineWidth = 1.5; ctx.beginPath();
+      data.forEach((d, i) => (i ? ctx.lineTo(x(i), y(d[key] || 0)) : ctx.moveTo(x(i), y(d[key] || 0))));
+      ctx.stroke();
+    }
+    ctx.lineWidth = 1;
+  }
+
+  function drawErrors(joints) {
+    const { ctx, w, h } = canvasCtx($("error-chart"));
+    const rough = roughTol();
+    const tol = settleTol();
+    const values = [1, 2, 3, 4, 5, 6].map((j) => {
+      const s = joints.find((x) => x.joint === j);
+      return s && s.error_deg !== null && s.error_deg !== undefined ? s.error_deg : null;
+    });
+    const span = Math.max(rough * 1.5, ...values.filter((v) => v !== null).map((v) => Math.abs(v) * 1.2));
+    const mid = h / 2;
+    const scale = (h / 2 - 12) / span;
+    const slot = (w - 50) / 6;
+    ctx.fillStyle = "rgba(63,185,80,.12)";
+    ctx.fillRect(50, mid - tol * scale, w - 50, 2 * tol * scale);
+    ctx.strokeStyle = "#e3a008"; ctx.setLineDash([4, 3]);
+    for (const v of [rough, -rough]) { ctx.beginPath(); ctx.moveTo(50, mid - v * scale); ctx.lineTo(w, mid - v * scale); ctx.stroke(); }
+    ctx.setLineDash([]); ctx.strokeStyle = "#2a3642";
+    ctx.beginPath(); ctx.moveTo(50, mid); ctx.lineTo(w, mid); ctx.stroke();
+    ctx.fillStyle = "#8796a5";
+    ctx.fillText(`+${span.toFixed(4)}°`, 2, 12); ctx.fillText(`-${span.toFixed(4)}°`, 2, h - 4); ctx.fillText("0", 2, mid + 4);
+    values.forEach((v, i) => {
+      const cx = 50 + slot * i + slot / 2;
+      ctx.fillStyle = "#8796a5";
+      ctx.fillText(`J${i + 1}`, cx - 8, h - 2);
+      if (v === null) return;
+      const a = Math.abs(v);
+      ctx.fillStyle = a <= tol ? "#3fb950" : a <= rough ? "#e3a008" : "#f85149";
+      const bh = v * scale;
+      ctx.fillRect(cx - slot * 0.25, bh >= 0 ? mid - bh : mid, slot * 0.5, Math.max(1, Math.abs(bh)));
+    });
+  }
+
+  // ------------------------------------------------------------------ targets
+
+  async function refreshTargets() {
+    const all = $("show-finished").checked;
+    const query = all ? "newest_first=true&limit=100" : OPEN_STATES.map((s) => `state=${s}`).join("&") + "&limit=100";
+    try {
+      S.targets = await api(`/api/targets?${query}`);
+      renderTargets();
+    } catch (err) { /* shown by status */ }
+  }
+  $("show-finished").addEventListener("change", refreshTargets);
+
+  function renderQueueChips() {
+    const counts = (S.status && S.status.targets) || {};
+    const chips = ["queued", "compensating", "moving", "settling", "interrupted", "done", "failed", "cancelled"]
+      .map((s) => el("span", { class: "chip" }, pill(s), el("b", {}, counts[s] ?? 0)));
+    $("queue-chips").replaceChildren(...chips);
+  }
+
+  function finalError(t) {
+    const e = t.final_joint_errors_deg;
+    if (!e) return "—";
+    const vals = Object.values(e).filter((v) => v !== null);
+    return vals.length ? fmt(Math.max(...vals.map(Math.abs)), 4) : "—";
+  }
+
+  function renderTargets() {
+    const rows = S.targets.map((t) => {
+      const buttons = [];
+      if (can("operator") && (t.state === "queued" || t.state === "interrupted")) {
+        buttons.push(el("button", { class: "act danger", type: "button", onclick: () => act(`/api/targets/${t.id}/cancel`).then(refreshTargets) }, "cancel"));
+      }
+      if (can("operator") && t.state === "interrupted") {
+        buttons.push(el("button", { class: "act", type: "button", onclick: () => act(`/api/targets/${t.id}/requeue`).then(refreshTargets) }, "requeue"));
+      }
+      return el("tr", { class: t.state === "interrupted" ? "needs-operator" : "" },
+        el("td", { class: "num" }, t.id),
+        el("td", { class: "num" }, t.batch_id),
+        el("td", {}, t.request.pose_id || `#${t.seq}`),
+        el("td", {}, pill(t.state)),
+        el("td", { class: "reason", title: t.reason || "" }, t.reason || ""),
+        el("td", { class: "num" }, finalError(t)),
+        el("td", {}, ...buttons),
+      );
+    });
+    $("targets").tBodies[0].replaceChildren(...rows);
+  }
+
+  // ------------------------------------------------------------------ jobs and data sets
+
+  async function refreshJobs() {
+    try { S.jobs = await api("/api/jobs?limit=15"); renderJobs(); } catch (err) { /* status shows */ }
+  }
+
+  function renderJobs() {
+    const rows = S.jobs.map((j) => {
+      const note = j.state === "failed" ? j.error : j.state === "done" && j.kind === "fit" && j.result
+        ? `${j.params.model}${j.result.stats && j.result.stats.order !== null && j.result.stats.order !== undefined ? " m=" + j.result.stats.order : ""}`
+        : j.message || j.params.model || "";
+      const cancel = can("engineer") && (j.state === "queued" || j.state === "running")
+        ? el("button", { class: "act danger", type: "button", onclick: () => act(`/api/jobs/${j.id}/cancel`).then(refreshJobs) }, "cancel") : null;
+      return el("tr", {},
+        el("td", { class: "num" }, j.id),
+        el("td", {}, j.kind),
+        el("td", {}, pill(j.state)),
+        el("td", {}, el("div", { class: "progress" }, el("span", { style: `width:${Math.round((j.progress || 0) * 100)}%` }))),
+        el("td", { class: "reason", title: note || "" }, note || ""),
+        el("td", {}, cancel),
+      );
+    });
+    $("jobs").tBodies[0].replaceChildren(...rows);
+  }
+
+  async function refreshDatasets() {
+    try { S.datasets = await api("/api/datasets?limit=10"); renderDatasets(); } catch (err) { /* status shows */ }
+  }
+
+  function renderDatasets() {
+    const rows = S.datasets.map((d) => {
+      const split = d.summary && d.summary.split && d.summary.split.column ? `${d.summary.split.fit}/${d.summary.split.check}` : "drawn";
+      const actions = can("engineer") ? [
+        el("button", { class: "act", type: "button", onclick: () => act("/api/fits", { dataset_id: d.id, model: "kinematic" }).then(refreshJobs) }, "fit kin."),
+        el("button", { class: "act", type: "button", onclick: () => act("/api/fits", { dataset_id: d.id, model: "chebyshev", order: 3 }).then(refreshJobs) }, "fit cheb. 3"),
+        el("button", { class: "act", type: "button", onclick: () => act("/api/diagnoses", { dataset_id: d.id }).then(refreshDiagnoses) }, "diagnose"),
+      ] : [];
+      return el("tr", {},
+        el("td", { class: "num" }, d.id), el("td", { class: "reason", title: d.sha256 }, d.name),
+        el("td", { class: "num" }, d.rows), el("td", {}, split), el("td", {}, ...actions));
+    });
+    $("datasets").tBodies[0].replaceChildren(...rows);
+  }
+
+  // ------------------------------------------------------------------ models, Table 2, Fig. 11
+
+  async function refreshModels() {
+    try {
+      S.models = await api("/api/models?limit=20");
+      if (!S.compareIds.length && S.models.length) {
+        const active = S.models.find((m) => m.active);
+        S.compareIds = [(active || S.models[0]).id];
+      }
+      S.compareIds = S.compareIds.filter((id) => S.models.some((m) => m.id === id));
+      renderModels();
+      await refreshCompare();
+    } catch (err) { /* status shows */ }
+  }
+
+  function renderModels() {
+    const rows = S.models.map((m) => {
+      const t = m.stats && m.stats.table2 && m.stats.table2.model ? m.stats.table2.model["3d"] : null;
+      const activate = can("engineer") && !m.active
+        ? el("button", { class: "act", type: "button", onclick: (ev) => { ev.stopPropagation(); act(`/api/models/${m.id}/activate`).then(refreshModels); } }, "activate") : null;
+      return el("tr", {
+        class: `clickable ${S.compareIds.includes(m.id) ? "sel" : ""}`,
+        onclick: () => toggleCompare(m.id),
+      },
+        el("td", { class: "num" }, m.id),
+        el("td", {}, m.kind, " ", m.active ? pill("active") : null),
+        el("td", { class: "num" }, m.order ?? "—"),
+        el("td", { class: "num" }, t ? fmt(t.mean, 3) : "—"),
+        el("td", { class: "num" }, t ? fmt(t.max, 3) : "—"),
+        el("td", {}, m.dataset_id ?? "—"),
+        el("td", {}, activate),
+      );
+    });
+    $("models").tBodies[0].replaceChildren(...rows);
+  }
+
+  function toggleCompare(id) {
+    const i = S.compareIds.indexOf(id);
+    if (i >= 0) S.compareIds.splice(i, 1);
+    else S.compareIds = [...S.compareIds, id].slice(-3);
+    renderModels();
+    refreshCompare();
+  }
+
+  async function refreshCompare() {
+    if (!S.compareIds.length) { S.compare = null; renderCompare(); return; }
+    try {
+      S.compare = await api(`/api/models/compare?${S.compareIds.map((id) => `ids=${id}`).join("&")}`);
+    } catch (err) { S.compare = null; }
+    renderCompare();
+  }
+
+  function compareSeries() {
+    if (!S.compare) return [];
+    const series = [];
+    const firstData = S.compare.models.length ? String(S.compare.models[0].dataset_id) : null;
+    const nominal = firstData && S.compare.nominal_by_dataset[firstData];
+    if (nominal) series.push({ label: "nominal", table: nominal.table2, errors: nominal.errors_3d_mm || [] });
+    for (const m of S.compare.models) {
+      series.push({ label: `#${m.model_id} ${m.kind}${m.order !== null && m.order !== undefined ? " m=" + m.order : ""}`, table: m.table2, errors: m.errors_3d_mm || [] });
+    }
+    return series;
+  }
+
+  function renderCompare() {
+    const series = compareSeries();
+    const rows = [];
+    series.forEach((s, k) => {
+      if (!s.table) return;
+      ["x", "y", "z", "3d"].forEach((axis, i) => {
+        const r = s.table[axis];
+        const max = axis === "3d" ? r.max : r.max_abs;
+        rows.push(el("tr", {},
+          el("td", {}, i === 0 ? el("span", {}, el("i", { style: `display:inline-block;width:9px;height:9px;margin-right:5px;background:${COLORS[k % COLORS.length]}` }), s.label) : ""),
+          el("td", {}, axis === "3d" ? "3-D" : axis),
+          el("td", { class: "num" }, fmt(r.mean, 3)),
+          el("td", { class: "num" }, fmt(r.std, 3)),
+          el("td", { class: "num" }, fmt(max, 3)),
+        ));
+      });
+    });
+    $("table2").tBodies[0].replaceChildren(...rows);
+    drawHistogram(series);
+  }
+
+  function drawHistogram(series) {
+    const { ctx, w, h } = canvasCtx($("histogram"));
+    const legend = $("hist-legend");
+    legend.replaceChildren(...series.map((s, k) => el("span", {}, el("i", { style: `background:${COLORS[k % COLORS.length]}` }), s.label)));
+    const all = series.flatMap((s) => s.errors);
+    ctx.fillStyle = "#8796a5";
+    if (!all.length) { ctx.fillText("select a model", 12, h / 2); return; }
+    const top3d = Math.max(...all);
+    const width = [0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1].find((w) => top3d / w <= 25) || 1;
+    const nbins = Math.max(1, Math.ceil(top3d / width + 1e-9));
+    const counts = series.map((s) => {
+      const c = new Array(nbins).fill(0);
+      for (const e of s.errors) c[Math.min(nbins - 1, Math.floor(e / width))] += 1;
+      return c.map((n) => (s.errors.length ? (100 * n) / s.errors.length : 0));
+    });
+    const top = Math.max(...counts.flat()) * 1.1 || 1;
+    const pad = { l: 34, r: 6, t: 8, b: 28 };
+    const bw = (w - pad.l - pad.r) / nbins;
+    const y = (v) => pad.t + (h - pad.t - pad.b) * (1 - v / top);
+    ctx.strokeStyle = "#2a3642";
+    for (const v of [0, top / 2, top]) {
+      ctx.beginPath(); ctx.moveTo(pad.l, y(v)); ctx.lineTo(w - pad.r, y(v)); ctx.stroke();
+      ctx.fillText(`${v.toFixed(0)}%`, 2, y(v) + 4);
+    }
+    counts.forEach((c, k) => {
+      ctx.fillStyle = COLORS[k % COLORS.length];
+      const sub = (bw * 0.85) / counts.length;
+      c.forEach((v, i) => {
+        if (!v) return;
+        ctx.fillRect(pad.l + i * bw + bw * 0.075 + k * sub, y(v), Math.max(1, sub - 1), y(0) - y(v));
+      });
+    });
+    ctx.fillStyle = "#8796a5";
+    const step = Math.max(1, Math.ceil(nbins / 8));
+    for (let i = 0; i <= nbins; i += step) ctx.fillText((i * width).toFixed(2), pad.l + i * bw - 10, h - 14);
+    ctx.fillText("absolute positioning error (mm)", pad.l + 4, h - 2);
+  }
+
+  // ------------------------------------------------------------------ diagnoses
+
+  async function refreshDiagnoses() {
+    try { S.diagnoses = await api("/api/diagnoses?limit=10"); renderDiagnoses(); } catch (err) { /* status shows */ }
+  }
+
+  function renderDiagnoses() {
+    const rows = S.diagnoses.map((d) => el("tr", {
+      class: `clickable ${S.diagId === d.id ? "sel" : ""}`,
+      onclick: () => d.state === "done" && openDiagnosis(d.id),
+    },
+      el("td", { class: "num" }, d.id),
+      el("td", { class: "num" }, d.dataset_id ?? "—"),
+      el("td", {}, pill(d.state)),
+      el("td", { class: "reason", title: d.error || "" }, d.state === "failed" ? d.error : S.diagId === d.id && S.diagReport ? (S.diagReport.unmodelled.join(", ") || "none") : ""),
+      el("td", {}, d.state === "done" ? el("button", { class: "act", type: "button", onclick: (ev) => { ev.stopPropagation(); openHtmlReport(d.id); } }, "HTML") : null),
+    ));
+    $("diagnoses").tBodies[0].replaceChildren(...rows);
+  }
+
+  async function openDiagnosis(id) {
+    try {
+      S.diagReport = await api(`/api/diagnoses/${id}`);
+      S.diagId = id;
+      renderDiagnoses();
+      renderReport();
+    } catch (err) { toast(err.message); }
+  }
+
+  async function openHtmlReport(id) {
+    try {
+      const headers = S.token ? { Authorization: `Bearer ${S.token}` } : {};
+      const response = await fetch(`/api/diagnoses/${id}/report.html`, { headers });
+      if (!response.ok) throw new Error((await response.json().catch(() => ({}))).message || `HTTP ${response.status}`);
+      const blob = await response.blob();
+      window.open(URL.createObjectURL(blob), "_blank", "noopener");
+    } catch (err) { toast(err.message); }
+  }
+
+  function renderReport() {
+    const r = S.diagReport;
+    const box = $("diag-report");
+    if (!r) { box.classList.add("hidden"); return; }
+    box.classList.remove("hidden");
+    const where = r.where || {};
+    $("diag-summary").replaceChildren(
+      el("div", {}, el("b", {}, "unmodelled: "), r.unmodelled.length ? r.unmodelled.join(", ") : "none",
+        r.joints && r.joints.length ? ` · joints ${r.joints.join(", ")}` : ""),
+      el("div", { class: "muted" }, `noise floor ${fmt(r.noise_floor_mm, 3)} mm · unexplained ${fmt(r.unexplained_rms_mm, 3)} mm · rows fit ${r.rows.fit} / check ${r.rows.check}`),
+      where.summary ? el("div", { style: "margin-top:6px" }, where.summary) : null,
+    );
+    const steps = [{ effect: "nominal", joints: [], check_rms_mm: r.baseline.check_rms_mm, check_max_mm: r.baseline.check_max_mm, shrink_pct: null, significant: true }, ...r.steps];
+    $("ladder").tBodies[0].replaceChildren(...steps.map((s) => el("tr", {},
+      el("td", {}, s.effect), el("td", {}, (s.joints || []).join(",")),
+      el("td", { class: "num" }, fmt(s.check_rms_mm, 3)), el("td", { class: "num" }, fmt(s.check_max_mm, 3)),
+      el("td", { class: "num" }, s.shrink_pct === null || s.shrink_pct === undefined ? "" : fmt(s.shrink_pct, 1)),
+      el("td", {}, s.significant ? pill("yes", "ok") : pill("no", "cancelled")))));
+    drawLadder(steps, r.noise_floor_mm);
+  }
+
+  function drawLadder(steps, floor) {
+    const svg = $("ladder-chart");
+    const ns = "http://www.w3.org/2000/svg";
+    const w = svg.clientWidth || 400;
+    const h = 150;
+    const pad = { l: 40, r: 6, t: 8, b: 22 };
+    const top = Math.max(...steps.map((s) => s.check_rms_mm || 0), floor || 0) * 1.1 || 1;
+    const bw = (w - pad.l - pad.r) / steps.length;
+    const y = (v) => pad.t + (h - pad.t - pad.b) * (1 - v / top);
+    const parts = [];
+    const mk = (tag, attrs, text) => {
+      const n = document.createElementNS(ns, tag);
+      for (const [k, v] of Object.entries(attrs)) n.setAttribute(k, v);
+      if (text !== undefined) n.textContent = text;
+      return n;
+    };
+    steps.forEach((s, i) => {
+      const v = s.check_rms_mm || 0;
+      parts.push(mk("rect", { x: pad.l + i * bw + bw * 0.15, y: y(v), width: bw * 0.7, height: Math.max(1, y(0) - y(v)), fill: s.significant ? "#4fa3e0" : "#3a4552" }));
+      parts.push(mk("text", { x: pad.l + i * bw + bw / 2, y: h - 6, fill: "#8796a5", "font-size": 11, "text-anchor": "middle" }, s.effect));
+    });
+    if (floor) {
+      parts.push(mk("line", { x1: pad.l, x2: w - pad.r, y1: y(floor), y2: y(floor), stroke: "#3fb950", "stroke-dasharray": "4 3" }));
+      parts.push(mk("text", { x: w - pad.r, y: y(floor) - 3, fill: "#3fb950", "font-size": 10, "text-anchor": "end" }, "noise floor"));
+    }
+    parts.push(mk("text", { x: 2, y: pad.t + 8, fill: "#8796a5", "font-size": 10 }, `${top.toFixed(3)} mm`));
+    parts.push(mk("text", { x: 2, y: y(0), fill: "#8796a5", "font-size": 10 }, "0"));
+    svg.setAttribute("viewBox", `0 0 ${w} ${h}`);
+    svg.replaceChildren(...parts);
+  }
+
+  // ------------------------------------------------------------------ event log, actions, clock
+
+  function logEvent(kind, payload) {
+    const log = $("log");
+    const t = new Date((payload.time || Date.now() / 1000) * 1000).toLocaleTimeString();
+    const data = Object.assign({}, payload.data || {});
+    delete data.id;
+    const text = Object.entries(data).filter(([, v]) => v !== null && v !== undefined)
+      .map(([k, v]) => `${k}=${typeof v === "object" ? JSON.stringify(v) : v}`).join(" ");
+    log.prepend(el("div", {}, el("span", { class: "t" }, t), el("span", { class: "k" }, kind), text));
+    while (log.childElementCount > 200) log.lastElementChild.remove();
+  }
+
+  function renderActions() {
+    renderTargets();
+    renderJobs();
+    renderDatasets();
+    renderModels();
+  }
+
+  async function loadRecentEvents() {
+    try {
+      const rows = await api("/api/events/log?newest_first=true&limit=50");
+      for (const e of rows.reverse()) {
+        const data = Object.assign({}, e.message, e.target_id ? { target_id: e.target_id } : {}, e.job_id ? { job_id: e.job_id } : {});
+        logEvent(e.kind, { time: Date.parse(e.time) / 1000, data });
+      }
+    } catch (err) { /* status shows */ }
+  }
+
+  function refreshAll() {
+    refreshStatus();
+    refreshTargets();
+    refreshJobs();
+    refreshDatasets();
+    refreshModels();
+    refreshDiagnoses();
+  }
+
+  function tick() {
+    $("clock").textContent = new Date().toLocaleTimeString();
+  }
+
+  window.addEventListener("resize", () => { drawLatency(); if (S.snapshot) drawErrors(S.snapshot.joints || []); renderCompare(); });
+
+  initToken();
+  tick();
+  loadRecentEvents();
+  setInterval(tick, 1000);
+  setInterval(refreshStatus, 5000);
+  setInterval(refreshTargets, 15000);
+  refreshAll();
+  stream();
+})();

@@ -1,0 +1,229 @@
+"""Jobs in the process pool (outcomes, cancel, time limit); fits and diagnoses over HTTP."""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import os
+import signal
+import time
+from collections.abc import AsyncIterator, Callable
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from test_service_api import auth, campaign_csv, make_settings
+
+from comp_daemon.models.artifact import parse_model
+from comp_daemon.robot.description import load_robot
+from comp_daemon.service.api import create_app, open_store
+from comp_daemon.service.config import JobSettings
+from comp_daemon.service.jobs import JobKind, JobRunner
+from comp_daemon.service.store import EventRecord, JobRecord, ModelDraft, Store
+
+# ---- job functions: module level, so that worker processes can import them
+
+
+def count_primes(limit: int, *, progress: Callable[..., None]) -> dict[str, Any]:
+    found = 0
+    for n in range(2, limit):
+        if n % 2000 == 0:
+            progress(n / limit, f"at {n}")
+        if all(n % d for d in range(2, int(n**0.5) + 1)):
+            found += 1
+    return {"primes": found, "pid": os.getpid(), "nan": float("nan")}
+
+
+def refuse_input(*, progress: Callable[..., None]) -> dict[str, Any]:
+    raise ValueError("dataset 3, row 7, column 'x': not a number")
+
+
+def crash(*, progress: Callable[..., None]) -> dict[str, Any]:
+    raise RuntimeError("secret internals /etc/shadow")
+
+
+def spin(seconds: float, *, progress: Callable[..., None]) -> dict[str, Any]:
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        progress(0.5, f"pid {os.getpid()}")
+        time.sleep(0.01)
+    return {"spun": seconds}
+
+
+def _draft(job: JobRecord, result: Any) -> ModelDraft:
+    return ModelDraft(kind="primes", order=None, artifact=dict(result), stats={}, dataset_id=None)
+
+
+async def _until(store: Store, job_id: int, states: tuple[str, ...], limit_s: float = 60.0) -> JobRecord:
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        job = store.get_job(job_id)
+        if job.state in states:
+            return job
+        await asyncio.sleep(0.05)
+    raise AssertionError(f"job {job_id} still {store.get_job(job_id).state}")
+
+
+async def test_runner_outcomes(tmp_path: Path) -> None:
+    store = Store(tmp_path / "s.sqlite3")
+    heard: list[EventRecord] = []
+    store.add_listener(heard.append)
+    runner = JobRunner(store, JobSettings(workers=2, max_runtime_s=2.0))
+    for kind in (
+        JobKind("primes", count_primes, on_done=_draft),
+        JobKind("refuse", refuse_input),
+        JobKind("crash", crash),
+        JobKind("spin", spin),
+    ):
+        runner.register(kind)
+    runner.start()
+    try:
+        ok = store.create_job("primes", {})
+        runner.launch(ok, (30_000,))
+        bad = store.create_job("refuse", {})
+        runner.launch(bad, ())
+        done = await _until(store, ok.id, ("done", "failed"))
+        assert done.state == "done", done.error
+        assert done.result is not None and done.result["primes"] == 3245 and done.result["nan"] is None
+        assert done.result["pid"] != os.getpid()  # it ran in a worker process, not here
+        model = store.list_models()[0]
+        assert model.job_id == ok.id and model.kind == "primes"
+        assert any(e.kind == "job.progress" and e.job_id == ok.id for e in heard)
+        assert [e.kind for e in store.list_events(job_id=ok.id)] == [
+            "job.queued",
+            "job.running",
+            "model.added",
+            "job.done",
+        ]
+        refused = await _until(store, bad.id, ("done", "failed"))
+        assert refused.state == "failed" and refused.error == "dataset 3, row 7, column 'x': not a number"
+
+        boom = store.create_job("crash", {})
+        runner.launch(boom, ())
+        crashed = await _until(store, boom.id, ("done", "failed"))
+        assert crashed.state == "failed" and crashed.error is not None
+        assert crashed.error.startswith("internal error (id ") and "secret" not in crashed.error
+
+        long = store.create_job("spin", {})
+        runner.launch(long, (30.0,))
+        await _until(store, long.id, ("running",))
+        cancelled = runner.cancel(long.id, by="test")
+        assert cancelled.state == "cancelled"
+        await runner.drain()
+        await asyncio.sleep(0.3)
+        await runner.drain()
+        assert store.get_job(long.id).state == "cancelled" and store.get_job(long.id).result is None
+
+        slow = store.create_job("spin", {})
+        runner.launch(slow, (30.0,))  # over max_runtime_s = 2
+        timed_out = await _until(store, slow.id, ("failed", "done"))
+        assert timed_out.state == "failed" and "max_runtime_s" in (timed_out.error or "")
+
+        # a worker killed under a job (OOM killer, kill -9): the job fails, the pool is renewed
+        victim = store.create_job("spin", {})
+        runner.launch(victim, (30.0,))
+        deadline = time.monotonic() + 30
+        while not (store.get_job(victim.id).message or "").startswith("pid ") and time.monotonic() < deadline:
+            await asyncio.sleep(0.05)
+        os.kill(int((store.get_job(victim.id).message or "pid 0").split()[1]), signal.SIGKILL)
+        died = await _until(store, victim.id, ("failed", "done"))
+        assert (
+            died.state == "failed"
+            and died.error == "the worker process ended unexpectedly (killed or out of memory)"
+        )
+        after = store.create_job("primes", {})
+        runner.launch(after, (1000,))
+        assert (await _until(store, after.id, ("done", "failed"))).state == "done"
+    finally:
+        await runner.drain()
+        runner.shutdown()
+        store.close()
+
+
+@pytest.fixture
+async def service(tmp_path: Path) -> AsyncIterator[tuple[httpx.AsyncClient, Store]]:
+    settings = make_settings(tmp_path, jobs={"workers": 1})
+    store = open_store(settings)
+    app = create_app(settings, store)
+    async with app.router.lifespan_context(app):
+        transport = httpx.ASGITransport(app=app)
+        async with httpx.AsyncClient(transport=transport, base_url="http://cell") as client:
+            yield client, store
+    store.close()
+
+
+async def _job_done(client: httpx.AsyncClient, job_id: int) -> dict[str, Any]:
+    deadline = time.monotonic() + 90
+    while time.monotonic() < deadline:
+        job = (await client.get(f"/api/jobs/{job_id}", headers=auth("viewer"))).json()
+        if job["state"] in ("done", "failed", "cancelled"):
+            return dict(job)
+        await asyncio.sleep(0.1)
+    raise AssertionError(f"job {job_id} did not finish")
+
+
+async def test_fit_compare_activate_and_diagnose_over_http(service: Any) -> None:
+    client, _ = service
+    up = await client.post(
+        "/api/datasets?name=campaign",
+        content=campaign_csv(120),
+        headers={**auth("engineer"), "Content-Type": "text/csv"},
+    )
+    assert up.status_code == 201, up.text
+    dataset_id = up.json()["id"]
+    bad = await client.post(
+        "/api/fits", json={"dataset_id": dataset_id, "model": "spline"}, headers=auth("engineer")
+    )
+    assert bad.status_code == 422 and bad.json()["column"] == "model"
+    missing = await client.post(
+        "/api/fits", json={"dataset_id": 999, "model": "kinematic"}, headers=auth("engineer")
+    )
+    assert missing.status_code == 404
+
+    started = []
+    for body in ({"model": "kinematic"}, {"model": "chebyshev", "order": 1}):
+        r = await client.post("/api/fits", json={"dataset_id": dataset_id, **body}, headers=auth("engineer"))
+        assert r.status_code == 202 and r.json()["state"] in ("queued", "running")
+        started.append(r.json()["id"])
+    diag = await client.post("/api/diagnoses", json={"dataset_id": dataset_id}, headers=auth("engineer"))
+    assert diag.status_code == 202
+    early = await client.get(f"/api/diagnoses/{diag.json()['id']}", headers=auth("viewer"))
+    assert early.status_code == 409 and early.json()["error"] == "not_ready"
+
+    results = [await _job_done(client, job_id) for job_id in started]
+    for job in results:
+        assert job["state"] == "done", job["error"]
+        t2 = job["result"]["stats"]["table2"]
+        # a model that learnt the geometric errors beats the nominal twin by far on the check rows
+        assert t2["model"]["3d"]["max"] < 0.2 * t2["nominal"]["3d"]["max"]
+        assert job["result"]["stats"]["rows"] == {"fit": 90, "check": 30}
+    models = (await client.get("/api/models", headers=auth("viewer"))).json()
+    assert sorted(m["kind"] for m in models) == ["chebyshev", "kinematic"] and not any(
+        m["active"] for m in models
+    )
+    ids = [m["id"] for m in models]
+    cmp = (await client.get(f"/api/models/compare?ids={ids[0]}&ids={ids[1]}", headers=auth("viewer"))).json()
+    assert [row["model_id"] for row in cmp["models"]] == ids
+    nominal = cmp["nominal_by_dataset"][str(dataset_id)]
+    assert len(nominal["errors_3d_mm"]) == 30 and set(nominal["table2"]) == {"n", "x", "y", "z", "3d"}
+    artifact = (await client.get(f"/api/models/{ids[0]}/artifact", headers=auth("viewer"))).json()
+    assert artifact["format"] == "comp-daemon-model" and artifact["kind"] in ("kinematic", "chebyshev")
+    loaded = parse_model(json.dumps(artifact), source="api", robot=load_robot("kr210"))  # checksum verified
+    assert loaded.model.kind == artifact["kind"]
+    r = await client.post(f"/api/models/{ids[1]}/activate", headers=auth("engineer"))
+    assert r.status_code == 200 and r.json()["active"]
+    assert "no model is active" not in (await client.get("/ready")).json()["reasons"]
+    # a data set in use by a finished job may go; its models stay
+    report_job = await _job_done(client, diag.json()["id"])
+    assert report_job["state"] == "done", report_job["error"]
+    assert report_job["result"] is None  # the report is fetched on its own, not with the job
+    report = (await client.get(f"/api/diagnoses/{report_job['id']}", headers=auth("viewer"))).json()
+    assert report["rows"] == {"fit": 90, "check": 30} and report["baseline"]["effect"] == "nominal"
+    assert report["steps"][0]["effect"] == "geometric" and report["unmodelled"] == []
+    html = await client.get(f"/api/diagnoses/{report_job['id']}/report.html", headers=auth("viewer"))
+    assert html.status_code == 200 and html.headers["content-type"].startswith("text/html")
+    assert "default-src 'none'" in html.headers["content-security-policy"]
+    assert "<html" in html.text.lower() and "geometric" in html.text
+    assert (await client.delete(f"/api/datasets/{dataset_id}", headers=auth("engineer"))).status_code == 204
+    assert len((await client.get("/api/models", headers=auth("viewer"))).json()) == 2
