@@ -11,7 +11,7 @@ for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
 
 from pathlib import Path  # noqa: E402
 
-import pytest
+import pytest  # noqa: E402
 
 SPEC_DIR = Path(__file__).resolve().parents[2] / "shared" / "spec"
 FALLBACK_SPEC_DIR = Path(__file__).resolve().parent / "spec"
