@@ -1,0 +1,326 @@
+"""Target execution: one queued target at a time, in queue order, through the closed loop.
+
+Lifecycle of a target (the store's states)::
+
+    queued → compensating → moving → settling → done
+                  └───────────┴─────────┴──→ failed (reason)      shutdown ──→ interrupted
+
+1. *compensating*: the target is claimed from the queue (oldest first) and compensated by the
+   active model (``Compensator``, run in a worker thread: it may iterate a model and IK).
+2. *moving*: the loop is armed with the commanded axis values and the loop target (the
+   compensated joint angles of the joints with gratings), then the robot is commanded
+   (:class:`MotionPort`). Arrival is read off the RSI telegrams by the loop, not assumed.
+3. *settling*: the loop drives the grating angles to the loop target (seed 000's rough + PD).
+4. *done* once every controlled joint stayed within the tolerance for the dwell time, with the
+   final joint errors (grating − target, deg, per joint ``A1``…); *failed* with the fault's reason
+   otherwise. A target active at shutdown is marked *interrupted* for the operator.
+
+Targets are only claimed while the daemon is ready for them (``readiness()`` returns None): RSI
+telegrams arriving, a grating calibration, an active model, no latched stop. Otherwise they stay
+queued and the reason is shown. The executor never blocks the event loop: store calls and the
+compensation run in worker threads, waiting is on loop events.
+
+Units: axis values and joint angles in deg (controller convention), times in s.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import logging
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+from comp_daemon.rt.safety import Arrived, Event, Faulted, FaultKind, Settled
+
+__all__ = [
+    "CompensatedTarget",
+    "CompensationError",
+    "Compensator",
+    "LoopPort",
+    "ModelMissingError",
+    "MotionError",
+    "MotionPort",
+    "TargetExecutor",
+    "TargetOutcome",
+    "TargetQueue",
+]
+
+log = logging.getLogger(__name__)
+
+
+class CompensationError(ValueError):
+    """The target cannot be compensated (unreachable, bad request, no model); the message says why."""
+
+
+class ModelMissingError(CompensationError):
+    """No active model, or the active model's artifact cannot be used."""
+
+
+class MotionError(RuntimeError):
+    """The robot refused or could not take the motion command."""
+
+
+@dataclass(frozen=True, slots=True)
+class CompensatedTarget:
+    """What a target becomes after compensation.
+
+    ``commanded_deg``: the six axis values sent to the robot. ``loop_target_deg``: for each joint
+    with a grating (in the loop's joint order), the joint angle the closed loop drives it to.
+    """
+
+    commanded_deg: tuple[float, ...]
+    loop_target_deg: tuple[float, ...]
+    model_id: int | None = None
+    info: Mapping[str, Any] | None = None
+
+
+#: Compensates one target request (the store's ``request`` dict); runs in a worker thread.
+Compensator = Callable[[Mapping[str, Any]], CompensatedTarget]
+
+
+class MotionPort(Protocol):
+    """Commands robot motion.
+
+    On the simulated cell the simulated controller's motion interface; on a real cell the robot
+    program receives the axis values (see docs/daemon.md). ``move_to`` returns once the command is
+    accepted, not on arrival: arrival is observed on the RSI telegrams.
+    """
+
+    async def move_to(self, axes_deg: Sequence[float]) -> None: ...
+
+
+class LoopPort(Protocol):
+    """The executor's handle on the real-time loop (implemented by the daemon's loop runtime)."""
+
+    def arm(
+        self, target_id: str, commanded_deg: Sequence[float], loop_target_deg: Sequence[float]
+    ) -> None: ...
+
+    def release(self) -> None: ...
+
+    async def next_event(self) -> Event: ...
+
+
+class TargetQueue(Protocol):
+    """The part of :class:`comp_daemon.service.store.Store` the executor uses (synchronous)."""
+
+    def claim_next_target(self) -> Any: ...
+
+    def advance_target(
+        self,
+        target_id: int,
+        state: str,
+        *,
+        reason: str | None = None,
+        commanded_axes_deg: Sequence[float] | None = None,
+        final_joint_errors_deg: Mapping[str, float | None] | None = None,
+    ) -> Any: ...
+
+
+@dataclass(frozen=True, slots=True)
+class TargetOutcome:
+    target_id: int
+    state: str  # done | failed | interrupted
+    reason: str | None
+    final_joint_errors_deg: Mapping[str, float | None] | None
+
+
+class TargetExecutor:
+    """Runs queued targets through compensation, motion and the closed loop; see the module docstring."""
+
+    def __init__(
+        self,
+        queue: TargetQueue,
+        compensate: Compensator,
+        motion: MotionPort,
+        loop: LoopPort,
+        *,
+        joints: Sequence[int],
+        readiness: Callable[[], str | None],
+        recheck_s: float = 1.0,
+        motion_fault_grace_s: float = 0.5,
+        on_outcome: Callable[[TargetOutcome], None] | None = None,
+    ) -> None:
+        self.queue = queue
+        self.compensate = compensate
+        self.motion = motion
+        self.loop = loop
+        self.joints = tuple(joints)  # 0-based indices of the joints with gratings
+        self.readiness = readiness
+        self.recheck_s = recheck_s
+        self.motion_fault_grace_s = motion_fault_grace_s
+        self.on_outcome = on_outcome
+        self.current_target_id: int | None = None
+        self.phase: str | None = None
+        self.blocked_reason: str | None = None
+        self.outcomes: list[TargetOutcome] = []
+        self._wakeup = asyncio.Event()
+        self._stopping = False
+        self._event_loop: asyncio.AbstractEventLoop | None = None
+
+    # ------------------------------------------------------------------------------ control
+
+    def wake(self) -> None:
+        """Look at the queue now (new targets, a model activated). Safe from any thread."""
+        loop = self._event_loop
+        if loop is None:
+            return
+        try:
+            running = asyncio.get_running_loop()
+        except RuntimeError:
+            running = None
+        if running is loop:
+            self._wakeup.set()
+        else:
+            with contextlib.suppress(RuntimeError):  # the loop is closed: nothing to wake
+                loop.call_soon_threadsafe(self._wakeup.set)
+
+    def stop_claiming(self) -> None:
+        """Finish (or let the loop fault) the current target, then claim nothing more."""
+        self._stopping = True
+        self.wake()
+
+    async def run(self) -> None:
+        """Claim and execute targets until :meth:`stop_claiming`; returns after the current target."""
+        self._event_loop = asyncio.get_running_loop()
+        while not self._stopping:
+            reason = self.readiness()
+            self.blocked_reason = reason
+            if reason is None:
+                target = await asyncio.to_thread(self.queue.claim_next_target)
+                if target is not None:
+                    outcome = await self.execute(target)
+                    self.outcomes.append(outcome)
+                    if self.on_outcome is not None:
+                        self.on_outcome(outcome)
+                    continue
+            self._wakeup.clear()
+            with contextlib.suppress(TimeoutError):
+                async with asyncio.timeout(self.recheck_s):
+                    await self._wakeup.wait()
+
+    # ------------------------------------------------------------------------------ one target
+
+    async def execute(self, target: Any) -> TargetOutcome:
+        """Run one claimed (compensating) target to its final state."""
+        tid = int(target.id)
+        self.current_target_id = tid
+        self.phase = "compensating"
+        try:
+            return await self._execute(tid, target.request)
+        finally:
+            self.current_target_id = None
+            self.phase = None
+
+    async def _finish(
+        self,
+        tid: int,
+        state: str,
+        reason: str | None,
+        errors: Mapping[str, float | None] | None = None,
+    ) -> TargetOutcome:
+        await asyncio.to_thread(
+            self.queue.advance_target, tid, state, reason=reason, final_joint_errors_deg=errors
+        )
+        log.info("target %d %s%s", tid, state, f": {reason}" if reason else "")
+        return TargetOutcome(tid, state, reason, errors)
+
+    async def _execute(self, tid: int, request: Mapping[str, Any]) -> TargetOutcome:
+        try:
+            comp = await asyncio.to_thread(self.compensate, request)
+        except ModelMissingError as exc:
+            return await self._finish(tid, "failed", f"{FaultKind.MODEL_MISSING}: {exc}")
+        except CompensationError as exc:
+            return await self._finish(tid, "failed", f"compensation: {exc}")
+        except Exception as exc:  # a bug in a model must fail the target, not the daemon
+            log.exception("target %d: compensation failed", tid)
+            return await self._finish(tid, "failed", f"compensation failed: {type(exc).__name__}: {exc}")
+        if len(comp.commanded_deg) != 6 or len(comp.loop_target_deg) != len(self.joints):
+            return await self._finish(tid, "failed", "compensation returned the wrong number of axis values")
+        if self._stopping:
+            return await self._finish(tid, "interrupted", "the daemon shut down before the target started")
+
+        self.phase = "moving"
+        await asyncio.to_thread(
+            self.queue.advance_target, tid, "moving", commanded_axes_deg=list(comp.commanded_deg)
+        )
+        key = str(tid)
+        try:
+            self.loop.arm(key, comp.commanded_deg, comp.loop_target_deg)
+        except Exception as exc:  # e.g. a stop latched since the readiness check
+            return await self._finish(tid, "failed", f"the loop refused the target: {exc}")
+        move: asyncio.Future[None] | None = asyncio.ensure_future(self.motion.move_to(comp.commanded_deg))
+        get: asyncio.Future[Event] | None = None
+        try:
+            while True:
+                if get is None:
+                    get = asyncio.ensure_future(self.loop.next_event())
+                waiting: set[asyncio.Future[Any]] = {get} if move is None else {get, move}
+                done, _ = await asyncio.wait(waiting, return_when=asyncio.FIRST_COMPLETED)
+                if get in done:
+                    event, get = get.result(), None
+                    outcome = await self._on_event(tid, key, event)
+                    if outcome is not None:
+                        return outcome
+                    continue
+                assert move is not None and move in done
+                finished, move = move, None
+                error = finished.exception()
+                if error is None:
+                    continue  # the robot took (or finished) the motion; arrival comes from the loop
+                # a stopped robot is usually the loop's own doing: prefer the loop's reason
+                with contextlib.suppress(TimeoutError):
+                    async with asyncio.timeout(self.motion_fault_grace_s):
+                        while True:
+                            if get is None:
+                                get = asyncio.ensure_future(self.loop.next_event())
+                            event, get = await get, None
+                            if event.target_id == key and isinstance(event, Faulted):
+                                outcome = await self._on_event(tid, key, event)
+                                assert outcome is not None
+                                return outcome
+                if not isinstance(error, MotionError):
+                    log.error("target %d: motion command failed: %r", tid, error)
+                return await self._finish(tid, "failed", f"motion: {error}")
+        finally:
+            self.loop.release()
+            if get is not None:
+                get.cancel()
+            if move is not None:
+                with contextlib.suppress(TimeoutError, Exception):
+                    async with asyncio.timeout(self.motion_fault_grace_s):
+                        await asyncio.shield(move)
+                move.cancel()
+
+    async def _on_event(self, tid: int, key: str, event: Event) -> TargetOutcome | None:
+        if event.target_id != key:
+            return None  # an event of an earlier target
+        if isinstance(event, Arrived):
+            self.phase = "settling"
+            await asyncio.to_thread(self.queue.advance_target, tid, "settling")
+            return None
+        errors = self._errors(event.errors_deg)
+        if isinstance(event, Settled):
+            reduced = [
+                f"A{j + 1}×{k:g}" for j, k in zip(self.joints, event.kd_scale, strict=False) if k < 1.0
+            ]
+            if reduced:
+                log.warning("target %d: hunting guard reduced kD on %s", tid, ", ".join(reduced))
+            return await self._finish(tid, "done", None, errors)
+        f = event.fault
+        reason = f"{f.kind}: {f.detail}"
+        if f.kind is FaultKind.SHUTDOWN:
+            return await self._finish(
+                tid, "interrupted", f"{reason}; corrections frozen, check the part", errors
+            )
+        return await self._finish(tid, "failed", f"{reason} ({f.reaction})", errors)
+
+    def _errors(self, target_minus_grating_deg: Sequence[float]) -> dict[str, float | None]:
+        """Reported as grating − target per joint ``A<n>`` (None where no reading was available)."""
+        return {
+            f"A{j + 1}": (None if math.isnan(e) else -e)
+            for j, e in zip(self.joints, target_minus_grating_deg, strict=True)
+        }
