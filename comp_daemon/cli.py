@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from comp_daemon import __version__
 
-COMMAND_MODULES: tuple[str, ...] = ("robot", "data", "sim", "fit", "diagnose")
+COMMAND_MODULES: tuple[str, ...] = ("robot", "data", "sim", "fit", "diagnose", "run")
 
 
 class UserError(Exception):

@@ -1,0 +1,114 @@
+"""``comp-daemon run --config FILE [--sim]``: the real-time daemon with its HTTP service.
+
+Runs until SIGTERM or SIGINT and exits 0 after a clean shutdown (corrections zeroed, state
+persisted); 1 if one of its tasks failed; 2 for a configuration the user must fix. Under systemd
+(``Type=notify``) it reports readiness and sends watchdog pings (see ``deploy/``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+
+from comp_daemon.sim.scenario import PRESET_SCENARIOS
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    run = subparsers.add_parser(
+        "run",
+        help="run the daemon: RSI loop, grating readers, target queue, HTTP service",
+        description="Run the real-time daemon (RSI loop, grating readers, target executor) and its HTTP "
+        "service in one process until SIGTERM/SIGINT.",
+    )
+    run.add_argument("--config", required=True, metavar="FILE", help="configuration file (TOML)")
+    run.add_argument(
+        "--sim",
+        action="store_true",
+        help="bring up the simulated cell (robot, RSI controller, grating converters, tracker) in a "
+        "child process and work against it",
+    )
+    run.add_argument(
+        "--scenario",
+        default="kr210-cell",
+        help=f"with --sim: scenario preset ({', '.join(PRESET_SCENARIOS)}) or TOML path (default kr210-cell)",
+    )
+    run.add_argument(
+        "--sim-seed", type=int, default=0, help="with --sim: seed of the robot's noise (default 0)"
+    )
+    run.add_argument(
+        "--servo-lag-cycles", type=int, default=1, help="with --sim: the controller's servo lag (default 1)"
+    )
+    run.add_argument(
+        "--motion",
+        metavar="HOST:PORT",
+        default=None,
+        help="the cell gateway that takes motion commands (line protocol, docs/daemon.md); not with --sim",
+    )
+    run.add_argument(
+        "--calibrate-gratings",
+        action="store_true",
+        help="run the grating calibration (seed 000 step 1) once the loop runs, before taking targets",
+    )
+    run.set_defaults(func=_run)
+
+
+def _address(text: str) -> tuple[str, int]:
+    host, sep, port = text.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
+        raise ValueError(f"--motion must be HOST:PORT, got {text!r}")
+    return host.strip("[]"), int(port)
+
+
+def _run(args: argparse.Namespace) -> int:
+    from pydantic import ValidationError
+
+    from comp_daemon.daemon.app import Daemon, SimOptions
+    from comp_daemon.service.config import load_settings
+    from comp_daemon.service.logging import configure_logging
+
+    if args.sim and args.motion:
+        raise ValueError("--motion and --sim exclude each other (the simulated cell has its own)")
+    try:
+        settings = load_settings(args.config)
+    except ValidationError as exc:
+        raise ValueError(f"{args.config}: {exc}") from None
+    configure_logging(settings.log.level, settings.log.format)
+    sim = SimOptions(args.scenario, args.sim_seed, args.servo_lag_cycles) if args.sim else None
+    motion = _address(args.motion) if args.motion else None
+    daemon = Daemon(settings, sim=sim, motion_address=motion)
+
+    async def main() -> int:
+        calibration = None
+        if args.calibrate_gratings:
+            calibration = asyncio.get_running_loop().create_task(_calibrate_when_running(daemon))
+        try:
+            return await daemon.run()
+        finally:
+            if calibration is not None:
+                calibration.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await calibration
+
+    return asyncio.run(main())
+
+
+async def _calibrate_when_running(daemon: object) -> None:
+    import logging
+
+    from comp_daemon.daemon.app import Daemon
+
+    assert isinstance(daemon, Daemon)
+    log = logging.getLogger("comp_daemon.run")
+    await daemon.started.wait()
+    runtime = daemon.runtime
+    for _ in range(600):  # up to 30 s for the first telegrams
+        if runtime is not None and runtime.rsi_alive():
+            break
+        await asyncio.sleep(0.05)
+    try:
+        cal = await daemon.calibrate_gratings()
+    except Exception as exc:
+        log.error("grating calibration failed: %s", exc)
+        return
+    log.info("grating calibration v%d stored and in use", cal.version)

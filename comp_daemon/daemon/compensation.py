@@ -1,0 +1,148 @@
+"""Target compensation by the store's active model, for the executor (runs in a worker thread).
+
+A target request (a row of a target file, ``shared/spec/dataset.md``) gives either the axis values
+``a1..a6`` of the nominal program (deg) or the wanted TCP ``tx, ty, tz`` (mm, robot base frame) with
+an optional orientation ``ta, tb, tc`` (deg, KUKA A, B, C of the tool frame), and optionally
+``payload_kg``. The wanted TCP of an axis-value request is its nominal forward kinematics.
+
+The active model (loaded from its artifact, cached by model id) then gives the commanded axis
+values whose *predicted* TCP is the wanted one (:func:`comp_daemon.models.compensation.compensate`,
+model + inverse kinematics iterated, seeded from the nominal axis values or the robot's current
+ones). The loop target of each joint with a grating is its commanded angle: after arrival the loop
+drives the grating angles there, taking out backlash and whatever else the joint does differently
+from its motor (seed 000, step 5). Approach directions passed to the model are those the motion
+will have on the joints without gratings; on grating joints the direction is left unknown (0),
+since the loop removes the direction-dependent part there.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
+
+import numpy as np
+
+from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
+from comp_daemon.models.artifact import MODEL_KINDS, ModelArtifactError, parse_model
+from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.compensation import compensate, nominal_targets
+from comp_daemon.robot.description import RobotDescription
+from comp_daemon.rt.executor import CompensatedTarget, CompensationError, ModelMissingError
+from comp_daemon.service.store import Store
+from comp_daemon.sim.campaign import FLANGE_R_KUKA_TOOL
+
+__all__ = ["ActiveModelCompensator", "model_from_artifact"]
+
+_AXES = ("a1", "a2", "a3", "a4", "a5", "a6")
+_TCP = ("tx", "ty", "tz")
+_ABC = ("ta", "tb", "tc")
+
+
+def model_from_artifact(artifact: Mapping[str, Any], robot: RobotDescription, where: str) -> ErrorModel:
+    """The model of a stored artifact: a full ``comp-daemon-model`` document (checksummed), or the
+    fit job's short form (``kind``, ``order``, ``payload``; base frame unless a registration is given)."""
+    if "checksum_sha256" in artifact:
+        try:
+            return parse_model(json.dumps(dict(artifact)), source=where, robot=robot).model
+        except ModelArtifactError as exc:
+            raise ModelMissingError(str(exc)) from None
+    kind = artifact.get("kind")
+    payload = artifact.get("payload")
+    if kind not in MODEL_KINDS or not isinstance(payload, dict):
+        raise ModelMissingError(f"{where}: the stored artifact names no known model kind and payload")
+    sha = artifact.get("robot_sha256")
+    if sha is not None and sha != robot.sha256:
+        raise ModelMissingError(f"{where}: fitted for another robot description (sha256 {str(sha)[:12]}…)")
+    reg = artifact.get("registration")
+    registration = np.eye(4) if reg is None else np.asarray(reg, dtype=float)
+    if registration.shape != (4, 4) or not np.all(np.isfinite(registration)):
+        raise ModelMissingError(f"{where}: field 'registration' must be a finite 4×4 matrix")
+    try:
+        return MODEL_KINDS[str(kind)].from_payload(robot, payload, artifact.get("order"), registration)
+    except (KeyError, TypeError, ValueError) as exc:
+        raise ModelMissingError(f"{where}: {kind} model content is malformed ({exc})") from None
+
+
+class ActiveModelCompensator:
+    """A :data:`comp_daemon.rt.executor.Compensator` over the store's active model."""
+
+    def __init__(
+        self,
+        store: Store,
+        robot: RobotDescription,
+        joints: Sequence[int],
+        *,
+        current_axes: Callable[[], Sequence[float] | None] | None = None,
+    ) -> None:
+        self.store = store
+        self.robot = robot
+        self.joints = tuple(joints)  # 0-based indices of the joints with gratings
+        self.current_axes = current_axes
+        self._cache: tuple[int, ErrorModel] | None = None
+        self._lock = threading.Lock()
+
+    def model(self) -> tuple[int, ErrorModel]:
+        record = self.store.active_model(with_artifact=False)
+        if record is None:
+            raise ModelMissingError("no model is active")
+        with self._lock:
+            if self._cache is not None and self._cache[0] == record.id:
+                return self._cache
+        full = self.store.get_model(record.id, with_artifact=True)
+        assert full.artifact is not None
+        model = model_from_artifact(full.artifact, self.robot, f"model {record.id}")
+        with self._lock:
+            self._cache = (record.id, model)
+        return record.id, model
+
+    def __call__(self, request: Mapping[str, Any]) -> CompensatedTarget:
+        model_id, model = self.model()
+        payload = request.get("payload_kg")
+        current = self.current_axes() if self.current_axes is not None else None
+        seed: np.ndarray | None
+        if all(k in request for k in _AXES):
+            a_nominal = np.array([[float(request[k]) for k in _AXES]])
+            p_wanted, r_wanted = nominal_targets(model, a_nominal)
+            seed = a_nominal
+        elif all(k in request for k in _TCP):
+            p_wanted = np.array([[float(request[k]) for k in _TCP]])
+            r_wanted = None
+            if all(k in request for k in _ABC):
+                abc = np.array([[float(request[k]) for k in _ABC]])
+                r_wanted = rotation_kuka_abc_deg(abc) @ FLANGE_R_KUKA_TOOL.T
+            seed = None if current is None else np.asarray(current, dtype=float)[None, :]
+        else:
+            raise CompensationError("the target gives neither a1..a6 nor tx, ty, tz")
+        direction = None
+        if current is not None and seed is not None:
+            direction = np.sign(seed - np.asarray(current, dtype=float)[None, :])
+            direction[:, list(self.joints)] = 0.0
+        try:
+            res = compensate(
+                model,
+                p_wanted,
+                r_wanted,
+                a_seed_deg=seed,
+                dir=direction,
+                payload_kg=None if payload is None else float(payload),
+            )
+        except UnreachableTargetError as exc:
+            raise CompensationError(str(exc)) from None
+        if not res.converged:
+            raise CompensationError(
+                f"the compensation did not converge (predicted error {float(res.residual_mm[0]):.4f} mm "
+                f"after {res.iterations} iterations)"
+            )
+        commanded = tuple(float(v) for v in res.a_deg[0])
+        limits = self.robot.axis_limits_deg
+        for j, v in enumerate(commanded):
+            if not limits[j, 0] <= v <= limits[j, 1]:
+                raise CompensationError(f"the compensated A{j + 1} = {v:.4f} deg is outside the axis limits")
+        info = {
+            "uncompensated_deg": [float(v) for v in res.a_uncompensated_deg[0]],
+            "predicted_residual_mm": float(res.residual_mm[0]),
+            "iterations": res.iterations,
+        }
+        return CompensatedTarget(commanded, tuple(commanded[j] for j in self.joints), model_id, info)

@@ -1,0 +1,356 @@
+"""The simulated cell in a child process, and the daemon's handle on it (``comp-daemon run --sim``).
+
+The child (``python -m comp_daemon.daemon.simcell …``) runs its own event loop with the scenario's
+hidden robot (:class:`comp_daemon.sim.plant.RobotPlant`), the simulated KR C4 sending RSI telegrams
+to the daemon's UDP port, one grating converter per grating joint on a pseudo-terminal (reachable
+through a stable symlink, as ``/dev/serial/by-id/…`` on the line) and the laser tracker. Being a
+separate process it has its own interpreter and scheduler, as the robot controller has on the line:
+the plant's physics never runs inside the daemon's RSI path, and a busy daemon makes the controller
+count late replies exactly as a real one would.
+
+Interfaces of the child (all on 127.0.0.1):
+
+- RSI: UDP client to ``--rsi-host``/``--rsi-port``.
+- Motion (the controller's command port): ``move A1 … A6`` → ``OK arrived`` | ``ERR <why>``,
+  ``rsi_on``, ``rsi_off``, ``status``.
+- Cell port: ``measure`` → ``OK x y z`` (tracker frame, with noise); ``tcp`` → ``OK x y z`` (true TCP,
+  robot base frame); ``joints`` → ``OK a1 … a6`` (true output angles, deg); ``fault J KIND`` /
+  ``clear J`` (converter fault injection: bad_crc, error_bit, warning_bit, silent, garble);
+  ``unplug J`` / ``replug J``; ``payload KG``; ``status`` → ``OK <json>``.
+
+RSI starts when a client sends ``rsi_on`` on the motion port (as the robot program's ``RSI_ON``
+once the operator starts it), or at once with ``--rsi-on``. On start the child prints one JSON line
+on stdout (ports, grating symlinks, converter geometry) and then serves until SIGTERM/SIGINT,
+when it stops RSI, unplugs the converters and exits 0.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import logging
+import os
+import signal
+import sys
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+__all__ = ["SimCellInfo", "SimCellProcess", "main"]
+
+log = logging.getLogger(__name__)
+
+CONVERTER_ZERO_DEG = -200.0
+CONVERTER_BITS = 26
+
+
+@dataclass(frozen=True, slots=True)
+class SimCellInfo:
+    """What the child reported when it came up."""
+
+    pid: int
+    motion_host: str
+    motion_port: int
+    cell_host: str
+    cell_port: int
+    rsi_local_port: int
+    gratings: dict[int, str]  # joint (1-based) -> serial port path (symlink)
+    radius_mm: float
+    zero_deg: float
+    resolution_nm: float
+    bits: int
+    home_deg: tuple[float, ...]
+    cycle_ms: int
+
+
+# ------------------------------------------------------------------------------------ the child
+
+
+async def _serve_lines(reader: asyncio.StreamReader, writer: asyncio.StreamWriter, handle: Any) -> None:
+    try:
+        while line := await reader.readline():
+            answer = await handle(line.decode("utf-8", "replace").strip())
+            writer.write(answer.encode() + b"\n")
+            await writer.drain()
+    except (ConnectionError, asyncio.IncompleteReadError):
+        pass
+    finally:
+        writer.close()
+        with contextlib.suppress(ConnectionError):
+            await writer.wait_closed()
+
+
+async def _child(args: argparse.Namespace) -> int:
+    from comp_daemon.sim.converter import ConverterConfig, ConverterFault, SimulatedConverter
+    from comp_daemon.sim.plant import RobotPlant
+    from comp_daemon.sim.rsi_controller import RsiControllerConfig, SimulatedRsiController
+    from comp_daemon.sim.scenario import load_scenario
+    from comp_daemon.sim.tracker import LaserTracker
+
+    scenario = load_scenario(args.scenario)
+    plant = RobotPlant.from_scenario(scenario, seed=args.seed, payload_kg=args.payload_kg)
+    controller = SimulatedRsiController(
+        RsiControllerConfig(
+            server_host=args.rsi_host,
+            server_port=args.rsi_port,
+            cycle_ms=args.cycle_ms,
+            servo_lag_cycles=args.servo_lag_cycles,
+            timeout_count=args.timeout_count,
+            sen_type=args.sen_type,
+        ),
+        plant,
+    )
+    tracker = LaserTracker(scenario.noise.tracker_sigma_mm, scenario.tracker_T_base(), seed=args.seed + 1)
+    link_dir = Path(args.link_dir)
+    link_dir.mkdir(parents=True, exist_ok=True)
+    joints = scenario.cell.grating_joints
+    radius = scenario.cell.grating_radius_mm
+    converters: dict[int, SimulatedConverter] = {}
+    for j in joints:
+        cfg = ConverterConfig(
+            joint=j,
+            radius_mm=radius,
+            zero_deg=CONVERTER_ZERO_DEG,
+            bits=CONVERTER_BITS,
+            link_path=str(link_dir / f"grating-a{j}"),
+        )
+        converters[j] = SimulatedConverter(cfg, plant)
+        converters[j].start()
+
+    async def cell_command(line: str) -> str:
+        words = line.split()
+        if not words:
+            return "ERR empty command"
+        name, rest = words[0].lower(), words[1:]
+        try:
+            if name == "measure" and not rest:
+                p = tracker.measure(plant.tcp_true_mm())
+                return "OK " + " ".join(f"{v:.6f}" for v in p)
+            if name == "tcp" and not rest:
+                return "OK " + " ".join(f"{v:.6f}" for v in plant.tcp_true_mm())
+            if name == "joints" and not rest:
+                return "OK " + " ".join(f"{v:.8f}" for v in plant.output_angles_deg())
+            if name in ("fault", "clear", "unplug", "replug") and rest:
+                conv = converters.get(int(rest[0]))
+                if conv is None:
+                    return f"ERR no grating on joint {rest[0]}"
+                if name == "fault" and len(rest) == 2:
+                    conv.inject(ConverterFault(rest[1]))
+                elif name == "clear" and len(rest) == 1:
+                    conv.clear()
+                elif name == "unplug" and len(rest) == 1:
+                    conv.unplug()
+                elif name == "replug" and len(rest) == 1:
+                    conv.replug()
+                else:
+                    return f"ERR bad arguments to {name}"
+                return "OK"
+            if name == "payload" and len(rest) == 1:
+                plant.set_payload(float(rest[0]))
+                return "OK"
+            if name == "status" and not rest:
+                doc = {
+                    "controller": controller.status(),
+                    "correction_deg": plant.correction_deg().tolist(),
+                    "output_deg": plant.output_angles_deg().tolist(),
+                    "converters": {str(j): sorted(map(str, c.faults)) for j, c in converters.items()},
+                }
+                return "OK " + json.dumps(doc)
+        except (ValueError, RuntimeError) as exc:
+            return f"ERR {exc}"
+        return f"ERR unknown command {line[:40]!r}"
+
+    await controller.start(rsi_on=args.rsi_on)
+    motion_host, motion_port = await controller.serve_commands("127.0.0.1", 0)
+    cell_server = await asyncio.start_server(
+        lambda r, w: _serve_lines(r, w, cell_command), "127.0.0.1", args.cell_port
+    )
+    cell_host, cell_port = cell_server.sockets[0].getsockname()[:2]
+
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    info = {
+        "pid": os.getpid(),
+        "motion_host": motion_host,
+        "motion_port": motion_port,
+        "cell_host": cell_host,
+        "cell_port": cell_port,
+        "rsi_local_port": controller.local_address[1],
+        "gratings": {str(j): c.port for j, c in converters.items()},
+        "radius_mm": radius,
+        "zero_deg": CONVERTER_ZERO_DEG,
+        "resolution_nm": converters[joints[0]].config.resolution_nm if joints else 50.0,
+        "bits": CONVERTER_BITS,
+        "home_deg": [float(v) for v in scenario.campaign.home_deg],
+        "cycle_ms": args.cycle_ms,
+    }
+    sys.stdout.write(json.dumps(info) + "\n")
+    sys.stdout.flush()
+    await stop.wait()
+    cell_server.close()
+    await controller.close()
+    for conv in converters.values():
+        conv.close()
+    return 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m comp_daemon.daemon.simcell", description=__doc__)
+    parser.add_argument("--scenario", default="kr210-cell")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--payload-kg", type=float, default=0.0)
+    parser.add_argument("--rsi-host", default="127.0.0.1")
+    parser.add_argument("--rsi-port", type=int, required=True)
+    parser.add_argument("--cycle-ms", type=int, default=12, choices=(4, 12))
+    parser.add_argument("--servo-lag-cycles", type=int, default=1)
+    parser.add_argument("--timeout-count", type=int, default=10)
+    parser.add_argument("--sen-type", default="ImFree")
+    parser.add_argument("--cell-port", type=int, default=0)
+    parser.add_argument("--link-dir", required=True)
+    parser.add_argument(
+        "--rsi-on", action="store_true", help="start RSI at once (default: wait for the rsi_on command)"
+    )
+    args = parser.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="simcell: %(levelname)s %(message)s")
+    return asyncio.run(_child(args))
+
+
+# ------------------------------------------------------------------------------------ the handle
+
+
+class SimCellProcess:
+    """Starts, talks to and stops the child; use from the daemon's event loop."""
+
+    def __init__(
+        self,
+        *,
+        rsi_port: int,
+        link_dir: Path,
+        scenario: str = "kr210-cell",
+        seed: int = 0,
+        cycle_ms: int = 12,
+        servo_lag_cycles: int = 1,
+        timeout_count: int = 10,
+        sen_type: str = "ImFree",
+        start_timeout_s: float = 30.0,
+    ) -> None:
+        self.argv = [
+            sys.executable,
+            "-m",
+            "comp_daemon.daemon.simcell",
+            "--scenario",
+            scenario,
+            "--seed",
+            str(seed),
+            "--rsi-port",
+            str(rsi_port),
+            "--cycle-ms",
+            str(cycle_ms),
+            "--servo-lag-cycles",
+            str(servo_lag_cycles),
+            "--timeout-count",
+            str(timeout_count),
+            "--sen-type",
+            sen_type,
+            "--link-dir",
+            str(link_dir),
+        ]
+        self.start_timeout_s = start_timeout_s
+        self.proc: asyncio.subprocess.Process | None = None
+        self.info: SimCellInfo | None = None
+
+    async def start(self) -> SimCellInfo:
+        self.proc = await asyncio.create_subprocess_exec(
+            *self.argv, stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE
+        )
+        assert self.proc.stdout is not None
+        try:
+            async with asyncio.timeout(self.start_timeout_s):
+                line = await self.proc.stdout.readline()
+        except TimeoutError:
+            await self.stop()
+            raise RuntimeError(f"the simulated cell did not start within {self.start_timeout_s} s") from None
+        if not line:
+            code = await self.proc.wait()
+            raise RuntimeError(f"the simulated cell exited with code {code} before it was ready")
+        doc = json.loads(line)
+        self.info = SimCellInfo(
+            pid=int(doc["pid"]),
+            motion_host=str(doc["motion_host"]),
+            motion_port=int(doc["motion_port"]),
+            cell_host=str(doc["cell_host"]),
+            cell_port=int(doc["cell_port"]),
+            rsi_local_port=int(doc["rsi_local_port"]),
+            gratings={int(k): str(v) for k, v in doc["gratings"].items()},
+            radius_mm=float(doc["radius_mm"]),
+            zero_deg=float(doc["zero_deg"]),
+            resolution_nm=float(doc["resolution_nm"]),
+            bits=int(doc["bits"]),
+            home_deg=tuple(float(v) for v in doc["home_deg"]),
+            cycle_ms=int(doc["cycle_ms"]),
+        )
+        return self.info
+
+    @property
+    def running(self) -> bool:
+        return self.proc is not None and self.proc.returncode is None
+
+    async def command(self, line: str, *, timeout_s: float = 10.0) -> str:
+        """One command on the cell port; returns the text after ``OK`` or raises RuntimeError."""
+        if self.info is None:
+            raise RuntimeError("the simulated cell is not running")
+        return await line_command(self.info.cell_host, self.info.cell_port, line, timeout_s=timeout_s)
+
+    async def rsi_on(self) -> None:
+        """``RSI_ON`` in the robot program: the controller starts sending telegrams."""
+        if self.info is None:
+            raise RuntimeError("the simulated cell is not running")
+        await line_command(self.info.motion_host, self.info.motion_port, "rsi_on")
+
+    async def stop(self, timeout_s: float = 5.0) -> int | None:
+        proc = self.proc
+        if proc is None:
+            return None
+        if proc.returncode is None:
+            with contextlib.suppress(ProcessLookupError):
+                proc.send_signal(signal.SIGTERM)
+            try:
+                async with asyncio.timeout(timeout_s):
+                    await proc.wait()
+            except TimeoutError:
+                with contextlib.suppress(ProcessLookupError):
+                    proc.kill()
+                await proc.wait()
+        return proc.returncode
+
+
+async def line_command(host: str, port: int, line: str, *, timeout_s: float = 10.0) -> str:
+    """Send one line on a fresh connection and return the answer after ``OK`` (``ERR`` raises)."""
+    async with asyncio.timeout(timeout_s):
+        reader, writer = await asyncio.open_connection(host, port)
+        try:
+            writer.write(line.encode() + b"\n")
+            await writer.drain()
+            answer = (await reader.readline()).decode("utf-8", "replace").strip()
+        finally:
+            writer.close()
+            with contextlib.suppress(ConnectionError):
+                await writer.wait_closed()
+    if answer == "OK" or answer.startswith("OK "):
+        return answer[3:]
+    raise RuntimeError(answer.removeprefix("ERR ").strip() or "no answer")
+
+
+def floats(text: str) -> np.ndarray:
+    return np.array([float(v) for v in text.split()], dtype=float)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,88 @@
+"""Targets compensated by the store's active model, as the executor gets them."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+
+from comp_daemon.daemon.compensation import ActiveModelCompensator
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.models.artifact import model_document
+from comp_daemon.models.base import NominalModel
+from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.robot.description import load_robot
+from comp_daemon.rt.executor import CompensationError, ModelMissingError
+from comp_daemon.service.store import ModelDraft, Store
+
+HOME = [5.0, -85.0, 120.0, 3.0, -40.0, 10.0]
+
+
+@pytest.fixture
+def store(tmp_path: Path) -> Iterator[Store]:
+    with Store(tmp_path / "s.sqlite3") as s:
+        yield s
+
+
+def activate(store: Store, artifact: dict[str, Any], kind: str = "kinematic") -> int:
+    record = store.add_model(ModelDraft(kind, None, artifact, {}, None))
+    store.activate_model(record.id)
+    return record.id
+
+
+def test_without_a_model_the_target_fails_as_model_missing(store: Store) -> None:
+    comp = ActiveModelCompensator(store, load_robot("kr210"), [0, 1, 2])
+    with pytest.raises(ModelMissingError, match="no model is active"):
+        comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
+
+
+def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(store: Store) -> None:
+    robot = load_robot("kr210")
+    dx = np.random.default_rng(4).normal(0.0, 1.0, N_PARAMS) * np.where(
+        np.arange(N_PARAMS) % 5 == 0, 1e-4, 0.1
+    )
+    model = KinematicModel(robot, robot.nominal_params().apply(dx))
+    model_id = activate(store, model_document(model, data_sha256="a" * 64, frame="base"))
+    comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
+    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    out = comp(request)
+    assert out.model_id == model_id
+    assert out.loop_target_deg == out.commanded_deg[:3]
+    wanted = tcp_position_mm(robot.nominal_params(), axes_deg_to_q_rad(np.array([HOME]), robot.sign))
+    predicted = model.predict_tcp_mm(np.array([out.commanded_deg]))
+    np.testing.assert_allclose(predicted, wanted, atol=1e-6)
+    assert np.abs(np.subtract(out.commanded_deg, HOME)).max() > 1e-4  # the model did change it
+    # the same wanted TCP given as a position reaches the same prediction
+    tcp = {"tx": float(wanted[0, 0]), "ty": float(wanted[0, 1]), "tz": float(wanted[0, 2])}
+    by_position = comp(tcp)
+    np.testing.assert_allclose(model.predict_tcp_mm(np.array([by_position.commanded_deg])), wanted, atol=1e-6)
+
+
+def test_the_fit_jobs_short_artifact_is_understood(store: Store) -> None:
+    robot = load_robot("kr210")
+    nominal = NominalModel(robot)
+    activate(
+        store,
+        {"kind": "nominal", "order": None, "robot_sha256": robot.sha256, "payload": nominal.to_payload()},
+    )
+    comp = ActiveModelCompensator(store, robot, [0, 1, 2])
+    out = comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
+    np.testing.assert_allclose(out.commanded_deg, HOME, atol=1e-6)
+
+
+def test_unusable_models_and_requests_are_refused_by_name(store: Store) -> None:
+    robot = load_robot("kr210")
+    other = load_robot("irb120")
+    activate(store, model_document(NominalModel(other), data_sha256="b" * 64, frame="base"), "nominal")
+    comp = ActiveModelCompensator(store, robot, [0, 1, 2])
+    with pytest.raises(ModelMissingError, match="fitted for robot"):
+        comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
+    activate(store, model_document(NominalModel(robot), data_sha256="c" * 64, frame="base"), "nominal")
+    with pytest.raises(CompensationError, match=r"neither a1\.\.a6 nor tx, ty, tz"):
+        comp({"a1": 1.0, "tx": 2.0})
+    with pytest.raises(CompensationError, match="unreachable within joint limits"):
+        comp({"tx": 9000.0, "ty": 0.0, "tz": 500.0})
