@@ -102,27 +102,34 @@ def test_backlash_gives_different_positions_from_opposite_directions() -> None:
     go(p, target - 2.0)
     go(p, target)
     from_below = p.tcp_true_mm()
-    np.testing.assert_allclose(p.output_angles_deg() - p.axis_actual_deg(), h, atol=1e-9)
+    # a play lags: arriving from below, the output trails the motor by the play's half-width
+    np.testing.assert_allclose(p.output_angles_deg() - p.axis_actual_deg(), -h, atol=1e-9)
     go(p, target + 2.0)
     go(p, target)
     from_above = p.tcp_true_mm()
-    np.testing.assert_allclose(p.output_angles_deg() - p.axis_actual_deg(), -h, atol=1e-9)
+    np.testing.assert_allclose(p.output_angles_deg() - p.axis_actual_deg(), h, atol=1e-9)
     gap = np.linalg.norm(from_below - from_above)
     assert gap > 0.2  # mm: the play of six joints at a 2 m reach
     ones = np.ones((1, 6))
+    twin_eff = replace(eff, backlash_deg=-h)  # the twin's h of a play is negative (diagnose.md: A + h·dir)
     np.testing.assert_allclose(
-        from_above, twin_tcp_mm(ROBOT, NOMINAL, eff, target[None], -ones)[0], atol=1e-4
+        from_above, twin_tcp_mm(ROBOT, NOMINAL, twin_eff, target[None], -ones)[0], atol=1e-4
     )
-    np.testing.assert_allclose(from_below, twin_tcp_mm(ROBOT, NOMINAL, eff, target[None], ones)[0], atol=1e-4)
+    np.testing.assert_allclose(
+        from_below, twin_tcp_mm(ROBOT, NOMINAL, twin_eff, target[None], ones)[0], atol=1e-4
+    )
 
 
 def test_short_reversal_leaves_the_output_inside_the_play() -> None:
     eff = replace(EffectParams(), backlash_deg=np.full(6, 0.01))
     p = plant(eff)
     go(p, HOME + 1.0)
+    before = p.output_angles_deg()
     go(p, HOME + 1.0 - 0.004)  # reversal shorter than the play 2h = 0.02 deg
     offset = p.output_angles_deg() - p.axis_actual_deg()
-    np.testing.assert_allclose(offset, 0.01 - 0.004, atol=1e-6)
+    np.testing.assert_allclose(offset, -0.01 + 0.004, atol=1e-6)
+    # inside the play the output stands still while the motor turns
+    np.testing.assert_allclose(p.output_angles_deg(), before, atol=1e-6)
     np.testing.assert_array_equal(p.approach_dir(), -np.ones(6))
 
 

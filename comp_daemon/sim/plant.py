@@ -13,9 +13,11 @@ physics). Axis values are in the controller's convention (deg, KUKA A1..A6). Per
   through a first-order servo lag (``servo_time_constant_s``); the exact update for a command
   held over the step never overshoots, so an axis arrives from the side it moved from.
 * **Approach direction** (:meth:`approach_dir`): sign of the axis' last motor motion (+1 at start).
-* **Play** (backlash ``h``): a play operator ``b ← clip(b + Δmotor, −|h|, |h|)``; after a motion
-  longer than the play ``b = |h|·dir``, so the output sits at ``A + h·dir`` exactly as in the twin
-  (:mod:`comp_daemon.models.effects`), and a short reversal leaves it in between.
+* **Play** (backlash, half-width ``|h|``): a play operator ``b ← clip(b − Δmotor, −|h|, |h|)`` with
+  the output at ``motor + b``: inside the play the output stands still while the motor turns, and
+  after a motion longer than the play the output trails the motor, ``b = −|h|·dir``. In the twin's
+  terms (:mod:`comp_daemon.models.effects`, diagnose.md: the axis sits at ``A + h·dir``) this is
+  ``h = −|h|``: a play always lags. A short reversal leaves the output in between.
 * **Repeatability**: every motion draws a fresh joint offset (σ ``joint_repeatability_deg``) that
   the output keeps until the next motion.
 * **Output** (:meth:`output_angle_deg`, what a grating on the joint reads): the effect model at the
@@ -145,7 +147,7 @@ class RobotPlant:
         self._correction = np.zeros(6)
         self._motor = start.copy()
         self._last_dir = np.ones(6)
-        self._play = np.abs(effects.backlash_deg) * self._last_dir
+        self._play = -np.abs(effects.backlash_deg) * self._last_dir
         self._offset = np.zeros(6)
         self._payload_kg = float(payload_kg)
         self._profile: TrapezoidProfile | None = None
@@ -259,7 +261,7 @@ class RobotPlant:
         moved = np.abs(delta) > _MOVE_EPS_DEG
         self._last_dir = np.where(moved, np.sign(delta), self._last_dir)
         h = np.abs(self.effects.backlash_deg)
-        self._play = np.clip(self._play + delta, -h, h)
+        self._play = np.clip(self._play - delta, -h, h)
         self._motor = motor
         self._state = None
 
