@@ -62,16 +62,13 @@ def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(s
     np.testing.assert_allclose(model.predict_tcp_mm(np.array([by_position.commanded_deg])), wanted, atol=1e-6)
 
 
-def test_the_fit_jobs_short_artifact_is_understood(store: Store) -> None:
+def test_an_artifact_that_is_not_a_model_document_is_refused(store: Store) -> None:
     robot = load_robot("kr210")
     nominal = NominalModel(robot)
-    activate(
-        store,
-        {"kind": "nominal", "order": None, "robot_sha256": robot.sha256, "payload": nominal.to_payload()},
-    )
+    activate(store, {"kind": "nominal", "order": None, "payload": nominal.to_payload()}, "nominal")
     comp = ActiveModelCompensator(store, robot, [0, 1, 2])
-    out = comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
-    np.testing.assert_allclose(out.commanded_deg, HOME, atol=1e-6)
+    with pytest.raises(ModelMissingError, match="not a comp-daemon model document"):
+        comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
 
 
 def test_unusable_models_and_requests_are_refused_by_name(store: Store) -> None:

@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
-from comp_daemon.models.artifact import MODEL_KINDS, ModelArtifactError, parse_model
+from comp_daemon.models.artifact import ModelArtifactError, parse_model
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.compensation import compensate, nominal_targets
 from comp_daemon.robot.description import RobotDescription
@@ -41,28 +41,13 @@ _ABC = ("ta", "tb", "tc")
 
 
 def model_from_artifact(artifact: Mapping[str, Any], robot: RobotDescription, where: str) -> ErrorModel:
-    """The model of a stored artifact: a full ``comp-daemon-model`` document (checksummed), or the
-    fit job's short form (``kind``, ``order``, ``payload``; base frame unless a registration is given)."""
-    if "checksum_sha256" in artifact:
-        try:
-            return parse_model(json.dumps(dict(artifact)), source=where, robot=robot).model
-        except ModelArtifactError as exc:
-            raise ModelMissingError(str(exc)) from None
-    kind = artifact.get("kind")
-    payload = artifact.get("payload")
-    if kind not in MODEL_KINDS or not isinstance(payload, dict):
-        raise ModelMissingError(f"{where}: the stored artifact names no known model kind and payload")
-    sha = artifact.get("robot_sha256")
-    if sha is not None and sha != robot.sha256:
-        raise ModelMissingError(f"{where}: fitted for another robot description (sha256 {str(sha)[:12]}…)")
-    reg = artifact.get("registration")
-    registration = np.eye(4) if reg is None else np.asarray(reg, dtype=float)
-    if registration.shape != (4, 4) or not np.all(np.isfinite(registration)):
-        raise ModelMissingError(f"{where}: field 'registration' must be a finite 4×4 matrix")
+    """The model of a stored artifact (a checksummed ``comp-daemon-model`` document, as fit jobs store)."""
+    if "checksum_sha256" not in artifact:
+        raise ModelMissingError(f"{where}: the stored artifact is not a comp-daemon model document")
     try:
-        return MODEL_KINDS[str(kind)].from_payload(robot, payload, artifact.get("order"), registration)
-    except (KeyError, TypeError, ValueError) as exc:
-        raise ModelMissingError(f"{where}: {kind} model content is malformed ({exc})") from None
+        return parse_model(json.dumps(dict(artifact)), source=where, robot=robot).model
+    except ModelArtifactError as exc:
+        raise ModelMissingError(str(exc)) from None
 
 
 class ActiveModelCompensator:
