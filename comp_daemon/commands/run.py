@@ -10,6 +10,11 @@ from __future__ import annotations
 import argparse
 import asyncio
 import contextlib
+import os
+import secrets
+import sys
+from pathlib import Path
+from typing import Any
 
 from comp_daemon.sim.scenario import PRESET_SCENARIOS
 
@@ -21,7 +26,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Run the real-time daemon (RSI loop, grating readers, target executor) and its HTTP "
         "service in one process until SIGTERM/SIGINT.",
     )
-    run.add_argument("--config", required=True, metavar="FILE", help="configuration file (TOML)")
+    run.add_argument(
+        "--config",
+        metavar="FILE",
+        help="configuration file (TOML; see config.example.toml). Optional with --sim: the quick start "
+        "keeps its data in ./var/sim and makes an engineer token there",
+    )
     run.add_argument(
         "--sim",
         action="store_true",
@@ -53,6 +63,23 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     run.set_defaults(func=_run)
 
 
+def _quick_start_settings(data_dir: Path) -> Any:
+    """Settings for ``run --sim`` without a file: data in ``data_dir``, one engineer token kept there."""
+    from comp_daemon.service.config import load_settings
+
+    data_dir.mkdir(parents=True, exist_ok=True)
+    token_file = data_dir / "quickstart-token"
+    if not token_file.exists():
+        fd = os.open(token_file, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+        with os.fdopen(fd, "w", encoding="utf-8") as f:
+            f.write(secrets.token_urlsafe(24) + "\n")
+    return load_settings(
+        None,
+        store={"data_dir": data_dir.resolve()},
+        auth={"tokens": [{"name": "quickstart", "role": "engineer", "token_file": token_file.resolve()}]},
+    )
+
+
 def _address(text: str) -> tuple[str, int]:
     host, sep, port = text.rpartition(":")
     if not sep or not host or not port.isdigit() or not 0 < int(port) < 65536:
@@ -69,11 +96,24 @@ def _run(args: argparse.Namespace) -> int:
 
     if args.sim and args.motion:
         raise ValueError("--motion and --sim exclude each other (the simulated cell has its own)")
+    if args.config is None and not args.sim:
+        raise ValueError("--config FILE is required (only the simulated cell, --sim, has a quick start)")
     try:
-        settings = load_settings(args.config)
+        settings = load_settings(args.config) if args.config else _quick_start_settings(Path("var/sim"))
     except ValidationError as exc:
-        raise ValueError(f"{args.config}: {exc}") from None
+        raise ValueError(f"{args.config or 'quick start'}: {exc}") from None
     configure_logging(settings.log.level, settings.log.format)
+    if args.config is None:
+        args.calibrate_gratings = True  # the quick start's cell is ready without an engineer's step
+        token = settings.auth.tokens[0].secret
+        host = settings.http.host
+        print(
+            f"comp-daemon: simulated cell; data in {settings.store.data_dir.resolve()}; dashboard "
+            f"http://{host}:{settings.http.port}/#token={token} (engineer token in "
+            f"{settings.auth.tokens[0].token_file})",
+            file=sys.stderr,
+            flush=True,
+        )
     sim = SimOptions(args.scenario, args.sim_seed, args.servo_lag_cycles) if args.sim else None
     motion = _address(args.motion) if args.motion else None
     daemon = Daemon(settings, sim=sim, motion_address=motion)
