@@ -171,6 +171,10 @@ class Daemon:
         self.rsi_transport: asyncio.DatagramTransport | None = None
         self.http_port: int | None = None
         self.calibrating = False
+        self._cal_task: asyncio.Task[None] | None = None
+        self._cal_error: str | None = None
+        self._cal_started_at: float | None = None
+        self._cal_finished_at: float | None = None
         self.active_model_id: int | None = None
         self.started = asyncio.Event()
         self.exit_code: int | None = None
@@ -416,6 +420,8 @@ class Daemon:
         # 1. no new targets; zero steps and Stop=1 from the next telegram; the target is reported
         if self.executor is not None:
             self.executor.stop_claiming()
+        if self._cal_task is not None and not self._cal_task.done():
+            self._cal_task.cancel()  # its moves end with the robot's Stop below
         if runtime is not None:
             runtime.shutdown()
         task = self._tasks.pop("executor", None)
@@ -650,6 +656,64 @@ class Daemon:
             self.runtime.reset()
             if self.executor is not None:
                 self.executor.wake()
+
+    def acknowledge_fault(self, by: str) -> dict[str, Any] | None:
+        """:meth:`reset_fault` for the HTTP side: returns the fault that was cleared (or None)."""
+        runtime = self.runtime
+        if runtime is None or runtime.core.state is not SafetyState.FAULT or runtime.core.fault is None:
+            return None
+        f = runtime.core.fault
+        cleared = {
+            "kind": str(f.kind),
+            "reaction": str(f.reaction),
+            "detail": f.detail,
+            "target_id": f.target_id,
+        }
+        self.reset_fault()
+        log.info("daemon: fault %s acknowledged by %s", cleared["kind"], by)
+        return cleared
+
+    def start_grating_calibration(self, poses_deg: Sequence[Sequence[float]] | None, by: str) -> None:
+        """Start :meth:`calibrate_gratings` in the background (the HTTP route); RuntimeError if it cannot."""
+        runtime = self.runtime
+        if runtime is None or self.motion is None:
+            raise RuntimeError("the daemon has no loop or no motion port")
+        if self.calibrating or (self._cal_task is not None and not self._cal_task.done()):
+            raise RuntimeError("a grating calibration is already running")
+        busy = runtime.core.state in (SafetyState.ARMED, SafetyState.CORRECTING, SafetyState.SETTLED)
+        if busy or (self.executor is not None and self.executor.current_target_id is not None):
+            raise RuntimeError("a target is active; calibrate between targets")
+        poses = None if poses_deg is None else [tuple(float(v) for v in p) for p in poses_deg]
+        self._cal_error = None
+        self._cal_started_at, self._cal_finished_at = time.time(), None
+
+        async def run() -> None:
+            try:
+                cal = await self.calibrate_gratings(poses)
+                log.info("daemon: grating calibration v%d started by %s is in use", cal.version, by)
+            except Exception as exc:
+                self._cal_error = str(exc) or type(exc).__name__
+                log.error("daemon: grating calibration started by %s failed: %s", by, self._cal_error)
+                if self.store is not None:
+                    await asyncio.to_thread(
+                        self.store.add_event, "gratings.failed", {"error": self._cal_error, "by": by}
+                    )
+            finally:
+                self._cal_finished_at = time.time()
+
+        self._cal_task = asyncio.get_running_loop().create_task(run(), name="grating-calibration")
+
+    def grating_status(self) -> dict[str, Any]:
+        runtime = self.runtime
+        cal = None if runtime is None else runtime.calibration
+        running = self.calibrating or (self._cal_task is not None and not self._cal_task.done())
+        return {
+            "calibrating": running,
+            "calibration": None if cal is None else cal.to_dict(),
+            "last_error": self._cal_error,
+            "started_at": self._cal_started_at,
+            "finished_at": self._cal_finished_at,
+        }
 
     async def calibrate_gratings(
         self, poses: Sequence[Sequence[float]] | None = None, **options: Any

@@ -21,7 +21,9 @@ Interfaces of the child (all on 127.0.0.1):
 RSI starts when a client sends ``rsi_on`` on the motion port (as the robot program's ``RSI_ON``
 once the operator starts it), or at once with ``--rsi-on``. On start the child prints one JSON line
 on stdout (ports, grating symlinks, converter geometry) and then serves until SIGTERM/SIGINT,
-when it stops RSI, unplugs the converters and exits 0.
+when it stops RSI, unplugs the converters and exits 0. With ``--exit-with-parent`` (how the daemon
+starts it) it does the same when its stdin reaches end of file: the daemon holds the pipe's other
+end, so a daemon killed with SIGKILL leaves no simulated cell behind sending telegrams.
 """
 
 from __future__ import annotations
@@ -176,6 +178,22 @@ async def _child(args: argparse.Namespace) -> int:
     loop = asyncio.get_running_loop()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
+    if args.exit_with_parent:
+        stdin_fd = sys.stdin.fileno()
+
+        def parent_gone() -> None:
+            try:
+                data = os.read(stdin_fd, 4096)
+            except BlockingIOError:
+                return
+            except OSError:
+                data = b""
+            if not data:
+                loop.remove_reader(stdin_fd)
+                log.warning("the parent process closed the pipe; stopping")
+                stop.set()
+
+        loop.add_reader(stdin_fd, parent_gone)
     info = {
         "pid": os.getpid(),
         "motion_host": motion_host,
@@ -216,6 +234,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--link-dir", required=True)
     parser.add_argument(
         "--rsi-on", action="store_true", help="start RSI at once (default: wait for the rsi_on command)"
+    )
+    parser.add_argument(
+        "--exit-with-parent",
+        action="store_true",
+        help="stop as on SIGTERM when stdin reaches end of file (the parent holds the pipe's other end)",
     )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.WARNING, stream=sys.stderr, format="simcell: %(levelname)s %(message)s")
@@ -261,6 +284,7 @@ class SimCellProcess:
             sen_type,
             "--link-dir",
             str(link_dir),
+            "--exit-with-parent",
         ]
         self.start_timeout_s = start_timeout_s
         self.proc: asyncio.subprocess.Process | None = None
@@ -268,7 +292,7 @@ class SimCellProcess:
 
     async def start(self) -> SimCellInfo:
         self.proc = await asyncio.create_subprocess_exec(
-            *self.argv, stdin=asyncio.subprocess.DEVNULL, stdout=asyncio.subprocess.PIPE
+            *self.argv, stdin=asyncio.subprocess.PIPE, stdout=asyncio.subprocess.PIPE
         )
         assert self.proc.stdout is not None
         try:
@@ -328,6 +352,8 @@ class SimCellProcess:
                 with contextlib.suppress(ProcessLookupError):
                     proc.kill()
                 await proc.wait()
+        if proc.stdin is not None:
+            proc.stdin.close()
         return proc.returncode
 
 

@@ -9,10 +9,12 @@ Units: angles in degrees (``_deg``), times in milliseconds (``_ms``) or UNIX sec
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
 from typing import Any, Literal, Protocol, runtime_checkable
 
 __all__ = [
+    "DaemonControl",
     "DaemonSnapshot",
     "DaemonView",
     "DetachedDaemonView",
@@ -90,6 +92,28 @@ class DaemonView(Protocol):
 
     def loop_stats(self) -> LoopStats:
         """The latest loop statistics."""
+        ...
+
+
+@runtime_checkable
+class DaemonControl(Protocol):
+    """Operator actions on the daemon (``/api/gratings``, ``/api/loop/reset-fault``); the daemon
+    implements them, a view without a loop does not (the routes then answer 409 ``not_ready``)."""
+
+    def start_grating_calibration(self, poses_deg: Sequence[Sequence[float]] | None, by: str) -> None:
+        """Start seed 000's grating calibration in the background (``None``: the daemon's default
+        poses). Raises ``RuntimeError`` saying why it cannot start now (one is running, a target is
+        active, no loop or no motion port)."""
+
+    def grating_status(self) -> dict[str, Any]:
+        """``calibrating`` (bool), ``calibration`` (the calibration in use, its artifact dict, or
+        None), ``last_error`` (why the last attempt failed, or None), ``started_at`` /
+        ``finished_at`` (UNIX seconds of the last attempt, or None)."""
+        ...
+
+    def acknowledge_fault(self, by: str) -> dict[str, Any] | None:
+        """Clear a latched fault (operator acknowledgement); returns the fault that was cleared
+        (``kind``, ``reaction``, ``detail``, ``target_id``) or None when none was latched."""
         ...
 
 

@@ -29,6 +29,7 @@ __all__ = [
     "ErrorOut",
     "EventOut",
     "FitIn",
+    "GratingCalibrationIn",
     "JobOut",
     "ModelOut",
     "ReadyOut",
@@ -138,6 +139,14 @@ class ModelOut(_Out):
             stats=r.stats,
             created_at=iso(r.created_at),
         )
+
+
+class GratingCalibrationIn(BaseModel):
+    """Poses for the grating calibration (axis values A1..A6, deg); omitted: the daemon's own
+    (six poses sweeping every grating joint ±20° around the robot's position)."""
+
+    model_config = ConfigDict(extra="forbid")
+    poses: list[list[float]] | None = Field(None, min_length=3, max_length=50)
 
 
 class FitIn(BaseModel):

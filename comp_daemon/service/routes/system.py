@@ -1,9 +1,17 @@
-"""Health, readiness, metrics, the status overview and the live event stream."""
+"""Health, readiness, metrics, the status overview, the live event stream, and the loop's operator actions.
+
+Operator actions (answered 409 ``not_ready`` when no daemon is attached): ``POST /api/gratings/calibrate``
+(engineer) starts seed 000's grating calibration in the background and answers 202 at once;
+``GET /api/gratings`` follows it (``calibrating``, the calibration in use, ``last_error``);
+``POST /api/loop/reset-fault`` (operator) acknowledges a latched fault (a stop must also be cleared
+on the robot).
+"""
 
 from __future__ import annotations
 
 import asyncio
 import json
+import math
 from collections.abc import AsyncIterator
 from typing import Annotated, Any
 
@@ -14,15 +22,18 @@ from comp_daemon import __version__
 from comp_daemon.service import metrics
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
+from comp_daemon.service.daemon_view import DaemonControl
 from comp_daemon.service.events import CLOSING
-from comp_daemon.service.schemas import EventOut, ModelOut, ReadyOut
-from comp_daemon.service.state import ServiceState, get_state
+from comp_daemon.service.schemas import ErrorOut, EventOut, GratingCalibrationIn, ModelOut, ReadyOut
+from comp_daemon.service.state import ApiError, ServiceState, get_state
 
 router = APIRouter()
 
 State = Annotated[ServiceState, Depends(get_state)]
 Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 MetricsReader = Annotated[Principal, Depends(require(Role.viewer, anonymous_if="anonymous_metrics"))]
+Operator = Annotated[Principal, Depends(require(Role.operator))]
+Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 
 NO_MODEL = "no model is active"
 
@@ -153,3 +164,74 @@ async def event_log(
         newest_first=newest_first,
     )
     return [EventOut.of(e) for e in rows]
+
+
+# ----------------------------------------------------------------------------- operator actions
+
+
+def _control(svc: ServiceState) -> DaemonControl:
+    if not isinstance(svc.daemon, DaemonControl):
+        raise ApiError(409, "not_ready", "no real-time daemon is attached to this service")
+    return svc.daemon
+
+
+@router.get(
+    "/api/gratings",
+    tags=["loop"],
+    summary="The grating calibration in use and the state of the last calibration run",
+    responses={409: {"model": ErrorOut}},
+)
+async def grating_status(svc: State, who: Viewer) -> dict[str, Any]:
+    return _control(svc).grating_status()
+
+
+@router.post(
+    "/api/gratings/calibrate",
+    status_code=202,
+    tags=["loop"],
+    summary="Start the grating calibration (seed 000 step 1) on the cell (engineer)",
+    responses={409: {"model": ErrorOut}, 422: {"model": ErrorOut}},
+)
+async def calibrate_gratings(
+    svc: State, who: Engineer, body: GratingCalibrationIn | None = None
+) -> dict[str, Any]:
+    control = _control(svc)
+    poses = None if body is None else body.poses
+    if poses is not None:
+        limits = svc.robot.axis_limits_deg
+        for i, pose in enumerate(poses):
+            if len(pose) != 6:
+                raise ApiError(
+                    422, "invalid_request", f"pose {i + 1}: expected 6 axis values, got {len(pose)}",
+                    row=i + 1, row_label="pose",
+                )  # fmt: skip
+            for j, v in enumerate(pose):
+                if not math.isfinite(v) or not limits[j, 0] <= v <= limits[j, 1]:
+                    raise ApiError(
+                        422,
+                        "invalid_request",
+                        f"pose {i + 1}: A{j + 1} = {v} deg is outside the axis limits "
+                        f"[{limits[j, 0]:g}, {limits[j, 1]:g}]",
+                        row=i + 1, column=f"a{j + 1}", row_label="pose",
+                    )  # fmt: skip
+    try:
+        control.start_grating_calibration(poses, who.name)
+    except RuntimeError as exc:
+        raise ApiError(409, "conflict", str(exc)) from None
+    started = {"by": who.name, "poses": None if poses is None else len(poses)}
+    await svc.run(svc.store.add_event, "gratings.started", started)
+    return control.grating_status()
+
+
+@router.post(
+    "/api/loop/reset-fault",
+    tags=["loop"],
+    summary="Acknowledge a latched fault of the loop (operator)",
+    responses={409: {"model": ErrorOut}},
+)
+async def reset_fault(svc: State, who: Operator) -> dict[str, Any]:
+    control = _control(svc)
+    cleared = control.acknowledge_fault(who.name)
+    if cleared is not None:
+        await svc.run(svc.store.add_event, "loop.fault_reset", {**cleared, "by": who.name})
+    return {"cleared": cleared, "daemon": svc.daemon.snapshot().to_dict()}
