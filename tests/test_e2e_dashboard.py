@@ -136,7 +136,7 @@ def test_dashboard_goes_live_in_chromium(daemon: DaemonProcess, tmp_path: Path) 
             expect(page.locator("#table2 tbody tr").first).to_be_visible()
             joints_before = page.locator("#joints tbody").inner_text()
             page.wait_for_timeout(600)
-            assert page.locator("#joints tbody").inner_text() != joints_before  # readings, errors, corrections
+            assert page.locator("#joints tbody").inner_text() != joints_before  # readings and errors
 
             time.sleep(0.3)
             shot = tmp_path / "dashboard.png"
