@@ -1,0 +1,594 @@
+"""The daemon's RSI reply latency under load, seen from the controller's side of the wire.
+
+Run: ``python -m benchmarks.bench_rsi_loop [--cycles 50000] [--cycle-ms 12 --cycle-ms 4]
+[--http-rate 20] [--json OUT]`` (about 10 min at 12 ms and 3.5 min at 4 ms for 50 000 cycles).
+
+Set-up, per cycle time (all on 127.0.0.1, each a separate process):
+
+- the simulated cell (``python -m comp_daemon.daemon.simcell``): robot plant, simulated KR C4
+  sending ``<Rob>`` telegrams every ``cycle_ms`` on its absolute schedule, three grating converters
+  on pseudo-terminals, the motion command port;
+- a relay between the controller and the daemon, in its own process, which timestamps every
+  datagram: the telegram just before it is forwarded (``time.time_ns``, CLOCK_REALTIME) and the
+  daemon's reply on arrival by the kernel (``SO_TIMESTAMPNS``, CLOCK_REALTIME, so the relay's own
+  scheduling does not count against the daemon). Reply latency = reply received − telegram sent:
+  the daemon's receive path, event-loop delay, handler and send, plus loopback both ways;
+- ``comp-daemon run --config … --motion …`` as in production (grating readers on the
+  pseudo-terminals, ``--calibrate-gratings``, the HTTP service, the job pool), with the loop
+  correcting real targets.
+
+Load while the ``--cycles`` cycles are measured: the MES queue kept fed (batches of 10 targets
+around the home pose, so the loop is armed and correcting most of the time); fits one after the
+other in the job pool (Chebyshev with the order chosen by cross-validation, and kinematic + ratio
++ backlash, on a ``--campaign-rows`` campaign); HTTP requests at ``--http-rate`` per second over
+status, queue, models, jobs, metrics, event log and a data set download, plus one dashboard-like
+event stream (a bounded loop: it stops with the measurement and never exceeds 1.5 × the planned
+count). Late: a reply that took longer than one cycle, or none at all.
+
+Printed: the machine, per cycle time the latency p50/p99/p99.9/max, late and missing replies, the
+daemon's own view (handler latency percentiles, late count), the simulated controller's late count,
+what the load achieved (fits done, targets done/failed, HTTP requests and their latency).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime as dt
+import json
+import multiprocessing as mp
+import os
+import re
+import select
+import shutil
+import signal
+import socket
+import struct
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import httpx
+import numpy as np
+
+from benchmarks.machine import machine_info, machine_line
+
+SO_TIMESTAMPNS = 35  # Linux: <asm-generic/socket.h>; SCM_TIMESTAMPNS has the same value
+_IPOC = re.compile(rb"<IPOC>\s*(\d+)\s*</IPOC>")
+TOKEN = "bench-engineer-token-0123456789abcdef"
+
+
+# ------------------------------------------------------------------------------------ the relay
+
+
+def _recv_stamped(sock: socket.socket) -> tuple[bytes, tuple[str, int], int]:
+    data, anc, _flags, addr = sock.recvmsg(65536, socket.CMSG_SPACE(16))
+    t_ns = time.time_ns()
+    for level, kind, payload in anc:
+        if level == socket.SOL_SOCKET and kind == SO_TIMESTAMPNS and len(payload) >= 16:
+            sec, nsec = struct.unpack("qq", payload[:16])
+            t_ns = sec * 1_000_000_000 + nsec
+    return data, addr, t_ns
+
+
+def relay_main(
+    listen_port: int,
+    daemon_port: int,
+    out_path: str,
+    cycles: int,
+    recording: Any,
+    finished: Any,
+    ready: Any,
+) -> None:
+    """Forward controller ↔ daemon; while ``recording`` is set, log the first ``cycles`` telegrams."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ctrl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    ctrl.bind(("127.0.0.1", listen_port))
+    ctrl.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    up = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    up.bind(("127.0.0.1", 0))
+    up.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    daemon = ("127.0.0.1", daemon_port)
+    ipoc = np.zeros(cycles, dtype=np.int64)
+    t_arrive = np.zeros(cycles, dtype=np.int64)  # telegram at the relay (kernel)
+    t_sent = np.zeros(cycles, dtype=np.int64)  # telegram forwarded to the daemon
+    t_reply = np.zeros(cycles, dtype=np.int64)  # reply at the relay (kernel); 0 = none
+    index: dict[int, int] = {}
+    n = 0
+    controller: tuple[str, int] | None = None
+    poller = select.poll()
+    poller.register(ctrl, select.POLLIN)
+    poller.register(up, select.POLLIN)
+    ready.set()
+    done_at: float | None = None
+    while True:
+        if done_at is not None and time.monotonic() > done_at:
+            break
+        for fd, _ in poller.poll(100):
+            if fd == ctrl.fileno():
+                data, addr, t_rx = _recv_stamped(ctrl)
+                controller = addr
+                m = _IPOC.search(data)
+                t_tx = time.time_ns()
+                up.sendto(data, daemon)
+                if m is not None and recording.is_set() and n < cycles:
+                    k = int(m.group(1))
+                    ipoc[n], t_arrive[n], t_sent[n] = k, t_rx, t_tx
+                    index[k] = n
+                    n += 1
+                    if n == cycles:
+                        done_at = time.monotonic() + 0.5  # the last replies
+            else:
+                data, _addr, t_rx = _recv_stamped(up)
+                if controller is not None:
+                    ctrl.sendto(data, controller)
+                m = _IPOC.search(data)
+                if m is not None:
+                    i = index.pop(int(m.group(1)), None)
+                    if i is not None:
+                        t_reply[i] = t_rx
+    np.savez(out_path, ipoc=ipoc[:n], t_arrive=t_arrive[:n], t_sent=t_sent[:n], t_reply=t_reply[:n])
+    finished.set()
+    # go on forwarding until terminated, so the cell and the daemon can stop cleanly
+    while True:
+        for fd, _ in poller.poll(100):
+            if fd == ctrl.fileno():
+                data, controller, _ = _recv_stamped(ctrl)
+                up.sendto(data, daemon)
+            else:
+                data, _addr, _ = _recv_stamped(up)
+                if controller is not None:
+                    ctrl.sendto(data, controller)
+
+
+# ------------------------------------------------------------------------------------ processes
+
+
+def _free_port(kind: socket.SocketKind) -> int:
+    with socket.socket(socket.AF_INET, kind) as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+def _line(port: int, text: str, timeout_s: float = 10.0) -> str:
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout_s) as s:
+        s.sendall(text.encode() + b"\n")
+        answer = s.makefile().readline().strip()
+    if not answer.startswith("OK"):
+        raise RuntimeError(f"{text!r}: {answer}")
+    return answer[3:]
+
+
+def _config(root: Path, cell: dict[str, Any], cycle_ms: int, http_port: int, rsi_port: int) -> Path:
+    joints = "".join(
+        f'[[encoders.joints]]\njoint = {j}\nport = "{path}"\nradius_mm = {cell["radius_mm"]}\n'
+        f"resolution_nm = {cell['resolution_nm']}\nbits = {cell['bits']}\n"
+        for j, path in sorted(cell["gratings"].items(), key=lambda kv: int(kv[0]))
+    )
+    cfg = root / "config.toml"
+    cfg.write_text(
+        f"""
+[http]
+host = "127.0.0.1"
+port = {http_port}
+[store]
+data_dir = "{root / "data"}"
+[rsi]
+listen_host = "127.0.0.1"
+listen_port = {rsi_port}
+controller_allow = ["127.0.0.1"]
+cycle_ms = {cycle_ms}
+[encoders]
+poll_period_ms = {float(cycle_ms)}
+[jobs]
+workers = 1
+max_pending = 4
+[log]
+level = "INFO"
+[[auth.tokens]]
+name = "bench"
+role = "engineer"
+token = "{TOKEN}"
+{joints}""",
+        encoding="utf-8",
+    )
+    return cfg
+
+
+@contextlib.contextmanager
+def _cell(
+    root: Path, cycle_ms: int, rsi_port: int
+) -> Iterator[tuple[subprocess.Popen[bytes], dict[str, Any]]]:
+    argv = [
+        sys.executable, "-m", "comp_daemon.daemon.simcell", "--rsi-port", str(rsi_port),
+        "--cycle-ms", str(cycle_ms), "--timeout-count", "1000000000", "--link-dir", str(root / "cell"),
+        "--exit-with-parent",
+    ]  # fmt: skip
+    with (root / "cell.log").open("wb") as log:
+        proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)
+    try:
+        assert proc.stdout is not None
+        info: dict[str, Any] = json.loads(proc.stdout.readline())
+        yield proc, info
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(timeout=10)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        for pipe in (proc.stdin, proc.stdout):
+            if pipe is not None:
+                pipe.close()
+
+
+def _wait(cond: Any, timeout_s: float, what: str, every_s: float = 0.2) -> Any:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        with contextlib.suppress(httpx.TransportError):
+            value = cond()
+            if value:
+                return value
+        time.sleep(every_s)
+    raise RuntimeError(f"timed out waiting for {what}")
+
+
+# ------------------------------------------------------------------------------------ the load
+
+
+@dataclass(frozen=True)
+class Options:
+    """One measurement: cycles per cycle time and which load runs beside it."""
+
+    cycles: int = 50_000
+    http_rate: float = 20.0  # requests per second; 0: no HTTP load (and no event stream)
+    fits: bool = True
+    targets: bool = True
+    campaign_rows: int = 1000
+    switch_interval_ms: float | None = None  # the daemon's sys.setswitchinterval; None: Python's 5 ms
+    keep: bool = False
+
+
+class Load:
+    """Fits, targets and HTTP requests against the daemon until :meth:`stop`; counts what it did."""
+
+    def __init__(self, base_url: str, dataset_id: int, home: list[float], opts: Options, duration_s: float):
+        self.base_url = base_url
+        self.dataset_id = dataset_id
+        self.home = home
+        self.http_rate = opts.http_rate
+        self.max_requests = int(1.5 * opts.http_rate * duration_s) + 100
+        self.stop_event = threading.Event()
+        self.fits_done = 0
+        self.fits_started = 0
+        self.batches = 0
+        self.requests = 0
+        self.request_errors: Counter[str] = Counter()
+        self.request_ms: list[float] = []
+        self.sse_events = 0
+        self.threads = []
+        if opts.fits:
+            self.threads.append(threading.Thread(target=self._fits, name="fits", daemon=True))
+        if opts.targets:
+            self.threads.append(threading.Thread(target=self._targets, name="targets", daemon=True))
+        if opts.http_rate > 0:
+            self.threads.append(threading.Thread(target=self._http, name="http", daemon=True))
+            self.threads.append(threading.Thread(target=self._sse, name="sse", daemon=True))
+
+    def _client(self, timeout_s: float = 30.0) -> httpx.Client:
+        return httpx.Client(
+            base_url=self.base_url, headers={"Authorization": f"Bearer {TOKEN}"}, timeout=timeout_s
+        )
+
+    def start(self) -> None:
+        for t in self.threads:
+            t.start()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        for t in self.threads:
+            t.join(timeout=30)
+
+    def _fits(self) -> None:
+        kinds = [{"model": "chebyshev"}, {"model": "kinematic+ratio+backlash"}]
+        with self._client() as c:
+            while not self.stop_event.is_set():
+                body = {"dataset_id": self.dataset_id, **kinds[self.fits_started % len(kinds)]}
+                r = c.post("/api/fits", json=body)
+                if r.status_code != 202:
+                    self.stop_event.wait(1.0)
+                    continue
+                self.fits_started += 1
+                job = r.json()["id"]
+                while not self.stop_event.wait(0.5):
+                    if c.get(f"/api/jobs/{job}").json()["state"] in ("done", "failed", "cancelled"):
+                        self.fits_done += 1
+                        break
+
+    def _targets(self) -> None:
+        rng = np.random.default_rng(7)
+        with self._client() as c:
+            while not self.stop_event.is_set():
+                queued = c.get("/api/targets", params={"state": "queued", "limit": 50}).json()
+                if len(queued) < 4:
+                    targets = []
+                    for _ in range(10):
+                        a = np.array(self.home)
+                        a[:3] += rng.uniform(-10.0, 10.0, 3)
+                        targets.append({f"a{i + 1}": round(float(v), 4) for i, v in enumerate(a)})
+                    self.batches += 1
+                    c.post(
+                        "/api/batches",
+                        json={"targets": targets},
+                        headers={"Idempotency-Key": f"bench-{self.batches}"},
+                    )
+                self.stop_event.wait(1.0)
+
+    def _http(self) -> None:
+        paths = [
+            "/api/status", "/api/targets?limit=100", "/metrics", "/api/models", "/api/jobs", "/ready",
+            "/api/events/log?limit=200", "/api/status", "/api/targets?newest_first=true&limit=20",
+            f"/api/datasets/{self.dataset_id}/content",
+        ]  # fmt: skip
+        period = 1.0 / self.http_rate
+        next_t = time.monotonic()
+        with self._client() as c:
+            while not self.stop_event.is_set() and self.requests < self.max_requests:
+                path = paths[self.requests % len(paths)]
+                t0 = time.perf_counter()
+                try:
+                    r = c.get(path)
+                    if r.status_code >= 500 and not (path == "/ready" and r.status_code == 503):
+                        self.request_errors[f"{r.status_code} {path}"] += 1  # 503 is /ready's "no"
+                except httpx.HTTPError as exc:
+                    self.request_errors[f"{type(exc).__name__} {path}"] += 1
+                self.request_ms.append((time.perf_counter() - t0) * 1e3)
+                self.requests += 1
+                next_t += period
+                self.stop_event.wait(max(0.0, next_t - time.monotonic()))
+
+    def _sse(self) -> None:
+        with self._client(timeout_s=60.0) as c, c.stream("GET", "/api/events") as r:
+            for line in r.iter_lines():
+                if line.startswith("event:"):
+                    self.sse_events += 1
+                if self.stop_event.is_set():
+                    break
+
+
+# ------------------------------------------------------------------------------------ one run
+
+
+def _pct(values: np.ndarray, q: float) -> float:
+    return float(np.percentile(values, q)) if values.size else float("nan")
+
+
+def _daemon_argv(opts: Options) -> list[str]:
+    if opts.switch_interval_ms is None:
+        return [sys.executable, "-m", "comp_daemon"]
+    code = (
+        f"import sys; sys.setswitchinterval({opts.switch_interval_ms / 1000.0!r}); "
+        "from comp_daemon.cli import main; sys.exit(main())"
+    )
+    return [sys.executable, "-c", code]
+
+
+def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
+    cycles = opts.cycles
+    root = Path(tempfile.mkdtemp(prefix=f"bench-rsi-{cycle_ms}ms-"))
+    relay_port, daemon_rsi, http_port = (
+        _free_port(socket.SOCK_DGRAM),
+        _free_port(socket.SOCK_DGRAM),
+        _free_port(socket.SOCK_STREAM),
+    )
+    ctx = mp.get_context("spawn")
+    recording, finished, relay_ready = ctx.Event(), ctx.Event(), ctx.Event()
+    out = root / "relay.npz"
+    relay = ctx.Process(
+        target=relay_main,
+        args=(relay_port, daemon_rsi, str(out), cycles, recording, finished, relay_ready),
+        daemon=True,
+    )
+    relay.start()
+    relay_ready.wait(30)
+    campaign = root / "campaign.csv"
+    sample = ["sim", "sample", "--n", str(opts.campaign_rows), "--out", str(campaign), "--seed", "11"]
+    subprocess.run([sys.executable, "-m", "comp_daemon", *sample], check=True, capture_output=True)
+    load: Load | None = None
+    daemon: subprocess.Popen[bytes] | None = None
+    result: dict[str, Any] = {"cycle_ms": cycle_ms, "options": asdict(opts)}
+    try:
+        with _cell(root, cycle_ms, relay_port) as (_cell_proc, cell):
+            cfg = _config(root, cell, cycle_ms, http_port, daemon_rsi)
+            with (root / "daemon.log").open("wb") as log:
+                daemon = subprocess.Popen(
+                    [*_daemon_argv(opts), "run", "--config", str(cfg),
+                     "--motion", f"127.0.0.1:{cell['motion_port']}", "--calibrate-gratings"],
+                    stdout=log, stderr=subprocess.STDOUT,
+                )  # fmt: skip
+            base = f"http://127.0.0.1:{http_port}"
+            _wait(lambda: httpx.get(f"{base}/health").status_code == 200, 60, "the daemon's HTTP service")
+            _line(cell["motion_port"], "rsi_on")  # RSI_ON in the robot program
+
+            def calibrated() -> bool:
+                reasons = httpx.get(f"{base}/ready").json().get("reasons", [])
+                return reasons == ["no model is active"]
+
+            _wait(calibrated, 120, "the grating calibration")
+            headers = {"Authorization": f"Bearer {TOKEN}"}
+            with httpx.Client(base_url=base, headers=headers, timeout=60) as c:
+                r = c.post(
+                    "/api/datasets", content=campaign.read_bytes(), headers={"Content-Type": "text/csv"}
+                )
+                r.raise_for_status()
+                dataset_id = r.json()["id"]
+                job = c.post("/api/fits", json={"dataset_id": dataset_id, "model": "kinematic"}).json()["id"]
+                _wait(lambda: c.get(f"/api/jobs/{job}").json()["state"] == "done", 120, "the first fit")
+                model = next(m["id"] for m in c.get("/api/models").json() if m["job_id"] == job)
+                c.post(f"/api/models/{model}/activate").raise_for_status()
+                _wait(lambda: httpx.get(f"{base}/ready").status_code == 200, 30, "readiness")
+
+                load = Load(base, dataset_id, cell["home_deg"], opts, cycles * cycle_ms / 1000.0)
+                load.start()
+                time.sleep(3.0)  # the first fit and batch under way
+                ctrl0 = json.loads(_line(cell["motion_port"], "status"))
+                status0 = c.get("/api/status").json()["daemon"]["loop"]
+                load_start = os.getloadavg()
+                t0 = time.monotonic()
+                recording.set()
+                while not finished.wait(5.0):
+                    if daemon.poll() is not None:
+                        raise RuntimeError(f"the daemon exited with {daemon.returncode}")
+                    if time.monotonic() - t0 > cycles * cycle_ms / 1000.0 * 3 + 120:
+                        raise RuntimeError("the measurement did not finish")
+                wall_s = time.monotonic() - t0
+                ctrl1 = json.loads(_line(cell["motion_port"], "status"))
+                status1 = c.get("/api/status").json()["daemon"]["loop"]
+                load.stop()
+                finished_targets = {
+                    s: c.get("/api/targets", params={"state": s, "limit": 500}).json()
+                    for s in ("done", "failed")
+                }
+                states = {s: len(v) for s, v in finished_targets.items()}
+                fail_reasons = Counter(str(t["reason"]).split(":")[0] for t in finished_targets["failed"])
+            daemon.send_signal(signal.SIGTERM)
+            code = daemon.wait(timeout=60)
+    finally:
+        if load is not None:
+            load.stop()
+        if daemon is not None and daemon.poll() is None:
+            daemon.kill()
+            daemon.wait()
+        relay.terminate()
+        relay.join(10)
+
+    rec = np.load(out)
+    sent, reply, arrive = rec["t_sent"], rec["t_reply"], rec["t_arrive"]
+    answered = reply > 0
+    # a telegram the relay forwarded less than half a cycle before the next one (the relay itself
+    # was held up) arrives at the daemon with its successor queued behind it: only the newest is
+    # answered, by design; counted apart from the daemon's own misses
+    gap_next = np.diff(sent, append=np.iinfo(np.int64).max)
+    burst = gap_next < cycle_ms * 1e6 / 2
+    lat_ms = (reply[answered] - sent[answered]) / 1e6
+    cycle = float(cycle_ms)
+    relay_ms = (sent - arrive) / 1e6
+    http_ms = np.array(load.request_ms if load else [], dtype=np.float64)
+    result.update(
+        date=dt.date.today().isoformat(),
+        recorded=int(sent.size),
+        wall_s=round(wall_s, 1),
+        latency_ms={
+            "p50": _pct(lat_ms, 50),
+            "p99": _pct(lat_ms, 99),
+            "p99.9": _pct(lat_ms, 99.9),
+            "max": float(lat_ms.max()) if lat_ms.size else float("nan"),
+        },
+        late=int(np.sum(lat_ms > cycle)) + int(np.sum(~answered)),
+        missing=int(np.sum(~answered)),
+        missing_in_relay_burst=int(np.sum(~answered & burst)),
+        over_1ms=int(np.sum(lat_ms > 1.0)),
+        relay_forward_ms_p99=_pct(relay_ms, 99),
+        daemon_view={
+            "p50_ms": status1.get("latency_p50_ms"),
+            "p99_ms": status1.get("latency_p99_ms"),
+            "max_ms": status1.get("latency_max_ms"),
+            "late": (status1.get("late_replies") or 0) - (status0.get("late_replies") or 0),
+        },
+        controller_late=ctrl1["late_total"] - ctrl0["late_total"],
+        controller_overruns=ctrl1["overruns"] - ctrl0["overruns"],
+        fits_done=load.fits_done if load else 0,
+        targets=states,
+        target_fail_reasons=dict(fail_reasons),
+        batches=load.batches if load else 0,
+        http_requests=load.requests if load else 0,
+        http_errors=dict(load.request_errors) if load else {},
+        http_ms={"p50": _pct(http_ms, 50), "p99": _pct(http_ms, 99)},
+        sse_events=load.sse_events if load else 0,
+        loadavg_start=[round(v, 2) for v in load_start],
+        loadavg_end=[round(v, 2) for v in os.getloadavg()],
+        daemon_exit=code,
+    )
+    if not opts.keep:
+        shutil.rmtree(root, ignore_errors=True)
+    else:
+        result["folder"] = str(root)
+    return result
+
+
+def _ms(value: float | None) -> str:
+    return "–" if value is None else f"{value:.3f} ms"
+
+
+def _report(r: dict[str, Any]) -> str:
+    lat, dv = r["latency_ms"], r["daemon_view"]
+    return (
+        f"{r['cycle_ms']:>2} ms  {r['recorded']} cycles in {r['wall_s']} s\n"
+        f"   reply latency (controller side): p50 {lat['p50']:.3f} ms, p99 {lat['p99']:.3f} ms, "
+        f"p99.9 {lat['p99.9']:.3f} ms, max {lat['max']:.3f} ms; > 1 ms: {r['over_1ms']}\n"
+        f"   late (> {r['cycle_ms']} ms or none): {r['late']} (no reply: {r['missing']}, of which "
+        f"{r['missing_in_relay_burst']} right behind a relay hold-up); "
+        f"simulated controller counted {r['controller_late']} late, {r['controller_overruns']} own overruns\n"
+        f"   daemon's own view (callback → sent, last 65 536): p50 {_ms(dv['p50_ms'])}, "
+        f"p99 {_ms(dv['p99_ms'])}, max since start {_ms(dv['max_ms'])}, late {dv['late']}\n"
+        f"   load: {r['fits_done']} fits done, targets done {r['targets']['done']} / failed "
+        f"{r['targets']['failed']} {r['target_fail_reasons'] or ''}, {r['http_requests']} HTTP requests "
+        f"(p50 {r['http_ms']['p50']:.1f} ms, p99 {r['http_ms']['p99']:.1f} ms, "
+        f"errors: {r['http_errors'] or 0}), "
+        f"{r['sse_events']} SSE events; "
+        f"relay forwarding p99 {r['relay_forward_ms_p99']:.3f} ms; load average {r['loadavg_start']} → "
+        f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}"
+    )
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--cycles", type=int, default=50_000, help="measured cycles per cycle time")
+    parser.add_argument(
+        "--cycle-ms", type=int, action="append", choices=(12, 4), help="12 and/or 4 (default both)"
+    )
+    parser.add_argument("--http-rate", type=float, default=20.0, help="HTTP requests per second (0: none)")
+    parser.add_argument("--no-fits", action="store_true", help="no fit jobs during the measurement")
+    parser.add_argument("--no-targets", action="store_true", help="no targets during the measurement")
+    parser.add_argument(
+        "--switch-interval-ms",
+        type=float,
+        default=None,
+        help="run the daemon with sys.setswitchinterval(this) (default: Python's 5 ms)",
+    )
+    parser.add_argument("--campaign-rows", type=int, default=1000, help="rows of the campaign the fits use")
+    parser.add_argument("--json", type=Path, default=None, help="also write the results here")
+    parser.add_argument("--keep", action="store_true", help="keep the run folders (logs, relay record)")
+    args = parser.parse_args(argv)
+    if args.cycles < 100:
+        parser.error("--cycles must be at least 100")
+    print(f"machine: {machine_line()}", flush=True)
+    results = []
+    opts = Options(
+        cycles=args.cycles,
+        http_rate=args.http_rate,
+        fits=not args.no_fits,
+        targets=not args.no_targets,
+        campaign_rows=args.campaign_rows,
+        switch_interval_ms=args.switch_interval_ms,
+        keep=args.keep,
+    )
+    print(f"options: {asdict(opts)}", flush=True)
+    for cycle_ms in args.cycle_ms or [12, 4]:
+        r = run(cycle_ms, opts)
+        print(_report(r), flush=True)
+        results.append(r)
+    if args.json is not None:
+        args.json.write_text(json.dumps({"machine": machine_info(), "results": results}, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
