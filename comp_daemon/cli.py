@@ -14,7 +14,7 @@ from collections.abc import Sequence
 
 from comp_daemon import __version__
 
-COMMAND_MODULES: tuple[str, ...] = ("robot", "data", "sim", "fit", "diagnose", "run")
+COMMAND_MODULES: tuple[str, ...] = ("robot", "data", "sim", "run", "diagnose", "fit", "trial")
 
 
 class UserError(Exception):

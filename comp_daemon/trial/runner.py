@@ -1,0 +1,672 @@
+"""Seed 000's experiment, end to end, through the running daemon (``comp-daemon trial``).
+
+Phases (seed 000 §3; the numbers are those of the full trial, :data:`comp_daemon.trial.plan.FULL`):
+
+1. **Grating calibration** (seed 000 step 1): ``POST /api/gratings/calibrate``, followed on
+   ``GET /api/gratings``.
+2. **ISO 9283 without feedback**: the robot program alone moves start point → test point, three
+   test points × 3 directions × 30 cycles (after a warm-up cycle), 100 mm moves; the tracker
+   measures each arrival after a dwell.
+3. **Sampling, open loop**: the robot program visits the 100 sampling points; tracker.
+4. **Targets, uncompensated**: the 104 target points at their nominal axis values; tracker.
+   Phases 3 + 4 are uploaded as one data set (sampling rows ``fit``, target rows ``check``) and the
+   kinematic model (and, in the quick trial, the Chebyshev model) is fitted over HTTP.
+5. **Targets, kinematic calibration**: the kinematic model's artifact is fetched over HTTP and the
+   targets are compensated with it offline (``comp-daemon compensate``, seed 000's baseline); the
+   robot program runs the compensated commands; tracker.
+6. **ISO 9283 with feedback**: the nominal model is activated; each test point is a target of the
+   daemon (start point by the robot program), measured once the daemon reports it settled.
+7. **Sampling with feedback** (full trial): the 100 sampling points as targets of the daemon with
+   the nominal model: the joint loop holds joints 1–3 at their commanded angles while the tracker
+   measures ("the closed-loop feedback … ensure[s] the error sampling accuracy", seed 000 §4).
+8. **Targets, feedback only** (full trial): the target points at their nominal axis values through
+   the loop. Phases 7 + 8 are the closed-loop data set; the Chebyshev model of the trial's order
+   (3, seed 000) and the kinematic model are fitted on it over HTTP.
+9. **Targets, Chebyshev + feedback** (seed 000's method): the Chebyshev model is activated and the
+   target points are posted as the nominal program's axis values; the daemon compensates, moves,
+   closes the loop; tracker.
+10. **Targets, kinematic + feedback** (full trial): the same with the closed-loop kinematic model.
+
+Every run over the target points starts from the scenario's home pose, so the routes (and the
+approach directions) are the same. All runs by the robot program alone come before the first target
+of the daemon: ``RSI_ON(#RELATIVE)`` corrections stay applied after a target (docs/daemon.md), so a
+robot-program run after a closed-loop one would carry its last correction.
+
+The trial talks to the daemon only over HTTP (a bearer token), to the robot only through its program's
+motion port, and measures only with the tracker (:mod:`comp_daemon.trial.cell`).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import secrets
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.daemon.compensation import model_from_artifact
+from comp_daemon.daemon.gratings import default_calibration_poses
+from comp_daemon.data.dataset import Dataset, dataset_to_csv
+from comp_daemon.models.compensation import compensate
+from comp_daemon.sim.scenario import Scenario, load_scenario
+from comp_daemon.trial.cell import CellError, CellSettings, TrialCell, environment
+from comp_daemon.trial.compare import ComparisonData, compare_models
+from comp_daemon.trial.plan import PlannedPoints, TrialPlan, TrialPoints, plan_trial
+from comp_daemon.trial.result import PointRun, TrialResult
+from comp_daemon.trial.stats import iso9283_statistics
+
+__all__ = ["ProgressEvent", "TrialError", "run_trial"]
+
+FINAL_STATES = ("done", "failed", "cancelled", "interrupted")
+#: target failures that say the computer was busy (docs/daemon.md, Safety): such a target is posted again
+TRANSIENT = ("feedback_stale", "rsi_lost")
+RETRIES = 2
+
+
+class TrialError(RuntimeError):
+    """The trial could not go on; the message says where and why. ``result``: what was measured."""
+
+    def __init__(self, message: str, result: TrialResult | None = None) -> None:
+        super().__init__(message)
+        self.result = result
+
+
+@dataclass(frozen=True, slots=True)
+class ProgressEvent:
+    step: int  # 1-based phase number
+    steps: int
+    phase: str
+    done: int  # units done in this phase
+    total: int  # 0: no countable units
+    note: str = ""
+    finished: bool = False
+
+
+Progress = Callable[[ProgressEvent], None]
+
+
+def _phase_names(plan: TrialPlan) -> list[str]:
+    s = plan.sizes
+    names = [
+        "grating calibration",
+        "ISO 9283, robot alone",
+        "sampling points, robot alone",
+        "target points, uncompensated",
+        "fits on the open-loop data (HTTP)",
+        "target points, kinematic calibration",
+        "ISO 9283, with joint feedback",
+    ]
+    if s.loop_sampling:
+        names += [
+            "sampling points, with joint feedback",
+            "target points, joint feedback only",
+            "fits on the closed-loop data (HTTP)",
+        ]
+    names.append(f"target points, Chebyshev m={s.chebyshev_order} + joint feedback")
+    if s.loop_sampling and s.kinematic_with_loop:
+        names.append("target points, kinematic + joint feedback")
+    names.append("seed 001 model comparison")
+    return names
+
+
+class _Trial:
+    def __init__(
+        self,
+        scenario: Scenario,
+        plan: TrialPlan,
+        points: TrialPoints,
+        cell: TrialCell,
+        result: TrialResult,
+        progress: Progress,
+    ) -> None:
+        self.scenario = scenario
+        self.plan = plan
+        self.sizes = plan.sizes
+        self.points = points
+        self.cell = cell
+        self.result = result
+        self.progress = progress
+        self.names = _phase_names(plan)
+        self.step = 0
+        self.t0 = time.monotonic()
+        self.phase_t0 = self.t0
+        self.key_prefix = f"trial-{secrets.token_hex(4)}"
+        self.target_counter = 0
+
+    # ------------------------------------------------------------------------------ progress
+
+    def begin(self, name: str) -> None:
+        self.step = self.names.index(name) + 1
+        self.phase = name
+        self.phase_t0 = time.monotonic()
+        self.tell(0, 0)
+
+    def tell(self, done: int, total: int, note: str = "") -> None:
+        self.progress(ProgressEvent(self.step, len(self.names), self.phase, done, total, note))
+
+    def end(self, note: str = "") -> None:
+        dt = time.monotonic() - self.phase_t0
+        self.result.phases.append({"name": self.phase, "duration_s": round(dt, 1)})
+        self.progress(ProgressEvent(self.step, len(self.names), self.phase, 0, 0, note, finished=True))
+
+    @staticmethod
+    def running_note(run: PointRun) -> str:
+        err = run.errors_mm()
+        if len(err) == 0:
+            return ""
+        d = np.linalg.norm(err, axis=1)
+        return f"3-D error so far: mean {d.mean():.3f}, max {d.max():.3f} mm"
+
+    # ------------------------------------------------------------------------------ primitives
+
+    async def settle_and_measure(self) -> NDArray[np.float64]:
+        if self.sizes.dwell_s > 0.0:
+            await asyncio.sleep(self.sizes.dwell_s)
+        return await self.cell.measure_mm()
+
+    async def gratings_now(self) -> NDArray[np.float64]:
+        status = await self.cell.api("GET", "/api/status")
+        out = np.full(3, np.nan)
+        for joint in status["daemon"]["joints"]:
+            j, g = int(joint["joint"]), joint.get("grating_deg")
+            if j <= 3 and g is not None:
+                out[j - 1] = float(g)
+        return out
+
+    async def target(self, axes_deg: NDArray[np.float64], pose_id: str) -> tuple[dict[str, Any], list[str]]:
+        """A target of the daemon, posted again (up to :data:`RETRIES` times) when it failed for a
+        reason of the machine rather than of the method (:data:`TRANSIENT`: a grating reading or
+        the RSI telegrams late on a busy computer); returns the last target and the reasons retried."""
+        retried: list[str] = []
+        while True:
+            doc = await self._target_once(axes_deg, pose_id)
+            reason = str(doc.get("reason") or "")
+            if doc["state"] != "failed" or not reason.startswith(TRANSIENT) or len(retried) >= RETRIES:
+                return doc, retried
+            retried.append(reason)
+
+    async def _target_once(self, axes_deg: NDArray[np.float64], pose_id: str) -> dict[str, Any]:
+        """One target of the daemon (a batch of one), followed until it ends."""
+        ctl = await self.cell.controller_status()
+        if ctl["state"] != "running":
+            raise TrialError(
+                f"RSI is not running on the robot controller ({ctl['state']}: {ctl['stop_reason']})"
+            )
+        self.target_counter += 1
+        key = f"{self.key_prefix}-{self.target_counter}"
+        request = {f"a{k + 1}": round(float(v), 9) for k, v in enumerate(axes_deg)}
+        request["pose_id"] = pose_id  # type: ignore[assignment]
+        if self.plan.payload_kg:
+            request["payload_kg"] = float(self.plan.payload_kg)
+        batch = await self.cell.api(
+            "POST", "/api/batches", json={"targets": [request]}, headers={"Idempotency-Key": key}
+        )
+        tid = int(batch["targets"][0]["id"])
+        deadline = time.monotonic() + 120.0
+        while True:
+            doc: dict[str, Any] = await self.cell.api("GET", f"/api/targets/{tid}")
+            if doc["state"] in FINAL_STATES:
+                return doc
+            if not self.cell.daemon_alive():
+                raise TrialError(f"the daemon exited during target {tid}; see {self.cell.daemon_log}")
+            if time.monotonic() > deadline:
+                ready = await self.cell.http.get("/ready") if self.cell.http is not None else None
+                why = ready.json().get("reasons") if ready is not None else "?"
+                raise TrialError(f"target {tid} did not finish within 120 s (state {doc['state']}; {why})")
+            await asyncio.sleep(0.02)
+
+    async def wait_job(self, job_id: int) -> dict[str, Any]:
+        while True:
+            job: dict[str, Any] = await self.cell.api("GET", f"/api/jobs/{job_id}")
+            if job["state"] in ("done", "failed", "cancelled"):
+                if job["state"] != "done":
+                    raise TrialError(f"fit job {job_id} {job['state']}: {job.get('error')}")
+                return job
+            await asyncio.sleep(0.2)
+
+    async def fit(self, label: str, dataset_id: int, model: str, order: int | None = None) -> dict[str, Any]:
+        body: dict[str, Any] = {"dataset_id": dataset_id, "model": model}
+        if order is not None:
+            body["order"] = order
+        job = await self.cell.api("POST", "/api/fits", json=body)
+        job = await self.wait_job(int(job["id"]))
+        models = await self.cell.api("GET", "/api/models", params={"limit": 50})
+        record = next((m for m in models if m.get("job_id") == job["id"]), None)
+        if record is None:
+            raise TrialError(f"fit job {job['id']} finished without a model")
+        stats = record["stats"]
+        entry = {
+            "id": record["id"],
+            "model": model,
+            "kind": record["kind"],
+            "order": record["order"],
+            "dataset_id": dataset_id,
+            "fit_rows": stats.get("rows", {}).get("fit"),
+            "server_table2": stats.get("table2", {}),
+            "fit": {k: stats.get("fit", {}).get(k) for k in ("rms_mm", "rtol", "order")},
+        }
+        self.result.models[label] = entry
+        return entry
+
+    async def activate(self, model_id: int) -> None:
+        await self.cell.api("POST", f"/api/models/{model_id}/activate")
+
+    async def upload(
+        self,
+        name: str,
+        runs: list[tuple[PointRun, PlannedPoints, str]],
+        *,
+        joints_from_gratings: bool = False,
+    ) -> int:
+        """One data set of several runs (commanded axes, tracker, dir, gratings, split).
+
+        ``joints_from_gratings``: A1..A3 are the grating readings instead of the commands — the joint
+        angles the robot really had, in the convention the joint loop holds them to.
+        """
+        a, p, dirs, g = [], [], [], []
+        split: list[str] = []
+        ids: list[str] = []
+        for run, pts, sp in runs:
+            ok = run.ok
+            if joints_from_gratings:
+                ok = ok & np.all(np.isfinite(run.grating_deg), axis=1)
+                a.append(np.concatenate([run.grating_deg[ok], run.commanded_deg[ok, 3:]], axis=1))
+            else:
+                a.append(run.commanded_deg[ok])
+            p.append(run.measured_mm[ok])
+            dirs.append(pts.dir[ok])
+            g6 = np.full((int(ok.sum()), 6), np.nan)
+            g6[:, :3] = run.grating_deg[ok]
+            g.append(g6)
+            split += [sp] * int(ok.sum())
+            ids += [f"{pts.name[0]}{i + 1:03d}" for i in np.flatnonzero(ok)]
+        all_g = np.concatenate(g)
+        have_g = np.all(np.isfinite(all_g[:, :3]))
+        ds = Dataset(
+            a_deg=np.concatenate(a),
+            xyz_mm=np.concatenate(p),
+            dir=np.concatenate(dirs).astype(np.int8),
+            g_deg=all_g if have_g else None,
+            g_present=np.array([True] * 3 + [False] * 3) if have_g else np.zeros(0, bool),
+            payload_kg=np.full(len(split), float(self.plan.payload_kg)),
+            split=np.array(split),
+            pose_id=tuple(ids),
+            source=f"comp-daemon trial {self.key_prefix}",
+        )
+        doc = await self.cell.api(
+            "POST",
+            "/api/datasets",
+            params={"name": name},
+            content=dataset_to_csv(ds),
+            headers={"Content-Type": "text/csv"},
+        )
+        self.result.datasets[name] = {
+            "id": doc["id"],
+            "rows": doc["rows"],
+            "sha256": doc["sha256"],
+            "fit_rows": split.count("fit"),
+            "check_rows": split.count("check"),
+        }
+        return int(doc["id"])
+
+    # ------------------------------------------------------------------------------ runs
+
+    async def open_run(self, run: PointRun, commands: NDArray[np.float64]) -> PointRun:
+        """The robot program over the points (from home), the tracker at each."""
+        t0 = time.monotonic()
+        await self.cell.move(self.points.home_deg)
+        for i, a in enumerate(commands):
+            await self.cell.move(a)
+            run.commanded_deg[i] = a
+            run.measured_mm[i] = await self.settle_and_measure()
+            run.grating_deg[i] = await self.gratings_now()
+            run.state[i] = "open"
+            if i % 4 == 3 or i == len(commands) - 1:
+                self.tell(i + 1, len(commands), self.running_note(run))
+        run.duration_s = time.monotonic() - t0
+        return run
+
+    async def loop_run(self, run: PointRun, pts: PlannedPoints) -> PointRun:
+        """The points as targets of the daemon (nominal program's axis values), the tracker at each."""
+        t0 = time.monotonic()
+        await self.cell.move(self.points.home_deg)
+        for i, a in enumerate(pts.a_nominal_deg):
+            doc, retried = await self.target(a, f"{pts.name[0]}{i + 1:03d}")
+            run.retried += [{"index": i, "reason": why} for why in retried]
+            run.state[i] = doc["state"]
+            run.reason[i] = doc.get("reason")
+            if doc.get("commanded_axes_deg"):
+                run.commanded_deg[i] = doc["commanded_axes_deg"]
+            if doc["state"] == "done":
+                run.measured_mm[i] = await self.cell.measure_mm()
+                errors = doc.get("final_joint_errors_deg") or {}
+                for j in range(3):
+                    e = errors.get(f"A{j + 1}")
+                    if e is not None and np.isfinite(run.commanded_deg[i, j]):
+                        run.grating_deg[i, j] = run.commanded_deg[i, j] + float(e)
+            if i % 2 == 1 or i == pts.n - 1:
+                failed = sum(s != "done" for s in run.state[: i + 1])
+                note = self.running_note(run) + (f"; {failed} failed" if failed else "")
+                self.tell(i + 1, pts.n, note)
+        run.duration_s = time.monotonic() - t0
+        return run
+
+    async def iso(self, feedback: bool) -> None:
+        iso = self.points.iso
+        s = self.sizes
+        p_n = len(iso.points_mm)
+        positions = np.full((p_n, 3, s.iso_cycles, 3), np.nan)
+        total = p_n * s.iso_cycles * 3
+        count = 0
+        failed: list[str] = []
+        retried: list[str] = []
+        for p in range(p_n):
+            for cycle in range(-s.iso_warmup_cycles, s.iso_cycles):
+                for d in range(3):
+                    await self.cell.move(iso.a_start_deg[p, d])
+                    if feedback:
+                        doc, again = await self.target(iso.a_point_deg[p], f"P{p + 1}-{'xyz'[d]}")
+                        retried += [f"P{p + 1} {'xyz'[d]} cycle {cycle}: {why}" for why in again]
+                        if doc["state"] != "done":
+                            failed.append(f"P{p + 1} {'xyz'[d]} cycle {cycle}: {doc.get('reason')}")
+                            continue
+                        m = await self.cell.measure_mm()
+                    else:
+                        await self.cell.move(iso.a_point_deg[p])
+                        m = await self.settle_and_measure()
+                    if cycle >= 0:
+                        positions[p, d, cycle] = m
+                        count += 1
+                        if count % 3 == 0:
+                            self.tell(count, total)
+        key = "with" if feedback else "without"
+        entry: dict[str, Any] = {
+            "positions_mm": positions.round(9).tolist(),
+            "failed": failed,
+            "retried": retried,
+        }
+        if np.all(np.isfinite(positions)):
+            entry["stats"] = iso9283_statistics(positions)
+        self.result.iso.setdefault("runs", {})[key] = entry
+
+    # ------------------------------------------------------------------------------ the trial
+
+    async def run(self) -> None:
+        r = self.result
+        s = self.sizes
+        pts = self.points
+        tg = pts.targets
+        order = s.chebyshev_order
+
+        self.begin("grating calibration")
+        body = None
+        if s.calibration_poses != 6:  # 6: the daemon's own poses
+            poses = default_calibration_poses(
+                list(pts.home_deg), self.scenario.cell.grating_joints, self.scenario.robot.axis_limits_deg,
+                n=s.calibration_poses,
+            )  # fmt: skip
+            body = {"poses": [list(p) for p in poses]}
+        await self.cell.api("POST", "/api/gratings/calibrate", json=body)
+        while (status := await self.cell.api("GET", "/api/gratings"))["calibrating"]:
+            self.tell(0, 0, f"{time.monotonic() - self.phase_t0:.0f} s")
+            await asyncio.sleep(0.25)
+        if status["last_error"] or status["calibration"] is None:
+            raise TrialError(f"the grating calibration failed: {status['last_error']}")
+        r.gratings = status["calibration"]
+        joints = r.gratings["joints"] if r.gratings else []
+        self.end(", ".join(f"A{m['joint']} residual rms {m['residual_rms_deg']:.4f}°" for m in joints))
+
+        self.begin("ISO 9283, robot alone")
+        r.iso.update(
+            {
+                "points_mm": pts.iso.points_mm.tolist(),
+                "starts_mm": pts.iso.starts_mm.tolist(),
+                "abc_deg": pts.iso.abc_deg.tolist(),
+                "approach_mm": s.approach_mm,
+                "cycles": s.iso_cycles,
+                "warmup_cycles": s.iso_warmup_cycles,
+                "repeatability_rated_mm": float(self.scenario.robot.repeatability_mm),
+            }
+        )
+        await self.iso(feedback=False)
+        self.end(self._iso_note("without"))
+
+        self.begin("sampling points, robot alone")
+        sp = pts.sampling
+        r.sampling["open"] = await self.open_run(
+            PointRun.empty(
+                "sampling-open", "sampling, robot alone", "sampling", sp.wanted_mm, feedback=False
+            ),
+            sp.a_nominal_deg,
+        )
+        self.end()
+
+        self.begin("target points, uncompensated")
+        r.runs["uncompensated"] = await self.open_run(
+            PointRun.empty("uncompensated", "uncompensated", "targets", tg.wanted_mm, feedback=False),
+            tg.a_nominal_deg,
+        )
+        self.end(self.running_note(r.runs["uncompensated"]))
+
+        self.begin("fits on the open-loop data (HTTP)")
+        open_id = await self.upload(
+            "trial-open-loop", [(r.sampling["open"], sp, "fit"), (r.runs["uncompensated"], tg, "check")]
+        )
+        nominal = await self.fit("nominal", open_id, "nominal")
+        kinematic = await self.fit("kinematic", open_id, "kinematic")
+        if not s.loop_sampling:  # the Chebyshev model in the loop's convention: A1..A3 from the gratings
+            runs = [(r.sampling["open"], sp, "fit"), (r.runs["uncompensated"], tg, "check")]
+            grat_id = await self.upload("trial-open-loop-gratings", runs, joints_from_gratings=True)
+            await self.fit("chebyshev", grat_id, "chebyshev", order)
+        self.end(f"data set {open_id}; models {', '.join(str(m['id']) for m in r.models.values())}")
+
+        self.begin("target points, kinematic calibration")
+        artifact = await self.cell.api("GET", f"/api/models/{kinematic['id']}/artifact")
+        model = model_from_artifact(artifact, self.scenario.robot, f"model {kinematic['id']}")
+        comp = compensate(
+            model,
+            tg.wanted_mm,
+            tg.wanted_R,
+            a_seed_deg=tg.a_nominal_deg,
+            dir=tg.dir,
+            payload_kg=self.plan.payload_kg,
+            tol_mm=1e-6,
+        )
+        if not comp.converged:
+            raise TrialError("the kinematic compensation of the target points did not converge")
+        r.runs["kinematic"] = await self.open_run(
+            PointRun.empty(
+                "kinematic",
+                "kinematic calibration",
+                "targets",
+                tg.wanted_mm,
+                feedback=False,
+                model="kinematic",
+                model_id=kinematic["id"],
+            ),
+            comp.a_deg,
+        )
+        self.end(self.running_note(r.runs["kinematic"]))
+
+        self.begin("ISO 9283, with joint feedback")
+        await self.activate(nominal["id"])
+        await self.iso(feedback=True)
+        self.end(self._iso_note("with"))
+
+        if s.loop_sampling:
+            self.begin("sampling points, with joint feedback")
+            r.sampling["closed"] = await self.loop_run(
+                PointRun.empty(
+                    "sampling-closed",
+                    "sampling, joint feedback",
+                    "sampling",
+                    sp.wanted_mm,
+                    feedback=True,
+                    model="nominal",
+                    model_id=nominal["id"],
+                ),
+                sp,
+            )
+            self.end()
+            self.begin("target points, joint feedback only")
+            r.runs["feedback"] = await self.loop_run(
+                PointRun.empty(
+                    "feedback",
+                    "joint feedback only",
+                    "targets",
+                    tg.wanted_mm,
+                    feedback=True,
+                    model="nominal",
+                    model_id=nominal["id"],
+                ),
+                tg,
+            )
+            self.end(self.running_note(r.runs["feedback"]))
+            self.begin("fits on the closed-loop data (HTTP)")
+            closed_id = await self.upload(
+                "trial-closed-loop", [(r.sampling["closed"], sp, "fit"), (r.runs["feedback"], tg, "check")]
+            )
+            await self.fit("chebyshev", closed_id, "chebyshev", order)
+            await self.fit("kinematic (closed-loop data)", closed_id, "kinematic")
+            self.end(f"data set {closed_id}")
+
+        cheb = r.models["chebyshev"]
+        self.begin(f"target points, Chebyshev m={order} + joint feedback")
+        await self.activate(cheb["id"])
+        r.runs["chebyshev+feedback"] = await self.loop_run(
+            PointRun.empty(
+                "chebyshev+feedback",
+                f"Chebyshev m={order} + joint feedback",
+                "targets",
+                tg.wanted_mm,
+                feedback=True,
+                model=f"chebyshev m={order}",
+                model_id=cheb["id"],
+            ),
+            tg,
+        )
+        self.end(self.running_note(r.runs["chebyshev+feedback"]))
+
+        if s.loop_sampling and s.kinematic_with_loop:
+            kin_loop = r.models["kinematic (closed-loop data)"]
+            self.begin("target points, kinematic + joint feedback")
+            await self.activate(kin_loop["id"])
+            r.runs["kinematic+feedback"] = await self.loop_run(
+                PointRun.empty(
+                    "kinematic+feedback",
+                    "kinematic + joint feedback",
+                    "targets",
+                    tg.wanted_mm,
+                    feedback=True,
+                    model="kinematic",
+                    model_id=kin_loop["id"],
+                ),
+                tg,
+            )
+            self.end(self.running_note(r.runs["kinematic+feedback"]))
+
+        status = await self.cell.api("GET", "/api/status")
+        r.loop = {
+            "daemon": status["daemon"]["loop"],
+            "controller": {
+                k: v
+                for k, v in (await self.cell.controller_status()).items()
+                if k in ("state", "stop_reason", "telegrams_sent", "replies_ok", "late_total", "overruns")
+            },
+            "targets": status.get("targets"),
+        }
+
+    def _iso_note(self, key: str) -> str:
+        stats = self.result.iso.get("runs", {}).get(key, {}).get("stats")
+        if not stats:
+            return ""
+        return "vAP " + ", ".join(f"{v:.3f}" for v in stats["vap_mm"]) + " mm"
+
+    def comparison(self) -> None:
+        """Seed 001's comparison on the open-loop (and closed-loop) data, after the cell is down."""
+        r, pts, s = self.result, self.points, self.sizes
+        self.begin("seed 001 model comparison")
+        sets = [
+            ("open", r.sampling.get("open"), r.runs.get("uncompensated"), False),
+            ("open-gratings", r.sampling.get("open"), r.runs.get("uncompensated"), True),
+        ]
+        if "closed" in r.sampling:
+            sets.append(("closed", r.sampling.get("closed"), r.runs.get("feedback"), False))
+        for key, fit_run, check_run, from_gratings in sets:
+            if fit_run is None or check_run is None:
+                continue
+            fo, co = fit_run.ok, check_run.ok
+            a_fit, a_check = fit_run.commanded_deg.copy(), check_run.commanded_deg.copy()
+            if from_gratings:
+                fo = fo & np.all(np.isfinite(fit_run.grating_deg), axis=1)
+                co = co & np.all(np.isfinite(check_run.grating_deg), axis=1)
+                a_fit[:, :3], a_check[:, :3] = fit_run.grating_deg, check_run.grating_deg
+            data = ComparisonData(
+                a_fit_deg=a_fit[fo],
+                p_fit_mm=fit_run.measured_mm[fo],
+                dir_fit=pts.sampling.dir[fo],
+                a_check_deg=a_check[co],
+                p_check_mm=check_run.measured_mm[co],
+                dir_check=pts.targets.dir[co],
+                payload_kg=self.plan.payload_kg,
+            )
+            r.comparison[key] = compare_models(
+                self.scenario.robot,
+                data,
+                chebyshev_order=s.chebyshev_order,
+                cross_validate=s.loop_sampling,
+            )
+            self.tell(len(r.comparison), len(sets))
+        self.end()
+
+
+async def run_trial(
+    plan: TrialPlan,
+    workdir: Path,
+    *,
+    progress: Progress | None = None,
+    cell_settings: CellSettings | None = None,
+) -> TrialResult:
+    """Run the trial (module docstring) in ``workdir`` (daemon data, logs); returns its result.
+
+    A failure mid-way raises :class:`TrialError` with the partial result as ``exc.result``.
+    """
+    scenario = load_scenario(plan.scenario)
+    points = plan_trial(scenario, plan)
+    result = TrialResult(
+        plan=plan.to_dict(),
+        started_at=time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()),
+        environment=environment(),
+    )
+    t0 = time.monotonic()
+    cell = TrialCell(scenario, workdir, seed=plan.seed, payload_kg=plan.payload_kg, settings=cell_settings)
+    trial = _Trial(scenario, plan, points, cell, result, progress or (lambda e: None))
+    try:
+        try:
+            await cell.start()
+            await trial.run()
+        finally:
+            await cell.close()
+        result.loop["daemon_exit_code"] = cell.daemon_exit_code
+        await asyncio.to_thread(trial.comparison)
+        result.complete = True
+    except TrialError as exc:
+        result.error = str(exc)
+        exc.result = result
+        raise
+    except CellError as exc:
+        result.error = str(exc)
+        raise TrialError(str(exc), result) from exc
+    finally:
+        result.duration_s = time.monotonic() - t0
+    return result
+
+
+def with_sizes(plan: TrialPlan, **changes: Any) -> TrialPlan:
+    """``plan`` with some of its sizes replaced."""
+    return replace(plan, sizes=replace(plan.sizes, **changes))
