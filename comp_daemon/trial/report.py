@@ -40,6 +40,11 @@ def _rows(result: TrialResult) -> list[str]:
     return [k for k in TABLE_ROWS if k in result.runs and result.runs[k].ok.any()]
 
 
+def _figure_rows(result: TrialResult) -> list[str]:
+    """The three methods of seed 000's figures (the tables show every run)."""
+    return [k for k in _rows(result) if k in SEED000]
+
+
 def _grating_scale(m: dict[str, Any]) -> float:
     """Fitted slope over the nominal one of a grating map (JointGratingMap.scale)."""
     return float(m["slope_deg_per_count"]) / float(np.degrees(m["resolution_nm"] * 1e-6 / m["radius_mm"]))
@@ -450,7 +455,7 @@ def _html_models(result: TrialResult) -> str:
 
 
 def _error_panels(result: TrialResult) -> str:
-    rows = _rows(result)
+    rows = _figure_rows(result)
     if not rows:
         return ""
     panels = []
@@ -516,7 +521,7 @@ def render_html(result: TrialResult, *, command: str | None = None) -> str:
             f"calibration), every axis within ±{t['axis_max_abs']:.3f} mm.</p>"
         )
     hist = ""
-    rows = _rows(result)
+    rows = _figure_rows(result)
     if rows:
         errs = {k: np.linalg.norm(result.runs[k].errors_mm(), axis=1) for k in rows}
         h = histogram(errs)
