@@ -9,9 +9,16 @@ awaits, allocates beyond a few small tuples, or touches a file, a socket other t
 or a lock. Events for the executor (arrived, settled, faulted) go to an ``asyncio.Queue`` with
 ``put_nowait``.
 
-Commands from the executor and the operator (:meth:`arm`, :meth:`release`, :meth:`reset`,
-:meth:`shutdown`, :meth:`set_calibration`) run in the same event loop between telegrams and replace
-the frozen core state, so the handler always sees a consistent state.
+Threads: the handler runs wherever the RSI endpoint runs — in the daemon, on the real-time thread
+(:mod:`comp_daemon.rt.rt_thread`); the executor, the operator's commands (:meth:`arm`,
+:meth:`release`, :meth:`reset`, :meth:`fault`, :meth:`shutdown`, :meth:`set_calibration`,
+:meth:`tick`) and the views run on the service's event loop. Every read-modify-write of the frozen
+core state holds one lock, so a command is never lost to a telegram handled at the same moment and
+the handler always sees a consistent state. The lock is held for microseconds (pure functions on
+small tuples); commands keep their synchronous meaning (``arm`` raises when the loop refuses).
+Events and sampler results are handed to the event loop that created the runtime (``events`` is its
+queue) with ``call_soon_threadsafe`` when they arise on another thread. Views read single
+attributes, which are replaced whole, never mutated.
 
 Units: angles in deg (controller axis values); the clock is integer ns (``time.perf_counter_ns``),
 shared with the encoder readers so reading ages compare directly.
@@ -21,6 +28,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -75,6 +83,18 @@ class CycleSample:
     counts: tuple[int | None, ...]
 
 
+def _running_loop() -> asyncio.AbstractEventLoop | None:
+    try:
+        return asyncio.get_running_loop()
+    except RuntimeError:
+        return None
+
+
+def _resolve(fut: asyncio.Future[list[CycleSample]], value: list[CycleSample]) -> None:
+    if not fut.done():
+        fut.set_result(value)
+
+
 class LoopRuntime:
     """See the module docstring. Joint numbers are 1-based (1 = A1) at this interface."""
 
@@ -98,6 +118,9 @@ class LoopRuntime:
         self.clock_ns = clock_ns
         self.rsi_alive_s = rsi_alive_s
         self.core: LoopCore = new_core([j - 1 for j in self.joints])
+        self._lock = threading.Lock()
+        self._owner_loop: asyncio.AbstractEventLoop | None = _running_loop()
+        self._owner_thread = threading.get_ident()
         self._maps: tuple[JointGratingMap | None, ...] = (None,) * len(self.joints)
         self.calibration: GratingCalibration | None = None
         self.set_calibration(calibration)
@@ -145,8 +168,9 @@ class LoopRuntime:
         inp = CycleInput(
             now_ns * 1e-9, telegram.ipoc, telegram.aspos_deg, telegram.aipos_deg, tuple(feedback)
         )
-        result = on_cycle(self.safety, self.loop, self.core, inp)
-        self.core = result.core
+        with self._lock:
+            result = on_cycle(self.safety, self.loop, self.core, inp)
+            self.core = result.core
         for event in result.events:
             self._event(event)
         self.telegrams += 1
@@ -171,21 +195,34 @@ class LoopRuntime:
         f = getattr(event, "fault", None)
         if isinstance(f, Fault):
             self.fault_log.append(f)
-        self.events.put_nowait(event)
+        self._to_owner(self.events.put_nowait, event)
+
+    def _to_owner(self, fn: Callable[..., object], *args: object) -> None:
+        """Call ``fn`` now on the owner's thread, or hand it to the owner's event loop."""
+        loop = self._owner_loop
+        if loop is None or threading.get_ident() == self._owner_thread:
+            fn(*args)
+            return
+        try:
+            loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:  # the owner's loop is closed: nobody is waiting any more
+            pass
 
     def _sample(self, telegram: RobTelegram, readings: Sequence[EncoderReading | EncoderFault]) -> None:
         counts = tuple(r.count if isinstance(r, EncoderReading) else None for r in readings)
         sample = CycleSample(telegram.ipoc, telegram.aipos_deg, telegram.aspos_deg, counts)
         keep = []
-        for n, bucket, fut in self._samplers:
-            if fut.done():
-                continue
-            bucket.append(sample)
-            if len(bucket) >= n:
-                fut.set_result(bucket)
-            else:
-                keep.append((n, bucket, fut))
-        self._samplers = keep
+        with self._lock:
+            samplers = self._samplers
+            for n, bucket, fut in samplers:
+                if fut.done():
+                    continue
+                bucket.append(sample)
+                if len(bucket) >= n:
+                    self._to_owner(_resolve, fut, bucket)
+                else:
+                    keep.append((n, bucket, fut))
+            self._samplers = keep
 
     # ------------------------------------------------------------------------------ commands
 
@@ -207,18 +244,22 @@ class LoopRuntime:
         self.calibration = calibration
 
     def arm(self, target_id: str, commanded_deg: Sequence[float], loop_target_deg: Sequence[float]) -> None:
-        self.core = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
+        with self._lock:
+            self.core = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
 
     def release(self) -> None:
-        self.core = release(self.core)
+        with self._lock:
+            self.core = release(self.core)
 
     def reset(self) -> None:
         """Operator acknowledgement of a fault."""
-        self.core = reset(self.core)
+        with self._lock:
+            self.core = reset(self.core)
 
     def fault(self, kind: FaultKind, detail: str) -> None:
-        result = fault(self.core, kind, detail, self.now_s())
-        self.core = result.core
+        with self._lock:
+            result = fault(self.core, kind, detail, self.now_s())
+            self.core = result.core
         for event in result.events:
             self._event(event)
         if result.core.fault is not None and not result.events:
@@ -226,16 +267,20 @@ class LoopRuntime:
 
     def shutdown(self) -> None:
         """Zero steps and ``Stop = 1`` from the next telegram on; the active target is reported."""
-        result = shutdown(self.core, self.now_s())
-        self.core = result.core
+        with self._lock:
+            result = shutdown(self.core, self.now_s())
+            self.core = result.core
         for event in result.events:
             self._event(event)
 
     def tick(self) -> None:
         """Timer check between telegrams (called a few times per second)."""
-        result = on_tick(self.safety, self.core, self.now_s())
-        if result.core is not self.core:
-            self.core = result.core
+        with self._lock:
+            result = on_tick(self.safety, self.core, self.now_s())
+            changed = result.core is not self.core
+            if changed:
+                self.core = result.core
+        if changed:
             for event in result.events:
                 self._event(event)
 
@@ -248,7 +293,8 @@ class LoopRuntime:
         Raises TimeoutError when they do not arrive within ``timeout_s``.
         """
         fut: asyncio.Future[list[CycleSample]] = asyncio.get_running_loop().create_future()
-        self._samplers.append((n, [], fut))
+        with self._lock:
+            self._samplers = [*self._samplers, (n, [], fut)]
         try:
             async with asyncio.timeout(timeout_s):
                 return await fut

@@ -1,0 +1,197 @@
+"""The real-time thread: its own event loop, CPU and scheduling, and the loop runtime shared across threads.
+
+The daemon runs the RSI endpoint and the grating readers on a second event loop in a thread of its
+own; the executor and the operator's commands stay on the service loop. What is checked here: the
+thread starts, runs coroutines and calls, reports what it could not apply and stops; and
+:class:`LoopRuntime` keeps every command and delivers every event when its handler runs on that
+thread while commands arrive from the service loop.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import os
+import sys
+import threading
+import time
+
+import pytest
+from test_daemon_executor import HOME, JOINTS, Clock, Grating, Robot, calibration
+
+from comp_daemon.daemon.runtime import LoopRuntime
+from comp_daemon.rt.controller import JointLoopSettings
+from comp_daemon.rt.rt_thread import RealtimeThread, RealtimeThreadConfig, other_cpus, resolve_cpu
+from comp_daemon.rt.safety import Arrived, SafetySettings, SafetyState, SafetyTransitionError
+
+
+@pytest.fixture
+def rt() -> object:
+    before = sys.getswitchinterval()
+    thread = RealtimeThread(RealtimeThreadConfig(name="test-rt", switch_interval_s=0.0002, heartbeat_s=0.01))
+    thread.start()
+    yield thread
+    thread.stop()
+    sys.setswitchinterval(before)
+
+
+async def test_runs_coroutines_and_calls_on_its_own_thread(rt: RealtimeThread) -> None:
+    async def where() -> tuple[int, asyncio.AbstractEventLoop]:
+        await asyncio.sleep(0)
+        return threading.get_ident(), asyncio.get_running_loop()
+
+    ident, loop = await rt.run(where())
+    assert ident != threading.get_ident() and loop is rt.loop
+    assert await rt.call(threading.get_ident) == ident
+    with pytest.raises(ZeroDivisionError):
+        await rt.call(lambda: 1 / 0)  # an exception comes back to the caller
+    assert sys.getswitchinterval() == pytest.approx(0.0002)
+    await asyncio.sleep(0.05)
+    age = rt.heartbeat_age_s()
+    assert age is not None and age < 0.5 and rt.alive
+
+
+async def test_stop_cancels_its_tasks_and_refuses_more_work() -> None:
+    thread = RealtimeThread(RealtimeThreadConfig(switch_interval_s=None))
+    thread.start()
+    cancelled = threading.Event()
+
+    async def forever() -> None:
+        try:
+            await asyncio.sleep(3600)
+        finally:
+            cancelled.set()
+
+    assert thread.loop is not None
+    asyncio.run_coroutine_threadsafe(forever(), thread.loop)
+    await asyncio.sleep(0.05)
+    await asyncio.to_thread(thread.stop)
+    assert cancelled.is_set() and not thread.alive
+    with pytest.raises(RuntimeError, match="not running"):
+        await thread.call(int)
+    coro = asyncio.sleep(0)
+    with pytest.raises(RuntimeError, match="not running"):
+        await thread.run(coro)
+    thread.stop()  # idempotent
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+def test_cpu_choice() -> None:
+    cpus = sorted(os.sched_getaffinity(0))
+    assert resolve_cpu("none") is None and resolve_cpu(3) == 3
+    assert resolve_cpu("auto") == (cpus[-1] if len(cpus) > 1 else None)
+    assert other_cpus(None) is None
+    if len(cpus) > 1:
+        assert other_cpus(cpus[-1]) == set(cpus[:-1])
+    with pytest.raises(ValueError, match="'fast'"):
+        resolve_cpu("fast")
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+def test_pinning_applies_to_the_thread_only() -> None:
+    cpu = sorted(os.sched_getaffinity(0))[0]
+    before = os.sched_getaffinity(0)
+    thread = RealtimeThread(RealtimeThreadConfig(cpu=cpu, switch_interval_s=None))
+    thread.start()
+    try:
+        assert thread.loop is not None
+        fut = asyncio.run_coroutine_threadsafe(_affinity(), thread.loop)
+        assert fut.result(5) == {cpu}
+        assert thread.pinned_cpu == cpu and thread.describe()["cpu"] == cpu
+        assert os.sched_getaffinity(0) == before  # the calling thread keeps its CPUs
+    finally:
+        thread.stop()
+
+
+async def _affinity() -> set[int]:
+    return set(os.sched_getaffinity(0))
+
+
+def test_refused_settings_are_reported_not_fatal(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    monkeypatch.setattr(os, "sched_setaffinity", refuse)
+    thread = RealtimeThread(RealtimeThreadConfig(cpu=0, realtime_priority=20, switch_interval_s=None))
+    thread.start()
+    try:
+        d = thread.describe()
+        assert d["scheduler"] == "normal" and d["cpu"] is None
+        assert any("SCHED_FIFO" in n and "CAP_SYS_NICE" in n for n in d["notes"]), d["notes"]
+        assert any("pin" in n for n in d["notes"]), d["notes"]
+        assert thread.alive
+    finally:
+        thread.stop()
+
+
+# ------------------------------------------------------------------------------ runtime across threads
+
+
+def _runtime(clock: Clock, robot: Robot) -> LoopRuntime:
+    return LoopRuntime(
+        {j: Grating(robot, j) for j in JOINTS},
+        calibration=calibration(),
+        safety=SafetySettings(),
+        loop=JointLoopSettings(),
+        clock_ns=clock,
+    )
+
+
+async def test_events_and_samples_reach_the_service_loop(rt: RealtimeThread) -> None:
+    clock = Clock()
+    robot = Robot(clock)
+    runtime = _runtime(clock, robot)  # created on this (the service) loop: events are delivered here
+    commanded = tuple(h + 0.01 for h in HOME)
+    runtime.arm("7", commanded, tuple(commanded[j - 1] for j in JOINTS))
+    robot.goal = list(commanded)
+
+    def cycles(n: int) -> None:
+        for _ in range(n):
+            clock.ns += 12_000_000
+            reply = runtime.handle(robot.telegram())
+            robot.pending.append(reply.ak_deg)
+
+    sampling = asyncio.ensure_future(runtime.samples(5, timeout_s=5.0))
+    await asyncio.sleep(0)  # registered
+    await rt.call(cycles, 10)
+    event = await asyncio.wait_for(runtime.next_event(), 5.0)
+    assert isinstance(event, Arrived) and event.target_id == "7"
+    samples = await asyncio.wait_for(sampling, 5.0)
+    assert len(samples) == 5 and all(s.counts[0] is not None for s in samples)
+
+
+async def test_no_command_is_lost_to_a_concurrent_telegram(rt: RealtimeThread) -> None:
+    """Commands from this loop while the handler runs flat out on the real-time thread."""
+    clock = Clock()
+    robot = Robot(clock)
+    runtime = _runtime(clock, robot)
+    stop = threading.Event()
+
+    def hammer() -> int:
+        n = 0
+        while not stop.is_set():
+            clock.ns += 12_000_000
+            runtime.handle(robot.telegram())
+            n += 1
+        return n
+
+    handled = asyncio.ensure_future(rt.call(hammer))
+    commanded = tuple(HOME)
+    deadline = time.monotonic() + 1.0
+    rounds = 0
+    try:
+        while time.monotonic() < deadline:
+            runtime.arm(f"t{rounds}", commanded, tuple(commanded[j - 1] for j in JOINTS))
+            # had a telegram's core replaced the armed one, the state would not show the target
+            core = runtime.core
+            assert core.target_id == f"t{rounds}" and core.state is not SafetyState.IDLE
+            with pytest.raises(SafetyTransitionError):
+                runtime.arm("again", commanded, tuple(commanded[j - 1] for j in JOINTS))
+            runtime.release()
+            assert runtime.core.target_id is None
+            rounds += 1
+            await asyncio.sleep(0)
+    finally:
+        stop.set()
+        n = await handled
+    assert rounds > 20 and n > 100
