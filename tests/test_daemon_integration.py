@@ -189,10 +189,16 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
 
             snap = (await client.get("/api/status")).json()
             assert snap["daemon"]["state"] == "idle", snap["daemon"]
+            # the RSI path ran on its own thread and event loop, and the operator is told so
+            assert daemon.rt is not None and daemon.rsi is not None
+            assert daemon.rt.loop is not None and daemon.rt.loop is not asyncio.get_running_loop()
+            assert "own thread" in snap["daemon"]["loop"]["realtime"], snap["daemon"]["loop"]
         assert daemon.rsi is not None and daemon.rsi.stats.handler_errors == 0
+        rt_thread = daemon.rt.thread if daemon.rt is not None else None
     finally:
         daemon.request_stop("test over")
         code = await asyncio.wait_for(run, 30)
     assert code == 0
+    assert rt_thread is not None and not rt_thread.is_alive()  # stopped with the daemon
     state = json.loads((tmp_path / "data" / "daemon-state.json").read_text())
     assert state["state"] == "stopping" and state["last_reply"]["ak_deg"] == [0.0] * 6

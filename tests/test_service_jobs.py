@@ -227,3 +227,25 @@ async def test_fit_compare_activate_and_diagnose_over_http(service: Any) -> None
     assert "<html" in html.text.lower() and "geometric" in html.text
     assert (await client.delete(f"/api/datasets/{dataset_id}", headers=auth("engineer"))).status_code == 204
     assert len((await client.get("/api/models", headers=auth("viewer"))).json()) == 2
+
+
+def affinity(*, progress: Callable[..., None]) -> dict[str, Any]:
+    return {"cpus": sorted(os.sched_getaffinity(0))}
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+async def test_workers_keep_to_their_cpus(tmp_path: Path) -> None:
+    """``jobs.cpus``: the daemon keeps the fit workers off the real-time thread's CPU."""
+    cpu = sorted(os.sched_getaffinity(0))[0]
+    store = Store(tmp_path / "s.sqlite3")
+    runner = JobRunner(store, JobSettings(workers=1, cpus=[cpu]))
+    runner.register(JobKind("affinity", affinity))
+    runner.start()
+    try:
+        job = store.create_job("affinity", {})
+        runner.launch(job, ())
+        done = await _until(store, job.id, ("done", "failed"))
+        assert done.state == "done" and done.result == {"cpus": [cpu]}, done.error
+    finally:
+        await runner.drain()
+        runner.shutdown()

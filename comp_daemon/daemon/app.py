@@ -1,7 +1,12 @@
-"""The daemon process: RSI loop, grating readers, target executor and the HTTP service in one event loop.
+"""The daemon process: RSI loop, grating readers, target executor and the HTTP service.
 
-Tasks (all in one asyncio loop; nothing on it blocks — store calls, compensation and percentile
-statistics run in worker threads, fits in the service's process pool):
+Two event loops. The **real-time loop** runs on its own thread (:mod:`comp_daemon.rt.rt_thread`,
+pinned to a CPU the fit workers keep off, ``SCHED_FIFO`` where permitted) and holds only the RSI
+endpoint and the grating readers, so a reply never waits for an HTTP request, a store call or a
+compensation. The **service loop** (the main thread) holds the rest; nothing on it blocks — store
+calls, compensation and percentile statistics run in worker threads, fits in the service's process
+pool. The two share :class:`~comp_daemon.daemon.runtime.LoopRuntime`, whose commands are
+thread-safe. With ``[realtime] thread = false`` everything runs on the service loop (for comparison).
 
 - **RSI**: the UDP endpoint (:mod:`comp_daemon.rt.rsi_server`) answers each telegram in its receive
   callback with :meth:`comp_daemon.daemon.runtime.LoopRuntime.handle` — one O(joints) step of the
@@ -30,6 +35,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import gc
 import json
 import logging
 import os
@@ -40,7 +46,7 @@ import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
@@ -62,6 +68,7 @@ from comp_daemon.rt.executor import Compensator, MotionPort, TargetExecutor, Tar
 from comp_daemon.rt.grating_cal import GratingCalibration, load_latest_calibration
 from comp_daemon.rt.rsi_codec import RobTelegram, SenReply
 from comp_daemon.rt.rsi_server import RsiServerConfig, RsiServerProtocol, start_rsi_server
+from comp_daemon.rt.rt_thread import RealtimeThread, RealtimeThreadConfig, other_cpus, resolve_cpu
 from comp_daemon.rt.safety import SafetySettings, SafetyState
 from comp_daemon.service import metrics
 from comp_daemon.service.config import ControllerSettings, Settings
@@ -72,6 +79,8 @@ from comp_daemon.service.store import EventRecord, Store
 __all__ = ["Daemon", "SimOptions", "loop_settings_from", "safety_settings_from"]
 
 log = logging.getLogger(__name__)
+
+T = TypeVar("T")
 
 _ZERO = (0.0,) * 6
 _ENCODER_METRIC_KIND = {
@@ -168,6 +177,7 @@ class Daemon:
         self.sim: SimCellProcess | None = None
         self.sim_info: SimCellInfo | None = None
         self.rsi: RsiServerProtocol | None = None
+        self.rt: RealtimeThread | None = None
         self.rsi_transport: asyncio.DatagramTransport | None = None
         self.http_port: int | None = None
         self.calibrating = False
@@ -204,6 +214,7 @@ class Daemon:
                 loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
         try:
             await self._start()
+            self._freeze_startup_objects()
             self.started.set()
             self.notifier.ready(f"comp-daemon {__version__}: loop running")
             log.info("daemon: running (RSI on %s, HTTP on %s)", self.rsi_address, self.http_port)
@@ -215,6 +226,19 @@ class Daemon:
                     loop.remove_signal_handler(sig)
         self.exit_code = 0 if self._stop_reason != "task failed" else 1
         return self.exit_code
+
+    @staticmethod
+    def _freeze_startup_objects() -> None:
+        """Keep the collector's full passes short: they hold the GIL, and the real-time thread waits.
+
+        After start-up the process holds a few hundred thousand long-lived objects (FastAPI,
+        pydantic, SciPy, the robot model); a full collection over them took ~100 ms on a two-core
+        industrial PC — eight RSI cycles without a reply. ``gc.freeze`` moves them out of the
+        collector's sight for good; later passes see only what the service made since.
+        """
+        gc.collect()
+        gc.freeze()
+        log.info("daemon: %d start-up objects exempted from garbage collection", gc.get_freeze_count())
 
     @property
     def rsi_address(self) -> tuple[str, int] | None:
@@ -234,6 +258,10 @@ class Daemon:
         self.active_model_id = None if active is None else active.id
         calibration = await asyncio.to_thread(load_latest_calibration, self.gratings_dir)
 
+        # 0. the real-time thread, and the job workers kept off its CPU
+        await self._start_realtime()
+        settings = self.settings
+
         # 1. RSI first: the controller (simulated or not) must find us listening before RSI_ON
         rsi = settings.rsi
         if len(rsi.controller_allow) > 1:
@@ -243,16 +271,18 @@ class Daemon:
             )
         host = "127.0.0.1" if self.sim_options is not None else rsi.controller_allow[0]
         bind_host = "127.0.0.1" if self.sim_options is not None else rsi.listen_host
-        self.rsi_transport, self.rsi = await start_rsi_server(
-            self._handle,
-            RsiServerConfig(
-                controller_host=host,
-                bind_host=bind_host,
-                bind_port=rsi.listen_port,
-                cycle_ms=float(rsi.cycle_ms),
-                sen_type=rsi.sen_type,
-            ),
-            clock=self.clock_ns,
+        self.rsi_transport, self.rsi = await self._on_rt(
+            start_rsi_server(
+                self._handle,
+                RsiServerConfig(
+                    controller_host=host,
+                    bind_host=bind_host,
+                    bind_port=rsi.listen_port,
+                    cycle_ms=float(rsi.cycle_ms),
+                    sen_type=rsi.sen_type,
+                ),
+                clock=self.clock_ns,
+            )
         )
 
         # 2. the HTTP service (heavy imports and the job pool start here, before any cycle runs)
@@ -312,7 +342,7 @@ class Daemon:
             clock_ns=self.clock_ns,
         )
         for joint, reader in self.readers.items():
-            self._tasks[f"encoder-a{joint}"] = reader.start()
+            self._tasks[f"encoder-a{joint}"] = await self._rt_call(reader.start)
 
         # 4. the executor and the supervisor
         runtime = self.runtime
@@ -347,8 +377,55 @@ class Daemon:
                 "http_port": self.http_port,
                 "gratings": sorted(self.readers),
                 "grating_calibration_version": None if calibration is None else calibration.version,
+                "realtime": self._realtime_word(),
             },
         )
+
+    async def _start_realtime(self) -> None:
+        cfg = self.settings.realtime
+        if not cfg.thread:
+            return
+        cpu = resolve_cpu(cfg.cpu)
+        self.rt = RealtimeThread(
+            RealtimeThreadConfig(
+                cpu=cpu,
+                realtime_priority=cfg.priority,
+                switch_interval_s=cfg.switch_interval_ms / 1000.0,
+            ),
+            clock_ns=self.clock_ns,
+        )
+        await asyncio.to_thread(self.rt.start)
+        rest = other_cpus(self.rt.pinned_cpu)
+        if cfg.keep_jobs_off_cpu and not self.settings.jobs.cpus and rest:
+            jobs = self.settings.jobs.model_copy(update={"cpus": sorted(rest)})
+            self.settings = self.settings.model_copy(update={"jobs": jobs})
+        log.info("daemon: real-time loop: %s", self._realtime_word())
+
+    def _realtime_word(self) -> str:
+        rt = self.rt
+        if rt is None:
+            return "one event loop with the HTTP side"
+        d = rt.describe()
+        where = "any CPU" if d["cpu"] is None else f"CPU {d['cpu']}"
+        word = f"own thread on {where}, {d['scheduler']} scheduling"
+        jobs = self.settings.jobs.cpus
+        if jobs:
+            word += f"; job workers on CPU {', '.join(map(str, jobs))}"
+        if d["notes"]:
+            word += "; " + "; ".join(d["notes"])
+        return word
+
+    async def _on_rt(self, coro: Any) -> Any:
+        """Await a coroutine on the real-time loop (on this loop when there is no real-time thread)."""
+        if self.rt is None:
+            return await coro
+        return await self.rt.run(coro)
+
+    async def _rt_call(self, fn: Callable[..., T], *args: Any) -> T:
+        """Call a function on the real-time loop (here when there is no real-time thread)."""
+        if self.rt is None:
+            return fn(*args)
+        return await self.rt.call(fn, *args)
 
     async def _start_http(self) -> None:
         import uvicorn
@@ -444,7 +521,8 @@ class Daemon:
             while runtime.telegrams < seen + self.stop_grace_cycles and time.monotonic() < deadline:
                 await asyncio.sleep(cycle_s / 2)
         if self.rsi_transport is not None:
-            self.rsi_transport.close()
+            with contextlib.suppress(RuntimeError):  # the real-time thread is gone already
+                await self._rt_call(self.rsi_transport.close)
         # 3. persist the loop's final state
         if runtime is not None:
             doc = self._final_state()
@@ -461,9 +539,12 @@ class Daemon:
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sup
         for reader in self.readers.values():
-            await reader.stop()
+            with contextlib.suppress(RuntimeError):
+                await self._on_rt(reader.stop())
         for name in [n for n in self._tasks if n.startswith("encoder")]:
             self._tasks.pop(name)
+        if self.rt is not None:
+            await asyncio.to_thread(self.rt.stop)
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
             http = self._tasks.pop("http", None)
@@ -551,6 +632,10 @@ class Daemon:
             return False
         if self.rsi_transport is None or self.rsi_transport.is_closing():
             return False
+        if self.rt is not None:
+            age = self.rt.heartbeat_age_s()
+            if not self.rt.alive or age is None or age > 1.0:
+                return False
         return not any(t.done() for t in self._tasks.values())
 
     async def _telemetry(self) -> None:
@@ -573,6 +658,7 @@ class Daemon:
             latency_max_ms=None if stats.latency.max is None else stats.latency.max / 1e6,
             jitter_p99_ms=pct[2],
             last_ipoc=runtime.last_ipoc,
+            realtime=self._realtime_word(),
         )
         self._update_metrics(lat)
         rows = runtime.joint_rows()

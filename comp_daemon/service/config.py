@@ -168,8 +168,16 @@ class JobSettings(_Section):
     workers: int = Field(default=1, ge=1, le=64)
     max_pending: int = Field(default=16, ge=1)
     nice: int = Field(default=10, ge=0, le=19)
+    cpus: list[int] = Field(default_factory=list)  # CPUs of the workers; empty: all but the real-time one
     start_method: Literal["spawn", "forkserver"] = "spawn"
     max_runtime_s: float = Field(default=3600.0, gt=0)
+
+    @field_validator("cpus")
+    @classmethod
+    def _cpus(cls, value: list[int]) -> list[int]:
+        if any(c < 0 for c in value):
+            raise ValueError("CPU numbers are 0 or more")
+        return sorted(set(value))
 
 
 class RsiSettings(_Section):
@@ -199,6 +207,23 @@ class RsiSettings(_Section):
         if not out:
             raise ValueError("at least one controller address is needed")
         return out
+
+
+class RealtimeSettings(_Section):
+    """Where the RSI endpoint and the grating readers run (see comp_daemon.rt.rt_thread)."""
+
+    thread: bool = True
+    cpu: int | Literal["auto", "none"] = "auto"
+    priority: int = Field(default=0, ge=0, le=99)
+    switch_interval_ms: float = Field(default=0.2, gt=0, le=10)
+    keep_jobs_off_cpu: bool = True
+
+    @field_validator("cpu")
+    @classmethod
+    def _cpu(cls, value: int | str) -> int | str:
+        if isinstance(value, int) and value < 0:
+            raise ValueError("a CPU number is 0 or more (or 'auto', or 'none')")
+        return value
 
 
 class EncoderJointSettings(_Section):
@@ -287,6 +312,7 @@ class Settings(BaseSettings):
     auth: AuthSettings = Field(default_factory=AuthSettings)
     jobs: JobSettings = Field(default_factory=JobSettings)
     rsi: RsiSettings = Field(default_factory=RsiSettings)
+    realtime: RealtimeSettings = Field(default_factory=RealtimeSettings)
     encoders: EncoderSettings = Field(default_factory=EncoderSettings)
     controller: ControllerSettings = Field(default_factory=ControllerSettings)
     robot: RobotSettings = Field(default_factory=RobotSettings)

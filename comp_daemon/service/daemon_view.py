@@ -40,6 +40,7 @@ class LoopStats:
     latency_max_ms: float | None = None
     jitter_p99_ms: float | None = None
     last_ipoc: int | None = None
+    realtime: str | None = None  # where the RSI path runs: thread, CPU, scheduling, what was refused
 
 
 @dataclass(frozen=True, slots=True)

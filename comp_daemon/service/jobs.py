@@ -86,7 +86,7 @@ _worker_queue: Any = None
 _worker_cancel: Any = None
 
 
-def _worker_init(progress_queue: Any, cancel_flags: Any, nice: int) -> None:
+def _worker_init(progress_queue: Any, cancel_flags: Any, nice: int, cpus: tuple[int, ...] = ()) -> None:
     global _worker_queue, _worker_cancel
     _worker_queue = progress_queue
     _worker_cancel = cancel_flags
@@ -94,6 +94,10 @@ def _worker_init(progress_queue: Any, cancel_flags: Any, nice: int) -> None:
     if nice:
         with contextlib.suppress(OSError):
             os.nice(nice)
+    if cpus and hasattr(os, "sched_setaffinity"):
+        # off the real-time CPU; CPUs this machine lacks are refused: run where the parent may
+        with contextlib.suppress(OSError, ValueError):
+            os.sched_setaffinity(0, set(cpus))
 
 
 class ProgressReporter:
@@ -198,7 +202,12 @@ class JobRunner:
             max_workers=self.settings.workers,
             mp_context=self._ctx,
             initializer=_worker_init,
-            initargs=(self._progress_queue, self._cancel_flags, self.settings.nice),
+            initargs=(
+                self._progress_queue,
+                self._cancel_flags,
+                self.settings.nice,
+                tuple(self.settings.cpus),
+            ),
         )
 
     def _replace_broken_executor(self) -> None:
