@@ -166,7 +166,9 @@ def _line(port: int, text: str, timeout_s: float = 10.0) -> str:
     return answer[3:]
 
 
-def _config(root: Path, cell: dict[str, Any], cycle_ms: int, http_port: int, rsi_port: int) -> Path:
+def _config(
+    root: Path, cell: dict[str, Any], cycle_ms: int, http_port: int, rsi_port: int, opts: Options
+) -> Path:
     joints = "".join(
         f'[[encoders.joints]]\njoint = {j}\nport = "{path}"\nradius_mm = {cell["radius_mm"]}\n'
         f"resolution_nm = {cell['resolution_nm']}\nbits = {cell['bits']}\n"
@@ -185,6 +187,10 @@ listen_host = "127.0.0.1"
 listen_port = {rsi_port}
 controller_allow = ["127.0.0.1"]
 cycle_ms = {cycle_ms}
+[realtime]
+thread = {"true" if opts.rt_thread else "false"}
+priority = {opts.rt_priority}
+switch_interval_ms = {opts.switch_interval_ms}
 [encoders]
 poll_period_ms = {float(cycle_ms)}
 [jobs]
@@ -252,7 +258,9 @@ class Options:
     fits: bool = True
     targets: bool = True
     campaign_rows: int = 1000
-    switch_interval_ms: float | None = None  # the daemon's sys.setswitchinterval; None: Python's 5 ms
+    rt_thread: bool = True  # [realtime] thread: the RSI path on its own thread
+    rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of that thread (0: normal)
+    switch_interval_ms: float = 0.2  # [realtime] switch_interval_ms: the GIL switch interval
     keep: bool = False
 
 
@@ -370,16 +378,6 @@ def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
-def _daemon_argv(opts: Options) -> list[str]:
-    if opts.switch_interval_ms is None:
-        return [sys.executable, "-m", "comp_daemon"]
-    code = (
-        f"import sys; sys.setswitchinterval({opts.switch_interval_ms / 1000.0!r}); "
-        "from comp_daemon.cli import main; sys.exit(main())"
-    )
-    return [sys.executable, "-c", code]
-
-
 def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     cycles = opts.cycles
     root = Path(tempfile.mkdtemp(prefix=f"bench-rsi-{cycle_ms}ms-"))
@@ -406,10 +404,10 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     result: dict[str, Any] = {"cycle_ms": cycle_ms, "options": asdict(opts)}
     try:
         with _cell(root, cycle_ms, relay_port) as (_cell_proc, cell):
-            cfg = _config(root, cell, cycle_ms, http_port, daemon_rsi)
+            cfg = _config(root, cell, cycle_ms, http_port, daemon_rsi, opts)
             with (root / "daemon.log").open("wb") as log:
                 daemon = subprocess.Popen(
-                    [*_daemon_argv(opts), "run", "--config", str(cfg),
+                    [sys.executable, "-m", "comp_daemon", "run", "--config", str(cfg),
                      "--motion", f"127.0.0.1:{cell['motion_port']}", "--calibrate-gratings"],
                     stdout=log, stderr=subprocess.STDOUT,
                 )  # fmt: skip
@@ -501,6 +499,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
             "p99_ms": status1.get("latency_p99_ms"),
             "max_ms": status1.get("latency_max_ms"),
             "late": (status1.get("late_replies") or 0) - (status0.get("late_replies") or 0),
+            "realtime": status1.get("realtime"),
         },
         controller_late=ctrl1["late_total"] - ctrl0["late_total"],
         controller_overruns=ctrl1["overruns"] - ctrl0["overruns"],
@@ -538,6 +537,7 @@ def _report(r: dict[str, Any]) -> str:
         f"simulated controller counted {r['controller_late']} late, {r['controller_overruns']} own overruns\n"
         f"   daemon's own view (callback → sent, last 65 536): p50 {_ms(dv['p50_ms'])}, "
         f"p99 {_ms(dv['p99_ms'])}, max since start {_ms(dv['max_ms'])}, late {dv['late']}\n"
+        f"   real-time path: {dv.get('realtime')}\n"
         f"   load: {r['fits_done']} fits done, targets done {r['targets']['done']} / failed "
         f"{r['targets']['failed']} {r['target_fail_reasons'] or ''}, {r['http_requests']} HTTP requests "
         f"(p50 {r['http_ms']['p50']:.1f} ms, p99 {r['http_ms']['p99']:.1f} ms, "
@@ -558,10 +558,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-fits", action="store_true", help="no fit jobs during the measurement")
     parser.add_argument("--no-targets", action="store_true", help="no targets during the measurement")
     parser.add_argument(
-        "--switch-interval-ms",
-        type=float,
-        default=None,
-        help="run the daemon with sys.setswitchinterval(this) (default: Python's 5 ms)",
+        "--one-loop", action="store_true", help="[realtime] thread = false: RSI on the HTTP side's event loop"
+    )
+    parser.add_argument(
+        "--rt-priority", type=int, default=20, help="[realtime] priority (SCHED_FIFO; 0: normal scheduling)"
+    )
+    parser.add_argument(
+        "--switch-interval-ms", type=float, default=0.2, help="[realtime] switch_interval_ms (GIL)"
     )
     parser.add_argument("--campaign-rows", type=int, default=1000, help="rows of the campaign the fits use")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
@@ -577,6 +580,8 @@ def main(argv: list[str] | None = None) -> int:
         fits=not args.no_fits,
         targets=not args.no_targets,
         campaign_rows=args.campaign_rows,
+        rt_thread=not args.one_loop,
+        rt_priority=args.rt_priority,
         switch_interval_ms=args.switch_interval_ms,
         keep=args.keep,
     )
