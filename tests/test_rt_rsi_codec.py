@@ -12,6 +12,8 @@ from comp_daemon.rt.rsi_codec import (
     RobTelegram,
     RsiProtocolError,
     SenReply,
+    _parse_rob_fast,
+    _parse_rob_full,
     build_rob,
     build_sen,
     parse_rob,
@@ -243,3 +245,65 @@ def test_round_trip_property(
     back = parse_sen(build_sen(reply))
     assert back.ipoc == ipoc and back.stop == reply.stop
     assert all(abs(a - b) <= 0.5e-6 + 1e-12 * abs(b) for a, b in zip(back.ak_deg, aipos, strict=True))
+
+
+def _fast_agrees_with_full(data: bytes) -> bool:
+    """The fast path either declines or gives exactly the full parser's telegram; True if it took it."""
+    fast = _parse_rob_fast(data)
+    try:
+        full = _parse_rob_full(data)
+    except RsiProtocolError:
+        assert fast is None, data  # the fast path never accepts what the full parser refuses
+        return False
+    assert fast is None or fast == full, data
+    return fast is not None
+
+
+@_FUZZ
+@given(
+    st.integers(0, 2**40),
+    st.lists(st.one_of(st.none(), st.tuples(*[_finite] * 6)), min_size=4, max_size=4),
+    st.one_of(st.none(), st.integers(0, 10**6)),
+    st.integers(0, 8),
+    st.sampled_from(["KUKA", "ImFree", "Rob_1.x-2"]),
+)
+def test_fast_path_is_the_full_parser_on_the_spec_form(
+    ipoc: int, sixes: list[tuple[float, ...] | None], delay: int | None, decimals: int, rob_type: str
+) -> None:
+    aipos, aspos, rist, rsol = sixes
+    data = build_rob(ipoc, aipos, aspos, rist, rsol, delay, rob_type=rob_type, decimals=decimals)
+    assert _fast_agrees_with_full(data)  # the spec's form always takes the fast path
+    assert parse_rob(data) == _parse_rob_full(data)
+
+
+@_FUZZ
+@given(st.data())
+def test_fast_path_declines_what_it_does_not_know(data: st.DataObject) -> None:
+    raw = bytearray(KRC4)
+    for _ in range(data.draw(st.integers(1, 4))):
+        i = data.draw(st.integers(0, max(0, len(raw) - 1)))
+        raw[i:i] = data.draw(
+            st.sampled_from(
+                [b" ", b"\n", b"1e5", b"<X/>", b"-", b"0", b".", b"<IPOC>1</IPOC>", b'"', b"\xff"]
+            )
+        )
+    _fast_agrees_with_full(bytes(raw))
+
+
+@pytest.mark.parametrize(
+    "data",
+    [
+        b'<Rob Type="KUKA"><IPOC>1</IPOC><IPOC>2</IPOC></Rob>',
+        b'<Rob Type="KUKA"><AIPos A1="1e3" A2="0" A3="0" A4="0" A5="0" A6="0"/><IPOC>1</IPOC></Rob>',
+        b'<Rob Type="KUKA"><AIPos A1="'
+        + b"9" * 400
+        + b'" A2="0" A3="0" A4="0" A5="0" A6="0"/><IPOC>1</IPOC></Rob>',
+        b'<Rob Type="KUKA"><ASPos A1="0" A2="0" A3="0" A4="0" A5="0" A6="0"/><AIPos A1="0" A2="0" A3="0"'
+        b' A4="0" A5="0" A6="0"/><IPOC>1</IPOC></Rob>',  # order other than the KR C4's: full parser
+        b'<Rob Type="KUKA">\n<IPOC>1</IPOC></Rob>',
+        b'<Rob TYPE="KUKA"><IPOC>1</IPOC></Rob>',
+    ],
+)
+def test_fast_path_leaves_the_unusual_to_the_full_parser(data: bytes) -> None:
+    assert _parse_rob_fast(data) is None
+    _fast_agrees_with_full(data)
