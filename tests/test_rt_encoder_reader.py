@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections.abc import AsyncIterator, Callable
 from pathlib import Path
 
@@ -190,3 +191,49 @@ def test_config_and_calibration_reject_bad_values() -> None:
     cal = LinearGratingCalibration(RADIUS_MM, ZERO_DEG, sign=-1.0)
     assert cal.angle_deg(0) == ZERO_DEG
     assert math.isclose(cal.angle_deg(1_000_000), ZERO_DEG - math.degrees(50.0 / RADIUS_MM))
+
+
+def test_poll_schedule_follows_the_telegram_forecast() -> None:
+    reader = EncoderReader(
+        EncoderReaderConfig("/dev/null", 1, poll_ms=12.0, reply_timeout_ms=8.0, poll_lead_ms=3.0),
+        LinearGratingCalibration(RADIUS_MM),
+    )
+    ms = 1_000_000
+    # no forecast: the reader's own absolute schedule; a passed deadline is an overrun, not a burst
+    assert reader.next_poll_ns(100 * ms, 95 * ms) == 100 * ms
+    assert reader.next_poll_ns(100 * ms, 104 * ms) == 104 * ms and reader.overruns == 1
+    forecast: list[int | None] = [120 * ms]
+    reader.next_telegram_ns = lambda: forecast[0]
+    assert reader.next_poll_ns(100 * ms, 95 * ms) == 117 * ms  # 3 ms before the telegram
+    assert reader.next_poll_ns(100 * ms, 118 * ms) == 129 * ms  # too late for this one: the next
+    forecast[0] = 10_000 * ms  # nonsense: keep the own schedule
+    assert reader.next_poll_ns(100 * ms, 95 * ms) == 100 * ms
+    forecast[0] = None  # telegrams stopped
+    assert reader.next_poll_ns(100 * ms, 95 * ms) == 100 * ms
+    with pytest.raises(ValueError, match="poll_lead_ms"):
+        EncoderReaderConfig("/dev/null", 1, poll_ms=4.0, reply_timeout_ms=4.0, poll_lead_ms=4.0)
+
+
+async def test_polls_land_just_before_each_telegram(rig: Callable[..., Rig]) -> None:
+    """Readings are taken in the lead window before each (forecast) telegram, never across it."""
+    period = 12_000_000
+    base = time.perf_counter_ns()
+    _conv, reader, _ = rig(1, poll_ms=12.0, reply_timeout_ms=8.0, poll_lead_ms=3.0)
+
+    def forecast() -> int:
+        now = time.perf_counter_ns()
+        return base + (-(-(now - base) // period)) * period
+
+    reader.next_telegram_ns = forecast
+    await until(lambda: is_reading(reader))
+    stamps: set[int] = set()
+    end = time.monotonic() + 0.6
+    while time.monotonic() < end:
+        r = reader.reading()
+        if isinstance(r, EncoderReading):
+            stamps.add(r.t_ns)
+        await asyncio.sleep(0.001)
+    phases_ms = sorted(((t - base) % period) / 1e6 for t in stamps)
+    assert len(phases_ms) >= 25, phases_ms
+    before = [p for p in phases_ms if 9.0 <= p <= 11.9]  # lead window: 3 ms before the telegram
+    assert len(before) >= 0.8 * len(phases_ms), phases_ms

@@ -195,3 +195,17 @@ async def test_no_command_is_lost_to_a_concurrent_telegram(rt: RealtimeThread) -
         stop.set()
         n = await handled
     assert rounds > 20 and n > 100
+
+
+def test_runtime_forecasts_the_next_telegram() -> None:
+    clock = Clock()
+    robot = Robot(clock)
+    runtime = _runtime(clock, robot)  # cycle 12 ms
+    assert runtime.next_telegram_ns() is None  # none seen yet
+    runtime.handle(robot.telegram())
+    t0 = clock.ns
+    assert runtime.next_telegram_ns() == t0 + 12_000_000
+    clock.ns += 30_000_000  # two cycles missed: the one after
+    assert runtime.next_telegram_ns() == t0 + 36_000_000
+    clock.ns += 30_000_000  # five cycles without a telegram: RSI has stopped, no forecast
+    assert runtime.next_telegram_ns() is None

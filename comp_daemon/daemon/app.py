@@ -323,6 +323,7 @@ class Daemon:
                 bits=bits,
                 baudrate=enc.baudrate,
                 poll_ms=enc.poll_period_ms,
+                poll_lead_ms=enc.poll_lead_ms,
                 reply_timeout_ms=min(enc.reply_timeout_ms, enc.poll_period_ms),
                 stale_after_ms=enc.stale_after_ms,
                 backoff_initial_ms=enc.reconnect_initial_ms,
@@ -342,6 +343,7 @@ class Daemon:
             clock_ns=self.clock_ns,
         )
         for joint, reader in self.readers.items():
+            reader.next_telegram_ns = self.runtime.next_telegram_ns
             self._tasks[f"encoder-a{joint}"] = await self._rt_call(reader.start)
 
         # 4. the executor and the supervisor

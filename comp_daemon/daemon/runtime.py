@@ -303,6 +303,18 @@ class LoopRuntime:
 
     # ------------------------------------------------------------------------------ views
 
+    def next_telegram_ns(self) -> int | None:
+        """When the next telegram is due (ns of the clock), from the last one and the cycle time;
+        None before the first or when telegrams have stopped for more than four cycles."""
+        last = self._last_rx_ns
+        if last is None:
+            return None
+        cycle_ns = int(self.loop.cycle_s * 1e9)
+        elapsed = self.clock_ns() - last
+        if cycle_ns <= 0 or elapsed > 4 * cycle_ns:
+            return None
+        return last + max(1, -(-elapsed // cycle_ns)) * cycle_ns
+
     def rsi_alive(self) -> bool:
         last = self._last_rx_ns
         return last is not None and (self.clock_ns() - last) * 1e-9 <= self.rsi_alive_s

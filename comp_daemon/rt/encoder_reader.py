@@ -7,6 +7,12 @@ frame (``4``) every ``poll_ms`` on an absolute schedule, check CRC6 and nE/nW it
 fails or vanishes the reader closes it and tries again with exponential back-off
 (``backoff_initial_ms`` doubling up to ``backoff_max_ms``) until the device is back.
 
+Polling phase: with :attr:`EncoderReader.next_telegram_ns` set (the daemon gives it the loop
+runtime's forecast of the next RSI telegram), each poll is timed ``poll_lead_ms`` before the
+telegram is due. The serial exchange is then over before the telegram arrives, so the two never
+compete for the real-time loop, and the reading the controller uses is ``poll_lead_ms`` old at
+most, every cycle alike. Without a forecast (no telegrams) the reader keeps its own schedule.
+
 Units: times are integer nanoseconds from an injectable clock (``time.perf_counter_ns`` by default),
 settings are named with their unit; angles are degrees in controller axis values (A1..A6), counts
 are scale counts (50 nm). Counts become angles through a pluggable :class:`Calibration`
@@ -132,6 +138,7 @@ class EncoderReaderConfig:
     baudrate: int = 115200
     poll_ms: float = 12.0
     reply_timeout_ms: float = 8.0  # per request; must not exceed poll_ms
+    poll_lead_ms: float = 3.0  # poll this long before the next telegram is due (with a forecast)
     stale_after_ms: float = 36.0
     init_timeout_ms: float = 200.0  # per configuration request after opening
     open_timeout_ms: float = 2000.0
@@ -146,6 +153,10 @@ class EncoderReaderConfig:
         for name in ("poll_ms", "reply_timeout_ms", "stale_after_ms", "init_timeout_ms", "open_timeout_ms"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0 < self.poll_lead_ms < self.poll_ms:
+            raise ValueError(
+                f"poll_lead_ms must be in (0, poll_ms = {self.poll_ms}), got {self.poll_lead_ms}"
+            )
         if self.reply_timeout_ms > self.poll_ms:
             raise ValueError(
                 f"reply_timeout_ms ({self.reply_timeout_ms}) must not exceed poll_ms ({self.poll_ms})"
@@ -185,6 +196,8 @@ class EncoderReader:
         self._writer: asyncio.StreamWriter | None = None
         self._task: asyncio.Task[None] | None = None
         self._stopping = False
+        #: forecast of the next RSI telegram (ns of ``clock``), or None; see the module docstring
+        self.next_telegram_ns: Callable[[], int | None] | None = None
 
     # public ----------------------------------------------------------------------------------------
 
@@ -283,18 +296,30 @@ class EncoderReader:
 
     async def _poll_forever(self, loop: asyncio.AbstractEventLoop) -> None:
         cfg = self.config
-        period_s = cfg.poll_ms / 1000.0
         timeout_s = cfg.reply_timeout_ms / 1000.0
-        deadline = loop.time()
+        period_ns = int(cfg.poll_ms * 1e6)
+        deadline_ns = self.clock()
         while True:
             self._poll_result(await self._poll(timeout_s))
-            deadline += period_s
-            delay = deadline - loop.time()
-            if delay < 0:
-                self.overruns += 1
-                deadline = loop.time()  # resynchronise instead of bursting to catch up
-                delay = 0.0
-            await asyncio.sleep(delay)
+            now_ns = self.clock()
+            deadline_ns = self.next_poll_ns(deadline_ns + period_ns, now_ns)
+            await asyncio.sleep((deadline_ns - now_ns) * 1e-9)
+
+    def next_poll_ns(self, scheduled_ns: int, now_ns: int) -> int:
+        """When to poll next: ``poll_lead_ms`` before the forecast telegram, else ``scheduled_ns``
+        (or now, counted as an overrun, when that has passed: no burst to catch up)."""
+        period_ns = int(self.config.poll_ms * 1e6)
+        forecast = self.next_telegram_ns() if self.next_telegram_ns is not None else None
+        if forecast is not None:
+            t = forecast - int(self.config.poll_lead_ms * 1e6)
+            while t <= now_ns:
+                t += period_ns
+            if t - now_ns <= 2 * period_ns:  # a sane forecast; anything else: our own schedule
+                return t
+        if scheduled_ns < now_ns:
+            self.overruns += 1
+            return now_ns
+        return scheduled_ns
 
     async def _poll(self, timeout_s: float) -> str | FaultKind:
         self._lines.discard_pending()  # a reply still arriving after its request timed out belongs to none

@@ -236,6 +236,7 @@ class EncoderJointSettings(_Section):
 
 class EncoderSettings(_Section):
     poll_period_ms: float = Field(default=12.0, gt=0)
+    poll_lead_ms: float = Field(default=3.0, gt=0)
     stale_after_ms: float = Field(default=36.0, gt=0)
     reply_timeout_ms: float = Field(default=10.0, gt=0)
     reconnect_initial_ms: float = Field(default=250.0, gt=0)
@@ -253,6 +254,10 @@ class EncoderSettings(_Section):
             raise ValueError("two joints share a serial port")
         if self.reconnect_max_ms < self.reconnect_initial_ms:
             raise ValueError("reconnect_max_ms must be >= reconnect_initial_ms")
+        if self.poll_lead_ms >= self.poll_period_ms:
+            raise ValueError(
+                f"poll_lead_ms ({self.poll_lead_ms}) must be less than poll_period_ms ({self.poll_period_ms})"
+            )
         return self
 
 
