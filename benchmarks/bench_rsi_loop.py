@@ -89,6 +89,10 @@ def relay_main(
 ) -> None:
     """Forward controller ↔ daemon; while ``recording`` is set, log the first ``cycles`` telegrams."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # the relay stands in for the controller's wire, a real-time system: where permitted it runs
+    # SCHED_FIFO above the daemon, so its own hold-ups do not queue two telegrams at the daemon
+    with contextlib.suppress(OSError, AttributeError):
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(30))
     ctrl = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     ctrl.bind(("127.0.0.1", listen_port))
     ctrl.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
@@ -191,6 +195,7 @@ cycle_ms = {cycle_ms}
 thread = {"true" if opts.rt_thread else "false"}
 priority = {opts.rt_priority}
 switch_interval_ms = {opts.switch_interval_ms}
+cpu_wakeup_latency_us = {opts.cpu_wakeup_latency_us}
 [encoders]
 poll_period_ms = {float(cycle_ms)}
 [jobs]
@@ -261,6 +266,7 @@ class Options:
     rt_thread: bool = True  # [realtime] thread: the RSI path on its own thread
     rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of that thread (0: normal)
     switch_interval_ms: float = 0.2  # [realtime] switch_interval_ms: the GIL switch interval
+    cpu_wakeup_latency_us: int = 0  # [realtime] cpu_wakeup_latency_us (-1: no PM QoS request)
     keep: bool = False
 
 
@@ -566,6 +572,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--switch-interval-ms", type=float, default=0.2, help="[realtime] switch_interval_ms (GIL)"
     )
+    parser.add_argument(
+        "--cpu-wakeup-latency-us",
+        type=int,
+        default=0,
+        help="[realtime] cpu_wakeup_latency_us (PM QoS; -1: no request)",
+    )
     parser.add_argument("--campaign-rows", type=int, default=1000, help="rows of the campaign the fits use")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     parser.add_argument("--keep", action="store_true", help="keep the run folders (logs, relay record)")
@@ -583,6 +595,7 @@ def main(argv: list[str] | None = None) -> int:
         rt_thread=not args.one_loop,
         rt_priority=args.rt_priority,
         switch_interval_ms=args.switch_interval_ms,
+        cpu_wakeup_latency_us=args.cpu_wakeup_latency_us,
         keep=args.keep,
     )
     print(f"options: {asdict(opts)}", flush=True)

@@ -11,9 +11,11 @@ from __future__ import annotations
 
 import asyncio
 import os
+import struct
 import sys
 import threading
 import time
+from pathlib import Path
 
 import pytest
 from test_daemon_executor import HOME, JOINTS, Clock, Grating, Robot, calibration
@@ -209,3 +211,28 @@ def test_runtime_forecasts_the_next_telegram() -> None:
     assert runtime.next_telegram_ns() == t0 + 36_000_000
     clock.ns += 30_000_000  # five cycles without a telegram: RSI has stopped, no forecast
     assert runtime.next_telegram_ns() is None
+
+
+def test_wakeup_latency_request_is_held_while_running(tmp_path: Path) -> None:
+    """The PM QoS request is written as the kernel reads it (s32) and withdrawn (closed) on stop."""
+    device = tmp_path / "cpu_dma_latency"
+    device.write_bytes(b"")
+    thread = RealtimeThread(
+        RealtimeThreadConfig(switch_interval_s=None, cpu_wakeup_latency_us=0, pm_qos_device=str(device))
+    )
+    thread.start()
+    try:
+        assert device.read_bytes() == struct.pack("i", 0)
+        assert thread.describe()["cpu_wakeup_latency_us"] == 0 and thread._pm_qos is not None
+    finally:
+        thread.stop()
+    assert thread._pm_qos is None
+    refused = RealtimeThread(
+        RealtimeThreadConfig(switch_interval_s=None, cpu_wakeup_latency_us=0, pm_qos_device="/nonexistent/x")
+    )
+    refused.start()
+    try:
+        assert refused.describe()["cpu_wakeup_latency_us"] is None
+        assert any("wake-up latency" in n for n in refused.notes)
+    finally:
+        refused.stop()

@@ -393,6 +393,7 @@ class Daemon:
                 cpu=cpu,
                 realtime_priority=cfg.priority,
                 switch_interval_s=cfg.switch_interval_ms / 1000.0,
+                cpu_wakeup_latency_us=None if cfg.cpu_wakeup_latency_us < 0 else cfg.cpu_wakeup_latency_us,
             ),
             clock_ns=self.clock_ns,
         )
@@ -410,6 +411,8 @@ class Daemon:
         d = rt.describe()
         where = "any CPU" if d["cpu"] is None else f"CPU {d['cpu']}"
         word = f"own thread on {where}, {d['scheduler']} scheduling"
+        if d["cpu_wakeup_latency_us"] is not None:
+            word += f", CPU wake-up latency ≤ {d['cpu_wakeup_latency_us']} µs requested"
         jobs = self.settings.jobs.cpus
         if jobs:
             word += f"; job workers on CPU {', '.join(map(str, jobs))}"

@@ -17,6 +17,11 @@ What isolation the thread gets (all optional, all Linux):
   A thread that wakes while another holds the GIL waits up to this long for it (default 5 ms);
   only contended switches pay for a smaller value, and the contended ones are the RSI thread's.
 
+- ``cpu_wakeup_latency_us`` ≥ 0: a PM QoS request on ``/dev/cpu_dma_latency``, held while the
+  thread runs — the CPUs stay out of idle states slower to leave than this (0: polling idle, as
+  ``cyclictest`` and tuned's real-time profiles ask). It keeps a sleeping CPU from adding its wake-up
+  time to a reply, at the cost of power. Needs root or write access to the device; refused → logged.
+
 The thread also keeps a heartbeat (its loop's last turn, ns of the injected clock) so the
 supervisor can tell a stalled real-time loop from a quiet one.
 """
@@ -28,6 +33,7 @@ import concurrent.futures
 import contextlib
 import logging
 import os
+import struct
 import sys
 import threading
 import time
@@ -48,6 +54,8 @@ class RealtimeThreadConfig:
     cpu: int | None = None
     realtime_priority: int = 0  # 0: normal scheduling; 1..99: SCHED_FIFO priority
     switch_interval_s: float | None = 0.0005  # None: leave Python's default
+    cpu_wakeup_latency_us: int | None = None  # None: no PM QoS request
+    pm_qos_device: str = "/dev/cpu_dma_latency"
     heartbeat_s: float = 0.05
 
 
@@ -85,6 +93,7 @@ class RealtimeThread:
         self.pinned_cpu: int | None = None
         self.scheduler = "normal"
         self.notes: list[str] = []  # what could not be applied, for the operator
+        self._pm_qos: Any = None  # the open PM QoS request (closing it withdraws the request)
         self._ready = threading.Event()
         self._stopped = threading.Event()
         self._startup_error: BaseException | None = None
@@ -98,6 +107,8 @@ class RealtimeThread:
         cfg = self.config
         if cfg.switch_interval_s is not None:
             sys.setswitchinterval(cfg.switch_interval_s)
+        if cfg.cpu_wakeup_latency_us is not None:
+            self._request_wakeup_latency(cfg.cpu_wakeup_latency_us)
         self.thread = threading.Thread(target=self._main, name=cfg.name, daemon=True)
         self.thread.start()
         if not self._ready.wait(timeout_s):
@@ -151,6 +162,20 @@ class RealtimeThread:
         for note in self.notes:
             log.warning("rt: %s", note)
 
+    def _request_wakeup_latency(self, us: int) -> None:
+        fh = None
+        try:
+            fh = open(self.config.pm_qos_device, "wb", buffering=0)  # held open while the thread runs
+            fh.write(struct.pack("i", us))
+        except OSError as exc:
+            if fh is not None:
+                fh.close()
+            note = f"could not request a CPU wake-up latency of {us} µs ({exc})"
+            self.notes.append(note)
+            log.warning("rt: %s", note)
+            return
+        self._pm_qos = fh
+
     async def _heartbeat(self) -> None:
         while True:
             self.heartbeat_ns = self.clock_ns()
@@ -167,6 +192,9 @@ class RealtimeThread:
         thread.join(timeout_s)
         if thread.is_alive():
             log.error("rt: the real-time thread did not stop within %g s", timeout_s)
+        if self._pm_qos is not None:
+            self._pm_qos.close()
+            self._pm_qos = None
 
     # ---------------------------------------------------------------------------------- use
 
@@ -215,5 +243,6 @@ class RealtimeThread:
             "cpu": self.pinned_cpu,
             "scheduler": self.scheduler,
             "switch_interval_s": sys.getswitchinterval(),
+            "cpu_wakeup_latency_us": None if self._pm_qos is None else self.config.cpu_wakeup_latency_us,
             "notes": list(self.notes),
         }

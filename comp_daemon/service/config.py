@@ -217,6 +217,7 @@ class RealtimeSettings(_Section):
     priority: int = Field(default=0, ge=0, le=99)
     switch_interval_ms: float = Field(default=0.2, gt=0, le=10)
     keep_jobs_off_cpu: bool = True
+    cpu_wakeup_latency_us: int = Field(default=-1, ge=-1, le=100_000)  # -1: no PM QoS request
 
     @field_validator("cpu")
     @classmethod
