@@ -15,6 +15,7 @@ import struct
 import sys
 import threading
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -27,13 +28,13 @@ from comp_daemon.rt.safety import Arrived, SafetySettings, SafetyState, SafetyTr
 
 
 @pytest.fixture
-def rt() -> object:
+def rt() -> Iterator[RealtimeThread]:
     before = sys.getswitchinterval()
     thread = RealtimeThread(RealtimeThreadConfig(name="test-rt", switch_interval_s=0.0002, heartbeat_s=0.01))
     thread.start()
     yield thread
     thread.stop()
-    sys.setswitchinterval(before)
+    assert sys.getswitchinterval() == before  # the process's own setting is back
 
 
 async def test_runs_coroutines_and_calls_on_its_own_thread(rt: RealtimeThread) -> None:
@@ -173,7 +174,8 @@ async def test_no_command_is_lost_to_a_concurrent_telegram(rt: RealtimeThread) -
         n = 0
         while not stop.is_set():
             clock.ns += 12_000_000
-            runtime.handle(robot.telegram())
+            reply = runtime.handle(robot.telegram())
+            robot.pending.append(reply.ak_deg)  # the robot applies the corrections: they converge
             n += 1
         return n
 

@@ -93,6 +93,7 @@ class RealtimeThread:
         self.pinned_cpu: int | None = None
         self.scheduler = "normal"
         self.notes: list[str] = []  # what could not be applied, for the operator
+        self._switch_interval_before: float | None = None
         self._pm_qos: Any = None  # the open PM QoS request (closing it withdraws the request)
         self._ready = threading.Event()
         self._stopped = threading.Event()
@@ -106,6 +107,7 @@ class RealtimeThread:
             raise RuntimeError("the real-time thread is already started")
         cfg = self.config
         if cfg.switch_interval_s is not None:
+            self._switch_interval_before = sys.getswitchinterval()
             sys.setswitchinterval(cfg.switch_interval_s)
         if cfg.cpu_wakeup_latency_us is not None:
             self._request_wakeup_latency(cfg.cpu_wakeup_latency_us)
@@ -182,19 +184,22 @@ class RealtimeThread:
             await asyncio.sleep(self.config.heartbeat_s)
 
     def stop(self, timeout_s: float = 5.0) -> None:
-        """Stop the loop (its tasks are cancelled) and join the thread. Idempotent."""
+        """Stop the loop (its tasks are cancelled), join the thread, withdraw the PM QoS request and
+        restore the switch interval. Idempotent."""
         loop, thread = self.loop, self.thread
-        if loop is None or thread is None:
-            return
-        if not loop.is_closed():
+        if loop is not None and not loop.is_closed():
             with contextlib.suppress(RuntimeError):
                 loop.call_soon_threadsafe(loop.stop)
-        thread.join(timeout_s)
-        if thread.is_alive():
-            log.error("rt: the real-time thread did not stop within %g s", timeout_s)
+        if thread is not None:
+            thread.join(timeout_s)
+            if thread.is_alive():
+                log.error("rt: the real-time thread did not stop within %g s", timeout_s)
         if self._pm_qos is not None:
             self._pm_qos.close()
             self._pm_qos = None
+        if self._switch_interval_before is not None:
+            sys.setswitchinterval(self._switch_interval_before)
+            self._switch_interval_before = None
 
     # ---------------------------------------------------------------------------------- use
 
