@@ -203,6 +203,18 @@ async def test_fit_compare_activate_and_diagnose_over_http(service: Any) -> None
         m["active"] for m in models
     )
     ids = [m["id"] for m in models]
+    # lists carry summaries; the single views carry the per-row errors and the fit's tables
+    assert all("errors_3d_mm" not in m["stats"] and "table2" in m["stats"] for m in models)
+    assert all(not isinstance(v, dict | list) for m in models for v in m["stats"]["fit"].values())
+    one = (await client.get(f"/api/models/{ids[0]}", headers=auth("viewer"))).json()
+    assert len(one["stats"]["errors_3d_mm"]["model"]) == 30 and "identifiability" in one["stats"]["fit"]
+    listed = (await client.get("/api/jobs", headers=auth("viewer"))).json()
+    fits = [j for j in listed if j["kind"] == "fit" and j["result"] is not None]
+    assert fits and all("errors_3d_mm" not in j["result"]["stats"] for j in fits)
+    assert (
+        "errors_3d_mm"
+        in (await client.get(f"/api/jobs/{fits[0]['id']}", headers=auth("viewer"))).json()["result"]["stats"]
+    )
     cmp = (await client.get(f"/api/models/compare?ids={ids[0]}&ids={ids[1]}", headers=auth("viewer"))).json()
     assert [row["model_id"] for row in cmp["models"]] == ids
     nominal = cmp["nominal_by_dataset"][str(dataset_id)]

@@ -76,7 +76,12 @@ async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
     return JobOut.of(job)
 
 
-@router.get("/jobs", response_model=list[JobOut], tags=["jobs"], summary="List jobs (newest first)")
+@router.get(
+    "/jobs",
+    response_model=list[JobOut],
+    tags=["jobs"],
+    summary="List jobs (newest first); results as summaries (per-row errors in GET /api/jobs/{id})",
+)
 async def list_jobs(
     svc: State,
     who: Viewer,
@@ -92,7 +97,7 @@ async def list_jobs(
         limit=min(limit, svc.settings.http.max_page_items),
         offset=offset,
     )
-    return [JobOut.of(r, with_result=r.kind != job_kinds.DIAGNOSIS) for r in rows]
+    return [JobOut.of(r, with_result=r.kind != job_kinds.DIAGNOSIS, summary=True) for r in rows]
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="One job", responses=_NOT_FOUND)
@@ -117,7 +122,12 @@ async def cancel_job(job_id: JobId, svc: State, who: Engineer) -> JobOut:
 # ---------------------------------------------------------------------------------------- models
 
 
-@router.get("/models", response_model=list[ModelOut], tags=["models"], summary="List models (newest first)")
+@router.get(
+    "/models",
+    response_model=list[ModelOut],
+    tags=["models"],
+    summary="List models (newest first); statistics as summaries (per-row errors in GET /api/models/{id})",
+)
 async def list_models(
     svc: State,
     who: Viewer,
@@ -127,7 +137,7 @@ async def list_models(
     rows = await svc.run(
         svc.store.list_models, limit=min(limit, svc.settings.http.max_page_items), offset=offset
     )
-    return [ModelOut.of(r) for r in rows]
+    return [ModelOut.of(r, summary=True) for r in rows]
 
 
 @router.get(

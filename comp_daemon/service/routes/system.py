@@ -96,7 +96,7 @@ async def status(svc: State, who: Viewer) -> dict[str, Any]:
         "ready": not reasons,
         "reasons": reasons,
         "targets": counts,
-        "active_model": ModelOut.of(active).model_dump() if active is not None else None,
+        "active_model": ModelOut.of(active, summary=True).model_dump() if active is not None else None,
         "jobs": {"running": len(running), "queued": len(queued)},
         "you": {"name": who.name, "role": who.role.name},
         "job_kinds": svc.runner.kinds(),
