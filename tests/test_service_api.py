@@ -416,3 +416,20 @@ def test_logs_are_json_with_ids_bound(tmp_path: Path) -> None:
         and first["timestamp"].endswith("Z")
     )
     assert "target_id" not in second
+
+
+def test_json_array_is_the_page_pydantic_would_serialise() -> None:
+    """Lists are serialised one item at a time (the real-time thread gets the GIL between items);
+    the bytes are those of serialising the whole page at once."""
+    import json
+
+    from pydantic import TypeAdapter
+
+    from comp_daemon.service.schemas import ErrorOut, json_array
+
+    items = [ErrorOut(error="e", message=f"m{i} ü \u2028", row=i, column=None) for i in range(5)]
+    body = json_array(items).body
+    assert body == TypeAdapter(list[ErrorOut]).dump_json(items)
+    third = json.loads(body)[3]
+    assert third["message"] == "m3 ü \u2028" and third["row"] == 3 and third["column"] is None
+    assert json_array([]).body == b"[]"

@@ -8,8 +8,10 @@ and, for a refused data set or target batch, ``row`` / ``column`` naming the pla
 from __future__ import annotations
 
 import datetime as dt
+from collections.abc import Iterable
 from typing import Any, Literal
 
+from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from comp_daemon.service.store import (
@@ -48,6 +50,18 @@ def iso(t: float | None) -> str | None:
 
 class _Out(BaseModel):
     model_config = ConfigDict(frozen=True)
+
+
+def json_array(items: Iterable[BaseModel]) -> Response:
+    """A JSON array response serialised one item at a time.
+
+    FastAPI would validate and serialise a whole page in two calls into pydantic-core, each holding
+    the interpreter lock for the whole page (milliseconds for a page of fits); the RSI reply on the
+    real-time thread waits for the lock. One item per call gives it a turn between items. The
+    routes keep their ``response_model`` for the OpenAPI description; the bytes are the same.
+    """
+    body = b"[" + b",".join(item.__pydantic_serializer__.to_json(item) for item in items) + b"]"
+    return Response(content=body, media_type="application/json")
 
 
 class ErrorOut(_Out):

@@ -25,7 +25,7 @@ from comp_daemon.data.dataset import (
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.logging import get_logger
-from comp_daemon.service.schemas import DatasetOut, ErrorOut
+from comp_daemon.service.schemas import DatasetOut, ErrorOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 
 router = APIRouter(tags=["datasets"])
@@ -183,11 +183,11 @@ async def list_datasets(
     who: Viewer,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
-) -> list[DatasetOut]:
+) -> Response:
     rows = await svc.run(
         svc.store.list_datasets, limit=min(limit, svc.settings.http.max_page_items), offset=offset
     )
-    return [DatasetOut.of(r) for r in rows]
+    return json_array(DatasetOut.of(r) for r in rows)
 
 
 @router.get(

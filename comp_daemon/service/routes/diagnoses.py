@@ -9,14 +9,14 @@ from __future__ import annotations
 from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, Path, Query
-from fastapi.responses import HTMLResponse
+from fastapi.responses import HTMLResponse, Response
 
 from comp_daemon.service import job_kinds
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.logging import get_logger
 from comp_daemon.service.routes.fits import launch_job
-from comp_daemon.service.schemas import DiagnosisIn, ErrorOut, JobOut
+from comp_daemon.service.schemas import DiagnosisIn, ErrorOut, JobOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 from comp_daemon.service.store import JobRecord
 
@@ -64,14 +64,14 @@ async def list_diagnoses(
     who: Viewer,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
-) -> list[JobOut]:
+) -> Response:
     rows = await svc.run(
         svc.store.list_jobs,
         kind=job_kinds.DIAGNOSIS,
         limit=min(limit, svc.settings.http.max_page_items),
         offset=offset,
     )
-    return [JobOut.of(r, with_result=False) for r in rows]
+    return json_array(JobOut.of(r, with_result=False) for r in rows)
 
 
 async def _finished(svc: ServiceState, job_id: int) -> JobRecord:

@@ -10,13 +10,13 @@ from __future__ import annotations
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query
-from fastapi.responses import JSONResponse
+from fastapi.responses import JSONResponse, Response
 
 from comp_daemon.service import job_kinds
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.logging import get_logger
-from comp_daemon.service.schemas import ErrorOut, FitIn, JobOut, ModelOut
+from comp_daemon.service.schemas import ErrorOut, FitIn, JobOut, ModelOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 from comp_daemon.service.store import JobRecord
 
@@ -89,7 +89,7 @@ async def list_jobs(
     state: Literal["queued", "running", "done", "failed", "cancelled"] | None = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
-) -> list[JobOut]:
+) -> Response:
     rows = await svc.run(
         svc.store.list_jobs,
         kind=kind,
@@ -97,7 +97,7 @@ async def list_jobs(
         limit=min(limit, svc.settings.http.max_page_items),
         offset=offset,
     )
-    return [JobOut.of(r, with_result=r.kind != job_kinds.DIAGNOSIS, summary=True) for r in rows]
+    return json_array(JobOut.of(r, with_result=r.kind != job_kinds.DIAGNOSIS, summary=True) for r in rows)
 
 
 @router.get("/jobs/{job_id}", response_model=JobOut, tags=["jobs"], summary="One job", responses=_NOT_FOUND)
@@ -133,11 +133,11 @@ async def list_models(
     who: Viewer,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
-) -> list[ModelOut]:
+) -> Response:
     rows = await svc.run(
         svc.store.list_models, limit=min(limit, svc.settings.http.max_page_items), offset=offset
     )
-    return [ModelOut.of(r, summary=True) for r in rows]
+    return json_array(ModelOut.of(r, summary=True) for r in rows)
 
 
 @router.get(

@@ -24,7 +24,14 @@ from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.daemon_view import DaemonControl
 from comp_daemon.service.events import CLOSING
-from comp_daemon.service.schemas import ErrorOut, EventOut, GratingCalibrationIn, ModelOut, ReadyOut
+from comp_daemon.service.schemas import (
+    ErrorOut,
+    EventOut,
+    GratingCalibrationIn,
+    ModelOut,
+    ReadyOut,
+    json_array,
+)
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 
 router = APIRouter()
@@ -154,7 +161,7 @@ async def event_log(
     target_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
     job_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
     newest_first: bool = False,
-) -> list[EventOut]:
+) -> Response:
     rows = await svc.run(
         svc.store.list_events,
         after_id=after_id,
@@ -163,7 +170,7 @@ async def event_log(
         job_id=job_id,
         newest_first=newest_first,
     )
-    return [EventOut.of(e) for e in rows]
+    return json_array(EventOut.of(e) for e in rows)
 
 
 # ----------------------------------------------------------------------------- operator actions

@@ -23,7 +23,7 @@ from comp_daemon.data.dataset import DatasetError, dataset_from_records
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.logging import get_logger
-from comp_daemon.service.schemas import BatchIn, BatchOut, ErrorOut, TargetOut
+from comp_daemon.service.schemas import BatchIn, BatchOut, ErrorOut, TargetOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 
 router = APIRouter(tags=["targets"])
@@ -154,7 +154,7 @@ async def list_targets(
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
     newest_first: bool = False,
-) -> list[TargetOut]:
+) -> Response:
     rows = await svc.run(
         svc.store.list_targets,
         batch_id=batch_id,
@@ -163,7 +163,7 @@ async def list_targets(
         offset=offset,
         newest_first=newest_first,
     )
-    return [TargetOut.of(t) for t in rows]
+    return json_array(TargetOut.of(t) for t in rows)
 
 
 @router.get("/targets/{target_id}", response_model=TargetOut, summary="One target", responses=_CHANGE_ERRORS)
