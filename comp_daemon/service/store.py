@@ -295,6 +295,25 @@ def _dumps(value: Any) -> str:
     return json.dumps(value, separators=(",", ":"), sort_keys=True, allow_nan=False)
 
 
+#: The bulky entries of fit statistics (per check row, per parameter), left out of list pages by
+#: SQLite itself (``json_remove`` runs without Python's GIL, so the real-time thread need not wait
+#: for ~1 MB of JSON to be decoded per page of 100 fits).
+STATS_DETAIL_PATHS: tuple[str, ...] = (
+    "$.errors_3d_mm",
+    "$.fit.identifiability",
+    "$.fit.identified",
+    "$.fit.order_selection",
+    "$.fit.range_deg",
+    "$.fit.solver",
+    "$.fit.effects",
+)
+
+
+def _without_details(column: str, prefix: str = "$") -> str:
+    paths = ", ".join(f"'{prefix}{p[1:]}'" for p in STATS_DETAIL_PATHS)
+    return f"json_remove({column}, {paths})"
+
+
 def _loads(text: str | None) -> Any:
     return None if text is None else json.loads(text)
 
@@ -559,9 +578,21 @@ class Store:
             return self._job_row(self._conn, job_id)
 
     def list_jobs(
-        self, *, kind: str | None = None, state: str | None = None, limit: int = 500, offset: int = 0
+        self,
+        *,
+        kind: str | None = None,
+        state: str | None = None,
+        limit: int = 500,
+        offset: int = 0,
+        summary: bool = False,
     ) -> list[JobRecord]:
-        sql, args = "SELECT * FROM jobs WHERE 1=1", list[Any]()
+        """Jobs, newest first; ``summary``: results without :data:`STATS_DETAIL_PATHS` under ``stats``."""
+        result = _without_details("result", "$.stats") if summary else "result"
+        sql = (
+            "SELECT id, kind, params, dataset_id, state, progress, message, "
+            f"{result} AS result, error, created_at, started_at, finished_at FROM jobs WHERE 1=1"
+        )
+        args = list[Any]()
         if kind is not None:
             sql += " AND kind = ?"
             args.append(kind)
@@ -712,8 +743,14 @@ class Store:
         with self._lock:
             return self._model_row(self._conn, model_id, with_artifact=with_artifact)
 
-    def list_models(self, *, limit: int = 500, offset: int = 0) -> list[ModelRecord]:
-        rows = self._read("SELECT * FROM models ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset))
+    def list_models(self, *, limit: int = 500, offset: int = 0, summary: bool = False) -> list[ModelRecord]:
+        """Models without artifacts, newest first; ``summary``: stats without :data:`STATS_DETAIL_PATHS`."""
+        stats = _without_details("stats") if summary else "stats"
+        rows = self._read(
+            f'SELECT id, kind, "order", {stats} AS stats, dataset_id, job_id, active, created_at '
+            "FROM models ORDER BY id DESC LIMIT ? OFFSET ?",
+            (limit, offset),
+        )
         return [self._model(r, with_artifact=False) for r in rows]
 
     def active_model(self, *, with_artifact: bool = True) -> ModelRecord | None:

@@ -96,6 +96,7 @@ async def list_jobs(
         state=state,
         limit=min(limit, svc.settings.http.max_page_items),
         offset=offset,
+        summary=True,
     )
     return json_array(JobOut.of(r, with_result=r.kind != job_kinds.DIAGNOSIS, summary=True) for r in rows)
 
@@ -135,7 +136,10 @@ async def list_models(
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
 ) -> Response:
     rows = await svc.run(
-        svc.store.list_models, limit=min(limit, svc.settings.http.max_page_items), offset=offset
+        svc.store.list_models,
+        limit=min(limit, svc.settings.http.max_page_items),
+        offset=offset,
+        summary=True,
     )
     return json_array(ModelOut.of(r, summary=True) for r in rows)
 
