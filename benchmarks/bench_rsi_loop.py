@@ -9,13 +9,17 @@ Set-up, per cycle time (all on 127.0.0.1, each a separate process):
   sending ``<Rob>`` telegrams every ``cycle_ms`` on its absolute schedule, three grating converters
   on pseudo-terminals, the motion command port;
 - a relay between the controller and the daemon, in its own process, which timestamps every
-  datagram: the telegram just before it is forwarded (``time.time_ns``, CLOCK_REALTIME) and the
+  datagram (``SCHED_FIFO`` 30 where permitted: it stands in for the controller's wire, and at
+  normal priority its own hold-ups queued two telegrams at the daemon): the telegram just before
+  it is forwarded (``time.time_ns``, CLOCK_REALTIME) and the
   daemon's reply on arrival by the kernel (``SO_TIMESTAMPNS``, CLOCK_REALTIME, so the relay's own
   scheduling does not count against the daemon). Reply latency = reply received − telegram sent:
   the daemon's receive path, event-loop delay, handler and send, plus loopback both ways;
 - ``comp-daemon run --config … --motion …`` as in production (grating readers on the
   pseudo-terminals, ``--calibrate-gratings``, the HTTP service, the job pool), with the loop
-  correcting real targets.
+  correcting real targets. Its ``[realtime]`` section comes from ``--one-loop``, ``--rt-priority``
+  (20), ``--switch-interval-ms`` (0.2) and ``--cpu-wakeup-latency-us`` (0), as in
+  ``config.example.toml``.
 
 Load while the ``--cycles`` cycles are measured: the MES queue kept fed (batches of 10 targets
 around the home pose, so the loop is armed and correcting most of the time); fits one after the
