@@ -29,6 +29,7 @@ import asyncio
 import contextlib
 import logging
 import math
+from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -156,7 +157,8 @@ class TargetExecutor:
         self.current_target_id: int | None = None
         self.phase: str | None = None
         self.blocked_reason: str | None = None
-        self.outcomes: list[TargetOutcome] = []
+        #: the latest outcomes (the store keeps them all; this is bounded for a daemon running for months)
+        self.outcomes: deque[TargetOutcome] = deque(maxlen=256)
         self._wakeup = asyncio.Event()
         self._stopping = False
         self._event_loop: asyncio.AbstractEventLoop | None = None
