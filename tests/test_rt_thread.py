@@ -238,3 +238,49 @@ def test_wakeup_latency_request_is_held_while_running(tmp_path: Path) -> None:
         assert any("wake-up latency" in n for n in refused.notes)
     finally:
         refused.stop()
+
+
+async def test_replies_keep_coming_while_the_service_loop_is_blocked(rt: RealtimeThread) -> None:
+    """The point of the thread: a stalled service loop (here 0.3 s inside a blocking call, as a
+    slow disk or a stuck library would) does not stall the RSI replies. On one shared event loop
+    this test fails (about 25 replies would wait up to 300 ms)."""
+    import socket
+
+    from comp_daemon.rt.rsi_codec import build_rob, parse_sen
+    from comp_daemon.rt.rsi_server import RsiServerConfig, start_rsi_server
+
+    clock = Clock()
+    robot = Robot(clock)
+    runtime = _runtime(clock, robot)
+    config = RsiServerConfig(controller_host="127.0.0.1", bind_host="127.0.0.1", bind_port=0)
+    transport, proto = await rt.run(start_rsi_server(runtime.handle, config))
+    port = transport.get_extra_info("sockname")[1]
+    latencies_ms: list[float] = []
+    answered: list[int] = []
+
+    def controller() -> None:  # the KR C4: a telegram every 12 ms, each reply awaited
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+            s.bind(("127.0.0.1", 0))
+            s.settimeout(0.1)
+            for k in range(60):
+                t0 = time.perf_counter()
+                s.sendto(build_rob(1000 + 12 * k, HOME, HOME, delay=0), ("127.0.0.1", port))
+                try:
+                    answered.append(parse_sen(s.recv(4096)).ipoc)
+                    latencies_ms.append((time.perf_counter() - t0) * 1e3)
+                except TimeoutError:
+                    pass
+                time.sleep(max(0.0, 0.012 - (time.perf_counter() - t0)))
+
+    sender = asyncio.ensure_future(asyncio.to_thread(controller))
+    await asyncio.sleep(0.1)
+    t_block = time.perf_counter()
+    time.sleep(0.3)  # the service loop is stuck; the GIL is free
+    blocked_s = time.perf_counter() - t_block
+    await sender
+    await rt.call(transport.close)
+    assert blocked_s >= 0.3
+    assert answered == [1000 + 12 * k for k in range(60)], "a reply was missing"
+    # generous bounds (a shared CI machine), yet far below the 300 ms a shared loop would add
+    assert max(latencies_ms) < 100.0, latencies_ms
+    assert runtime.telegrams == 60 and proto.stats.answered == 60
