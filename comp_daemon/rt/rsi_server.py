@@ -134,7 +134,8 @@ class SampleStats:
 
 
 class RsiServerStats:
-    """Counters of the RSI endpoint (mutable; read them from the same event loop)."""
+    """Counters of the RSI endpoint, written only by the loop that runs it; other threads read single
+    counters and copies of the rings (the daemon's telemetry does, from the service loop)."""
 
     __slots__ = (
         "answered",
