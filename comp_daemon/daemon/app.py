@@ -43,7 +43,7 @@ import signal
 import socket
 import tempfile
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Coroutine, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -214,7 +214,7 @@ class Daemon:
                 loop.add_signal_handler(sig, self.request_stop, signal.Signals(sig).name)
         try:
             await self._start()
-            self._freeze_startup_objects()
+            self._freeze_startup_objects(collect=False)  # the service's own start-up objects too
             self.started.set()
             self.notifier.ready(f"comp-daemon {__version__}: loop running")
             log.info("daemon: running (RSI on %s, HTTP on %s)", self.rsi_address, self.http_port)
@@ -228,15 +228,18 @@ class Daemon:
         return self.exit_code
 
     @staticmethod
-    def _freeze_startup_objects() -> None:
+    def _freeze_startup_objects(*, collect: bool) -> None:
         """Keep the collector's full passes short: they hold the GIL, and the real-time thread waits.
 
-        After start-up the process holds a few hundred thousand long-lived objects (FastAPI,
-        pydantic, SciPy, the robot model); a full collection over them took ~100 ms on a two-core
-        industrial PC — eight RSI cycles without a reply. ``gc.freeze`` moves them out of the
-        collector's sight for good; later passes see only what the service made since.
+        After start-up the process holds some 126 000 long-lived objects (FastAPI, pydantic, SciPy, the
+        robot model); one full pass over them held the GIL for 108 ms on the two-core test machine,
+        eight RSI cycles without a reply (docs/benchmarks.md). ``gc.freeze`` moves them out of the
+        collector's sight for good. With ``collect`` a full pass first drops start-up garbage; that
+        pass is only made before the RSI endpoint listens — afterwards ``freeze`` alone, which costs
+        no pass.
         """
-        gc.collect()
+        if collect:
+            gc.collect()
         gc.freeze()
         log.info("daemon: %d start-up objects exempted from garbage collection", gc.get_freeze_count())
 
@@ -258,7 +261,9 @@ class Daemon:
         self.active_model_id = None if active is None else active.id
         calibration = await asyncio.to_thread(load_latest_calibration, self.gratings_dir)
 
-        # 0. the real-time thread, and the job workers kept off its CPU
+        # 0. the real-time thread, and the job workers kept off its CPU; the one full collection
+        #    of start-up garbage while no telegram can be waiting
+        self._freeze_startup_objects(collect=True)
         await self._start_realtime()
         settings = self.settings
 
@@ -420,7 +425,7 @@ class Daemon:
             word += "; " + "; ".join(d["notes"])
         return word
 
-    async def _on_rt(self, coro: Any) -> Any:
+    async def _on_rt(self, coro: Coroutine[Any, Any, T]) -> T:
         """Await a coroutine on the real-time loop (on this loop when there is no real-time thread)."""
         if self.rt is None:
             return await coro
@@ -428,9 +433,7 @@ class Daemon:
 
     async def _rt_call(self, fn: Callable[..., T], *args: Any) -> T:
         """Call a function on the real-time loop (here when there is no real-time thread)."""
-        if self.rt is None:
-            return fn(*args)
-        return await self.rt.call(fn, *args)
+        return fn(*args) if self.rt is None else await self.rt.call(fn, *args)
 
     async def _start_http(self) -> None:
         import uvicorn

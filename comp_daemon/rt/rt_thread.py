@@ -29,7 +29,6 @@ supervisor can tell a stalled real-time loop from a quiet one.
 from __future__ import annotations
 
 import asyncio
-import concurrent.futures
 import contextlib
 import logging
 import os
@@ -53,7 +52,7 @@ class RealtimeThreadConfig:
     name: str = "comp-daemon-rt"
     cpu: int | None = None
     realtime_priority: int = 0  # 0: normal scheduling; 1..99: SCHED_FIFO priority
-    switch_interval_s: float | None = 0.0005  # None: leave Python's default
+    switch_interval_s: float | None = 0.0002  # None: leave Python's default
     cpu_wakeup_latency_us: int | None = None  # None: no PM QoS request
     pm_qos_device: str = "/dev/cpu_dma_latency"
     heartbeat_s: float = 0.05
@@ -227,19 +226,11 @@ class RealtimeThread:
 
     async def call(self, fn: Callable[..., T], *args: Any) -> T:
         """Call a plain function on the real-time loop (between its callbacks) and await its result."""
-        loop = self._require_loop()
-        fut: concurrent.futures.Future[T] = concurrent.futures.Future()
 
-        def invoke() -> None:
-            if not fut.set_running_or_notify_cancel():
-                return
-            try:
-                fut.set_result(fn(*args))
-            except BaseException as exc:
-                fut.set_exception(exc)
+        async def invoke() -> T:
+            return fn(*args)
 
-        loop.call_soon_threadsafe(invoke)
-        return await asyncio.wrap_future(fut)
+        return await self.run(invoke())
 
     def describe(self) -> dict[str, Any]:
         return {

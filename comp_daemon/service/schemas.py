@@ -15,6 +15,7 @@ from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field
 
 from comp_daemon.service.store import (
+    STATS_DETAIL_PATHS,
     BatchRecord,
     DatasetRecord,
     EventRecord,
@@ -96,15 +97,15 @@ class DatasetOut(_Out):
         )
 
 
-#: Per-row and per-parameter entries of fit statistics: in single views, not in lists.
-_DETAIL_KEYS = frozenset({"errors_3d_mm"})
+#: Top-level entries of fit statistics that lists leave out (the store's STATS_DETAIL_PATHS).
+_DETAIL_KEYS = frozenset(p[2:] for p in STATS_DETAIL_PATHS if p.count(".") == 1)
 
 
 def stats_summary(stats: dict[str, Any]) -> dict[str, Any]:
     """Fit statistics for a list: without the per-check-row errors (``errors_3d_mm``) and with only
     the scalar entries of ``fit`` (the identifiability and per-parameter tables stay in the single
-    views). A list of 100 fits is then ~150 KB instead of ~1.2 MB, and serialising it keeps the
-    interpreter (and so the real-time thread) waiting ~1/8 as long."""
+    views). The store already strips :data:`STATS_DETAIL_PATHS` in SQL for list pages; this is the
+    list's shape, and it also holds for any other nested entry a model kind may put under ``fit``."""
     out = {k: v for k, v in stats.items() if k not in _DETAIL_KEYS}
     fit = out.get("fit")
     if isinstance(fit, dict):
