@@ -284,3 +284,25 @@ async def test_replies_keep_coming_while_the_service_loop_is_blocked(rt: Realtim
     # generous bounds (a shared CI machine), yet far below the 300 ms a shared loop would add
     assert max(latencies_ms) < 100.0, latencies_ms
     assert runtime.telegrams == 60 and proto.stats.answered == 60
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+@pytest.mark.parametrize(
+    ("section", "fragment"),
+    [
+        ("[jobs]\ncpus = [0, 4099]\n", "jobs.cpus names CPU 4099"),
+        ("[realtime]\ncpu = 4099\n", "realtime.cpu"),
+    ],
+)
+def test_run_refuses_cpus_the_machine_lacks(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], section: str, fragment: str
+) -> None:
+    from comp_daemon.cli import main
+
+    data = tmp_path / "var"
+    config = tmp_path / "config.toml"
+    config.write_text(f'[store]\ndata_dir = "{data}"\n{section}', encoding="utf-8")
+    assert main(["run", "--config", str(config)]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and "it may use" in err, err
+    assert not data.exists()  # refused before anything was created

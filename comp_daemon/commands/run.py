@@ -91,6 +91,7 @@ def _run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
     from comp_daemon.daemon.app import Daemon, SimOptions
+    from comp_daemon.rt.rt_thread import check_cpus
     from comp_daemon.service.config import load_settings
     from comp_daemon.service.logging import configure_logging
 
@@ -102,6 +103,9 @@ def _run(args: argparse.Namespace) -> int:
         settings = load_settings(args.config) if args.config else _quick_start_settings(Path("var/sim"))
     except ValidationError as exc:
         raise ValueError(f"{args.config or 'quick start'}: {exc}") from None
+    check_cpus(settings.jobs.cpus, "jobs.cpus")
+    if isinstance(settings.realtime.cpu, int):
+        check_cpus([settings.realtime.cpu], "realtime.cpu")
     configure_logging(settings.log.level, settings.log.format)
     if args.config is None:
         args.calibrate_gratings = True  # the quick start's cell is ready without an engineer's step

@@ -40,7 +40,7 @@ from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
-__all__ = ["RealtimeThread", "RealtimeThreadConfig", "other_cpus", "resolve_cpu"]
+__all__ = ["RealtimeThread", "RealtimeThreadConfig", "check_cpus", "other_cpus", "resolve_cpu"]
 
 log = logging.getLogger(__name__)
 
@@ -69,6 +69,20 @@ def resolve_cpu(setting: int | str) -> int | None:
         raise ValueError(f"the real-time CPU is a number, 'auto' or 'none', not {setting!r}")
     cpus = sorted(os.sched_getaffinity(0))
     return cpus[-1] if len(cpus) >= 2 else None
+
+
+def check_cpus(cpus: list[int], setting: str) -> None:
+    """ValueError naming ``setting`` when it lists a CPU this process may not run on (a typo, or a
+    configuration copied from a larger machine); nothing to check off Linux."""
+    if not hasattr(os, "sched_getaffinity"):
+        return
+    allowed = sorted(os.sched_getaffinity(0))
+    missing = sorted(set(cpus) - set(allowed))
+    if missing:
+        raise ValueError(
+            f"{setting} names CPU {', '.join(map(str, missing))}, which this process may not use "
+            f"(it may use {', '.join(map(str, allowed))})"
+        )
 
 
 def other_cpus(cpu: int | None) -> set[int] | None:

@@ -95,7 +95,7 @@ def _worker_init(progress_queue: Any, cancel_flags: Any, nice: int, cpus: tuple[
         with contextlib.suppress(OSError):
             os.nice(nice)
     if cpus and hasattr(os, "sched_setaffinity"):
-        # off the real-time CPU; CPUs this machine lacks are refused: run where the parent may
+        # off the real-time CPU (comp-daemon run refuses CPUs this machine lacks before it starts)
         with contextlib.suppress(OSError, ValueError):
             os.sched_setaffinity(0, set(cpus))
 
