@@ -17,7 +17,7 @@ Set-up, per cycle time (all on 127.0.0.1, each a separate process):
   the daemon's receive path, event-loop delay, handler and send, plus loopback both ways;
 - ``comp-daemon run --config … --motion …`` as in production (grating readers on the
   pseudo-terminals, ``--calibrate-gratings``, the HTTP service, the job pool), with the loop
-  correcting real targets. Its ``[realtime]`` section comes from ``--one-loop``, ``--rt-priority``
+  correcting real targets. Its ``[realtime]`` section comes from ``--rt-mode``, ``--rt-priority``
   (20), ``--switch-interval-ms`` (0.2) and ``--cpu-wakeup-latency-us`` (0), as in
   ``config.example.toml``.
 
@@ -196,7 +196,7 @@ listen_port = {rsi_port}
 controller_allow = ["127.0.0.1"]
 cycle_ms = {cycle_ms}
 [realtime]
-thread = {"true" if opts.rt_thread else "false"}
+mode = "{opts.rt_mode}"
 priority = {opts.rt_priority}
 switch_interval_ms = {opts.switch_interval_ms}
 cpu_wakeup_latency_us = {opts.cpu_wakeup_latency_us}
@@ -267,7 +267,7 @@ class Options:
     fits: bool = True
     targets: bool = True
     campaign_rows: int = 1000
-    rt_thread: bool = True  # [realtime] thread: the RSI path on its own thread
+    rt_mode: str = "process"  # [realtime] mode: where the RSI path runs (process | thread | shared)
     rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of that thread (0: normal)
     switch_interval_ms: float = 0.2  # [realtime] switch_interval_ms: the GIL switch interval
     cpu_wakeup_latency_us: int = 0  # [realtime] cpu_wakeup_latency_us (-1: no PM QoS request)
@@ -568,7 +568,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-fits", action="store_true", help="no fit jobs during the measurement")
     parser.add_argument("--no-targets", action="store_true", help="no targets during the measurement")
     parser.add_argument(
-        "--one-loop", action="store_true", help="[realtime] thread = false: RSI on the HTTP side's event loop"
+        "--rt-mode",
+        choices=("process", "thread", "shared"),
+        default="process",
+        help="[realtime] mode: the RSI path in its own process, its own thread, or on the HTTP side's loop",
     )
     parser.add_argument(
         "--rt-priority", type=int, default=20, help="[realtime] priority (SCHED_FIFO; 0: normal scheduling)"
@@ -596,7 +599,7 @@ def main(argv: list[str] | None = None) -> int:
         fits=not args.no_fits,
         targets=not args.no_targets,
         campaign_rows=args.campaign_rows,
-        rt_thread=not args.one_loop,
+        rt_mode=args.rt_mode,
         rt_priority=args.rt_priority,
         switch_interval_ms=args.switch_interval_ms,
         cpu_wakeup_latency_us=args.cpu_wakeup_latency_us,

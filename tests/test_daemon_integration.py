@@ -11,6 +11,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 from pathlib import Path
 from typing import Any
 
@@ -65,6 +66,30 @@ def activate_nominal_model(daemon: Daemon) -> int:
     record = daemon.store.add_model(ModelDraft("nominal", None, doc, {}, None))
     daemon.store.activate_model(record.id, by="test")
     return record.id
+
+
+def udp_socket_holders(port: int) -> set[int]:
+    """PIDs holding the IPv4 UDP socket bound to ``port`` (from /proc: its inode among their fds)."""
+    inodes = set()
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        fields = line.split()
+        if int(fields[1].split(":")[1], 16) == port:
+            inodes.add(fields[9])
+    wanted = {f"socket:[{inode}]" for inode in inodes}
+    holders = set()
+    for pid in (int(p) for p in os.listdir("/proc") if p.isdigit()):
+        try:
+            fds = os.listdir(f"/proc/{pid}/fd")
+        except OSError:
+            continue
+        for fd in fds:
+            try:
+                if os.readlink(f"/proc/{pid}/fd/{fd}") in wanted:
+                    holders.add(pid)
+                    break
+            except OSError:  # closed while we looked
+                continue
+    return holders
 
 
 async def wait_for(cond: Any, timeout_s: float, what: str) -> None:
@@ -189,16 +214,45 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
 
             snap = (await client.get("/api/status")).json()
             assert snap["daemon"]["state"] == "idle", snap["daemon"]
-            # the RSI path ran on its own thread and event loop, and the operator is told so
-            assert daemon.rt is not None and daemon.rsi is not None
-            assert daemon.rt.loop is not None and daemon.rt.loop is not asyncio.get_running_loop()
-            assert "own thread" in snap["daemon"]["loop"]["realtime"], snap["daemon"]["loop"]
-        assert daemon.rsi is not None and daemon.rsi.stats.handler_errors == 0
-        rt_thread = daemon.rt.thread if daemon.rt is not None else None
+            # the RSI path ran in a process of its own, and the operator is told so
+            rtp = daemon.rtp
+            assert rtp is not None and rtp.proc is not None and rtp.alive
+            assert rtp.proc.pid != os.getpid()
+            assert f"own process (pid {rtp.proc.pid})" in snap["daemon"]["loop"]["realtime"], snap["daemon"]
+            rsi_port = daemon.rsi_address[1] if daemon.rsi_address else -1
+            assert udp_socket_holders(rsi_port) == {rtp.proc.pid}  # the child holds the RSI socket
+        stats = daemon.rsi_stats
+        assert stats is not None and stats.handler_errors == 0 and stats.answered > 100
+        assert stats.latency.count == stats.answered  # every reply's latency reached the daemon
     finally:
         daemon.request_stop("test over")
         code = await asyncio.wait_for(run, 30)
     assert code == 0
-    assert rt_thread is not None and not rt_thread.is_alive()  # stopped with the daemon
+    assert rtp.proc.returncode == 0  # stopped with the daemon
     state = json.loads((tmp_path / "data" / "daemon-state.json").read_text())
     assert state["state"] == "stopping" and state["last_reply"]["ak_deg"] == [0.0] * 6
+
+
+@pytest.mark.parametrize(("mode", "word"), [("thread", "own thread"), ("shared", "one event loop")])
+async def test_daemon_realtime_modes(tmp_path: Path, mode: str, word: str) -> None:
+    """The comparison modes still run the cell: RSI answered in this process, a clean stop."""
+    cfg = write_config(tmp_path)
+    cfg.write_text(cfg.read_text() + f'\n[realtime]\nmode = "{mode}"\n', encoding="utf-8")
+    daemon = Daemon(load_settings(cfg), sim=SimOptions(scenario="kr210-cell", seed=1))
+    run = asyncio.create_task(daemon.run())
+    try:
+        async with asyncio.timeout(60):
+            await daemon.started.wait()
+        assert daemon.runtime is not None and daemon.rtp is None
+        await wait_for(daemon.runtime.rsi_alive, 10, "RSI telegrams")
+        await wait_for(lambda: daemon.runtime is not None and daemon.runtime.telegrams > 50, 10, "cycles")
+        assert word in daemon.snapshot().loop.realtime or word in daemon._realtime_word()
+        rsi_port = daemon.rsi_address[1] if daemon.rsi_address else -1
+        assert udp_socket_holders(rsi_port) == {os.getpid()}
+        assert (daemon.rt is not None) == (mode == "thread")
+    finally:
+        daemon.request_stop("test over")
+        code = await asyncio.wait_for(run, 30)
+    assert code == 0
+    state = json.loads((tmp_path / "data" / "daemon-state.json").read_text())
+    assert state["telegrams"] > 50 and state["rsi"]["handler_errors"] == 0

@@ -54,7 +54,8 @@ from comp_daemon import __version__
 from comp_daemon.daemon.compensation import ActiveModelCompensator
 from comp_daemon.daemon.gratings import GratingGeometry, calibrate_gratings, default_calibration_poses
 from comp_daemon.daemon.motion import LineMotionPort
-from comp_daemon.daemon.runtime import LoopRuntime
+from comp_daemon.daemon.rt_process import LoopStart, RealtimeProcess, RemoteRuntime, RtProcessError, RtStart
+from comp_daemon.daemon.runtime import LoopRuntime, LoopView
 from comp_daemon.daemon.sdnotify import Notifier, watchdog_interval_s
 from comp_daemon.daemon.simcell import SimCellInfo, SimCellProcess
 from comp_daemon.robot.description import load_robot
@@ -67,7 +68,7 @@ from comp_daemon.rt.encoder_reader import (
 from comp_daemon.rt.executor import Compensator, MotionPort, TargetExecutor, TargetOutcome
 from comp_daemon.rt.grating_cal import GratingCalibration, load_latest_calibration
 from comp_daemon.rt.rsi_codec import RobTelegram, SenReply
-from comp_daemon.rt.rsi_server import RsiServerConfig, RsiServerProtocol, start_rsi_server
+from comp_daemon.rt.rsi_server import RsiServerConfig, RsiServerProtocol, RsiServerStats, start_rsi_server
 from comp_daemon.rt.rt_thread import RealtimeThread, RealtimeThreadConfig, other_cpus, resolve_cpu
 from comp_daemon.rt.safety import SafetySettings, SafetyState
 from comp_daemon.service import metrics
@@ -169,15 +170,16 @@ class Daemon:
         self.state_path = self.data_dir / "daemon-state.json"
         self.bus = EventBus(settings.http.sse_queue_events)
         self.store: Store | None = None
-        self.runtime: LoopRuntime | None = None
+        self.runtime: LoopRuntime | RemoteRuntime | None = None
         self.executor: TargetExecutor | None = None
         self.motion: MotionPort | None = None
-        self.readers: dict[int, EncoderReader] = {}
+        self.readers: dict[int, Any] = {}  # EncoderReader here, ReaderMirror with a real-time process
         self.geometry: dict[int, GratingGeometry] = {}
         self.sim: SimCellProcess | None = None
         self.sim_info: SimCellInfo | None = None
         self.rsi: RsiServerProtocol | None = None
         self.rt: RealtimeThread | None = None
+        self.rtp: RealtimeProcess | None = None
         self.rsi_transport: asyncio.DatagramTransport | None = None
         self.http_port: int | None = None
         self.calibrating = False
@@ -245,6 +247,11 @@ class Daemon:
 
     @property
     def rsi_address(self) -> tuple[str, int] | None:
+        if self.rtp is not None:
+            if not self.rtp.info:
+                return None
+            host, port = self.rtp.info["rsi_address"]
+            return str(host), int(port)
         if self.rsi_transport is None:
             return None
         host, port = self.rsi_transport.get_extra_info("sockname")[:2]
@@ -276,19 +283,19 @@ class Daemon:
             )
         host = "127.0.0.1" if self.sim_options is not None else rsi.controller_allow[0]
         bind_host = "127.0.0.1" if self.sim_options is not None else rsi.listen_host
-        self.rsi_transport, self.rsi = await self._on_rt(
-            start_rsi_server(
-                self._handle,
-                RsiServerConfig(
-                    controller_host=host,
-                    bind_host=bind_host,
-                    bind_port=rsi.listen_port,
-                    cycle_ms=float(rsi.cycle_ms),
-                    sen_type=rsi.sen_type,
-                ),
-                clock=self.clock_ns,
-            )
+        rsi_config = RsiServerConfig(
+            controller_host=host,
+            bind_host=bind_host,
+            bind_port=rsi.listen_port,
+            cycle_ms=float(rsi.cycle_ms),
+            sen_type=rsi.sen_type,
         )
+        if self.settings.realtime.mode == "process":
+            await self._start_rt_process(rsi_config)
+        else:
+            self.rsi_transport, self.rsi = await self._on_rt(
+                start_rsi_server(self._handle, rsi_config, clock=self.clock_ns)
+            )
 
         # 2. the HTTP service (heavy imports and the job pool start here, before any cycle runs)
         await self._start_http()
@@ -320,6 +327,7 @@ class Daemon:
         elif self.motion_address is not None:
             self.motion = LineMotionPort(*self.motion_address, timeout_s=settings.controller.move_timeout_s)
 
+        reader_specs: list[tuple[EncoderReaderConfig, LinearGratingCalibration]] = []
         for joint, (port, bits) in sorted(ports.items()):
             geo = self.geometry[joint]
             cfg = EncoderReaderConfig(
@@ -334,22 +342,31 @@ class Daemon:
                 backoff_initial_ms=enc.reconnect_initial_ms,
                 backoff_max_ms=enc.reconnect_max_ms,
             )
-            self.readers[joint] = EncoderReader(
-                cfg,
-                LinearGratingCalibration(geo.radius_mm, resolution_nm=geo.resolution_nm),
-                clock=self.clock_ns,
+            reader_specs.append(
+                (cfg, LinearGratingCalibration(geo.radius_mm, resolution_nm=geo.resolution_nm))
             )
-        self.runtime = LoopRuntime(
-            self.readers,
-            calibration=calibration,
-            safety=safety_settings_from(settings.controller),
-            loop=loop_settings_from(settings.controller, rsi.cycle_ms),
-            sen_type=rsi.sen_type,
-            clock_ns=self.clock_ns,
-        )
-        for joint, reader in self.readers.items():
-            reader.next_telegram_ns = self.runtime.next_telegram_ns
-            self._tasks[f"encoder-a{joint}"] = await self._rt_call(reader.start)
+        safety = safety_settings_from(settings.controller)
+        loop_settings = loop_settings_from(settings.controller, rsi.cycle_ms)
+        if self.rtp is not None:
+            spec = LoopStart(tuple(reader_specs), calibration, safety, loop_settings, rsi.sen_type)
+            self.runtime = await self.rtp.start_loop(spec)
+            self.readers = dict(self.rtp.readers)
+        else:
+            readers = {
+                cfg.joint: EncoderReader(cfg, geometry, clock=self.clock_ns) for cfg, geometry in reader_specs
+            }
+            runtime_here = LoopRuntime(
+                readers,
+                calibration=calibration,
+                safety=safety,
+                loop=loop_settings,
+                sen_type=rsi.sen_type,
+                clock_ns=self.clock_ns,
+            )
+            self.readers, self.runtime = dict(readers), runtime_here
+            for joint, reader in readers.items():
+                reader.next_telegram_ns = runtime_here.next_telegram_ns
+                self._tasks[f"encoder-a{joint}"] = await self._rt_call(reader.start)
 
         # 4. the executor and the supervisor
         runtime = self.runtime
@@ -390,8 +407,8 @@ class Daemon:
 
     async def _start_realtime(self) -> None:
         cfg = self.settings.realtime
-        if not cfg.thread:
-            return
+        if cfg.mode != "thread":
+            return  # "process": started with the RSI endpoint (_start_rt_process)
         cpu = resolve_cpu(cfg.cpu)
         self.rt = RealtimeThread(
             RealtimeThreadConfig(
@@ -403,19 +420,52 @@ class Daemon:
             clock_ns=self.clock_ns,
         )
         await asyncio.to_thread(self.rt.start)
-        rest = other_cpus(self.rt.pinned_cpu)
-        if cfg.keep_jobs_off_cpu and not self.settings.jobs.cpus and rest:
-            jobs = self.settings.jobs.model_copy(update={"cpus": sorted(rest)})
-            self.settings = self.settings.model_copy(update={"jobs": jobs})
+        self._keep_jobs_off(self.rt.pinned_cpu)
         log.info("daemon: real-time loop: %s", self._realtime_word())
 
+    async def _start_rt_process(self, rsi_config: RsiServerConfig) -> None:
+        cfg = self.settings.realtime
+        self.rtp = RealtimeProcess(
+            RtStart(
+                rsi=rsi_config,
+                cpu=resolve_cpu(cfg.cpu),
+                priority=cfg.priority,
+                cpu_wakeup_latency_us=None if cfg.cpu_wakeup_latency_us < 0 else cfg.cpu_wakeup_latency_us,
+                tick_s=self.tick_s,
+                grace_cycles=self.stop_grace_cycles,
+                log_level=logging.getLogger("comp_daemon").getEffectiveLevel(),
+            ),
+            clock_ns=self.clock_ns,
+            on_lost=lambda reason: self.request_stop("task failed"),
+        )
+        await self.rtp.start()
+        self._keep_jobs_off(self.rtp.describe()["cpu"])
+        log.info("daemon: real-time loop: %s", self._realtime_word())
+
+    def _keep_jobs_off(self, cpu: int | None) -> None:
+        rest = other_cpus(cpu)
+        if self.settings.realtime.keep_jobs_off_cpu and not self.settings.jobs.cpus and rest:
+            jobs = self.settings.jobs.model_copy(update={"cpus": sorted(rest)})
+            self.settings = self.settings.model_copy(update={"jobs": jobs})
+
+    @property
+    def rsi_stats(self) -> RsiServerStats | None:
+        """The RSI endpoint's counters and latency rings (mirrored from the real-time process)."""
+        if self.rtp is not None:
+            return self.rtp.rsi_stats
+        return None if self.rsi is None else self.rsi.stats
+
     def _realtime_word(self) -> str:
-        rt = self.rt
-        if rt is None:
+        if self.rtp is not None:
+            d = self.rtp.describe()
+            kind = f"own process (pid {d['pid']})"
+        elif self.rt is not None:
+            d = self.rt.describe()
+            kind = "own thread"
+        else:
             return "one event loop with the HTTP side"
-        d = rt.describe()
         where = "any CPU" if d["cpu"] is None else f"CPU {d['cpu']}"
-        word = f"own thread on {where}, {d['scheduler']} scheduling"
+        word = f"{kind} on {where}, {d['scheduler']} scheduling"
         if d["cpu_wakeup_latency_us"] is not None:
             word += f", CPU wake-up latency ≤ {d['cpu_wakeup_latency_us']} µs requested"
         jobs = self.settings.jobs.cpus
@@ -508,7 +558,10 @@ class Daemon:
         if self._cal_task is not None and not self._cal_task.done():
             self._cal_task.cancel()  # its moves end with the robot's Stop below
         if runtime is not None:
-            runtime.shutdown()
+            try:
+                runtime.shutdown()
+            except RtProcessError as exc:  # it has gone: it went safe on its own
+                log.error("daemon: %s", exc)
         task = self._tasks.pop("executor", None)
         if task is not None:
             try:
@@ -522,12 +575,15 @@ class Daemon:
             except Exception:
                 log.exception("daemon: the executor failed")
         # 2. let the controller see Stop=1 for a few cycles, then stop listening
-        if runtime is not None and self.rsi_transport is not None and runtime.rsi_alive():
+        if runtime is not None and self._rsi_open() and runtime.rsi_alive():
             seen = runtime.telegrams
             cycle_s = self.settings.rsi.cycle_ms / 1000.0
             deadline = time.monotonic() + (self.stop_grace_cycles + 2) * cycle_s
             while runtime.telegrams < seen + self.stop_grace_cycles and time.monotonic() < deadline:
                 await asyncio.sleep(cycle_s / 2)
+        if self.rtp is not None:
+            with contextlib.suppress(RtProcessError, TimeoutError):  # it has gone already
+                await self.rtp.close_rsi()
         if self.rsi_transport is not None:
             with contextlib.suppress(RuntimeError):  # the real-time thread is gone already
                 await self._rt_call(self.rsi_transport.close)
@@ -546,9 +602,13 @@ class Daemon:
             sup.cancel()
             with contextlib.suppress(asyncio.CancelledError, Exception):
                 await sup
+        if self.rtp is not None:
+            code = await self.rtp.stop()
+            log.info("daemon: real-time process exited with %s", code)
         for reader in self.readers.values():
-            with contextlib.suppress(RuntimeError):
-                await self._on_rt(reader.stop())
+            if isinstance(reader, EncoderReader):
+                with contextlib.suppress(RuntimeError):
+                    await self._on_rt(reader.stop())
         for name in [n for n in self._tasks if n.startswith("encoder")]:
             self._tasks.pop(name)
         if self.rt is not None:
@@ -599,8 +659,8 @@ class Daemon:
                 for f in runtime.fault_log
             ],
             "rsi": None
-            if self.rsi is None
-            else self.rsi.stats.snapshot() | {"latency": None, "jitter": None},
+            if self.rsi_stats is None
+            else self.rsi_stats.snapshot() | {"latency": None, "jitter": None},
         }
 
     # ------------------------------------------------------------------------------ the RSI handler
@@ -609,6 +669,7 @@ class Daemon:
         runtime = self.runtime
         if runtime is None:  # telegrams before the loop is assembled: no correction
             return SenReply(telegram.ipoc, _ZERO, False, self.settings.rsi.sen_type)
+        assert isinstance(runtime, LoopRuntime), "with a real-time process its child answers"
         return runtime.handle(telegram)
 
     # ------------------------------------------------------------------------------ supervisor
@@ -634,12 +695,21 @@ class Daemon:
                 last_watchdog = now
                 self.notifier.watchdog()
 
+    def _rsi_open(self) -> bool:
+        if self.rtp is not None:
+            return self.rtp.alive
+        return self.rsi_transport is not None and not self.rsi_transport.is_closing()
+
     def _healthy(self, tick_gap_s: float) -> bool:
-        """Alive tasks, an open RSI socket, and an event loop that keeps its schedule."""
+        """Alive tasks, an open RSI socket, and event loops that keep their schedule."""
         if tick_gap_s > 1.0:
             return False
-        if self.rsi_transport is None or self.rsi_transport.is_closing():
+        if not self._rsi_open():
             return False
+        if self.rtp is not None:
+            age = self.rtp.report_age_s()
+            if age is None or age > 1.0:
+                return False
         if self.rt is not None:
             age = self.rt.heartbeat_age_s()
             if not self.rt.alive or age is None or age > 1.0:
@@ -647,10 +717,9 @@ class Daemon:
         return not any(t.done() for t in self._tasks.values())
 
     async def _telemetry(self) -> None:
-        runtime, rsi = self.runtime, self.rsi
-        if runtime is None or rsi is None:
+        runtime, stats = self.runtime, self.rsi_stats
+        if runtime is None or stats is None:
             return
-        stats = rsi.stats
         # percentiles over the latency ring in a worker thread (copy here: the handler appends to it)
         lat = stats.latency.recent()
         jit = stats.jitter.recent()
@@ -668,7 +737,7 @@ class Daemon:
             last_ipoc=runtime.last_ipoc,
             realtime=self._realtime_word(),
         )
-        self._update_metrics(lat)
+        self._update_metrics(runtime, stats, lat)
         rows = runtime.joint_rows()
         self.bus.publish("loop", asdict(self._loop_stats) | {"state": self._state_word()})
         self.bus.publish("joints", {"joints": rows, "state": str(runtime.core.state)})
@@ -691,10 +760,7 @@ class Daemon:
         self._metric_marks[key] = value
         return max(0, value - before)
 
-    def _update_metrics(self, latencies_ns: np.ndarray) -> None:
-        runtime, rsi = self.runtime, self.rsi
-        assert runtime is not None and rsi is not None
-        stats = rsi.stats
+    def _update_metrics(self, runtime: LoopView, stats: RsiServerStats, latencies_ns: np.ndarray) -> None:
         new = self._delta("answered", stats.answered)
         if new:
             metrics.RSI_TELEGRAMS.inc(new)

@@ -21,11 +21,12 @@ import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.daemon.runtime import CycleSample, LoopRuntime
+from comp_daemon.daemon.runtime import CycleSample
 from comp_daemon.rt.executor import MotionPort
 from comp_daemon.rt.grating_cal import (
     GratingCalibration,
@@ -35,9 +36,19 @@ from comp_daemon.rt.grating_cal import (
     save_calibration,
 )
 
-__all__ = ["GratingGeometry", "calibrate_gratings", "default_calibration_poses"]
+__all__ = ["GratingGeometry", "SamplingLoop", "calibrate_gratings", "default_calibration_poses"]
 
 log = logging.getLogger(__name__)
+
+
+class SamplingLoop(Protocol):
+    """What the calibration needs of the loop (a ``LoopRuntime`` or the real-time process's proxy)."""
+
+    joints: tuple[int, ...]
+
+    async def samples(self, n: int, timeout_s: float) -> list[CycleSample]: ...
+
+    def set_calibration(self, calibration: GratingCalibration | None) -> None: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +87,7 @@ def default_calibration_poses(
 
 
 async def _still_reading(
-    runtime: LoopRuntime,
+    runtime: SamplingLoop,
     n_joints: int,
     *,
     settle_cycles: int,
@@ -116,7 +127,7 @@ async def _still_reading(
 
 
 async def calibrate_gratings(
-    runtime: LoopRuntime,
+    runtime: SamplingLoop,
     motion: MotionPort,
     poses: Sequence[Sequence[float]],
     geometry: Mapping[int, GratingGeometry],

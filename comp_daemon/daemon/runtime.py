@@ -60,7 +60,7 @@ from comp_daemon.rt.safety import (
     shutdown,
 )
 
-__all__ = ["CycleSample", "FeedbackSource", "LoopRuntime"]
+__all__ = ["CycleSample", "FeedbackSource", "LoopRuntime", "LoopView"]
 
 Clock = Callable[[], int]
 
@@ -95,8 +95,13 @@ def _resolve(fut: asyncio.Future[list[CycleSample]], value: list[CycleSample]) -
         fut.set_result(value)
 
 
-class LoopRuntime:
-    """See the module docstring. Joint numbers are 1-based (1 = A1) at this interface."""
+class LoopView:
+    """What the service may see of the loop: the core state, the last cycle, the gratings' health.
+
+    :class:`LoopRuntime` keeps these attributes up to date as it handles telegrams; the real-time
+    process's proxy (:class:`comp_daemon.daemon.rt_process.RemoteRuntime`) keeps them as the child
+    reports them. Joint numbers are 1-based (1 = A1) at this interface.
+    """
 
     def __init__(
         self,
@@ -118,14 +123,12 @@ class LoopRuntime:
         self.clock_ns = clock_ns
         self.rsi_alive_s = rsi_alive_s
         self.core: LoopCore = new_core([j - 1 for j in self.joints])
-        self._lock = threading.Lock()
-        self._owner_loop: asyncio.AbstractEventLoop | None = _running_loop()
-        self._owner_thread = threading.get_ident()
         self._maps: tuple[JointGratingMap | None, ...] = (None,) * len(self.joints)
         self.calibration: GratingCalibration | None = None
         self.set_calibration(calibration)
         self.events: asyncio.Queue[Event] = asyncio.Queue()
         self.fault_log: deque[Fault] = deque(maxlen=64)
+        self.faults_logged = 0  # how many faults fault_log has seen (it keeps the last 64)
         self.telegrams = 0
         self.last_ipoc: int | None = None
         self.last_actual_deg: tuple[float, ...] | None = None
@@ -140,91 +143,14 @@ class LoopRuntime:
             maxlen=trace_cycles
         )
         self._last_rx_ns: int | None = None
-        self._samplers: list[tuple[int, list[CycleSample], asyncio.Future[list[CycleSample]]]] = []
+        self._post_init()
 
-    # ------------------------------------------------------------------------------ the handler
+    def _post_init(self) -> None:
+        """Subclasses set up their own state here (called last by ``__init__``)."""
 
-    def handle(self, telegram: RobTelegram) -> SenReply:
-        """One RSI cycle (called in the UDP receive callback)."""
-        now_ns = self.clock_ns()
-        feedback: list[Reading | FeedbackFault] = []
-        angles: list[float | None] = []
-        readings: list[EncoderReading | EncoderFault] = []
-        for source, cal in zip(self.sources, self._maps, strict=True):
-            r = source.reading(now_ns)
-            readings.append(r)
-            if isinstance(r, EncoderReading):
-                if cal is None:
-                    feedback.append(FeedbackFault(FaultKind.FEEDBACK_FAULT, "no grating calibration"))
-                    angles.append(None)
-                else:
-                    angle = r.count * cal.slope_deg_per_count + cal.zero_deg
-                    feedback.append((angle, r.t_ns * 1e-9))
-                    angles.append(angle)
-            else:
-                kind = FaultKind.FEEDBACK_STALE if r.kind in _STALE_KINDS else FaultKind.FEEDBACK_FAULT
-                feedback.append(FeedbackFault(kind, f"{r.kind}: {r.detail}"))
-                angles.append(None)
-        inp = CycleInput(
-            now_ns * 1e-9, telegram.ipoc, telegram.aspos_deg, telegram.aipos_deg, tuple(feedback)
-        )
-        with self._lock:
-            result = on_cycle(self.safety, self.loop, self.core, inp)
-            self.core = result.core
-        for event in result.events:
-            self._event(event)
-        self.telegrams += 1
-        self.last_ipoc = telegram.ipoc
-        self.last_actual_deg = telegram.aipos_deg
-        self.last_setpoint_deg = telegram.aspos_deg
-        self.last_angles_deg = tuple(angles)
-        self.last_feedback = tuple(readings)
-        self.last_stop = result.output.stop
-        self.last_ak_deg = result.output.ak_deg
-        self.trace.append(
-            (now_ns, telegram.ipoc, self.core.state, self.core.errors_deg, result.output.ak_deg)
-        )
-        if self.core.state is SafetyState.STOPPING:
-            self.replies_after_shutdown += 1
-        self._last_rx_ns = now_ns
-        if self._samplers:
-            self._sample(telegram, readings)
-        return SenReply(telegram.ipoc, result.output.ak_deg, result.output.stop, self.sen_type)
-
-    def _event(self, event: Event) -> None:
-        f = getattr(event, "fault", None)
-        if isinstance(f, Fault):
-            self.fault_log.append(f)
-        self._to_owner(self.events.put_nowait, event)
-
-    def _to_owner(self, fn: Callable[..., object], *args: object) -> None:
-        """Call ``fn`` now on the owner's thread, or hand it to the owner's event loop."""
-        loop = self._owner_loop
-        if loop is None or threading.get_ident() == self._owner_thread:
-            fn(*args)
-            return
-        try:
-            loop.call_soon_threadsafe(fn, *args)
-        except RuntimeError:  # the owner's loop is closed: nobody is waiting any more
-            pass
-
-    def _sample(self, telegram: RobTelegram, readings: Sequence[EncoderReading | EncoderFault]) -> None:
-        counts = tuple(r.count if isinstance(r, EncoderReading) else None for r in readings)
-        sample = CycleSample(telegram.ipoc, telegram.aipos_deg, telegram.aspos_deg, counts)
-        keep = []
-        with self._lock:
-            samplers = self._samplers
-            for n, bucket, fut in samplers:
-                if fut.done():
-                    continue
-                bucket.append(sample)
-                if len(bucket) >= n:
-                    self._to_owner(_resolve, fut, bucket)
-                else:
-                    keep.append((n, bucket, fut))
-            self._samplers = keep
-
-    # ------------------------------------------------------------------------------ commands
+    def _log_fault(self, f: Fault) -> None:
+        self.fault_log.append(f)
+        self.faults_logged += 1
 
     def now_s(self) -> float:
         return self.clock_ns() * 1e-9
@@ -242,64 +168,6 @@ class LoopRuntime:
                     maps.append(None)
             self._maps = tuple(maps)
         self.calibration = calibration
-
-    def arm(self, target_id: str, commanded_deg: Sequence[float], loop_target_deg: Sequence[float]) -> None:
-        with self._lock:
-            self.core = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
-
-    def release(self) -> None:
-        with self._lock:
-            self.core = release(self.core)
-
-    def reset(self) -> None:
-        """Operator acknowledgement of a fault."""
-        with self._lock:
-            self.core = reset(self.core)
-
-    def fault(self, kind: FaultKind, detail: str) -> None:
-        with self._lock:
-            result = fault(self.core, kind, detail, self.now_s())
-            self.core = result.core
-        for event in result.events:
-            self._event(event)
-        if result.core.fault is not None and not result.events:
-            self.fault_log.append(result.core.fault)
-
-    def shutdown(self) -> None:
-        """Zero steps and ``Stop = 1`` from the next telegram on; the active target is reported."""
-        with self._lock:
-            result = shutdown(self.core, self.now_s())
-            self.core = result.core
-        for event in result.events:
-            self._event(event)
-
-    def tick(self) -> None:
-        """Timer check between telegrams (called a few times per second)."""
-        with self._lock:
-            result = on_tick(self.safety, self.core, self.now_s())
-            changed = result.core is not self.core
-            if changed:
-                self.core = result.core
-        if changed:
-            for event in result.events:
-                self._event(event)
-
-    async def next_event(self) -> Event:
-        return await self.events.get()
-
-    async def samples(self, n: int, timeout_s: float) -> list[CycleSample]:
-        """The next ``n`` telegrams' axis values and raw grating counts (for the grating calibration).
-
-        Raises TimeoutError when they do not arrive within ``timeout_s``.
-        """
-        fut: asyncio.Future[list[CycleSample]] = asyncio.get_running_loop().create_future()
-        with self._lock:
-            self._samplers = [*self._samplers, (n, [], fut)]
-        try:
-            async with asyncio.timeout(timeout_s):
-                return await fut
-        finally:
-            fut.cancel()
 
     # ------------------------------------------------------------------------------ views
 
@@ -369,3 +237,155 @@ class LoopRuntime:
                 }
             )
         return rows
+
+
+class LoopRuntime(LoopView):
+    """See the module docstring: the loop itself, handling telegrams in the RSI receive callback."""
+
+    def _post_init(self) -> None:
+        self._lock = threading.Lock()
+        self._owner_loop: asyncio.AbstractEventLoop | None = _running_loop()
+        self._owner_thread = threading.get_ident()
+        self._samplers: list[tuple[int, list[CycleSample], asyncio.Future[list[CycleSample]]]] = []
+
+    # ------------------------------------------------------------------------------ the handler
+
+    def handle(self, telegram: RobTelegram) -> SenReply:
+        """One RSI cycle (called in the UDP receive callback)."""
+        now_ns = self.clock_ns()
+        feedback: list[Reading | FeedbackFault] = []
+        angles: list[float | None] = []
+        readings: list[EncoderReading | EncoderFault] = []
+        for source, cal in zip(self.sources, self._maps, strict=True):
+            r = source.reading(now_ns)
+            readings.append(r)
+            if isinstance(r, EncoderReading):
+                if cal is None:
+                    feedback.append(FeedbackFault(FaultKind.FEEDBACK_FAULT, "no grating calibration"))
+                    angles.append(None)
+                else:
+                    angle = r.count * cal.slope_deg_per_count + cal.zero_deg
+                    feedback.append((angle, r.t_ns * 1e-9))
+                    angles.append(angle)
+            else:
+                kind = FaultKind.FEEDBACK_STALE if r.kind in _STALE_KINDS else FaultKind.FEEDBACK_FAULT
+                feedback.append(FeedbackFault(kind, f"{r.kind}: {r.detail}"))
+                angles.append(None)
+        inp = CycleInput(
+            now_ns * 1e-9, telegram.ipoc, telegram.aspos_deg, telegram.aipos_deg, tuple(feedback)
+        )
+        with self._lock:
+            result = on_cycle(self.safety, self.loop, self.core, inp)
+            self.core = result.core
+        for event in result.events:
+            self._event(event)
+        self.telegrams += 1
+        self.last_ipoc = telegram.ipoc
+        self.last_actual_deg = telegram.aipos_deg
+        self.last_setpoint_deg = telegram.aspos_deg
+        self.last_angles_deg = tuple(angles)
+        self.last_feedback = tuple(readings)
+        self.last_stop = result.output.stop
+        self.last_ak_deg = result.output.ak_deg
+        self.trace.append(
+            (now_ns, telegram.ipoc, self.core.state, self.core.errors_deg, result.output.ak_deg)
+        )
+        if self.core.state is SafetyState.STOPPING:
+            self.replies_after_shutdown += 1
+        self._last_rx_ns = now_ns
+        if self._samplers:
+            self._sample(telegram, readings)
+        return SenReply(telegram.ipoc, result.output.ak_deg, result.output.stop, self.sen_type)
+
+    def _event(self, event: Event) -> None:
+        f = getattr(event, "fault", None)
+        if isinstance(f, Fault):
+            self._log_fault(f)
+        self._to_owner(self.events.put_nowait, event)
+
+    def _to_owner(self, fn: Callable[..., object], *args: object) -> None:
+        """Call ``fn`` now on the owner's thread, or hand it to the owner's event loop."""
+        loop = self._owner_loop
+        if loop is None or threading.get_ident() == self._owner_thread:
+            fn(*args)
+            return
+        try:
+            loop.call_soon_threadsafe(fn, *args)
+        except RuntimeError:  # the owner's loop is closed: nobody is waiting any more
+            pass
+
+    def _sample(self, telegram: RobTelegram, readings: Sequence[EncoderReading | EncoderFault]) -> None:
+        counts = tuple(r.count if isinstance(r, EncoderReading) else None for r in readings)
+        sample = CycleSample(telegram.ipoc, telegram.aipos_deg, telegram.aspos_deg, counts)
+        keep = []
+        with self._lock:
+            samplers = self._samplers
+            for n, bucket, fut in samplers:
+                if fut.done():
+                    continue
+                bucket.append(sample)
+                if len(bucket) >= n:
+                    self._to_owner(_resolve, fut, bucket)
+                else:
+                    keep.append((n, bucket, fut))
+            self._samplers = keep
+
+    # ------------------------------------------------------------------------------ commands
+
+    def arm(self, target_id: str, commanded_deg: Sequence[float], loop_target_deg: Sequence[float]) -> None:
+        with self._lock:
+            self.core = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
+
+    def release(self) -> None:
+        with self._lock:
+            self.core = release(self.core)
+
+    def reset(self) -> None:
+        """Operator acknowledgement of a fault."""
+        with self._lock:
+            self.core = reset(self.core)
+
+    def fault(self, kind: FaultKind, detail: str) -> None:
+        with self._lock:
+            result = fault(self.core, kind, detail, self.now_s())
+            self.core = result.core
+        for event in result.events:
+            self._event(event)
+        if result.core.fault is not None and not result.events:
+            self._log_fault(result.core.fault)
+
+    def shutdown(self) -> None:
+        """Zero steps and ``Stop = 1`` from the next telegram on; the active target is reported."""
+        with self._lock:
+            result = shutdown(self.core, self.now_s())
+            self.core = result.core
+        for event in result.events:
+            self._event(event)
+
+    def tick(self) -> None:
+        """Timer check between telegrams (called a few times per second)."""
+        with self._lock:
+            result = on_tick(self.safety, self.core, self.now_s())
+            changed = result.core is not self.core
+            if changed:
+                self.core = result.core
+        if changed:
+            for event in result.events:
+                self._event(event)
+
+    async def next_event(self) -> Event:
+        return await self.events.get()
+
+    async def samples(self, n: int, timeout_s: float) -> list[CycleSample]:
+        """The next ``n`` telegrams' axis values and raw grating counts (for the grating calibration).
+
+        Raises TimeoutError when they do not arrive within ``timeout_s``.
+        """
+        fut: asyncio.Future[list[CycleSample]] = asyncio.get_running_loop().create_future()
+        with self._lock:
+            self._samplers = [*self._samplers, (n, [], fut)]
+        try:
+            async with asyncio.timeout(timeout_s):
+                return await fut
+        finally:
+            fut.cancel()

@@ -115,6 +115,15 @@ class SampleStats:
             return values[:n].copy()
         return np.concatenate([values[self._i :], values[: self._i]])
 
+    def since(self, count: int) -> array[int]:
+        """The values recorded after the ``count``-th, oldest first (at most the ring's size)."""
+        ring = self.ring
+        n = min(max(self.count - count, 0), len(ring))
+        start = (self._i - n) % len(ring)
+        if start + n <= len(ring):
+            return ring[start : start + n]
+        return ring[start:] + ring[: self._i]
+
     def percentiles(self, qs: tuple[float, ...] = (50.0, 99.0)) -> dict[str, float]:
         """Percentiles (ns) of the retained values; empty dict before the first value."""
         values = self.recent()

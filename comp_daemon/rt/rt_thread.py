@@ -38,13 +38,24 @@ import threading
 import time
 from collections.abc import Callable, Coroutine
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, BinaryIO, TypeVar
 
-__all__ = ["RealtimeThread", "RealtimeThreadConfig", "check_cpus", "other_cpus", "resolve_cpu"]
+__all__ = [
+    "PM_QOS_DEVICE",
+    "RealtimeThread",
+    "RealtimeThreadConfig",
+    "apply_scheduling",
+    "check_cpus",
+    "other_cpus",
+    "request_wakeup_latency",
+    "resolve_cpu",
+]
 
 log = logging.getLogger(__name__)
 
 T = TypeVar("T")
+
+PM_QOS_DEVICE = "/dev/cpu_dma_latency"
 
 
 @dataclass(frozen=True, slots=True)
@@ -54,7 +65,7 @@ class RealtimeThreadConfig:
     realtime_priority: int = 0  # 0: normal scheduling; 1..99: SCHED_FIFO priority
     switch_interval_s: float | None = 0.0002  # None: leave Python's default
     cpu_wakeup_latency_us: int | None = None  # None: no PM QoS request
-    pm_qos_device: str = "/dev/cpu_dma_latency"
+    pm_qos_device: str = PM_QOS_DEVICE
     heartbeat_s: float = 0.05
 
 
@@ -91,6 +102,53 @@ def other_cpus(cpu: int | None) -> set[int] | None:
         return None
     rest = set(os.sched_getaffinity(0)) - {cpu}
     return rest or None
+
+
+def apply_scheduling(cpu: int | None, priority: int, *, who: str) -> tuple[int | None, str, list[str]]:
+    """Pin the calling thread to ``cpu`` and give it ``SCHED_FIFO`` at ``priority`` (0: leave it).
+
+    Returns (the CPU pinned to or None, the scheduling in words, what could not be applied); each
+    refusal is logged and the thread keeps running with what it has.
+    """
+    pinned: int | None = None
+    scheduler = "normal"
+    notes: list[str] = []
+    if cpu is not None:
+        try:
+            os.sched_setaffinity(0, {cpu})  # 0: the calling thread on Linux
+            pinned = cpu
+        except (OSError, AttributeError) as exc:
+            notes.append(f"could not pin {who} to CPU {cpu}: {exc}")
+    if priority > 0:
+        try:
+            os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(priority))
+            scheduler = f"SCHED_FIFO {priority}"
+        except (OSError, AttributeError) as exc:
+            notes.append(
+                f"could not set SCHED_FIFO priority {priority} ({exc}); "
+                "grant CAP_SYS_NICE or LimitRTPRIO, running at normal priority"
+            )
+    for note in notes:
+        log.warning("rt: %s", note)
+    return pinned, scheduler, notes
+
+
+def request_wakeup_latency(us: int, device: str = PM_QOS_DEVICE) -> tuple[BinaryIO | None, str | None]:
+    """Open a PM QoS request for CPU wake-up latency ≤ ``us`` µs; it holds while the file stays open.
+
+    Returns (the open file, None) or (None, why it was refused — also logged).
+    """
+    fh = None
+    try:
+        fh = open(device, "wb", buffering=0)  # held open for the request's lifetime
+        fh.write(struct.pack("i", us))
+    except OSError as exc:
+        if fh is not None:
+            fh.close()
+        note = f"could not request a CPU wake-up latency of {us} µs ({exc})"
+        log.warning("rt: %s", note)
+        return None, note
+    return fh, None
 
 
 class RealtimeThread:
@@ -159,37 +217,15 @@ class RealtimeThread:
 
     def _apply_scheduling(self) -> None:
         cfg = self.config
-        if cfg.cpu is not None:
-            try:
-                os.sched_setaffinity(0, {cfg.cpu})  # 0: the calling thread on Linux
-                self.pinned_cpu = cfg.cpu
-            except (OSError, AttributeError) as exc:
-                self.notes.append(f"could not pin the real-time thread to CPU {cfg.cpu}: {exc}")
-        if cfg.realtime_priority > 0:
-            try:
-                os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(cfg.realtime_priority))
-                self.scheduler = f"SCHED_FIFO {cfg.realtime_priority}"
-            except (OSError, AttributeError) as exc:
-                self.notes.append(
-                    f"could not set SCHED_FIFO priority {cfg.realtime_priority} ({exc}); "
-                    "grant CAP_SYS_NICE or LimitRTPRIO, running at normal priority"
-                )
-        for note in self.notes:
-            log.warning("rt: %s", note)
+        self.pinned_cpu, self.scheduler, notes = apply_scheduling(
+            cfg.cpu, cfg.realtime_priority, who="the real-time thread"
+        )
+        self.notes.extend(notes)
 
     def _request_wakeup_latency(self, us: int) -> None:
-        fh = None
-        try:
-            fh = open(self.config.pm_qos_device, "wb", buffering=0)  # held open while the thread runs
-            fh.write(struct.pack("i", us))
-        except OSError as exc:
-            if fh is not None:
-                fh.close()
-            note = f"could not request a CPU wake-up latency of {us} µs ({exc})"
+        self._pm_qos, note = request_wakeup_latency(us, self.config.pm_qos_device)
+        if note is not None:
             self.notes.append(note)
-            log.warning("rt: %s", note)
-            return
-        self._pm_qos = fh
 
     async def _heartbeat(self) -> None:
         while True:

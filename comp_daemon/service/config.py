@@ -210,9 +210,14 @@ class RsiSettings(_Section):
 
 
 class RealtimeSettings(_Section):
-    """Where the RSI endpoint and the grating readers run (see comp_daemon.rt.rt_thread)."""
+    """Where the RSI endpoint and the grating readers run (daemon.rt_process, rt.rt_thread).
 
-    thread: bool = True
+    ``mode``: "process" — a child process with its own interpreter (the default); "thread" — a
+    thread of the daemon with its own event loop (shares the GIL with the HTTP side); "shared" — the
+    HTTP side's event loop (for comparison only).
+    """
+
+    mode: Literal["process", "thread", "shared"] = "process"
     cpu: int | Literal["auto", "none"] = "auto"
     priority: int = Field(default=0, ge=0, le=99)
     switch_interval_ms: float = Field(default=0.2, gt=0, le=10)

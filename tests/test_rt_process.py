@@ -1,0 +1,318 @@
+"""The real-time process: the RSI endpoint and the loop in a child process, driven over real UDP.
+
+What is checked: the link's framing (any split of the stream, bad frames refused); the child answers
+telegrams while the daemon's event loop is blocked, and the daemon's mirror then has every reply's
+latency, the cycle count and the loop state; commands reach the loop and a target the child refuses
+comes back as ``Faulted``; the child's log records reach the daemon's loggers; ``samples`` round
+trips; and when the daemon dies (SIGKILL) or the child gets SIGTERM, the child sends ``Stop = 1``
+with zero corrections and exits on its own — no motion from a loop nobody supervises.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import pickle
+import signal
+import socket
+import subprocess
+import sys
+import textwrap
+import threading
+import time
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from comp_daemon.daemon.rt_link import FrameDecoder, LinkError, encode_frame
+from comp_daemon.daemon.rt_process import LoopStart, ReaderMirror, RealtimeProcess, RemoteRuntime, RtStart
+from comp_daemon.rt.controller import JointLoopSettings
+from comp_daemon.rt.encoder_reader import (
+    EncoderFault,
+    EncoderReaderConfig,
+    EncoderReading,
+    LinearGratingCalibration,
+)
+from comp_daemon.rt.encoder_reader import FaultKind as EncoderFaultKind
+from comp_daemon.rt.rsi_codec import SenReply, build_rob, parse_sen
+from comp_daemon.rt.rsi_server import RsiServerConfig
+from comp_daemon.rt.safety import Faulted, FaultKind, SafetySettings, SafetyState
+
+HOME = (10.0, -90.0, 90.0, 0.0, 30.0, 0.0)
+
+# ------------------------------------------------------------------------------------------ framing
+
+
+@given(
+    messages=st.lists(
+        st.recursive(
+            st.none() | st.integers() | st.floats(allow_nan=False) | st.text(max_size=20),
+            lambda kids: st.lists(kids, max_size=4).map(tuple) | st.dictionaries(st.text(max_size=5), kids),
+            max_leaves=12,
+        ),
+        min_size=1,
+        max_size=6,
+    ),
+    cuts=st.lists(st.integers(min_value=0, max_value=4000), max_size=8),
+)
+@settings(max_examples=150, deadline=None)
+def test_frames_survive_any_split_of_the_stream(messages: list[object], cuts: list[int]) -> None:
+    stream = b"".join(encode_frame(m) for m in messages)
+    points = sorted({c % (len(stream) + 1) for c in cuts})
+    decoder = FrameDecoder()
+    out: list[object] = []
+    start = 0
+    for p in [*points, len(stream)]:
+        out.extend(decoder.feed(stream[start:p]))
+        start = p
+    assert out == messages
+
+
+def test_bad_frames_are_refused_with_the_reason() -> None:
+    with pytest.raises(LinkError, match="limit"):
+        FrameDecoder().feed((1 << 31).to_bytes(4, "big"))
+    payload = b"not a pickle"
+    with pytest.raises(LinkError, match="unreadable frame of 12 bytes"):
+        FrameDecoder().feed(len(payload).to_bytes(4, "big") + payload)
+
+
+def test_reader_mirror_ages_and_turns_stale_without_reports() -> None:
+    now = [1_000_000_000]
+    mirror = ReaderMirror(2, stale_after_ms=36.0, clock_ns=lambda: now[0])
+    first = mirror.reading()
+    assert isinstance(first, EncoderFault) and first.kind is EncoderFaultKind.NO_DATA
+    mirror.update(EncoderReading(2, 1.5, 1234, now[0] - 2_000_000, 2_000_000, False), now[0])
+    now[0] += 10_000_000
+    r = mirror.reading()
+    assert isinstance(r, EncoderReading) and r.age_ns == 12_000_000  # aged by the time since
+    now[0] += 30_000_000  # no report for 40 ms: the mirror does not pretend the grating is fresh
+    r = mirror.reading()
+    assert isinstance(r, EncoderFault) and r.kind is EncoderFaultKind.STALE and "42.0 ms" in r.detail
+
+
+# ------------------------------------------------------------------------------------------ the child
+
+
+class Controller:
+    """A blocking UDP client in the test standing in for the robot controller."""
+
+    def __init__(self, address: tuple[str, int]) -> None:
+        self.address = address
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(1.0)
+        self.ipoc = 1000
+
+    def cycle(self, axes: tuple[float, ...] = HOME) -> SenReply:
+        self.ipoc += 12
+        self.sock.sendto(build_rob(self.ipoc, axes, axes), self.address)
+        reply = parse_sen(self.sock.recv(65536))
+        assert reply.ipoc == self.ipoc
+        return reply
+
+    def run(self, n: int, period_s: float = 0.012) -> list[SenReply]:
+        out = []
+        for _ in range(n):
+            out.append(self.cycle())
+            time.sleep(period_s)
+        return out
+
+    def close(self) -> None:
+        self.sock.close()
+
+
+def loop_start(port: str) -> LoopStart:
+    reader = EncoderReaderConfig(port=port, joint=1, backoff_initial_ms=20.0, backoff_max_ms=100.0)
+    return LoopStart(
+        readers=((reader, LinearGratingCalibration(1000.0)),),
+        calibration=None,
+        safety=SafetySettings(),
+        loop=JointLoopSettings(cycle_s=0.012),
+    )
+
+
+@pytest.fixture
+async def rtp(tmp_path: Path) -> AsyncIterator[RealtimeProcess]:
+    proc = RealtimeProcess(
+        RtStart(rsi=RsiServerConfig(controller_host="127.0.0.1", bind_port=0), push_period_s=0.01)
+    )
+    await proc.start()
+    await proc.start_loop(loop_start(str(tmp_path / "no-such-grating")))
+    yield proc
+    code = await proc.stop()
+    assert code == 0
+
+
+def controller_of(rtp: RealtimeProcess) -> Controller:
+    host, port = rtp.info["rsi_address"]
+    return Controller((host, port))
+
+
+async def until(cond: object, timeout_s: float = 5.0) -> None:
+    async with asyncio.timeout(timeout_s):
+        while not cond():  # type: ignore[operator]
+            await asyncio.sleep(0.01)
+
+
+async def test_child_answers_while_the_daemon_loop_is_blocked(rtp: RealtimeProcess) -> None:
+    assert rtp.proc is not None and rtp.proc.pid != os.getpid() and rtp.alive
+    ctl = controller_of(rtp)
+    replies: list[SenReply] = []
+    client = threading.Thread(target=lambda: replies.extend(ctl.run(30)))
+    client.start()
+    time.sleep(0.5)  # the daemon's event loop does nothing for 0.5 s: no reply may depend on it
+    client.join(5.0)
+    ctl.close()
+    assert len(replies) == 30 and all(not r.stop and r.ak_deg == (0.0,) * 6 for r in replies)
+    runtime = rtp.runtime
+    assert runtime is not None
+    await until(lambda: rtp.rsi_stats.answered == 30 and runtime.telegrams == 30)
+    assert rtp.rsi_stats.latency.count == 30 and rtp.rsi_stats.handler_errors == 0
+    assert len(runtime.trace) == 30 and runtime.last_ipoc == ctl.ipoc
+    assert runtime.last_actual_deg == HOME
+    age = rtp.report_age_s()
+    assert age is not None and age < 1.0
+    # the grating port does not exist: the mirror says so, and a target could not start
+    reasons = runtime.readiness_reasons()
+    assert any("grating A1: gone" in r for r in reasons), reasons
+
+
+async def test_commands_reach_the_loop_and_a_refused_target_comes_back_faulted(rtp: RealtimeProcess) -> None:
+    runtime = rtp.runtime
+    assert isinstance(runtime, RemoteRuntime)
+    runtime.arm("t1", HOME, (HOME[0],))
+    assert runtime.core.state is SafetyState.ARMED  # mirrored at once
+    await until(lambda: runtime.core.state is SafetyState.ARMED and rtp.last_report_ns is not None)
+    runtime.release()
+    await until(lambda: runtime.core.state is SafetyState.IDLE)
+
+    # a stop fault latched in the child that the mirror has not seen yet: the mirror accepts the
+    # target, the child refuses it and reports Faulted for it
+    rtp.command("fault", FaultKind.CORRECTION_LIMIT, "latched behind the mirror's back")
+    runtime.arm("t2", HOME, (HOME[0],))
+    async with asyncio.timeout(5):
+        while True:
+            event = await runtime.next_event()
+            if isinstance(event, Faulted) and event.target_id == "t2":
+                break
+    assert "the loop refused the target" in event.fault.detail
+    await until(lambda: runtime.core.state is SafetyState.FAULT)
+    assert runtime.core.fault is not None and runtime.core.fault.kind is FaultKind.CORRECTION_LIMIT
+    runtime.reset()
+    await until(lambda: runtime.core.state is SafetyState.IDLE)
+
+
+async def test_child_logs_reach_the_daemon_loggers(
+    rtp: RealtimeProcess, caplog: pytest.LogCaptureFixture
+) -> None:
+    caplog.set_level(logging.WARNING, logger="comp_daemon.rt.rsi_server")
+    host, port = rtp.info["rsi_address"]
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        s.sendto(b"<Rob><IPOC>not a number</IPOC></Rob>", (host, port))
+    await until(lambda: any("garbled telegram" in r.getMessage() for r in caplog.records))
+    await until(lambda: rtp.rsi_stats.garbled == 1)
+
+
+async def test_samples_round_trip(rtp: RealtimeProcess) -> None:
+    runtime = rtp.runtime
+    assert runtime is not None
+    ctl = controller_of(rtp)
+    client = threading.Thread(target=lambda: ctl.run(10))
+    client.start()
+    try:
+        samples = await runtime.samples(4, timeout_s=3.0)
+    finally:
+        await asyncio.to_thread(client.join, 5.0)
+        ctl.close()
+    assert len(samples) == 4 and all(s.actual_deg == HOME and s.counts == (None,) for s in samples)
+    with pytest.raises(TimeoutError):
+        await runtime.samples(1, timeout_s=0.1)  # no telegrams now
+
+
+# ------------------------------------------------------------------------------------------ going safe
+
+_PARENT = textwrap.dedent(
+    """
+    import asyncio, sys
+    from comp_daemon.daemon.rt_process import LoopStart, RealtimeProcess, RtStart
+    from comp_daemon.rt.rsi_server import RsiServerConfig
+    from test_rt_process import loop_start
+
+    async def main():
+        rtp = RealtimeProcess(RtStart(rsi=RsiServerConfig(controller_host="127.0.0.1", bind_port=0),
+                                      grace_cycles=3))
+        host, port = await rtp.start()
+        runtime = await rtp.start_loop(loop_start(sys.argv[1]))
+        runtime.arm("t1", (10.0, -90.0, 90.0, 0.0, 30.0, 0.0), (10.0,))
+        print(port, rtp.proc.pid, flush=True)
+        await asyncio.sleep(3600)
+
+    asyncio.run(main())
+    """
+)
+
+
+def pid_gone(pid: int, timeout_s: float) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        try:
+            os.kill(pid, 0)
+        except ProcessLookupError:
+            return True
+        time.sleep(0.02)
+    return False
+
+
+@pytest.mark.parametrize("who", ["daemon killed", "child SIGTERM"])
+def test_the_child_goes_safe_on_its_own(tmp_path: Path, who: str) -> None:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).parent), *sys.path]))
+    parent = subprocess.Popen(
+        [sys.executable, "-c", _PARENT, str(tmp_path / "no-such-grating")],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert parent.stdout is not None
+        port_s, child_s = parent.stdout.readline().split()
+        child_pid = int(child_s)
+        ctl = Controller(("127.0.0.1", int(port_s)))
+        before = ctl.run(10)
+        assert not any(r.stop for r in before)
+        if who == "daemon killed":
+            parent.send_signal(signal.SIGKILL)
+            parent.wait(5)
+        else:
+            os.kill(child_pid, signal.SIGTERM)
+        after: list[SenReply] = []
+        for _ in range(40):
+            try:
+                after.append(ctl.cycle())
+            except (TimeoutError, ConnectionRefusedError):
+                break
+            time.sleep(0.012)
+        ctl.close()
+        # from the first reply after the loss on: Stop = 1 and no correction, then silence
+        stops = [r for r in after if r.stop]
+        assert len(stops) >= 3, after
+        assert all(r.ak_deg == (0.0,) * 6 for r in after)
+        first_stop = after.index(stops[0])
+        assert all(r.stop for r in after[first_stop:])
+        assert len(after) < 40  # the endpoint closed
+        assert pid_gone(child_pid, 5.0)
+    finally:
+        if parent.poll() is None:
+            parent.kill()
+            parent.wait(5)
+        if parent.stdout is not None:
+            parent.stdout.close()
+
+
+def test_messages_pickle_under_their_importable_names() -> None:
+    spec = loop_start("/dev/null")
+    assert pickle.loads(pickle.dumps(spec)) == spec
+    assert type(pickle.loads(pickle.dumps(spec))).__module__ == "comp_daemon.daemon.rt_process"
