@@ -7,7 +7,10 @@ Set-up, per cycle time (all on 127.0.0.1, each a separate process):
 
 - the simulated cell (``python -m comp_daemon.daemon.simcell``): robot plant, simulated KR C4
   sending ``<Rob>`` telegrams every ``cycle_ms`` on its absolute schedule, three grating converters
-  on pseudo-terminals, the motion command port;
+  on pseudo-terminals, the motion command port; at ``SCHED_FIFO`` ``--controller-priority`` (10)
+  where permitted — the KR C4 is a real-time controller on hardware of its own, and at normal
+  priority on two shared cores the fit workers made it overrun its own cycle and send telegrams in
+  bursts (below the daemon's real-time priority, so it never delays a reply);
 - a relay between the controller and the daemon, in its own process, which timestamps every
   datagram (``SCHED_FIFO`` 30 where permitted: it stands in for the controller's wire, and at
   normal priority its own hold-ups queued two telegrams at the daemon): the telegram just before
@@ -219,7 +222,7 @@ token = "{TOKEN}"
 
 @contextlib.contextmanager
 def _cell(
-    root: Path, cycle_ms: int, rsi_port: int
+    root: Path, cycle_ms: int, rsi_port: int, priority: int
 ) -> Iterator[tuple[subprocess.Popen[bytes], dict[str, Any]]]:
     argv = [
         sys.executable, "-m", "comp_daemon.daemon.simcell", "--rsi-port", str(rsi_port),
@@ -228,6 +231,11 @@ def _cell(
     ]  # fmt: skip
     with (root / "cell.log").open("wb") as log:
         proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)
+    if priority > 0:
+        try:
+            os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(priority))
+        except (OSError, AttributeError) as exc:
+            print(f"simulated controller at normal priority: {exc}", file=sys.stderr)
     try:
         assert proc.stdout is not None
         info: dict[str, Any] = json.loads(proc.stdout.readline())
@@ -271,6 +279,7 @@ class Options:
     rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of that thread (0: normal)
     switch_interval_ms: float = 0.2  # [realtime] switch_interval_ms: the GIL switch interval
     cpu_wakeup_latency_us: int = 0  # [realtime] cpu_wakeup_latency_us (-1: no PM QoS request)
+    controller_priority: int = 10  # SCHED_FIFO priority of the simulated cell (0: normal scheduling)
     keep: bool = False
 
 
@@ -413,7 +422,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     daemon: subprocess.Popen[bytes] | None = None
     result: dict[str, Any] = {"cycle_ms": cycle_ms, "options": asdict(opts)}
     try:
-        with _cell(root, cycle_ms, relay_port) as (_cell_proc, cell):
+        with _cell(root, cycle_ms, relay_port, opts.controller_priority) as (_cell_proc, cell):
             cfg = _config(root, cell, cycle_ms, http_port, daemon_rsi, opts)
             with (root / "daemon.log").open("wb") as log:
                 daemon = subprocess.Popen(
@@ -585,6 +594,12 @@ def main(argv: list[str] | None = None) -> int:
         default=0,
         help="[realtime] cpu_wakeup_latency_us (PM QoS; -1: no request)",
     )
+    parser.add_argument(
+        "--controller-priority",
+        type=int,
+        default=10,
+        help="SCHED_FIFO priority of the simulated cell, below --rt-priority (0: normal scheduling)",
+    )
     parser.add_argument("--campaign-rows", type=int, default=1000, help="rows of the campaign the fits use")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
     parser.add_argument("--keep", action="store_true", help="keep the run folders (logs, relay record)")
@@ -603,6 +618,7 @@ def main(argv: list[str] | None = None) -> int:
         rt_priority=args.rt_priority,
         switch_interval_ms=args.switch_interval_ms,
         cpu_wakeup_latency_us=args.cpu_wakeup_latency_us,
+        controller_priority=args.controller_priority,
         keep=args.keep,
     )
     print(f"options: {asdict(opts)}", flush=True)

@@ -125,6 +125,8 @@ def test_environment_overrides_file(tmp_path: Path, monkeypatch: pytest.MonkeyPa
         ("[[auth.tokens]]\nname='a'\nrole='admin'\ntoken='0123456789abcdefgh'\n", "role"),
         ("[[auth.tokens]]\nname='a'\nrole='viewer'\ntoken_file='missing.token'\n", "cannot read token_file"),
         ("[controller]\nsettle_tolerance_deg = 0.01\n", "settle_tolerance_deg"),
+        ("[realtime]\nmode = 'fast'\n", "realtime.mode"),
+        ("[realtime]\nthread = true\n", "realtime.thread"),  # the former switch: named, not ignored
         (
             "[[encoders.joints]]\njoint=1\nport='a'\nradius_mm=1\n[[encoders.joints]]\njoint=1\nport='b'\nradius_mm=1\n",
             "one grating",
