@@ -7,10 +7,11 @@ Set-up, per cycle time (all on 127.0.0.1, each a separate process):
 
 - the simulated cell (``python -m comp_daemon.daemon.simcell``): robot plant, simulated KR C4
   sending ``<Rob>`` telegrams every ``cycle_ms`` on its absolute schedule, three grating converters
-  on pseudo-terminals, the motion command port; at ``SCHED_FIFO`` ``--controller-priority`` (10)
-  where permitted — the KR C4 is a real-time controller on hardware of its own, and at normal
-  priority on two shared cores the fit workers made it overrun its own cycle and send telegrams in
-  bursts (below the daemon's real-time priority, so it never delays a reply);
+  on pseudo-terminals, the motion command port; normal scheduling, or ``SCHED_FIFO``
+  ``--controller-priority`` (below the daemon's). The KR C4 is a real-time controller on hardware
+  of its own; at normal priority on two shared cores the fit workers made the simulated one overrun
+  its own 4 ms cycle and send telegrams in bursts, and at ``SCHED_FIFO`` 10 its plant physics
+  lengthened the tail of the replies at 12 ms (docs/benchmarks.md);
 - a relay between the controller and the daemon, in its own process, which timestamps every
   datagram (``SCHED_FIFO`` 30 where permitted: it stands in for the controller's wire, and at
   normal priority its own hold-ups queued two telegrams at the daemon): the telegram just before
@@ -279,7 +280,8 @@ class Options:
     rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of that thread (0: normal)
     switch_interval_ms: float = 0.2  # [realtime] switch_interval_ms: the GIL switch interval
     cpu_wakeup_latency_us: int = 0  # [realtime] cpu_wakeup_latency_us (-1: no PM QoS request)
-    controller_priority: int = 10  # SCHED_FIFO priority of the simulated cell (0: normal scheduling)
+    controller_priority: int = 0  # SCHED_FIFO priority of the simulated cell (0: normal scheduling)
+    floor_cpu: int | None = None  # run cyclictest on this CPU during the measurement
     keep: bool = False
 
 
@@ -397,6 +399,58 @@ def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
+def _steal_s() -> float:
+    """CPU time the hypervisor gave to others (``steal`` of ``/proc/stat``, all CPUs), in s."""
+    try:
+        fields = Path("/proc/stat").read_text().splitlines()[0].split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return float("nan")
+
+
+def _floor_start(cpu: int | None) -> subprocess.Popen[str] | None:
+    """``cyclictest`` (Debian's rt-tests) on ``cpu`` at SCHED_FIFO 21 with a 1 ms period: how late
+    the platform itself wakes the highest-priority thread while the load runs."""
+    if cpu is None:
+        return None
+    exe = shutil.which("cyclictest")
+    if exe is None:
+        print(
+            "--floor-cpu: cyclictest not found (apt-get install rt-tests); no floor measured", file=sys.stderr
+        )
+        return None
+    argv = [exe, "-m", "-q", "-a", str(cpu), "-p", "21", "-i", "1000", "-h", "100000"]
+    return subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True)
+
+
+def _floor_stop(proc: subprocess.Popen[str] | None, cycle_ms: int) -> dict[str, Any] | None:
+    if proc is None:
+        return None
+    proc.send_signal(signal.SIGINT)  # cyclictest prints its histogram (µs → count) on SIGINT
+    text, _ = proc.communicate(timeout=30)
+    counts: dict[int, int] = {}
+    for line in text.splitlines():
+        parts = line.split()
+        if len(parts) >= 2 and not line.startswith("#") and parts[0].isdigit():
+            counts[int(parts[0])] = counts.get(int(parts[0]), 0) + int(parts[1])
+    m = re.search(r"# Max Latencies:\s*(\d+)", text)
+    if not counts:
+        return None
+    us = np.array(sorted(counts))
+    n = np.array([counts[u] for u in us])
+    cum = np.cumsum(n) / n.sum()
+    pct = {
+        f"p{q:g}_us": int(us[min(np.searchsorted(cum, q / 100), us.size - 1)]) for q in (50, 99, 99.9, 99.99)
+    }
+    return {
+        "wakeups": int(n.sum()),
+        **pct,
+        "max_us": int(m.group(1)) if m else int(us[n > 0].max()),
+        "over_1ms": int(n[us > 1000].sum()),
+        f"over_{cycle_ms}ms": int(n[us > cycle_ms * 1000].sum()),
+    }
+
+
 def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     cycles = opts.cycles
     root = Path(tempfile.mkdtemp(prefix=f"bench-rsi-{cycle_ms}ms-"))
@@ -458,14 +512,20 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
                 ctrl0 = json.loads(_line(cell["motion_port"], "status"))
                 status0 = c.get("/api/status").json()["daemon"]["loop"]
                 load_start = os.getloadavg()
+                floor = _floor_start(opts.floor_cpu)
+                steal0 = _steal_s()
                 t0 = time.monotonic()
                 recording.set()
-                while not finished.wait(5.0):
-                    if daemon.poll() is not None:
-                        raise RuntimeError(f"the daemon exited with {daemon.returncode}")
-                    if time.monotonic() - t0 > cycles * cycle_ms / 1000.0 * 3 + 120:
-                        raise RuntimeError("the measurement did not finish")
-                wall_s = time.monotonic() - t0
+                try:
+                    while not finished.wait(5.0):
+                        if daemon.poll() is not None:
+                            raise RuntimeError(f"the daemon exited with {daemon.returncode}")
+                        if time.monotonic() - t0 > cycles * cycle_ms / 1000.0 * 3 + 120:
+                            raise RuntimeError("the measurement did not finish")
+                finally:
+                    wall_s = time.monotonic() - t0
+                    steal_s = _steal_s() - steal0
+                    platform = _floor_stop(floor, cycle_ms)
                 ctrl1 = json.loads(_line(cell["motion_port"], "status"))
                 status1 = c.get("/api/status").json()["daemon"]["loop"]
                 load.stop()
@@ -513,6 +573,8 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
         missing_in_relay_burst=int(np.sum(~answered & burst)),
         over_1ms=int(np.sum(lat_ms > 1.0)),
         relay_forward_ms_p99=_pct(relay_ms, 99),
+        steal_s=round(steal_s, 2),
+        platform_floor=platform,
         daemon_view={
             "p50_ms": status1.get("latency_p50_ms"),
             "p99_ms": status1.get("latency_p99_ms"),
@@ -563,7 +625,20 @@ def _report(r: dict[str, Any]) -> str:
         f"errors: {r['http_errors'] or 0}), "
         f"{r['sse_events']} SSE events; "
         f"relay forwarding p99 {r['relay_forward_ms_p99']:.3f} ms; load average {r['loadavg_start']} → "
-        f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}"
+        f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}\n"
+        f"   platform: {r['steal_s']} s of CPU time stolen by the hypervisor; {_floor_text(r)}"
+    )
+
+
+def _floor_text(r: dict[str, Any]) -> str:
+    f = r.get("platform_floor")
+    if not f:
+        return "no wake-up floor measured (--floor-cpu)"
+    over = f"over_{r['cycle_ms']}ms"
+    return (
+        f"cyclictest ({f['wakeups']} wake-ups): p50 {f['p50_us']} µs, p99 {f['p99_us']} µs, "
+        f"p99.9 {f['p99.9_us']} µs, p99.99 {f['p99.99_us']} µs, max {f['max_us']} µs; "
+        f"> 1 ms: {f['over_1ms']}, > {r['cycle_ms']} ms: {f[over]}"
     )
 
 
@@ -597,8 +672,14 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--controller-priority",
         type=int,
-        default=10,
+        default=0,
         help="SCHED_FIFO priority of the simulated cell, below --rt-priority (0: normal scheduling)",
+    )
+    parser.add_argument(
+        "--floor-cpu",
+        type=int,
+        default=None,
+        help="also measure the platform's own wake-up latency there (cyclictest, SCHED_FIFO 21, 1 ms)",
     )
     parser.add_argument("--campaign-rows", type=int, default=1000, help="rows of the campaign the fits use")
     parser.add_argument("--json", type=Path, default=None, help="also write the results here")
@@ -619,6 +700,7 @@ def main(argv: list[str] | None = None) -> int:
         switch_interval_ms=args.switch_interval_ms,
         cpu_wakeup_latency_us=args.cpu_wakeup_latency_us,
         controller_priority=args.controller_priority,
+        floor_cpu=args.floor_cpu,
         keep=args.keep,
     )
     print(f"options: {asdict(opts)}", flush=True)
