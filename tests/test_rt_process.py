@@ -29,7 +29,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from comp_daemon.daemon.rt_link import FrameDecoder, LinkError, encode_frame
-from comp_daemon.daemon.rt_process import LoopStart, ReaderMirror, RealtimeProcess, RemoteRuntime, RtStart
+from comp_daemon.daemon.rt_process import (
+    LoopStart,
+    ReaderMirror,
+    RealtimeProcess,
+    RemoteRuntime,
+    RtProcessError,
+    RtStart,
+)
 from comp_daemon.rt.controller import JointLoopSettings
 from comp_daemon.rt.encoder_reader import (
     EncoderFault,
@@ -231,6 +238,27 @@ async def test_samples_round_trip(rtp: RealtimeProcess) -> None:
     assert len(samples) == 4 and all(s.actual_deg == HOME and s.counts == (None,) for s in samples)
     with pytest.raises(TimeoutError):
         await runtime.samples(1, timeout_s=0.1)  # no telegrams now
+
+
+async def test_a_dead_child_fails_the_active_target_and_tells_the_daemon(tmp_path: Path) -> None:
+    lost: list[str] = []
+    rtp = RealtimeProcess(
+        RtStart(rsi=RsiServerConfig(controller_host="127.0.0.1", bind_port=0)), on_lost=lost.append
+    )
+    await rtp.start()
+    runtime = await rtp.start_loop(loop_start(str(tmp_path / "no-such-grating")))
+    runtime.arm("t1", HOME, (HOME[0],))
+    assert rtp.proc is not None
+    rtp.proc.kill()
+    async with asyncio.timeout(5):
+        event = await runtime.next_event()
+    assert isinstance(event, Faulted) and event.target_id == "t1"
+    assert event.fault.kind is FaultKind.RSI_LOST and "the real-time process has gone" in event.fault.detail
+    assert lost and not rtp.alive
+    assert any("the real-time process has gone" in r for r in runtime.readiness_reasons())
+    with pytest.raises(RtProcessError, match="has gone"):
+        runtime.arm("t2", HOME, (HOME[0],))  # refused by the mirror (fault) or by the dead link
+    assert await rtp.stop() == -signal.SIGKILL
 
 
 # ------------------------------------------------------------------------------------------ going safe

@@ -587,6 +587,17 @@ class RemoteRuntime(LoopView):
     def on_event(self, event: Event) -> None:
         self.events.put_nowait(event)
 
+    def on_lost(self, reason: str) -> None:
+        """The child has gone: the active target is reported faulted here (nobody else can)."""
+        result = fault(
+            self.core, FaultKind.RSI_LOST, f"the real-time process has gone ({reason})", self.now_s()
+        )
+        self.core = result.core
+        for event in result.events:
+            if isinstance(event, Faulted):
+                self._log_fault(event.fault)
+            self.events.put_nowait(event)
+
     # ---------------------------------------------------------------------------- commands
 
     def _send(self, name: str, *args: Any, required: bool = False) -> None:
@@ -603,8 +614,9 @@ class RemoteRuntime(LoopView):
 
     def arm(self, target_id: str, commanded_deg: Sequence[float], loop_target_deg: Sequence[float]) -> None:
         # the same check the child makes: raises at once where the loop would refuse
-        self.core = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
+        armed = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
         self._send("arm", target_id, tuple(commanded_deg), tuple(loop_target_deg), required=True)
+        self.core = armed
 
     def release(self) -> None:
         self.core = release(self.core)
@@ -616,8 +628,9 @@ class RemoteRuntime(LoopView):
         self._send("reset")
 
     def fault(self, kind: FaultKind, detail: str) -> None:
-        self.core = fault(self.core, kind, detail, self.now_s()).core  # its events come from the child
+        faulted = fault(self.core, kind, detail, self.now_s()).core  # its events come from the child
         self._send("fault", kind, detail, required=True)
+        self.core = faulted
 
     def shutdown(self) -> None:
         """Zero steps and ``Stop = 1`` from the next telegram on; the active target is reported."""
@@ -809,6 +822,8 @@ class RealtimeProcess:
                 fut.set_exception(RtProcessError(f"the real-time process has gone ({self.lost_reason})"))
         if not self.stopping:
             log.error("rt: the real-time process has gone (%s)", self.lost_reason)
+            if self.runtime is not None:
+                self.runtime.on_lost(self.lost_reason)
             if self.on_lost is not None:
                 self.on_lost(self.lost_reason)
 
