@@ -7,11 +7,12 @@ Set-up, per cycle time (all on 127.0.0.1, each a separate process):
 
 - the simulated cell (``python -m comp_daemon.daemon.simcell``): robot plant, simulated KR C4
   sending ``<Rob>`` telegrams every ``cycle_ms`` on its absolute schedule, three grating converters
-  on pseudo-terminals, the motion command port; normal scheduling, or ``SCHED_FIFO``
-  ``--controller-priority`` (below the daemon's). The KR C4 is a real-time controller on hardware
-  of its own; at normal priority on two shared cores the fit workers made the simulated one overrun
-  its own 4 ms cycle and send telegrams in bursts, and at ``SCHED_FIFO`` 10 its plant physics
-  lengthened the tail of the replies at 12 ms (docs/benchmarks.md);
+  on pseudo-terminals, the motion command port; at ``SCHED_FIFO`` ``--controller-priority`` (10,
+  below the daemon's) on ``--controller-cpu`` (the first CPU, away from the daemon's real-time
+  CPU, which is the last). The KR C4 is a real-time controller on hardware of its own: at normal
+  priority on two shared cores the fit workers made the simulated one overrun its own 4 ms cycle
+  and send telegrams in bursts, and at ``SCHED_FIFO`` 10 on any CPU its plant physics lengthened
+  the tail of the replies at 12 ms (docs/benchmarks.md);
 - a relay between the controller and the daemon, in its own process, which timestamps every
   datagram (``SCHED_FIFO`` 30 where permitted: it stands in for the controller's wire, and at
   normal priority its own hold-ups queued two telegrams at the daemon): the telegram just before
@@ -223,7 +224,7 @@ token = "{TOKEN}"
 
 @contextlib.contextmanager
 def _cell(
-    root: Path, cycle_ms: int, rsi_port: int, priority: int
+    root: Path, cycle_ms: int, rsi_port: int, priority: int, cpu: int | None
 ) -> Iterator[tuple[subprocess.Popen[bytes], dict[str, Any]]]:
     argv = [
         sys.executable, "-m", "comp_daemon.daemon.simcell", "--rsi-port", str(rsi_port),
@@ -232,11 +233,13 @@ def _cell(
     ]  # fmt: skip
     with (root / "cell.log").open("wb") as log:
         proc = subprocess.Popen(argv, stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)
-    if priority > 0:
-        try:
+    try:
+        if cpu is not None:
+            os.sched_setaffinity(proc.pid, {cpu})
+        if priority > 0:
             os.sched_setscheduler(proc.pid, os.SCHED_FIFO, os.sched_param(priority))
-        except (OSError, AttributeError) as exc:
-            print(f"simulated controller at normal priority: {exc}", file=sys.stderr)
+    except (OSError, AttributeError) as exc:
+        print(f"simulated controller: scheduling not applied ({exc})", file=sys.stderr)
     try:
         assert proc.stdout is not None
         info: dict[str, Any] = json.loads(proc.stdout.readline())
@@ -280,7 +283,8 @@ class Options:
     rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of that thread (0: normal)
     switch_interval_ms: float = 0.2  # [realtime] switch_interval_ms: the GIL switch interval
     cpu_wakeup_latency_us: int = 0  # [realtime] cpu_wakeup_latency_us (-1: no PM QoS request)
-    controller_priority: int = 0  # SCHED_FIFO priority of the simulated cell (0: normal scheduling)
+    controller_priority: int = 10  # SCHED_FIFO priority of the simulated cell (0: normal scheduling)
+    controller_cpu: int | None = None  # pin the simulated cell to this CPU (None: not pinned)
     floor_cpu: int | None = None  # run cyclictest on this CPU during the measurement
     keep: bool = False
 
@@ -476,7 +480,8 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     daemon: subprocess.Popen[bytes] | None = None
     result: dict[str, Any] = {"cycle_ms": cycle_ms, "options": asdict(opts)}
     try:
-        with _cell(root, cycle_ms, relay_port, opts.controller_priority) as (_cell_proc, cell):
+        cell_at = (opts.controller_priority, opts.controller_cpu)
+        with _cell(root, cycle_ms, relay_port, *cell_at) as (_cell_proc, cell):
             cfg = _config(root, cell, cycle_ms, http_port, daemon_rsi, opts)
             with (root / "daemon.log").open("wb") as log:
                 daemon = subprocess.Popen(
@@ -642,6 +647,15 @@ def _floor_text(r: dict[str, Any]) -> str:
     )
 
 
+def _controller_cpu(setting: str) -> int | None:
+    if setting == "none":
+        return None
+    if setting != "auto":
+        return int(setting)
+    cpus = sorted(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else []
+    return cpus[0] if len(cpus) > 1 else None
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cycles", type=int, default=50_000, help="measured cycles per cycle time")
@@ -672,8 +686,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--controller-priority",
         type=int,
-        default=0,
+        default=10,
         help="SCHED_FIFO priority of the simulated cell, below --rt-priority (0: normal scheduling)",
+    )
+    parser.add_argument(
+        "--controller-cpu",
+        default="auto",
+        help="pin the simulated cell to this CPU ('auto': the first, when there are two or more; 'none')",
     )
     parser.add_argument(
         "--floor-cpu",
@@ -700,6 +719,7 @@ def main(argv: list[str] | None = None) -> int:
         switch_interval_ms=args.switch_interval_ms,
         cpu_wakeup_latency_us=args.cpu_wakeup_latency_us,
         controller_priority=args.controller_priority,
+        controller_cpu=_controller_cpu(args.controller_cpu),
         floor_cpu=args.floor_cpu,
         keep=args.keep,
     )
