@@ -340,6 +340,22 @@ def test_the_child_goes_safe_on_its_own(tmp_path: Path, who: str) -> None:
             parent.stdout.close()
 
 
+@pytest.mark.parametrize("fd", ["0", "987"])
+def test_the_child_started_by_hand_says_what_it_needs(fd: str) -> None:
+    r = subprocess.run(
+        [sys.executable, "-m", "comp_daemon.daemon.rt_process", "--fd", fd],
+        capture_output=True,
+        text=True,
+        timeout=30,
+        stdin=subprocess.DEVNULL,
+    )
+    assert r.returncode == 2
+    assert (
+        f"--fd {fd}: not the daemon's socket pair" in r.stderr
+        and "the daemon starts this process" in r.stderr
+    )
+
+
 def test_messages_pickle_under_their_importable_names() -> None:
     spec = loop_start("/dev/null")
     assert pickle.loads(pickle.dumps(spec)) == spec

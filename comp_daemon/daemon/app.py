@@ -576,11 +576,7 @@ class Daemon:
                 log.exception("daemon: the executor failed")
         # 2. let the controller see Stop=1 for a few cycles, then stop listening
         if runtime is not None and self._rsi_open() and runtime.rsi_alive():
-            seen = runtime.telegrams
-            cycle_s = self.settings.rsi.cycle_ms / 1000.0
-            deadline = time.monotonic() + (self.stop_grace_cycles + 2) * cycle_s
-            while runtime.telegrams < seen + self.stop_grace_cycles and time.monotonic() < deadline:
-                await asyncio.sleep(cycle_s / 2)
+            await runtime.wait_telegrams(self.stop_grace_cycles, self.settings.rsi.cycle_ms / 1000.0)
         if self.rtp is not None:
             with contextlib.suppress(RtProcessError, TimeoutError):  # it has gone already
                 await self.rtp.close_rsi()

@@ -233,7 +233,12 @@ class RtChild:
         if runtime is None:  # telegrams before the loop is assembled: no correction
             return SenReply(telegram.ipoc, _ZERO, False, self._sen_type)
         reply = runtime.handle(telegram)
-        if not self._push_scheduled and runtime.clock_ns() - self._last_push_ns >= self._push_period_ns:
+        rx_ns = runtime._last_rx_ns  # this telegram's time, taken by handle()
+        if (
+            not self._push_scheduled
+            and rx_ns is not None
+            and rx_ns - self._last_push_ns >= self._push_period_ns
+        ):
             self._push_scheduled = True
             self.loop.call_soon(self.push)  # runs after the receive callback has sent the reply
         return reply
@@ -445,11 +450,7 @@ class RtChild:
         if runtime is not None and cfg is not None:
             runtime.shutdown()
             if runtime.rsi_alive():
-                seen = runtime.telegrams
-                cycle_s = cfg.rsi.cycle_ms / 1000.0
-                deadline = time.monotonic() + (cfg.grace_cycles + 2) * cycle_s
-                while runtime.telegrams < seen + cfg.grace_cycles and time.monotonic() < deadline:
-                    await asyncio.sleep(cycle_s / 2)
+                await runtime.wait_telegrams(cfg.grace_cycles, cfg.rsi.cycle_ms / 1000.0)
         if self.rsi_transport is not None:
             self.rsi_transport.close()
         await self._stop_readers()
@@ -473,10 +474,9 @@ class RtChild:
         self.link.close()
 
 
-async def _child_main(fd: int) -> int:
+async def _child_main(sock: socket.socket) -> int:
     loop = asyncio.get_running_loop()
     child = RtChild()
-    sock = socket.socket(fileno=fd)
     await loop.create_unix_connection(lambda: child.link, sock=sock)
     root = logging.getLogger()
     for h in list(root.handlers):
@@ -506,11 +506,18 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     parser.add_argument("--fd", type=int, required=True, help="this end of the daemon's socket pair")
     args = parser.parse_args(argv)
+    try:
+        sock = socket.socket(fileno=args.fd)
+        if sock.family != socket.AF_UNIX or sock.type != socket.SOCK_STREAM:
+            sock.detach()
+            raise OSError("not a Unix stream socket")
+    except OSError as exc:
+        parser.error(f"--fd {args.fd}: not the daemon's socket pair ({exc}); the daemon starts this process")
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # Ctrl-C reaches the daemon, which orders the stop
     logging.basicConfig(
         level=logging.INFO, stream=sys.stderr, format="comp-daemon rt: %(levelname)s %(message)s"
     )
-    return asyncio.run(_child_main(args.fd))
+    return asyncio.run(_child_main(sock))
 
 
 # ---------------------------------------------------------------------------------------- the daemon's side
@@ -554,9 +561,12 @@ class ReaderMirror:
 class RemoteRuntime(LoopView):
     """The loop in the real-time process, seen and commanded from the daemon. See the module docstring."""
 
+    #: set by RealtimeProcess.start_loop (a class default: LoopView.__init__ calls set_calibration first)
+    process: RealtimeProcess | None = None
+
     def _post_init(self) -> None:
-        self.process: RealtimeProcess | None = None  # set by RealtimeProcess.start_loop
         self._sent = 0  # sequence number of the last command sent
+        self._mirrors = {s.joint: s for s in self.sources if isinstance(s, ReaderMirror)}
 
     # ---------------------------------------------------------------------------- reports
 
@@ -573,7 +583,7 @@ class RemoteRuntime(LoopView):
         self.replies_after_shutdown = report.replies_after_shutdown
         self._last_rx_ns = report.last_rx_ns
         self.last_feedback = report.readings
-        mirrors = {s.joint: s for s in self.sources if isinstance(s, ReaderMirror)}
+        mirrors = self._mirrors
         for r in report.readings:
             if r.joint in mirrors:
                 mirrors[r.joint].update(r, report.now_ns)
@@ -639,7 +649,7 @@ class RemoteRuntime(LoopView):
 
     def set_calibration(self, calibration: GratingCalibration | None) -> None:
         super().set_calibration(calibration)
-        if getattr(self, "process", None) is not None:  # not from LoopView.__init__: the child has it
+        if self.process is not None:  # None during LoopView.__init__: the child has it from LoopStart
             self._send("set_calibration", calibration)
 
     def tick(self) -> None:

@@ -183,6 +183,14 @@ class LoopView:
             return None
         return last + max(1, -(-elapsed // cycle_ns)) * cycle_ns
 
+    async def wait_telegrams(self, n: int, cycle_s: float) -> None:
+        """Wait until ``n`` more telegrams have been handled, or ``n + 2`` cycle times have passed
+        (how the shutdown lets the controller see ``Stop = 1`` before the endpoint closes)."""
+        seen = self.telegrams
+        deadline = time.monotonic() + (n + 2) * cycle_s
+        while self.telegrams < seen + n and time.monotonic() < deadline:
+            await asyncio.sleep(cycle_s / 2)
+
     def rsi_alive(self) -> bool:
         last = self._last_rx_ns
         return last is not None and (self.clock_ns() - last) * 1e-9 <= self.rsi_alive_s
