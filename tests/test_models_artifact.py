@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from comp_daemon import __version__
-from comp_daemon.kinematics.params import N_PARAMS, rotation_from_rotvec
+from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.artifact import (
     ModelArtifactError,
     arrays_sha256,

@@ -9,7 +9,8 @@ import pytest
 from numpy.polynomial import chebyshev as npcheb
 
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad, rotation_from_rotvec
+from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.chebyshev import (
     ChebyshevModel,
     chebyshev_basis,

@@ -7,7 +7,8 @@ import pytest
 
 from comp_daemon.kinematics.forward import chain, position_jacobian_mm
 from comp_daemon.kinematics.inverse import UnreachableTargetError
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad, rotation_from_rotvec
+from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import fit_chebyshev
 from comp_daemon.models.compensation import compensate, feed_forward, joint_mapping, nominal_targets

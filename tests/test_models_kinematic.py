@@ -11,15 +11,15 @@ from comp_daemon.kinematics.params import (
     PARAM_NAMES,
     KinematicParams,
     axes_deg_to_q_rad,
-    rotation_from_rotvec,
 )
+from comp_daemon.kinematics.so3 import left_jacobian as so3_left_jacobian
+from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_tcp_mm
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.kinematic import (
     SEED001_EFFECTS,
     KinematicProblem,
     calibrate_kinematic,
-    so3_left_jacobian,
 )
 from comp_daemon.robot.description import RobotDescription, load_robot
 

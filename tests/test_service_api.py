@@ -12,12 +12,12 @@ import httpx
 import numpy as np
 import pytest
 
+from comp_daemon.common.logs import bound, configure_logging, get_logger
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import PARAM_NAMES, axes_deg_to_q_rad
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.api import create_app, open_store
 from comp_daemon.service.config import Settings, load_settings
-from comp_daemon.service.logging import bound, configure_logging, get_logger
 from comp_daemon.service.store import ModelDraft, Store
 
 TOKENS = {

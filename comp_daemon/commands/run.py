@@ -90,10 +90,10 @@ def _address(text: str) -> tuple[str, int]:
 def _run(args: argparse.Namespace) -> int:
     from pydantic import ValidationError
 
+    from comp_daemon.common.logs import configure_logging
     from comp_daemon.daemon.app import Daemon, SimOptions
     from comp_daemon.rt.rt_thread import check_cpus
     from comp_daemon.service.config import load_settings
-    from comp_daemon.service.logging import configure_logging
 
     if args.sim and args.motion:
         raise ValueError("--motion and --sim exclude each other (the simulated cell has its own)")

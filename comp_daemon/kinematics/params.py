@@ -26,6 +26,8 @@ from typing import TYPE_CHECKING
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.kinematics.so3 import matrix_to_rotvec, rotvec_to_matrix
+
 if TYPE_CHECKING:
     from comp_daemon.robot.description import RobotDescription
 
@@ -39,7 +41,6 @@ __all__ = [
     "axes_deg_to_q_rad",
     "joint_param_index",
     "q_rad_to_axes_deg",
-    "rotation_from_rotvec",
 ]
 
 JOINT_PARAM_KINDS = ("theta", "d", "a", "alpha", "beta")
@@ -63,17 +64,6 @@ TOOL_SLICE = slice(36, 39)
 def joint_param_index(kind: str, joint: int) -> int:
     """Index in the parameter vector of ``kind`` (theta, d, a, alpha, beta) of joint 1..6."""
     return (joint - 1) * len(JOINT_PARAM_KINDS) + JOINT_PARAM_KINDS.index(kind)
-
-
-def rotation_from_rotvec(rotvec: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Rotation matrix of a rotation vector (rad), Rodrigues' formula."""
-    rotvec = np.asarray(rotvec, dtype=float)
-    angle = float(np.linalg.norm(rotvec))
-    if angle < 1e-300:
-        return np.eye(3)
-    k = rotvec / angle
-    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * kx + (1.0 - np.cos(angle)) * (kx @ kx)
 
 
 @dataclass(frozen=True, slots=True)
@@ -113,7 +103,7 @@ class KinematicParams:
             raise ValueError(f"parameter vector must have shape ({N_PARAMS},), got {dx.shape}")
         table = self.joint_table() + dx[:30].reshape(6, 5)
         delta = np.eye(4)
-        delta[:3, :3] = rotation_from_rotvec(dx[33:36])
+        delta[:3, :3] = rotvec_to_matrix(dx[33:36])
         delta[:3, 3] = dx[30:33]
         return replace(
             self,
@@ -135,11 +125,7 @@ class KinematicParams:
         dx[:30] = (self.joint_table() - other.joint_table()).reshape(30)
         delta = self.world_T_base @ np.linalg.inv(other.world_T_base)
         dx[30:33] = delta[:3, 3]
-        r = delta[:3, :3]
-        angle = float(np.arccos(np.clip((np.trace(r) - 1.0) / 2.0, -1.0, 1.0)))
-        if angle > 1e-12:
-            axis = np.array([r[2, 1] - r[1, 2], r[0, 2] - r[2, 0], r[1, 0] - r[0, 1]]) / (2 * np.sin(angle))
-            dx[33:36] = axis * angle
+        dx[33:36] = matrix_to_rotvec(delta[:3, :3])
         dx[TOOL_SLICE] = self.tool_xyz_mm - other.tool_xyz_mm
         return dx
 

@@ -68,6 +68,7 @@ from comp_daemon.kinematics.params import (
     joint_param_index,
     q_rad_to_axes_deg,
 )
+from comp_daemon.kinematics.so3 import left_jacobian, rotvec_to_matrix, skew
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
@@ -217,22 +218,6 @@ def average_models(models: Sequence[ComplianceModel]) -> ComplianceModel:
     )
 
 
-def _skew(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _so3_left_jacobian(r: NDArray[np.float64]) -> NDArray[np.float64]:
-    angle = float(np.linalg.norm(r))
-    k = _skew(r)
-    if angle < 1e-6:
-        return np.eye(3) + 0.5 * k + (k @ k) / 6.0
-    return np.eye(3) + (1.0 - np.cos(angle)) / angle**2 * k + (angle - np.sin(angle)) / angle**3 * (k @ k)
-
-
 # ---------------------------------------------------------------------------------------------
 # identification from tracker positions
 # ---------------------------------------------------------------------------------------------
@@ -329,7 +314,7 @@ def calibrate_compliance(
             q_cmd = params.sign * np.deg2rad(a)
             tau = gravity_torques_nm(params, q_cmd, mass.link_mass_kg, mass.link_com_mm, payload)
         jac_all = identification_jacobian(params, st.q_rad, ch)
-        jac_all[:, :, 33:36] = -_skew(ch.tcp_mm - dx[30:33]) @ _so3_left_jacobian(dx[33:36])
+        jac_all[:, :, 33:36] = -skew(ch.tcp_mm - dx[30:33]) @ left_jacobian(dx[33:36])
         cols = [jac_all[:, :, geo_idx]]
         cols += [
             jac_all[:, :, joint_param_index("theta", j)][:, :, None] * tau[:, None, j - 1, None] for j in cj
@@ -670,14 +655,6 @@ class PsdPoses:
     link5_delta_mm: NDArray[np.float64]  # (n, 2): added to a5 and d5 of the true robot for that pose
 
 
-def _rotations(rotvec: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(n, 3, 3) rotation matrices of rotation vectors (n, 3) (rad), Rodrigues' formula."""
-    angle = np.linalg.norm(rotvec, axis=1)
-    k = _skew(rotvec / np.where(angle > 1e-300, angle, 1.0)[:, None])
-    s, c = np.sin(angle)[:, None, None], np.cos(angle)[:, None, None]
-    return np.eye(3) + s * k + (1.0 - c) * (k @ k)
-
-
 def _perpendicular(v: NDArray[np.float64]) -> NDArray[np.float64]:
     """A unit vector perpendicular to the unit vector ``v`` (3,)."""
     helper = np.array([1.0, 0.0, 0.0]) if abs(v[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -692,7 +669,7 @@ def _align(u_from: NDArray[np.float64], u_to: NDArray[np.float64]) -> NDArray[np
     angle = np.arctan2(s, u_to @ u_from)
     unit = axis / np.where(s > 1e-12, s, 1.0)[:, None]
     unit[s <= 1e-12] = _perpendicular(u_from)  # parallel: angle 0; antiparallel: a half turn
-    return _rotations(unit * angle[:, None])
+    return rotvec_to_matrix(unit * angle[:, None])
 
 
 def _link5_shift(
@@ -756,7 +733,7 @@ def simulate_psd_poses(
         u = -cz[:, None] * nrm + sz[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2)
         standoff = rng.uniform(*setup.standoff_mm, m)
         roll = rng.uniform(-np.pi, np.pi, m)
-        r_f = _rotations(u * roll[:, None]) @ _align(mount.direction, u)
+        r_f = rotvec_to_matrix(u * roll[:, None]) @ _align(mount.direction, u)
         target_o = setup.center_mm - standoff[:, None] * u
         delta = link5_noise_mm * rng.random((m, 2))
         q = np.repeat(seed_q[None, :], m, axis=0)

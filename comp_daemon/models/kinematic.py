@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
+from comp_daemon.kinematics.so3 import left_jacobian, skew
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.effects import EFFECTS, EffectParams, effect_param_names, twin_jacobian, twin_tcp_mm
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability, mdh_priority
@@ -48,29 +49,10 @@ __all__ = [
     "KinematicModel",
     "KinematicProblem",
     "calibrate_kinematic",
-    "so3_left_jacobian",
 ]
 
 SEED001_EFFECTS: tuple[str, ...] = ("ratio", "backlash")
 FrameChoice = Literal["auto", "base", "tracker"]
-
-
-def so3_left_jacobian(rotvec: NDArray[np.float64]) -> NDArray[np.float64]:
-    """Left Jacobian of SO(3): ``d/dr (R(r)·v) = −[R(r)·v]× · J_l(r)``."""
-    r = np.asarray(rotvec, dtype=float)
-    angle = float(np.linalg.norm(r))
-    k = np.array([[0.0, -r[2], r[1]], [r[2], 0.0, -r[0]], [-r[1], r[0], 0.0]])
-    if angle < 1e-6:
-        return np.eye(3) + 0.5 * k + (k @ k) / 6.0
-    return np.eye(3) + (1.0 - np.cos(angle)) / angle**2 * k + (angle - np.sin(angle)) / angle**3 * (k @ k)
-
-
-def _skew_batch(v: NDArray[np.float64]) -> NDArray[np.float64]:
-    out = np.zeros((*v.shape[:-1], 3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
 
 
 class KinematicModel(ErrorModel):
@@ -213,7 +195,7 @@ class KinematicProblem:
             self.robot, params, eff, self.eff_names, self.a, self.dir, self.payload, self.temp
         )
         # the base rotation is the rotation vector dx[33:36] applied on the left of the start frame
-        jac[:, :, 33:36] = -_skew_batch(tcp - dx[30:33]) @ so3_left_jacobian(dx[33:36])
+        jac[:, :, 33:36] = -skew(tcp - dx[30:33]) @ left_jacobian(dx[33:36])
         return jac[:, :, self._cols].reshape(-1, self._cols.size)
 
 

@@ -35,6 +35,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from comp_daemon import __version__
+from comp_daemon.common.logs import get_logger
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service import metrics
@@ -43,7 +44,6 @@ from comp_daemon.service.config import Settings
 from comp_daemon.service.daemon_view import DaemonView, DetachedDaemonView
 from comp_daemon.service.events import EventBus
 from comp_daemon.service.jobs import JobKind, JobRunner
-from comp_daemon.service.logging import get_logger
 from comp_daemon.service.state import ApiError, ServiceState
 from comp_daemon.service.store import (
     TARGET_FINAL_STATES,

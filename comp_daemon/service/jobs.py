@@ -34,8 +34,8 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass
 from typing import Any
 
+from comp_daemon.common.logs import bound, get_logger
 from comp_daemon.service.config import JobSettings
-from comp_daemon.service.logging import bound, get_logger
 from comp_daemon.service.metrics import JOBS_FINISHED
 from comp_daemon.service.store import ConflictError, JobRecord, ModelDraft, Store, StoreError
 

@@ -35,7 +35,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
-from comp_daemon.service.logging import get_logger
+from comp_daemon.common.logs import get_logger
 
 __all__ = [
     "JOB_STATES",

@@ -15,6 +15,7 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 from starlette.datastructures import UploadFile
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.data.dataset import (
     Dataset,
     DatasetError,
@@ -24,7 +25,6 @@ from comp_daemon.data.dataset import (
 )
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
-from comp_daemon.service.logging import get_logger
 from comp_daemon.service.schemas import DatasetOut, ErrorOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 

@@ -11,10 +11,10 @@ from typing import Annotated, Any
 from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import HTMLResponse, Response
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.service import job_kinds
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
-from comp_daemon.service.logging import get_logger
 from comp_daemon.service.routes.fits import launch_job
 from comp_daemon.service.schemas import DiagnosisIn, ErrorOut, JobOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state

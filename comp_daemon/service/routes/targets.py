@@ -19,10 +19,10 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Header, Path, Query, Response
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.data.dataset import DatasetError, dataset_from_records
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
-from comp_daemon.service.logging import get_logger
 from comp_daemon.service.schemas import BatchIn, BatchOut, ErrorOut, TargetOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 
