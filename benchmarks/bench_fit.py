@@ -50,7 +50,8 @@ from comp_daemon.models.fitting import fit_model
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.lm import improved_lm
-from comp_daemon.sim.campaign import FLANGE_R_KUKA_TOOL, measure_at, run_campaign, sample_poses
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
+from comp_daemon.sim.campaign import measure_at, run_campaign, sample_poses
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.scenario import load_scenario
 from comp_daemon.sim.tracker import LaserTracker

@@ -12,8 +12,8 @@ from comp_daemon.data.dataset import read_dataset
 from comp_daemon.kinematics.forward import chain
 from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
 from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.campaign import (
-    FLANGE_R_KUKA_TOOL,
     iso9283_multidirection,
     raw_error_stats,
     run_campaign,

@@ -34,8 +34,7 @@ from comp_daemon.models.compensation import compensate, nominal_targets
 from comp_daemon.models.effects import EFFECTS, effect_param_names
 from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
 from comp_daemon.models.fitting import FITTABLE_KINDS, fit_model, max_parameters
-from comp_daemon.robot.description import PRESETS, RobotDescription, load_robot
-from comp_daemon.sim.campaign import FLANGE_R_KUKA_TOOL
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, RobotDescription, load_robot
 
 __all__ = ["register"]
 

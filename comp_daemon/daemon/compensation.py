@@ -28,10 +28,9 @@ from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka
 from comp_daemon.models.artifact import ModelArtifactError, parse_model
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.compensation import compensate, nominal_targets
-from comp_daemon.robot.description import RobotDescription
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.rt.executor import CompensatedTarget, CompensationError, ModelMissingError
 from comp_daemon.service.store import Store
-from comp_daemon.sim.campaign import FLANGE_R_KUKA_TOOL
 
 __all__ = ["ActiveModelCompensator", "model_from_artifact"]
 

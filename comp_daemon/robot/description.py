@@ -21,6 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 __all__ = [
+    "FLANGE_R_KUKA_TOOL",
     "PRESETS",
     "Joint",
     "RobotDescription",
@@ -28,6 +29,12 @@ __all__ = [
     "load_robot",
     "parse_robot_toml",
 ]
+
+# KUKA's tool frame in the flange frame of the robot files (z out of the flange): x_tool = z_flange,
+# y_tool = y_flange, z_tool = −x_flange, i.e. Ry(−90°). A target's A, B, C orient the KUKA tool frame;
+# the flange orientation asked of the kinematics is rotation_kuka_abc_deg(abc) @ FLANGE_R_KUKA_TOOL.T.
+FLANGE_R_KUKA_TOOL = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
+FLANGE_R_KUKA_TOOL.setflags(write=False)
 
 PRESETS: dict[str, str] = {
     "kr210": "KUKA KR 210 R2700 extra",

@@ -27,12 +27,13 @@ from comp_daemon.data.dataset import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg, solve_ik
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.scenario import Scenario
 from comp_daemon.sim.tracker import LaserTracker
 
 __all__ = [
-    "FLANGE_R_KUKA_TOOL",
+
     "GRATING_RESOLUTION_MM",
     "Iso9283Result",
     "RawErrorStats",
@@ -46,9 +47,6 @@ __all__ = [
     "solve_axes",
 ]
 
-# KUKA's tool frame in the flange frame of the robot files (z out of the flange): x_tool = z_flange,
-# y_tool = y_flange, z_tool = −x_flange, i.e. Ry(−90°).
-FLANGE_R_KUKA_TOOL = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
 GRATING_RESOLUTION_MM = 50e-6
 DT_S = 0.012
 
