@@ -26,7 +26,7 @@ import os
 import platform
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import scipy
@@ -204,7 +204,9 @@ def seed000_trial(seed: int) -> None:
         ("chebyshev (CV)", "chebyshev", ()),
         ("chebyshev m=3", "chebyshev", ()),
     ):
-        order: int | str | None = 3 if token.endswith("m=3") else ("cv" if token.endswith("(CV)") else None)
+        order: int | Literal["cv"] | None = None
+        if kind == "chebyshev":
+            order = 3 if token.endswith("m=3") else "cv"
         models[token] = fit_model(
             kind, scen.robot, data.a_deg[fit], data.xyz_mm[fit], dir=np.asarray(data.dir, float)[fit],
             payload_kg=data.payload_kg[fit], order=order, effects=effects,
