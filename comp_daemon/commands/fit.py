@@ -35,6 +35,7 @@ from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel
 from comp_daemon.models.registry import (
     KINDS,
     MAX_ORDER,
+    MissingColumnError,
     ModelSpec,
     UnknownModelError,
     fit_spec,
@@ -131,26 +132,12 @@ def _read(path: str, robot: RobotDescription, min_rows: int, kind: Any) -> Datas
         raise UserError(str(exc)) from None
 
 
-def _rows(dataset: Dataset, rows: np.ndarray) -> FitRows:
-    assert dataset.a_deg is not None and dataset.xyz_mm is not None
-    return FitRows(
-        dataset.a_deg[rows],
-        dataset.xyz_mm[rows],
-        dir=None if dataset.dir is None else dataset.dir[rows].astype(float),
-        payload_kg=dataset.payload_kg[rows],
-        temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
-    )
-
-
 def _fit_rows(dataset: Dataset, spec: ModelSpec, args: argparse.Namespace, rows: np.ndarray) -> FittedModel:
-    fit_rows = _rows(dataset, rows)
-    for column in get_kind(spec.kind).needed_columns(spec):
-        if getattr(fit_rows, column) is None:
-            label = "dir1..dir6" if column == "dir" else column
-            raise UserError(f"{dataset.source}: the {spec.name} model needs the {label} column(s)")
     options = FitOptions(frame=args.frame, cv_folds=args.folds, seed=args.seed)
     try:
-        return fit_spec(spec, load_robot_cached(args), fit_rows, options)
+        return fit_spec(spec, load_robot_cached(args), FitRows.of(dataset, rows), options)
+    except MissingColumnError as exc:
+        raise UserError(f"{dataset.source}: {exc}") from None
     except np.linalg.LinAlgError as exc:
         raise UserError(f"{dataset.source}: the {spec.name} fit failed ({exc})") from None
 

@@ -32,6 +32,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.data.dataset import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
@@ -111,6 +112,19 @@ class FitRows:
         object.__setattr__(self, "a_deg", a)
         object.__setattr__(self, "xyz_mm", p)
         object.__setattr__(self, "n", a.shape[0])
+
+    @classmethod
+    def of(cls, dataset: Dataset, rows: NDArray[np.intp] | slice = slice(None)) -> FitRows:
+        """These rows of a measurement data set (axis values and positions required)."""
+        if dataset.a_deg is None or dataset.xyz_mm is None:
+            raise ValueError(f"{dataset.source}: a fit needs a1..a6 and x, y, z")
+        return cls(
+            dataset.a_deg[rows],
+            dataset.xyz_mm[rows],
+            dir=None if dataset.dir is None else dataset.dir[rows].astype(float),
+            payload_kg=dataset.payload_kg[rows],
+            temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
+        )
 
 
 @dataclass(frozen=True, slots=True)

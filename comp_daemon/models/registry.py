@@ -56,6 +56,7 @@ __all__ = [
     "KINDS",
     "MAX_ORDER",
     "FittedModel",
+    "MissingColumnError",
     "ModelKind",
     "ModelSpec",
     "UnknownModelError",
@@ -78,6 +79,10 @@ Loader = Callable[[RobotDescription, dict[str, Any], "int | None", NDArray[np.fl
 
 class UnknownModelError(ValueError):
     """A model name the registry does not know, or options its kind does not take."""
+
+
+class MissingColumnError(ValueError):
+    """The data lack a column the model needs (``dir`` for backlash, …)."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,11 +257,11 @@ def max_parameters(spec: ModelSpec) -> int:
 def fit_spec(
     spec: ModelSpec, robot: RobotDescription, rows: FitRows, options: FitOptions | None = None
 ) -> FittedModel:
-    """Fit ``spec`` on ``rows``; ValueError naming a needed column the rows lack."""
+    """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack."""
     kind = get_kind(spec.kind)
     for column in kind.needed_columns(spec):
         if getattr(rows, column) is None:
-            raise ValueError(f"the {spec.name} model needs the {_column_label(column)} column(s)")
+            raise MissingColumnError(f"the {spec.name} model needs the {_column_label(column)} column(s)")
     return kind.fit(robot, rows, spec, options or FitOptions())
 
 

@@ -83,8 +83,6 @@ def run_fit(
         min_rows=max_parameters(spec),
         kind="measurement",
     )
-    a, p = ds.a_deg, ds.xyz_mm
-    assert a is not None and p is not None
     split = ds.split_or_draw()
     fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
     if len(check_rows) == 0:
@@ -92,17 +90,8 @@ def run_fit(
     if len(fit_rows) < 3:
         raise ValueError(f"{source}: {len(fit_rows)} fit rows; a fit needs at least 3")
 
-    def rows(idx: Any) -> FitRows:
-        return FitRows(
-            a[idx],
-            p[idx],
-            dir=None if ds.dir is None else ds.dir[idx].astype(float),
-            payload_kg=ds.payload_kg[idx],
-            temp_c=None if ds.temp_c is None else ds.temp_c[idx],
-        )
-
     progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
-    train = rows(fit_rows)
+    train = FitRows.of(ds, fit_rows)
     try:
         fitted = fit_spec(spec, robot, train)
     except ValueError as exc:
@@ -114,7 +103,7 @@ def run_fit(
         )
     progress(0.9, "judging on the check rows")
     nominal = fit_spec(ModelSpec("nominal"), robot, train)
-    check = rows(check_rows)
+    check = FitRows.of(ds, check_rows)
     pred_model = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
     pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
     p_check = check.xyz_mm
