@@ -35,6 +35,7 @@ from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
 from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
 from comp_daemon.models.effects import EFFECTS, effect_param_names
 from comp_daemon.models.fitting import (
+    DEFAULT_CHEBYSHEV_ORDER,
     SEED001_EFFECTS,
     FitOptions,
     FitRows,
@@ -67,6 +68,7 @@ __all__ = [
     "max_parameters",
     "model_from_payload",
     "parse_model_name",
+    "with_order",
 ]
 
 MAX_ORDER = 8
@@ -120,7 +122,7 @@ def _kinematic_parameters(spec: ModelSpec) -> int:
 def _chebyshev_parameters(spec: ModelSpec) -> int:
     if spec.order_by_cv:
         return n_coefficients(0)  # the smallest candidate order
-    return n_coefficients(3 if spec.order is None else spec.order)
+    return n_coefficients(DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order)
 
 
 KINDS: dict[str, ModelKind] = {
