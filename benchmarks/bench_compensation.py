@@ -23,8 +23,8 @@ import numpy as np
 from benchmarks.machine import machine_info, machine_line
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.compensation import compensate, nominal_targets
-from comp_daemon.models.fitting import fit_model
 from comp_daemon.models.kriging import fit_kriging
+from comp_daemon.models.registry import fit_model
 from comp_daemon.sim.campaign import run_campaign, sample_poses
 from comp_daemon.sim.scenario import load_scenario
 

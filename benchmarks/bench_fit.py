@@ -26,7 +26,7 @@ import os
 import platform
 import time
 from collections.abc import Callable
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import scipy
@@ -46,10 +46,10 @@ from comp_daemon.models.chebyshev import (
 from comp_daemon.models.compensation import compensate
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_jacobian, twin_tcp_mm
 from comp_daemon.models.evaluation import error_statistics, format_table2
-from comp_daemon.models.fitting import fit_model
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.lm import improved_lm
+from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.campaign import measure_at, run_campaign, sample_poses
 from comp_daemon.sim.plant import RobotPlant
@@ -204,7 +204,9 @@ def seed000_trial(seed: int) -> None:
         ("chebyshev (CV)", "chebyshev", ()),
         ("chebyshev m=3", "chebyshev", ()),
     ):
-        order = 3 if token.endswith("m=3") else None
+        order: int | Literal["cv"] | None = None
+        if kind == "chebyshev":
+            order = 3 if token.endswith("m=3") else "cv"
         models[token] = fit_model(
             kind, scen.robot, data.a_deg[fit], data.xyz_mm[fit], dir=np.asarray(data.dir, float)[fit],
             payload_kg=data.payload_kg[fit], order=order, effects=effects,

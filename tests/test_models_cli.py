@@ -84,7 +84,7 @@ def test_evaluate_prints_table2_and_writes_json(
     campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     out = tmp_path / "eval.json"
-    models = "nominal,kinematic,kinematic+ratio+backlash,chebyshev"
+    models = "nominal,kinematic,kinematic+ratio+backlash,chebyshev,chebyshev:cv"
     args = [
         "evaluate",
         str(campaign),
@@ -104,12 +104,14 @@ def test_evaluate_prints_table2_and_writes_json(
     doc = json.loads(out.read_text())
     assert doc["split"] == {**doc["split"], "fit_rows": 100, "check_rows": 60, "drawn": False}
     table = doc["table2"]
-    assert set(table) == {"nominal", "kinematic", "kinematic+ratio+backlash", "chebyshev"}
+    assert set(table) == {"nominal", "kinematic", "kinematic+ratio+backlash", "chebyshev", "chebyshev:cv"}
     for stats in table.values():
         assert stats["n"] == 60 and set(stats) >= {"x", "y", "z", "3d"}
     assert table["kinematic"]["3d"]["mean"] < 0.5 * table["nominal"]["3d"]["mean"]
     assert table["kinematic+ratio+backlash"]["3d"]["mean"] < 0.5 * table["kinematic"]["3d"]["mean"]
-    assert doc["fits"]["chebyshev"]["order_selection"]["chosen_order"] in range(5)
+    # the paper's order by default; cross-validation says what it chose
+    assert doc["fits"]["chebyshev"]["order"] == 3 and doc["fits"]["chebyshev"]["order_selection"] is None
+    assert doc["fits"]["chebyshev:cv"]["order_selection"]["chosen_order"] in range(5)
 
 
 def test_compensate_writes_commands_whose_prediction_is_the_target(campaign: Path, tmp_path: Path) -> None:

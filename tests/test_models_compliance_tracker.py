@@ -7,17 +7,16 @@ import json
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.forward import gravity_torques_nm
-from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
-from comp_daemon.models.compliance import (
+from benchmarks.seed004_compliance import (
     SEED004_COMPLIANCE_RAD_PER_NM,
     SEED004_TRACKER_AXES_DEG,
     SEED004_ZERO_OFFSETS_DEG,
-    ComplianceModel,
-    calibrate_compliance,
     reproduce_seed004_tracker,
 )
+from comp_daemon.kinematics.forward import gravity_torques_nm
+from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
+from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.models.compliance import ComplianceModel, calibrate_compliance
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.robot.description import load_robot
 

@@ -12,6 +12,7 @@ from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.kriging import JointStateMetric, KrigingModel, fit_kriging
+from comp_daemon.models.registry import model_from_payload
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("kr210")
@@ -98,7 +99,8 @@ def test_model_round_trips_through_json_bit_exact(campaign: Campaign) -> None:
     text = json.dumps({"kind": model.kind, "payload": model.to_payload()})
     stored = json.loads(text)
     assert stored["kind"] == "kriging"
-    again = KrigingModel.from_payload(ROBOT, stored["payload"], None, model.registration)
+    again = model_from_payload(stored["kind"], ROBOT, stored["payload"], None, model.registration)
+    assert isinstance(again, KrigingModel)
     q, qd = a[300:400], d[300:400]
     np.testing.assert_array_equal(again.predict_tcp_mm(q, qd, 150.0), model.predict_tcp_mm(q, qd, 150.0))
     np.testing.assert_array_equal(again.metric.dir_separation_deg, model.metric.dir_separation_deg)
@@ -106,7 +108,9 @@ def test_model_round_trips_through_json_bit_exact(campaign: Campaign) -> None:
     broken = json.loads(text)["payload"]
     del broken["samples"]
     with pytest.raises(ValueError, match="missing field 'samples'"):
-        KrigingModel.from_payload(ROBOT, broken, None, model.registration)
+        model_from_payload("kriging", ROBOT, broken, None, model.registration)
+    with pytest.raises(ValueError, match="base_loader"):
+        KrigingModel.from_payload(ROBOT, stored["payload"], None, model.registration)
 
 
 def test_metric_distance_is_joint_distance_plus_direction_separation() -> None:

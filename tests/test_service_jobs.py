@@ -12,10 +12,14 @@ from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 import pytest
 from test_service_api import auth, campaign_csv, make_settings
 
+from comp_daemon.daemon.compensation import ActiveModelCompensator
+from comp_daemon.kinematics.params import N_PARAMS
 from comp_daemon.models.artifact import parse_model
+from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.api import create_app, open_store
 from comp_daemon.service.config import JobSettings
@@ -261,3 +265,80 @@ async def test_workers_keep_to_their_cpus(tmp_path: Path) -> None:
     finally:
         await runner.drain()
         runner.shutdown()
+
+
+def _campaign_with_directions_and_payload(n: int, seed: int = 0) -> str:
+    """A KR210 with geometric errors, backlash and gravity compliance; dir1..dir6 and payload_kg."""
+    robot = load_robot("kr210")
+    rng = np.random.default_rng(seed)
+    a = rng.uniform([-60, -120, 40, -90, 20, -90.0], [60, -40, 130, 90, 100, 90.0], (n, 6))
+    dirs = rng.choice([-1, 1], size=(n, 6))
+    payload = np.where(np.arange(n) % 2 == 0, 0.0, 100.0)
+    truth = robot.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    eff = EffectParams.zeros().with_values(["h2", "h3", "C2", "C3"], [0.005, 0.004, 2e-8, 3e-8])
+    p = twin_tcp_mm(robot, truth, eff, a, dirs.astype(float), payload) + rng.normal(0.0, 0.01, (n, 3))
+    head = "a1,a2,a3,a4,a5,a6,x,y,z," + ",".join(f"dir{k}" for k in range(1, 7)) + ",payload_kg,split"
+    lines = [head]
+    for i in range(n):
+        cells = [repr(float(v)) for v in (*a[i], *p[i])] + [str(int(d)) for d in dirs[i]]
+        lines.append(",".join([*cells, repr(float(payload[i])), "check" if i % 4 == 0 else "fit"]))
+    return "\n".join(lines) + "\n"
+
+
+async def test_every_kind_fits_over_http_and_compensates_once_active(service: Any) -> None:
+    client, store = service
+    kinds = (await client.get("/api/fits/kinds", headers=auth("viewer"))).json()
+    names = [k["name"] for k in kinds]
+    assert names == ["nominal", "kinematic", "chebyshev", "kriging", "kriging-backlash", "compliance"]
+    assert next(k for k in kinds if k["name"] == "kriging-backlash")["needs"] == ["dir"]
+    up = await client.post(
+        "/api/datasets?name=effects",
+        content=_campaign_with_directions_and_payload(160),
+        headers={**auth("engineer"), "Content-Type": "text/csv"},
+    )
+    assert up.status_code == 201, up.text
+    dataset_id = up.json()["id"]
+    bad = await client.post(
+        "/api/fits",
+        json={"dataset_id": dataset_id, "model": "chebyshev:2", "order": 3},
+        headers=auth("engineer"),
+    )
+    assert bad.status_code == 422 and "contradicts" in bad.json()["message"]
+    models = (
+        "nominal",
+        "kinematic+ratio+backlash",
+        "chebyshev:1",
+        "kriging",
+        "kriging-backlash",
+        "compliance",
+    )
+    started = {}
+    for name in models:
+        r = await client.post(
+            "/api/fits", json={"dataset_id": dataset_id, "model": name}, headers=auth("engineer")
+        )
+        assert r.status_code == 202, r.text
+        started[name] = r.json()["id"]
+    robot = load_robot("kr210")
+    home = (5.0, -85.0, 120.0, 3.0, -40.0, 10.0)
+    for name, job_id in started.items():
+        job = await _job_done(client, job_id)
+        assert job["state"] == "done", (name, job["error"])
+        stats = job["result"]["stats"]
+        assert stats["fit"]["model"] == name and stats["rows"] == {"fit": 120, "check": 40}
+        t2 = stats["table2"]
+        if name != "nominal":
+            assert t2["model"]["3d"]["mean"] < 0.5 * t2["nominal"]["3d"]["mean"], name
+        record = next(m for m in store.list_models(limit=50) if m.job_id == job_id)
+        assert record.kind == name.split("+")[0].split(":")[0]
+        artifact = (await client.get(f"/api/models/{record.id}/artifact", headers=auth("viewer"))).json()
+        assert artifact["kind"] == stats["artifact_kind"]
+        # activation: the daemon's compensator loads the stored artifact and compensates with it
+        assert (
+            await client.post(f"/api/models/{record.id}/activate", headers=auth("engineer"))
+        ).status_code == 200
+        comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: home)
+        out = comp(
+            {"a1": 10.0, "a2": -80.0, "a3": 110.0, "a4": 0.0, "a5": -30.0, "a6": 0.0, "payload_kg": 100.0}
+        )
+        assert out.model_id == record.id and out.info["predicted_residual_mm"] < 1e-5, name

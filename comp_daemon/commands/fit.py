@@ -1,56 +1,77 @@
 """``comp-daemon fit | evaluate | compensate``: fit error models, compare them, compensate targets.
 
-- ``fit DATA --robot R --model kinematic|chebyshev [--order m] --out MODEL.json`` fits one model on
-  the data set's fit rows (every row when there is no ``split`` column) and writes the artifact.
+- ``fit DATA --robot R --model NAME [--order m|cv] --out MODEL.json`` fits one model on the data
+  set's fit rows (every row when there is no ``split`` column) and writes the artifact.
 - ``evaluate DATA --robot R --models nominal,kinematic,chebyshev [--json OUT.json]`` fits each
   model on the fit rows and prints seed 000's Table 2 on the check rows (drawn reproducibly when
   the file has no ``split`` column).
 - ``compensate MODEL.json TARGETS.csv --out CORRECTED.csv`` writes, for every target, the axis
   values whose predicted TCP (by the model) is the wanted one.
 
-A model is named ``kind`` or ``kind+effect+…`` (``kinematic+ratio+backlash``: the MDH calibration
-with seed 001's per-joint reduction-ratio error and backlash). Files ending in ``.json`` are read
-as JSON records, anything else as CSV.
+Model names and kinds are those of :mod:`comp_daemon.models.registry`: ``kind[:order][+effect…]``,
+e.g. ``kinematic+ratio+backlash`` (the MDH calibration with seed 001's per-joint reduction-ratio
+error and backlash), ``chebyshev:cv``, ``kriging-backlash``, ``compliance``. Files ending in
+``.json`` are read as JSON records, anything else as CSV.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
-import os
 import sys
-import tempfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
 from comp_daemon.cli import UserError
+from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import compensate, nominal_targets
-from comp_daemon.models.effects import EFFECTS, effect_param_names
 from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
-from comp_daemon.models.fitting import FITTABLE_KINDS, fit_model, max_parameters
+from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel
+from comp_daemon.models.registry import (
+    KINDS,
+    MAX_ORDER,
+    MissingColumnError,
+    ModelSpec,
+    UnknownModelError,
+    fit_spec,
+    get_kind,
+    max_parameters,
+    parse_model_name,
+    with_order,
+)
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, RobotDescription, load_robot
 
 __all__ = ["register"]
 
 ROBOT_HELP = f"preset ({', '.join(PRESETS)}) or path to a robot TOML file"
+MODEL_HELP = (
+    f"model kind ({' | '.join(KINDS)}), kind:order for Chebyshev (chebyshev:3, chebyshev:cv), "
+    "kinematic+ratio+backlash for seed 001's joint effects"
+)
+ORDER_HELP = f"Chebyshev order 0..{MAX_ORDER}, or cv (cross-validation); default 3 (seed 000)"
+Order = int | Literal["cv"]
+
+
+def _order_arg(text: str) -> Order:
+    if text == "cv":
+        return "cv"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an order 0..{MAX_ORDER} or 'cv', got {text!r}") from None
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     fit = subparsers.add_parser("fit", help="fit an error model on a measurement data set, write MODEL.json")
     fit.add_argument("data", metavar="DATA", help="measurement data set (CSV, or .json records)")
     fit.add_argument("--robot", required=True, help=ROBOT_HELP)
-    fit.add_argument(
-        "--model",
-        required=True,
-        help="kinematic | chebyshev | nominal, or kinematic+ratio+backlash (joint effects of seed 001)",
-    )
-    fit.add_argument("--order", type=int, default=None, help="Chebyshev order (default: cross-validation)")
+    fit.add_argument("--model", required=True, help=MODEL_HELP)
+    fit.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
     _common(fit)
     fit.add_argument("--out", required=True, help="model artifact to write (JSON)")
     fit.set_defaults(func=_fit)
@@ -65,7 +86,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="nominal,kinematic,chebyshev",
         help="comma-separated models (default nominal,kinematic,chebyshev; e.g. kinematic+ratio+backlash)",
     )
-    ev.add_argument("--order", type=int, default=None, help="Chebyshev order (default: cross-validation)")
+    ev.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
     _common(ev)
     ev.add_argument("--json", default=None, metavar="OUT.json", help="write the statistics and fits as JSON")
     ev.set_defaults(func=_evaluate)
@@ -96,21 +117,11 @@ def _common(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of the cross-validation folds (default 0)")
 
 
-def _parse_model(token: str) -> tuple[str, list[str]]:
-    parts = [p.strip() for p in token.split("+") if p.strip()]
-    if not parts:
-        raise UserError("empty model name")
-    kind, effects = parts[0], parts[1:]
-    if kind not in FITTABLE_KINDS:
-        raise UserError(f"unknown model '{kind}' (known: {', '.join(FITTABLE_KINDS)})")
-    bad = [e for e in effects if e not in EFFECTS]
-    if bad:
-        raise UserError(f"model '{token}': unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECTS)})")
-    if effects and kind != "kinematic":
-        raise UserError(f"model '{token}': joint effects are offered by the kinematic model only")
-    if len(set(effects)) != len(effects):
-        raise UserError(f"model '{token}': an effect is named twice")
-    return kind, effects
+def _parse_model(token: str, order: Order | None) -> ModelSpec:
+    try:
+        return with_order(parse_model_name(token), order)
+    except UnknownModelError as exc:
+        raise UserError(str(exc)) from None
 
 
 def _read(path: str, robot: RobotDescription, min_rows: int, kind: Any) -> Dataset:
@@ -121,35 +132,14 @@ def _read(path: str, robot: RobotDescription, min_rows: int, kind: Any) -> Datas
         raise UserError(str(exc)) from None
 
 
-def _min_rows(kind: str, effects: list[str], order: int | None) -> int:
-    n_eff = len(effect_param_names(effects)) if effects else 0
-    return max_parameters(kind, order, n_eff)
-
-
-def _fit_rows(
-    dataset: Dataset, kind: str, effects: list[str], args: argparse.Namespace, rows: np.ndarray
-) -> Any:
-    assert dataset.a_deg is not None and dataset.xyz_mm is not None
-    dir_ = None if dataset.dir is None else dataset.dir[rows].astype(float)
-    temp = None if dataset.temp_c is None else dataset.temp_c[rows]
-    if "backlash" in effects and dir_ is None:
-        raise UserError(f"{dataset.source}: the backlash effect needs the dir1..dir6 columns")
-    if "thermal" in effects and temp is None:
-        raise UserError(f"{dataset.source}: the thermal effect needs the temp_c column")
-    return fit_model(
-        kind,
-        load_robot_cached(args),
-        dataset.a_deg[rows],
-        dataset.xyz_mm[rows],
-        dir=dir_,
-        payload_kg=dataset.payload_kg[rows],
-        temp_c=temp,
-        order=args.order,
-        effects=effects,
-        frame=args.frame,
-        cv_folds=args.folds,
-        seed=args.seed,
-    )
+def _fit_rows(dataset: Dataset, spec: ModelSpec, args: argparse.Namespace, rows: np.ndarray) -> FittedModel:
+    options = FitOptions(frame=args.frame, cv_folds=args.folds, seed=args.seed)
+    try:
+        return fit_spec(spec, load_robot_cached(args), FitRows.of(dataset, rows), options)
+    except MissingColumnError as exc:
+        raise UserError(f"{dataset.source}: {exc}") from None
+    except np.linalg.LinAlgError as exc:
+        raise UserError(f"{dataset.source}: the {spec.name} fit failed ({exc})") from None
 
 
 def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
@@ -160,24 +150,19 @@ def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
     return robot
 
 
-def _check_order(order: int | None) -> None:
-    if order is not None and not 0 <= order <= 8:
-        raise UserError(f"--order must be between 0 and 8, got {order}")
-
-
 def _fit(args: argparse.Namespace) -> int:
-    kind, effects = _parse_model(args.model)
-    _check_order(args.order)
+    spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
-    dataset = _read(args.data, robot, _min_rows(kind, effects, args.order), "measurement")
+    dataset = _read(args.data, robot, max_parameters(spec), "measurement")
     rows = dataset.fit_rows()
     if len(rows) < 3:
         raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
-    fitted = _fit_rows(dataset, kind, effects, args, rows)
+    fitted = _fit_rows(dataset, spec, args, rows)
     fit_info = dict(fitted.info)
+    fit_info["model"] = spec.name
     fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
     fit_info["data_source"] = dataset.source
-    if kind == "kinematic" and len(rows) < fitted.info["identifiability"]["identifiable"]:
+    if spec.kind == "kinematic" and len(rows) < fitted.info["identifiability"]["identifiable"]:
         raise UserError(
             f"{dataset.source}: {len(rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
             "identifiable parameters"
@@ -201,10 +186,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise UserError("--models: name at least one model")
     if len(set(tokens)) != len(tokens):
         raise UserError("--models: a model is named twice")
-    parsed = [(t, *_parse_model(t)) for t in tokens]
-    _check_order(args.order)
+    parsed = [(t, _parse_model(t, args.order if get_kind(_head(t)).takes_order else None)) for t in tokens]
     robot = load_robot_cached(args)
-    min_rows = max(_min_rows(kind, eff, args.order) for _, kind, eff in parsed)
+    min_rows = max(max_parameters(spec) for _, spec in parsed)
     dataset = _read(args.data, robot, min_rows, "measurement")
     if len(dataset) < 2:
         raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
@@ -219,8 +203,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     temp_check = None if dataset.temp_c is None else dataset.temp_c[check]
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
-    for token, kind, effects in parsed:
-        fitted = _fit_rows(dataset, kind, effects, args, split.fit_rows)
+    for token, spec in parsed:
+        fitted = _fit_rows(dataset, spec, args, split.fit_rows)
         pred = fitted.model.predict_tcp_mm(
             dataset.a_deg[check], dir_check, dataset.payload_kg[check], temp_check
         )
@@ -261,17 +245,16 @@ def _evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _head(token: str) -> str:
+    """The kind named by a model token (``kinematic+ratio`` -> ``kinematic``), as a user error if unknown."""
+    name = token.split("+")[0].partition(":")[0].strip()
+    if name not in KINDS:
+        raise UserError(f"unknown model '{name}' (known: {', '.join(KINDS)})")
+    return name
+
+
 def _write_json(path: str, doc: dict[str, Any]) -> None:
-    text = json.dumps(doc, indent=1, allow_nan=False, default=_json_default) + "\n"
-    dest = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-        os.replace(tmp, dest)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_json_atomic(path, doc, indent=1, default=_json_default)
 
 
 def _json_default(value: Any) -> Any:

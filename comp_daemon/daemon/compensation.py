@@ -17,7 +17,6 @@ since the loop removes the direction-dependent part there.
 
 from __future__ import annotations
 
-import json
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any
@@ -25,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
-from comp_daemon.models.artifact import ModelArtifactError, parse_model
+from comp_daemon.models import artifact as artifacts
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.compensation import compensate, nominal_targets
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
@@ -40,12 +39,11 @@ _ABC = ("ta", "tb", "tc")
 
 
 def model_from_artifact(artifact: Mapping[str, Any], robot: RobotDescription, where: str) -> ErrorModel:
-    """The model of a stored artifact (a checksummed ``comp-daemon-model`` document, as fit jobs store)."""
-    if "checksum_sha256" not in artifact:
-        raise ModelMissingError(f"{where}: the stored artifact is not a comp-daemon model document")
+    """The model of a stored artifact (:func:`comp_daemon.models.artifact.model_from_artifact`: every
+    kind of the model registry); a document that cannot be used is a :class:`ModelMissingError`."""
     try:
-        return parse_model(json.dumps(dict(artifact)), source=where, robot=robot).model
-    except ModelArtifactError as exc:
+        return artifacts.model_from_artifact(artifact, robot, where)
+    except artifacts.ModelArtifactError as exc:
         raise ModelMissingError(str(exc)) from None
 
 

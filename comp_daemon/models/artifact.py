@@ -2,7 +2,8 @@
 
 Document (``format`` = ``comp-daemon-model``, ``format_version`` = 1)::
 
-    kind            "nominal" | "kinematic" | "chebyshev"
+    kind            the model class's kind: "nominal" | "kinematic" | "chebyshev" | "kriging" |
+                    "compliance" (:data:`comp_daemon.models.registry.ARTIFACT_KINDS`)
     order           Chebyshev order (null for the others)
     robot           {"name", "sha256", "description"}: the robot description the model belongs to,
                     embedded so that the artifact stands alone; its hash is RobotDescription.sha256
@@ -31,7 +32,7 @@ import hashlib
 import json
 import math
 import os
-import tempfile
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -40,35 +41,26 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon import __version__
-from comp_daemon.models.base import ErrorModel, NominalModel
-from comp_daemon.models.chebyshev import ChebyshevModel
-from comp_daemon.models.compliance import ComplianceModel
-from comp_daemon.models.kinematic import KinematicModel
-from comp_daemon.models.kriging import KrigingModel
+from comp_daemon.common.atomic import write_text_atomic
+from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.registry import ARTIFACT_KINDS, model_from_payload
 from comp_daemon.robot.description import Joint, RobotDescription
 
 __all__ = [
     "ARTIFACT_FORMAT",
     "ARTIFACT_VERSION",
-    "MODEL_KINDS",
     "LoadedModel",
     "ModelArtifactError",
     "arrays_sha256",
     "load_model",
     "model_document",
+    "model_from_artifact",
     "parse_model",
     "save_model",
 ]
 
 ARTIFACT_FORMAT = "comp-daemon-model"
 ARTIFACT_VERSION = 1
-MODEL_KINDS: dict[str, type[ErrorModel]] = {
-    "nominal": NominalModel,
-    "kinematic": KinematicModel,
-    "chebyshev": ChebyshevModel,
-    "kriging": KrigingModel,
-    "compliance": ComplianceModel,
-}
 
 
 class ModelArtifactError(ValueError):
@@ -133,7 +125,7 @@ def model_document(
     created_utc: str | None = None,
 ) -> dict[str, Any]:
     """The artifact document of ``model`` (module docstring), checksum included."""
-    if model.kind not in MODEL_KINDS:
+    if model.kind not in ARTIFACT_KINDS:
         raise ValueError(f"unknown model kind '{model.kind}'")
     if frame not in ("base", "tracker"):
         raise ValueError(f"frame must be 'base' or 'tracker', got {frame!r}")
@@ -170,16 +162,7 @@ def save_model(
 ) -> dict[str, Any]:
     """Write the artifact atomically (temporary file, then rename); returns the document."""
     doc = model_document(model, data_sha256=data_sha256, frame=frame, fit=fit)
-    text = json.dumps(doc, indent=1, allow_nan=False) + "\n"
-    dest = Path(path)
-    fd, tmp = tempfile.mkstemp(prefix=f".{dest.name}.", suffix=".tmp", dir=dest.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as handle:
-            handle.write(text)
-        os.replace(tmp, dest)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_text_atomic(path, json.dumps(doc, indent=1, allow_nan=False) + "\n")
     return doc
 
 
@@ -245,8 +228,10 @@ def parse_model(text: str, source: str = "<model>", robot: RobotDescription | No
     if actual != checksum:
         raise ModelArtifactError(f"{source}: checksum mismatch: the file is corrupt or was edited")
     kind = _field(doc, "kind", str, source)
-    if kind not in MODEL_KINDS:
-        raise ModelArtifactError(f"{source}: unknown model kind '{kind}' (known: {', '.join(MODEL_KINDS)})")
+    if kind not in ARTIFACT_KINDS:
+        raise ModelArtifactError(
+            f"{source}: unknown model kind '{kind}' (known: {', '.join(ARTIFACT_KINDS)})"
+        )
     robot_doc = _field(doc, "robot", dict, source)
     recorded_sha = _field(robot_doc, "sha256", str, f"{source} robot")
     try:
@@ -274,7 +259,7 @@ def parse_model(text: str, source: str = "<model>", robot: RobotDescription | No
         raise ModelArtifactError(f"{source}: field 'registration' must be a finite 4×4 matrix")
     payload = _field(doc, "model", dict, source)
     try:
-        model = MODEL_KINDS[kind].from_payload(embedded, payload, order, registration)
+        model = model_from_payload(kind, embedded, payload, order, registration)
     except (KeyError, TypeError, ValueError) as exc:
         raise ModelArtifactError(f"{source}: {kind} model content is malformed ({exc})") from None
     return LoadedModel(model=model, document=doc)
@@ -287,3 +272,14 @@ def load_model(path: str | os.PathLike[str], robot: RobotDescription | None = No
     except (OSError, UnicodeDecodeError) as exc:
         raise ModelArtifactError(f"{path}: cannot read: {exc}") from None
     return parse_model(text, source=str(path), robot=robot)
+
+
+def model_from_artifact(artifact: Mapping[str, Any], robot: RobotDescription, where: str) -> ErrorModel:
+    """The model of a stored artifact document (as fit jobs store it), for ``robot``.
+
+    :class:`ModelArtifactError` naming ``where`` when the document is not a checksummed
+    ``comp-daemon-model``, is damaged, or belongs to another robot.
+    """
+    if "checksum_sha256" not in artifact:
+        raise ModelArtifactError(f"{where}: the stored artifact is not a comp-daemon model document")
+    return parse_model(json.dumps(dict(artifact)), source=where, robot=robot).model

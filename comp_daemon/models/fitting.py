@@ -1,39 +1,130 @@
-"""Fit any model kind on measured rows: the entry point of the ``fit`` and ``evaluate`` commands.
+"""How each model kind is fitted on measured rows: one function per kind, all of one signature.
 
-``fit_model(kind, robot, a_deg, xyz_mm, …)`` returns the model, the frame the data were in and a
-JSON-ready summary of the fit (rows, RMS, solver, identifiability, order selection). Kinds:
+``fit_<kind>(robot, rows, spec, options) -> FittedModel``: ``rows`` are the measured rows
+(:class:`FitRows`: axis values, TCP positions, and the optional columns a kind may use), ``spec``
+the parsed model name (:class:`ModelSpec`: kind, joint effects, Chebyshev order), ``options`` the
+door's settings (:class:`FitOptions`: frame, cross-validation folds and seed). The result holds the
+model, the frame the data were in and a JSON-ready summary of the fit (rows, RMS, solver,
+identifiability, order selection). :mod:`comp_daemon.models.registry` names these functions in its
+table; the doors call them through it.
 
-- ``nominal``: the robot description; only the frame is registered (tracker data), nothing fitted;
+- ``nominal``: the robot description; only the base frame is registered (tracker data), nothing
+  else fitted;
 - ``kinematic``: MDH calibration (:func:`comp_daemon.models.kinematic.calibrate_kinematic`), with
-  the optional joint ``effects`` (seed 001: ``ratio``, ``backlash``);
-- ``chebyshev``: the Chebyshev error model (:func:`comp_daemon.models.chebyshev.fit_chebyshev`);
-  without an ``order`` the order and the removal threshold are chosen by k-fold cross-validation on
-  the rows given.
+  the optional joint ``effects`` (seed 001 §1: ``ratio``, ``backlash``);
+- ``chebyshev``: the Chebyshev error model of seed 000 (:func:`comp_daemon.models.chebyshev.fit_chebyshev`)
+  of the spec's order, or with the order and the removal threshold chosen by k-fold
+  cross-validation on the rows given (``order_by_cv``; the summary says what was chosen);
+- ``kriging``: ordinary kriging of the kinematic calibration's residual over the plain joint-space
+  distance (seed 001 §2's "method one" after calibration);
+- ``kriging-backlash``: seed 001 §2's model: kriging over the direction-aware joint-state distance
+  on the residual of the kinematic calibration with ratio and backlash (needs ``dir``);
+- ``compliance``: seed 004's zero offsets and joint compliance C2, C3 under the gravity torques of
+  the links and the payload of each row (``payload_kg``).
 """
 
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.data.dataset import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
-from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, n_coefficients, select_order
+from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
+from comp_daemon.models.compliance import calibrate_compliance
 from comp_daemon.models.identifiability import IdentifiabilityReport
-from comp_daemon.models.kinematic import calibrate_kinematic
+from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
+from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["FITTABLE_KINDS", "FittedModel", "fit_model", "max_parameters"]
+__all__ = [
+    "DEFAULT_CHEBYSHEV_ORDER",
+    "FitOptions",
+    "FitRows",
+    "FittedModel",
+    "ModelSpec",
+    "fit_chebyshev_kind",
+    "fit_compliance_kind",
+    "fit_kinematic_kind",
+    "fit_kriging_backlash_kind",
+    "fit_kriging_kind",
+    "fit_nominal_kind",
+]
 
-FITTABLE_KINDS = ("nominal", "kinematic", "chebyshev")
+DEFAULT_CHEBYSHEV_ORDER = 3  # seed 000 fits m = 3
+SEED001_EFFECTS = ("ratio", "backlash")
 FrameChoice = Literal["auto", "base", "tracker"]
+
+
+@dataclass(frozen=True, slots=True)
+class ModelSpec:
+    """A parsed model name: ``kinematic+ratio+backlash``, ``chebyshev:3``, ``chebyshev:cv``, …"""
+
+    kind: str
+    effects: tuple[str, ...] = ()
+    order: int | None = None  # Chebyshev order; None: the kind's default
+    order_by_cv: bool = False  # Chebyshev: choose the order by cross-validation
+
+    @property
+    def name(self) -> str:
+        """The canonical model name (what :func:`comp_daemon.models.registry.parse_model_name` reads)."""
+        head = self.kind
+        if self.order_by_cv:
+            head += ":cv"
+        elif self.order is not None:
+            head += f":{self.order}"
+        return "+".join([head, *self.effects])
+
+
+@dataclass(frozen=True, slots=True)
+class FitOptions:
+    """Settings of a fit that are not part of the model name."""
+
+    frame: FrameChoice = "auto"
+    cv_folds: int = 5
+    seed: int = 0
+
+
+@dataclass(frozen=True, slots=True)
+class FitRows:
+    """Measured rows: commanded axes (n, 6, deg), TCP (n, 3, mm) and the optional columns."""
+
+    a_deg: NDArray[np.float64]
+    xyz_mm: NDArray[np.float64]
+    dir: NDArray[np.float64] | None = None
+    payload_kg: NDArray[np.float64] | float = 0.0
+    temp_c: NDArray[np.float64] | None = None
+    n: int = field(init=False)
+
+    def __post_init__(self) -> None:
+        a = as_axes(self.a_deg)
+        p = np.asarray(self.xyz_mm, dtype=float)
+        if p.shape != (a.shape[0], 3):
+            raise ValueError(f"measured positions must have shape ({a.shape[0]}, 3), got {p.shape}")
+        object.__setattr__(self, "a_deg", a)
+        object.__setattr__(self, "xyz_mm", p)
+        object.__setattr__(self, "n", a.shape[0])
+
+    @classmethod
+    def of(cls, dataset: Dataset, rows: NDArray[np.intp] | slice = slice(None)) -> FitRows:
+        """These rows of a measurement data set (axis values and positions required)."""
+        if dataset.a_deg is None or dataset.xyz_mm is None:
+            raise ValueError(f"{dataset.source}: a fit needs a1..a6 and x, y, z")
+        return cls(
+            dataset.a_deg[rows],
+            dataset.xyz_mm[rows],
+            dir=None if dataset.dir is None else dataset.dir[rows].astype(float),
+            payload_kg=dataset.payload_kg[rows],
+            temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
+        )
 
 
 @dataclass(frozen=True, slots=True)
@@ -43,18 +134,7 @@ class FittedModel:
     info: dict[str, Any]
 
 
-def max_parameters(kind: str, order: int | None = None, n_effect_params: int = 0) -> int:
-    """Parameters of the chosen model before the identifiability analysis (a row-count floor)."""
-    if kind == "nominal":
-        return 6
-    if kind == "kinematic":
-        return 39 + n_effect_params
-    if kind == "chebyshev":
-        return n_coefficients(0 if order is None else order)
-    raise ValueError(f"unknown model kind '{kind}' (known: {', '.join(FITTABLE_KINDS)})")
-
-
-def _lm_info(lm: LMResult) -> dict[str, Any]:
+def lm_info(lm: LMResult) -> dict[str, Any]:
     return {
         "method": "improved Levenberg-Marquardt (seed 000)",
         "iterations": lm.iterations,
@@ -67,7 +147,7 @@ def _lm_info(lm: LMResult) -> dict[str, Any]:
     }
 
 
-def _report_info(report: IdentifiabilityReport, list_removed: bool = True) -> dict[str, Any]:
+def report_info(report: IdentifiabilityReport, list_removed: bool = True) -> dict[str, Any]:
     out: dict[str, Any] = {
         "candidates": len(report.candidates),
         "identifiable": len(report.identifiable),
@@ -90,59 +170,79 @@ def _report_info(report: IdentifiabilityReport, list_removed: bool = True) -> di
     return out
 
 
-def fit_model(
-    kind: str,
-    robot: RobotDescription,
-    a_deg: NDArray[np.float64],
-    xyz_mm: NDArray[np.float64],
-    *,
-    dir: NDArray[np.float64] | None = None,
-    payload_kg: NDArray[np.float64] | float = 0.0,
-    temp_c: NDArray[np.float64] | None = None,
-    order: int | None = None,
-    effects: Sequence[str] = (),
-    frame: FrameChoice = "auto",
-    cv_folds: int = 5,
-    seed: int = 0,
+def _identified(
+    names: Sequence[str], values: NDArray[np.float64], std: NDArray[np.float64]
+) -> dict[str, Any]:
+    return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(names, values, std, strict=True)}
+
+
+def _rms(model: ErrorModel, rows: FitRows) -> float:
+    err = model.predict_tcp_mm(rows.a_deg, rows.dir, rows.payload_kg, rows.temp_c) - rows.xyz_mm
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+
+
+def fit_nominal_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
-    """Fit a model of ``kind`` on these rows (module docstring)."""
-    a = as_axes(a_deg)
-    p = np.asarray(xyz_mm, dtype=float)
-    n = a.shape[0]
-    if kind not in FITTABLE_KINDS:
-        raise ValueError(f"unknown model kind '{kind}' (known: {', '.join(FITTABLE_KINDS)})")
-    if kind == "nominal":
-        nominal = robot.nominal_params()
-        p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
-        chosen = detect_frame(p_nom, p) if frame == "auto" else frame
-        reg = rigid_registration(p_nom, p) if chosen == "tracker" else np.eye(4)
-        model = NominalModel(robot, reg)
-        err = model.predict_tcp_mm(a) - p
-        info = {"kind": kind, "rows": n, "rms_mm": float(np.sqrt(np.mean(np.sum(err**2, axis=1))))}
-        return FittedModel(model, chosen, info)
-    if kind == "kinematic":
-        kf = calibrate_kinematic(
-            robot, a, p, dir=dir, payload_kg=payload_kg, temp_c=temp_c, effects=effects, frame=frame
-        )
-        info = {
-            "kind": kind,
-            "rows": n,
-            "rms_mm": kf.rms_mm,
-            "effects": list(effects),
-            "solver": _lm_info(kf.lm),
-            "identifiability": _report_info(kf.report),
-            "identified": {
-                name: {"value": float(v), "std": float(s)}
-                for name, v, s in zip(kf.identified, kf.values, kf.std, strict=True)
-            },
-        }
-        return FittedModel(kf.model, kf.frame, info)
-    if effects:
-        raise ValueError("joint effects belong to the kinematic model; the Chebyshev model has none")
+    """The nominal geometry; on tracker data the base frame is registered (rigid fit), nothing else."""
+    nominal = robot.nominal_params()
+    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
+    chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
+    reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
+    model = NominalModel(robot, reg)
+    return FittedModel(model, chosen, {"kind": spec.kind, "rows": rows.n, "rms_mm": _rms(model, rows)})
+
+
+def _kinematic(
+    robot: RobotDescription, rows: FitRows, effects: Sequence[str], options: FitOptions
+) -> KinematicFit:
+    return calibrate_kinematic(
+        robot,
+        rows.a_deg,
+        rows.xyz_mm,
+        dir=rows.dir,
+        payload_kg=rows.payload_kg,
+        temp_c=rows.temp_c,
+        effects=effects,
+        frame=options.frame,
+    )
+
+
+def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
+    return {
+        "rms_mm": kf.rms_mm,
+        "effects": list(effects),
+        "solver": lm_info(kf.lm),
+        "identifiability": report_info(kf.report),
+        "identified": _identified(kf.identified, kf.values, kf.std),
+    }
+
+
+def fit_kinematic_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """MDH calibration with the spec's joint effects."""
+    kf = _kinematic(robot, rows, spec.effects, options)
+    return FittedModel(
+        kf.model, kf.frame, {"kind": spec.kind, "rows": rows.n, **_kinematic_info(kf, spec.effects)}
+    )
+
+
+def fit_chebyshev_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """The Chebyshev model of seed 000: the spec's order (default 3), or chosen by cross-validation."""
     selection_info: dict[str, Any] | None = None
     rtol = CHEBYSHEV_RTOL
-    if order is None:
-        sel = select_order(robot, a, p, folds=min(cv_folds, n), seed=seed, frame=frame)
+    if spec.order_by_cv:
+        sel = select_order(
+            robot,
+            rows.a_deg,
+            rows.xyz_mm,
+            folds=min(options.cv_folds, rows.n),
+            seed=options.seed,
+            frame=options.frame,
+        )
         order, rtol = sel.order, sel.rtol
         selection_info = {
             "method": f"{sel.folds}-fold cross-validation on the fit rows (mean held-out 3-D RMS, mm)",
@@ -152,16 +252,92 @@ def fit_model(
             "chosen_order": sel.order,
             "chosen_rtol": sel.rtol,
         }
-    cf = fit_chebyshev(robot, a, p, order, frame=frame, rtol=rtol)
+    else:
+        order = DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order
+    cf = fit_chebyshev(robot, rows.a_deg, rows.xyz_mm, order, frame=options.frame, rtol=rtol)
     info = {
-        "kind": kind,
-        "rows": n,
+        "kind": spec.kind,
+        "rows": rows.n,
         "order": order,
         "rtol": rtol,
         "range_deg": cf.model.range_deg.tolist(),
         "rms_mm": cf.rms_mm,
-        "solver": _lm_info(cf.lm),
-        "identifiability": _report_info(cf.report, list_removed=False),
+        "solver": lm_info(cf.lm),
+        "identifiability": report_info(cf.report, list_removed=False),
         "order_selection": selection_info,
+    }
+    return FittedModel(cf.model, cf.frame, info)
+
+
+def _kriging_info(kg: KrigingFit, rows: FitRows) -> dict[str, Any]:
+    model = kg.model
+    return {
+        "rms_mm": _rms(model, rows),
+        "base_rms_mm": kg.base_rms_mm,
+        "loo_rms_mm": kg.loo_rms_mm,
+        "samples": int(model.sample_a_deg.shape[0]),
+        "direction_separation_deg": model.metric.dir_separation_deg.tolist(),
+        "direction_candidates": [
+            {"separation_deg": list(sep), "loo_rms_mm": loo} for sep, loo in kg.candidates
+        ],
+        "variograms": [v.to_dict() for v in model.variograms],
+    }
+
+
+def _fit_kriging(
+    robot: RobotDescription,
+    rows: FitRows,
+    spec: ModelSpec,
+    options: FitOptions,
+    effects: Sequence[str],
+    direction: Literal["aware", "blind"],
+) -> FittedModel:
+    kf = _kinematic(robot, rows, effects, options)
+    kg = fit_kriging(
+        kf.model,
+        rows.a_deg,
+        rows.xyz_mm,
+        dir=rows.dir if direction == "aware" else None,
+        payload_kg=rows.payload_kg,
+        temp_c=rows.temp_c,
+        direction=direction,
+    )
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        **_kriging_info(kg, rows),
+        "base": {"kind": "kinematic", **_kinematic_info(kf, effects)},
+    }
+    return FittedModel(kg.model, kf.frame, info)
+
+
+def fit_kriging_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """Kriging of the kinematic calibration's residual over the plain joint-space distance."""
+    return _fit_kriging(robot, rows, spec, options, (), "blind")
+
+
+def fit_kriging_backlash_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """Seed 001 §2: direction-aware kriging on the kinematic + ratio + backlash calibration."""
+    return _fit_kriging(robot, rows, spec, options, SEED001_EFFECTS, "aware")
+
+
+def fit_compliance_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """Seed 004: zero offsets and the compliance of joints 2 and 3 under the rows' payloads."""
+    cf = calibrate_compliance(robot, rows.a_deg, rows.xyz_mm, payload_kg=rows.payload_kg, frame=options.frame)
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        "rms_mm": cf.rms_mm,
+        "compliance_rad_per_nm": cf.model.compliance_rad_per_nm.tolist(),
+        "zero_offset_rad": cf.model.zero_offset_rad.tolist(),
+        "solver": lm_info(cf.lm),
+        "identifiability": report_info(cf.report),
+        "identified": _identified(cf.identified, cf.values, cf.std),
     }
     return FittedModel(cf.model, cf.frame, info)

@@ -47,7 +47,7 @@ no nugget the predictor interpolates the samples exactly. The system is factoris
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
@@ -78,6 +78,7 @@ __all__ = [
 ]
 
 N_JOINTS = 6
+BaseLoader = Callable[[str, RobotDescription, dict[str, Any], "int | None", NDArray[np.float64]], ErrorModel]
 AXES = ("x", "y", "z")
 DEFAULT_DIR_GRID_DEG: tuple[float, ...] = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0)
 DirectionChoice = Literal["aware", "blind"]
@@ -438,16 +439,22 @@ class KrigingModel(ErrorModel):
         payload: dict[str, Any],
         order: int | None,
         registration: NDArray[np.float64],
+        *,
+        base_loader: BaseLoader | None = None,
     ) -> KrigingModel:
-        """Rebuild a stored model (its base model is stored inside it, by kind)."""
+        """Rebuild a stored model; its base model, stored inside it by kind, is rebuilt by
+        ``base_loader(kind, robot, payload, order, registration)`` (the model registry's
+        :func:`comp_daemon.models.registry.model_from_payload`, which passes itself)."""
+        if base_loader is None:
+            raise ValueError("kriging model: its base model is rebuilt by a base_loader (the model registry)")
         try:
             entry = payload["base"]
             kind = str(entry["kind"])
-            base_cls = _model_kinds().get(kind)
-            if base_cls is None or base_cls is KrigingModel:
+            if kind == cls.kind:
                 raise ValueError(f"kriging model: cannot stand on a base model of kind '{kind}'")
             base_order = entry["order"]
-            base = base_cls.from_payload(
+            base = base_loader(
+                kind,
                 robot,
                 entry["model"],
                 None if base_order is None else int(base_order),
@@ -467,16 +474,6 @@ class KrigingModel(ErrorModel):
             )
         except KeyError as exc:
             raise ValueError(f"kriging model: missing field {exc.args[0]!r}") from None
-
-
-def _model_kinds() -> dict[str, type[ErrorModel]]:
-    """Every model kind that can be rebuilt from a payload (the artifact registry and ours)."""
-    from comp_daemon.models.artifact import MODEL_KINDS
-    from comp_daemon.models.compliance import ComplianceModel
-
-    kinds: dict[str, type[ErrorModel]] = dict(MODEL_KINDS)
-    kinds.setdefault("compliance", ComplianceModel)
-    return kinds
 
 
 @dataclass(frozen=True, slots=True)

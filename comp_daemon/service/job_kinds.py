@@ -4,16 +4,18 @@ Worker functions take plain, picklable arguments (the data set as canonical CSV 
 preset name or path) and return JSON-ready dicts; they never touch the store. Parent-side hooks
 turn a fit's result into a stored model.
 
-A fit is :func:`comp_daemon.models.fitting.fit_model` on the data set's fit rows (the ``split``
-column, or a reproducible draw), judged with seed 000's Table 2
+A fit is the model registry's fit (:func:`comp_daemon.models.registry.fit_spec`) on the data set's
+fit rows (the ``split`` column, or a reproducible draw), judged with seed 000's Table 2
 (:func:`comp_daemon.models.evaluation.error_statistics`) on the check rows next to the nominal
-twin; the model is stored as its artifact document (:func:`comp_daemon.models.artifact.model_document`),
-which the daemon loads back bit-exact. Model names are those of ``comp-daemon fit``: ``kinematic``,
-``chebyshev``, ``nominal``, or ``kinematic+ratio+backlash`` (joint effects of seed 001).
+twin (registered to the data's frame); the model is stored as its artifact document
+(:func:`comp_daemon.models.artifact.model_document`), which the daemon loads back bit-exact. Model
+names are those of ``comp-daemon fit`` (:func:`comp_daemon.models.registry.parse_model_name`):
+every kind of the registry, ``chebyshev:m`` / ``chebyshev:cv``, ``kinematic+ratio+backlash``.
 
 Fit result (``job.result``) and model ``stats``::
 
-    {"model": name, "kind": kind, "effects": [...], "order": m, "frame": "base"|"tracker",
+    {"model": name, "kind": kind, "artifact_kind": the stored model's kind (kriging-backlash: kriging),
+     "effects": [...], "order": m, "frame": "base"|"tracker",
      "rows": {"fit": n, "check": n}, "split": message,
      "table2": {"nominal": T, "model": T}, "errors_3d_mm": {"nominal": [...], "model": [...]},
      "fit": {...fit_model's summary...}}
@@ -40,8 +42,6 @@ __all__ = [
     "diagnosis_job_args",
     "fit_done",
     "fit_job_args",
-    "fit_model_kinds",
-    "parse_model_name",
     "run_diagnosis",
     "run_fit",
 ]
@@ -50,34 +50,6 @@ FIT = "fit"
 DIAGNOSIS = "diagnosis"
 
 Progress = Callable[..., None]
-
-
-def fit_model_kinds() -> tuple[str, ...]:
-    """Model kinds a fit job can make (joint effects may be added to ``kinematic`` with ``+``)."""
-    from comp_daemon.models.fitting import FITTABLE_KINDS
-
-    return tuple(FITTABLE_KINDS)
-
-
-def parse_model_name(name: str) -> tuple[str, list[str]]:
-    """``kinematic+ratio+backlash`` -> ("kinematic", ["ratio", "backlash"]); ValueError naming the fault."""
-    from comp_daemon.models.effects import EFFECTS
-
-    parts = [p.strip() for p in name.split("+")]
-    kind, effects = parts[0], parts[1:]
-    kinds = fit_model_kinds()
-    if kind not in kinds:
-        raise ValueError(
-            f"unknown model '{kind}' (known: {', '.join(kinds)}; effects with +, e.g. kinematic+backlash)"
-        )
-    bad = [e or "(empty)" for e in effects if e not in EFFECTS]
-    if bad:
-        raise ValueError(f"model '{name}': unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECTS)})")
-    if effects and kind != "kinematic":
-        raise ValueError(f"model '{name}': joint effects are offered by the kinematic model only")
-    if len(set(effects)) != len(effects):
-        raise ValueError(f"model '{name}': an effect is named twice")
-    return kind, effects
 
 
 # -------------------------------------------------------------------------------------------- fit
@@ -95,28 +67,22 @@ def run_fit(
     """Fit ``model`` on the fit rows of the data set, judge it and the nominal twin on the check rows."""
     from comp_daemon.data.dataset import parse_dataset
     from comp_daemon.models.artifact import model_document
-    from comp_daemon.models.effects import effect_param_names
     from comp_daemon.models.evaluation import error_statistics
-    from comp_daemon.models.fitting import fit_model, max_parameters
+    from comp_daemon.models.fitting import FitRows, ModelSpec
+    from comp_daemon.models.registry import fit_spec, max_parameters, parse_model_name, with_order
     from comp_daemon.robot.description import load_robot
 
-    kind, effects = parse_model_name(model)
+    spec = with_order(parse_model_name(model), order)
     robot = load_robot(robot_name)
     progress(0.02, "reading the data set")
-    n_effect = len(effect_param_names(effects)) if effects else 0
     source = f"dataset {dataset_id}"
     ds = parse_dataset(
         csv_text,
         source=source,
         limits_deg=robot.axis_limits_deg,
-        min_rows=max_parameters(kind, order, n_effect),
+        min_rows=max_parameters(spec),
         kind="measurement",
     )
-    assert ds.a_deg is not None and ds.xyz_mm is not None
-    if "backlash" in effects and ds.dir is None:
-        raise ValueError(f"{source}: the backlash effect needs the dir1..dir6 columns")
-    if "thermal" in effects and ds.temp_c is None:
-        raise ValueError(f"{source}: the thermal effect needs the temp_c column")
     split = ds.split_or_draw()
     fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
     if len(check_rows) == 0:
@@ -124,38 +90,29 @@ def run_fit(
     if len(fit_rows) < 3:
         raise ValueError(f"{source}: {len(fit_rows)} fit rows; a fit needs at least 3")
 
-    def rows(idx: Any) -> dict[str, Any]:
-        return {
-            "dir": None if ds.dir is None else ds.dir[idx].astype(float),
-            "payload_kg": ds.payload_kg[idx],
-            "temp_c": None if ds.temp_c is None else ds.temp_c[idx],
-        }
-
-    a, p = ds.a_deg, ds.xyz_mm
-    progress(
-        0.05,
-        f"fitting {model}"
-        + (" (order by cross-validation)" if kind == "chebyshev" and order is None else ""),
-    )
-    fitted = fit_model(kind, robot, a[fit_rows], p[fit_rows], order=order, effects=effects, **rows(fit_rows))
-    if kind == "kinematic" and len(fit_rows) < fitted.info["identifiability"]["identifiable"]:
+    progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
+    train = FitRows.of(ds, fit_rows)
+    try:
+        fitted = fit_spec(spec, robot, train)
+    except ValueError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+    if spec.kind == "kinematic" and len(fit_rows) < fitted.info["identifiability"]["identifiable"]:
         raise ValueError(
             f"{source}: {len(fit_rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
             "identifiable parameters"
         )
     progress(0.9, "judging on the check rows")
-    nominal = fit_model("nominal", robot, a[fit_rows], p[fit_rows])
-    check = rows(check_rows)
-    pred_model = fitted.model.predict_tcp_mm(
-        a[check_rows], check["dir"], check["payload_kg"], check["temp_c"]
-    )
-    pred_nominal = nominal.model.predict_tcp_mm(a[check_rows])
-    p_check = p[check_rows]
-    info = {**fitted.info, "data_source": ds.source, "data_rows_used": "fit rows"}
+    nominal = fit_spec(ModelSpec("nominal"), robot, train)
+    check = FitRows.of(ds, check_rows)
+    pred_model = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
+    pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
+    p_check = check.xyz_mm
+    info = {**fitted.info, "model": spec.name, "data_source": ds.source, "data_rows_used": "fit rows"}
     stats = {
         "model": model,
-        "kind": kind,
-        "effects": effects,
+        "kind": spec.kind,
+        "artifact_kind": fitted.model.kind,
+        "effects": list(spec.effects),
         "order": fitted.model.order,
         "frame": fitted.frame,
         "rows": {"fit": len(fit_rows), "check": len(check_rows)},

@@ -194,12 +194,14 @@ class FitIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
     dataset_id: int = Field(ge=1, le=2**62)
     model: str = Field(
-        description="kinematic, chebyshev or nominal; kinematic+ratio+backlash adds seed 001's joint effects",
+        description="a model kind of GET /api/fits/kinds (nominal, kinematic, chebyshev, kriging, "
+        "kriging-backlash, compliance); kinematic+ratio+backlash adds seed 001's joint effects; "
+        "chebyshev:m or chebyshev:cv",
         min_length=1,
         max_length=100,
     )
     order: int | None = Field(
-        None, ge=0, le=8, description="Chebyshev order; omitted: chosen by cross-validation"
+        None, ge=0, le=8, description="Chebyshev order; omitted: the model name's (default 3, seed 000)"
     )
 
 

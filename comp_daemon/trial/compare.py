@@ -10,7 +10,7 @@ data): the error of a model is ``measured − predicted`` at those commands (see
 Seed 000's Chebyshev model (the trial's order, and the order chosen by cross-validation) is judged
 the same way, so every method of both papers is compared on one data set.
 
-Models come from :mod:`comp_daemon.models` (``fitting.fit_model``, ``kriging.fit_kriging``); numbers
+Models come from :mod:`comp_daemon.models` (``registry.fit_model``, ``kriging.fit_kriging``); numbers
 are mm, Table 2 statistics (:func:`comp_daemon.models.evaluation.error_statistics`).
 """
 
@@ -26,8 +26,8 @@ from numpy.typing import NDArray
 
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.evaluation import error_statistics
-from comp_daemon.models.fitting import fit_model
 from comp_daemon.models.kriging import fit_kriging
+from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["ComparisonData", "compare_models"]
@@ -124,6 +124,8 @@ def compare_models(
     judge(f"Chebyshev m={chebyshev_order}", "seed 000 §2.1", fitted_model("chebyshev", order=chebyshev_order))
     if cross_validate:
         judge(
-            "Chebyshev, order by cross-validation", "seed 000 §2.1 (order chosen)", fitted_model("chebyshev")
+            "Chebyshev, order by cross-validation",
+            "seed 000 §2.1 (order chosen)",
+            fitted_model("chebyshev", order="cv"),
         )
     return out

@@ -1,8 +1,10 @@
 """Fits (jobs that make models), jobs in general, and models: list, compare, activate.
 
-A fit runs in the process pool; ``GET /api/jobs/{id}`` follows it (state, progress 0..1, result
-statistics). When it is done, the model it made is listed under ``/api/models`` (inactive);
-activating one makes the daemon compensate with it from its next target on.
+``GET /api/fits/kinds`` lists the model kinds of the registry (:mod:`comp_daemon.models.registry`)
+a fit can name. A fit runs in the process pool; ``GET /api/jobs/{id}`` follows it (state,
+progress 0..1, result statistics). When it is done, the model it made is listed under
+``/api/models`` (inactive); activating one makes the daemon compensate with it from its next
+target on.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import JSONResponse, Response
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.models.registry import KINDS, UnknownModelError, parse_model_name, with_order
 from comp_daemon.service import job_kinds
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
@@ -60,8 +63,8 @@ async def launch_job(
 )
 async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
     try:
-        job_kinds.parse_model_name(body.model)
-    except ValueError as exc:
+        with_order(parse_model_name(body.model), body.order)
+    except UnknownModelError as exc:
         raise ApiError(422, "invalid_request", str(exc), column="model") from None
     params = {"model": body.model, "order": body.order, "dataset_id": body.dataset_id, "by": who.name}
     robot_name = svc.settings.robot.name
@@ -74,6 +77,22 @@ async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
     )
     _log.info("fit queued", job_id=job.id, model=body.model, order=body.order, by=who.name)
     return JobOut.of(job)
+
+
+@router.get("/fits/kinds", tags=["fits"], summary="The model kinds a fit can name")
+async def fit_kinds(who: Viewer) -> list[dict[str, Any]]:
+    return [
+        {
+            "name": k.name,
+            "summary": k.summary,
+            "artifact_kind": k.model_class.kind,
+            "effects": k.takes_effects,
+            "order": k.takes_order,
+            "needs": list(k.needs),
+            "uses": list(k.uses),
+        }
+        for k in KINDS.values()
+    ]
 
 
 @router.get(

@@ -1,25 +1,28 @@
-"""Seed 004's point-constraint zero-offset calibration with joint compliance (laser lines through a PSD)."""
+"""Seed 004's point-constraint zero-offset calibration with joint compliance (laser lines through a PSD),
+the benchmark that reproduces the paper's experiment (``benchmarks/seed004_*.py``)."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
-from comp_daemon.models.compliance import (
+from benchmarks.seed004_compliance import (
     SEED004_COMPLIANCE_RAD_PER_NM,
     SEED004_ZERO_OFFSETS_DEG,
-    ComplianceModel,
     PsdPoses,
     PsdSetup,
     _link5_shift,
+    reproduce_seed004,
+    simulate_psd_poses,
+)
+from benchmarks.seed004_point import (
     calibrate_point_constraint,
     laser_lines,
     point_constraint_jacobian,
     psd_distance_errors_mm,
-    reproduce_seed004,
-    simulate_psd_poses,
 )
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
+from comp_daemon.models.compliance import ComplianceModel
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state
 from comp_daemon.robot.description import load_robot
 
@@ -165,6 +168,6 @@ def test_bad_arguments_are_refused() -> None:
     with pytest.raises(ValueError, match="multiple of poses_per_calibration"):
         reproduce_seed004(n_poses=40, n_fit=20, poses_per_calibration=7)
     with pytest.raises(ValueError, match=r"LaserMount\.direction must not be zero"):
-        from comp_daemon.models.compliance import LaserMount
+        from benchmarks.seed004_point import LaserMount
 
         LaserMount(direction=np.zeros(3))

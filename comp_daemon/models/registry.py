@@ -1,0 +1,312 @@
+"""The one table of model kinds, read by every door that fits, loads or names a model.
+
+Each :class:`ModelKind` says what a kind is: its name and summary, the function that fits it
+(:mod:`comp_daemon.models.fitting`), the :class:`~comp_daemon.models.base.ErrorModel` class that
+predicts with it and rebuilds it from an artifact, the options its name takes (joint effects, a
+Chebyshev order), the data columns it needs and uses, and how many parameters it has before the
+identifiability analysis (the floor on the rows of a data set). ``comp-daemon fit | evaluate |
+compensate``, the HTTP fit jobs, the artifact loader and the daemon's model activation all read it;
+adding a model kind is one module with its model class and fit function, and one entry here.
+
+Model names (:func:`parse_model_name`)::
+
+    kind[:order][+effect…]      nominal, kinematic, kinematic+ratio+backlash, chebyshev,
+                                chebyshev:3, chebyshev:cv, kriging, kriging-backlash, compliance
+
+``:order`` is the Chebyshev order (0..8; ``cv``: chosen by cross-validation; default 3, seed 000's);
+``+effect`` adds a joint effect of :data:`comp_daemon.models.effects.EFFECTS` to the kinematic model.
+
+Artifacts store the model class's ``kind`` (``kriging-backlash`` is a ``kriging`` model whose base
+has ratio and backlash and whose distance sees approach directions); :func:`model_from_payload`
+rebuilds any of them, a kriging model's base included.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.models.base import ErrorModel, NominalModel
+from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
+from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
+from comp_daemon.models.effects import EFFECTS, effect_param_names
+from comp_daemon.models.fitting import (
+    DEFAULT_CHEBYSHEV_ORDER,
+    SEED001_EFFECTS,
+    FitOptions,
+    FitRows,
+    FittedModel,
+    ModelSpec,
+    fit_chebyshev_kind,
+    fit_compliance_kind,
+    fit_kinematic_kind,
+    fit_kriging_backlash_kind,
+    fit_kriging_kind,
+    fit_nominal_kind,
+)
+from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.models.kriging import KrigingModel
+from comp_daemon.robot.description import RobotDescription
+
+__all__ = [
+    "ARTIFACT_KINDS",
+    "KINDS",
+    "MAX_ORDER",
+    "FittedModel",
+    "MissingColumnError",
+    "ModelKind",
+    "ModelSpec",
+    "UnknownModelError",
+    "fit_model",
+    "fit_spec",
+    "get_kind",
+    "kind_names",
+    "max_parameters",
+    "model_from_payload",
+    "parse_model_name",
+    "with_order",
+]
+
+MAX_ORDER = 8
+KINEMATIC_PARAMETERS = 39  # 30 MDH + 6 base + 3 tool
+EFFECT_COLUMNS: dict[str, str] = {"backlash": "dir", "thermal": "temp_c"}
+
+FitFunction = Callable[[RobotDescription, FitRows, ModelSpec, FitOptions], FittedModel]
+Loader = Callable[[RobotDescription, dict[str, Any], "int | None", NDArray[np.float64]], ErrorModel]
+
+
+class UnknownModelError(ValueError):
+    """A model name the registry does not know, or options its kind does not take."""
+
+
+class MissingColumnError(ValueError):
+    """The data lack a column the model needs (``dir`` for backlash, …)."""
+
+
+@dataclass(frozen=True, slots=True)
+class ModelKind:
+    """One row of the table (module docstring)."""
+
+    name: str
+    summary: str
+    model_class: type[ErrorModel]
+    fit: FitFunction
+    parameters: Callable[[ModelSpec], int]  # before identifiability analysis
+    takes_effects: bool = False  # "+ratio+backlash"
+    takes_order: bool = False  # ":3", ":cv"
+    needs: tuple[str, ...] = ()  # data columns without which the fit is refused
+    uses: tuple[str, ...] = ()  # optional columns the fit takes when the data have them
+    load: Loader | None = None  # rebuilds an artifact's model; default: model_class.from_payload
+
+    def needed_columns(self, spec: ModelSpec) -> tuple[str, ...]:
+        """The columns this spec cannot be fitted without (the kind's, and its effects')."""
+        extra = tuple(EFFECT_COLUMNS[e] for e in spec.effects if e in EFFECT_COLUMNS)
+        return tuple(dict.fromkeys((*self.needs, *extra)))
+
+
+def _kriging_loader(
+    robot: RobotDescription, payload: dict[str, Any], order: int | None, registration: NDArray[np.float64]
+) -> ErrorModel:
+    """A kriging model; its stored base model is rebuilt through the table too."""
+    return KrigingModel.from_payload(robot, payload, order, registration, base_loader=model_from_payload)
+
+
+def _kinematic_parameters(spec: ModelSpec) -> int:
+    return KINEMATIC_PARAMETERS + (len(effect_param_names(spec.effects)) if spec.effects else 0)
+
+
+def _chebyshev_parameters(spec: ModelSpec) -> int:
+    if spec.order_by_cv:
+        return n_coefficients(0)  # the smallest candidate order
+    return n_coefficients(DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order)
+
+
+KINDS: dict[str, ModelKind] = {
+    k.name: k
+    for k in (
+        ModelKind(
+            "nominal",
+            "the robot description's geometry; on tracker data only the base frame is registered",
+            NominalModel,
+            fit_nominal_kind,
+            lambda spec: 6,
+        ),
+        ModelKind(
+            "kinematic",
+            "MDH calibration (seed 000); joint effects with +, e.g. kinematic+ratio+backlash (seed 001 §1)",
+            KinematicModel,
+            fit_kinematic_kind,
+            _kinematic_parameters,
+            takes_effects=True,
+            uses=("dir", "payload_kg", "temp_c"),
+        ),
+        ModelKind(
+            "chebyshev",
+            "Chebyshev error matrices after every link (seed 000), order 3; chebyshev:m, chebyshev:cv",
+            ChebyshevModel,
+            fit_chebyshev_kind,
+            _chebyshev_parameters,
+            takes_order=True,
+        ),
+        ModelKind(
+            "kriging",
+            "kriging of the kinematic calibration's residual over the joint-space distance (seed 001 §2)",
+            KrigingModel,
+            fit_kriging_kind,
+            lambda spec: KINEMATIC_PARAMETERS,
+            load=_kriging_loader,
+        ),
+        ModelKind(
+            "kriging-backlash",
+            "direction-aware kriging on kinematic+ratio+backlash (seed 001 §2)",
+            KrigingModel,
+            fit_kriging_backlash_kind,
+            lambda spec: _kinematic_parameters(ModelSpec("kinematic", SEED001_EFFECTS)),
+            needs=("dir",),
+            uses=("payload_kg", "temp_c"),
+            load=_kriging_loader,
+        ),
+        ModelKind(
+            "compliance",
+            "zero offsets and joint compliance C2, C3 under the payload_kg of each row (seed 004)",
+            ComplianceModel,
+            fit_compliance_kind,
+            lambda spec: 6 + 6 + len(COMPLIANCE_JOINTS),
+            uses=("payload_kg",),
+        ),
+    )
+}
+
+
+def kind_names() -> tuple[str, ...]:
+    return tuple(KINDS)
+
+
+def _known() -> str:
+    return ", ".join(KINDS)
+
+
+def get_kind(name: str) -> ModelKind:
+    """The table's entry for ``name`` (a kind, not a full model name)."""
+    try:
+        return KINDS[name]
+    except KeyError:
+        raise UnknownModelError(f"unknown model '{name}' (known: {_known()})") from None
+
+
+def parse_model_name(name: str) -> ModelSpec:
+    """``kinematic+ratio+backlash``, ``chebyshev:3``, … as a :class:`ModelSpec` (UnknownModelError)."""
+    parts = [p.strip() for p in name.split("+")]
+    head, effects = parts[0], tuple(parts[1:])
+    if not head:
+        raise UnknownModelError(f"empty model name (known: {_known()})")
+    kind_name, sep, order_text = head.partition(":")
+    kind = get_kind(kind_name.strip())
+    order: int | None = None
+    by_cv = False
+    if sep:
+        if not kind.takes_order:
+            raise UnknownModelError(f"model '{name}': the {kind.name} model takes no order")
+        order_text = order_text.strip()
+        if order_text == "cv":
+            by_cv = True
+        elif order_text.isdigit() and 0 <= int(order_text) <= MAX_ORDER:
+            order = int(order_text)
+        else:
+            raise UnknownModelError(
+                f"model '{name}': the order must be 0..{MAX_ORDER} or 'cv', got {order_text!r}"
+            )
+    if effects:
+        if not kind.takes_effects:
+            takers = ", ".join(k.name for k in KINDS.values() if k.takes_effects)
+            raise UnknownModelError(f"model '{name}': joint effects are offered by the {takers} model only")
+        bad = [e or "(empty)" for e in effects if e not in EFFECTS]
+        if bad:
+            raise UnknownModelError(
+                f"model '{name}': unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECTS)})"
+            )
+        if len(set(effects)) != len(effects):
+            raise UnknownModelError(f"model '{name}': an effect is named twice")
+    return ModelSpec(kind.name, effects, order, by_cv)
+
+
+def with_order(spec: ModelSpec, order: int | Literal["cv"] | None) -> ModelSpec:
+    """``spec`` with an order given apart from the name (``--order``, the HTTP ``order`` field)."""
+    if order is None:
+        return spec
+    if not get_kind(spec.kind).takes_order:
+        raise UnknownModelError(f"model '{spec.name}': the {spec.kind} model takes no order")
+    if order == "cv":
+        new = ModelSpec(spec.kind, spec.effects, None, True)
+    elif isinstance(order, int) and not isinstance(order, bool) and 0 <= order <= MAX_ORDER:
+        new = ModelSpec(spec.kind, spec.effects, order, False)
+    else:
+        raise UnknownModelError(f"the order must be 0..{MAX_ORDER} or 'cv', got {order!r}")
+    if (spec.order is not None or spec.order_by_cv) and new != spec:
+        raise UnknownModelError(f"model '{spec.name}' names an order; the order {order!r} contradicts it")
+    return new
+
+
+def max_parameters(spec: ModelSpec) -> int:
+    """Parameters of the model before the identifiability analysis (a row-count floor)."""
+    return get_kind(spec.kind).parameters(spec)
+
+
+def fit_spec(
+    spec: ModelSpec, robot: RobotDescription, rows: FitRows, options: FitOptions | None = None
+) -> FittedModel:
+    """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack."""
+    kind = get_kind(spec.kind)
+    for column in kind.needed_columns(spec):
+        if getattr(rows, column) is None:
+            raise MissingColumnError(f"the {spec.name} model needs the {_column_label(column)} column(s)")
+    return kind.fit(robot, rows, spec, options or FitOptions())
+
+
+def _column_label(column: str) -> str:
+    return "dir1..dir6" if column == "dir" else column
+
+
+def fit_model(
+    name: str,
+    robot: RobotDescription,
+    a_deg: NDArray[np.float64],
+    xyz_mm: NDArray[np.float64],
+    *,
+    dir: NDArray[np.float64] | None = None,
+    payload_kg: NDArray[np.float64] | float = 0.0,
+    temp_c: NDArray[np.float64] | None = None,
+    order: int | Literal["cv"] | None = None,
+    effects: Sequence[str] = (),
+    frame: Literal["auto", "base", "tracker"] = "auto",
+    cv_folds: int = 5,
+    seed: int = 0,
+) -> FittedModel:
+    """Fit the model ``name`` (a model name; ``effects`` and ``order`` may also be given apart)."""
+    spec = parse_model_name("+".join([name, *effects]))
+    spec = with_order(spec, order)
+    rows = FitRows(a_deg, xyz_mm, dir, payload_kg, temp_c)
+    return fit_spec(spec, robot, rows, FitOptions(frame, cv_folds, seed))
+
+
+ARTIFACT_KINDS: dict[str, Loader] = {}
+for _kind in KINDS.values():
+    ARTIFACT_KINDS.setdefault(_kind.model_class.kind, _kind.load or _kind.model_class.from_payload)
+
+
+def model_from_payload(
+    kind: str,
+    robot: RobotDescription,
+    payload: dict[str, Any],
+    order: int | None,
+    registration: NDArray[np.float64],
+) -> ErrorModel:
+    """The model of an artifact's ``kind`` and content (ValueError when either is not usable)."""
+    loader = ARTIFACT_KINDS.get(kind)
+    if loader is None:
+        raise UnknownModelError(f"unknown model kind '{kind}' (known: {', '.join(ARTIFACT_KINDS)})")
+    return loader(robot, payload, order, registration)
