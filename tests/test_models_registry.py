@@ -32,7 +32,7 @@ from comp_daemon.robot.description import load_robot
 KR = load_robot("kr210")
 N, N_FIT = 170, 110
 # every kind of the table, and the named variants the papers use
-MODELS = (*KINDS, "kinematic+ratio+backlash", "chebyshev:1")
+MODELS = (*KINDS, "kinematic+ratio+backlash", "chebyshev:1", "kriging-backlash+compliance", "kriging:k=40:aniso")
 
 
 def _axes(n: int, seed: int) -> np.ndarray:
@@ -94,7 +94,10 @@ def test_model_modules_import_neither_the_registry_nor_the_artifact_loader(modul
     ("name", "fault"),
     [
         ("spline", "known: nominal, kinematic, chebyshev, kriging, kriging-backlash, compliance"),
-        ("kriging+backlash", "offered by the kinematic model only"),
+        ("compliance+backlash", "offered by the kinematic, kriging, kriging-backlash models only"),
+        ("kriging:k=2", "takes the options k=N"),
+        ("kriging:aniso:aniso", "each once"),
+        ("kriging-backlash:3", "takes the options k=N"),
         ("compliance:2", "takes no order"),
         ("chebyshev:x", "0..8 or 'cv'"),
         ("kinematic+ratio+ratio", "named twice"),
@@ -104,6 +107,29 @@ def test_model_modules_import_neither_the_registry_nor_the_artifact_loader(modul
 def test_names_the_registry_refuses(name: str, fault: str) -> None:
     with pytest.raises(UnknownModelError, match=fault):
         parse_model_name(name)
+
+
+@pytest.mark.parametrize(
+    ("name", "canonical"),
+    [
+        ("kriging:aniso:k=64", "kriging:k=64:aniso"),
+        ("kriging-backlash+compliance", "kriging-backlash+compliance"),
+        ("kriging:k=500+ratio", "kriging:k=500+ratio"),
+    ],
+)
+def test_kriging_options_and_stacks_round_trip(name: str, canonical: str) -> None:
+    spec = parse_model_name(name)
+    assert spec.name == canonical
+    assert parse_model_name(spec.name) == spec
+
+
+def test_kriging_options_reach_the_spec() -> None:
+    spec = parse_model_name("kriging-backlash:k=32:aniso+compliance")
+    assert (spec.neighbours, spec.anisotropic, spec.effects) == (32, True, ("compliance",))
+    assert parse_model_name("kriging").neighbours is None
+    assert max_parameters(parse_model_name("kriging-backlash+compliance")) > max_parameters(
+        parse_model_name("kriging-backlash")
+    )
 
 
 def test_order_given_apart_must_agree_with_the_name() -> None:

@@ -19,6 +19,10 @@ table; the doors call them through it.
   distance (seed 001 §2's "method one" after calibration);
 - ``kriging-backlash``: seed 001 §2's model: kriging over the direction-aware joint-state distance
   on the residual of the kinematic calibration with ratio and backlash (needs ``dir``);
+- both kriging kinds take joint effects for their kinematic base (``kriging-backlash+compliance``:
+  the kriging on kinematic + ratio + backlash + compliance) and the options ``k=N`` (local
+  neighbourhoods of N samples instead of one dense system; dense is the default up to 2 000
+  samples) and ``aniso`` (per-joint ranges instead of the isotropic joint-space distance);
 - ``compliance``: seed 004's zero offsets and joint compliance C2, C3 under the gravity torques of
   the links and the payload of each row (``payload_kg``).
 """
@@ -72,6 +76,7 @@ class ModelSpec:
     effects: tuple[str, ...] = ()
     order: int | None = None  # Chebyshev order; None: the kind's default
     order_by_cv: bool = False  # Chebyshev: choose the order by cross-validation
+    options: tuple[str, ...] = ()  # kriging: "k=64" (local neighbourhoods), "aniso" (per-joint ranges)
 
     @property
     def name(self) -> str:
@@ -81,7 +86,21 @@ class ModelSpec:
             head += ":cv"
         elif self.order is not None:
             head += f":{self.order}"
+        head += "".join(f":{o}" for o in self.options)
         return "+".join([head, *self.effects])
+
+    @property
+    def neighbours(self) -> int | None:
+        """The ``k=N`` option (kriging in local neighbourhoods of N samples), or None."""
+        for o in self.options:
+            if o.startswith("k="):
+                return int(o[2:])
+        return None
+
+    @property
+    def anisotropic(self) -> bool:
+        """The ``aniso`` option: kriging with per-joint ranges."""
+        return "aniso" in self.options
 
 
 @dataclass(frozen=True, slots=True)
@@ -276,10 +295,14 @@ def _kriging_info(kg: KrigingFit, rows: FitRows) -> dict[str, Any]:
         "base_rms_mm": kg.base_rms_mm,
         "loo_rms_mm": kg.loo_rms_mm,
         "samples": int(model.sample_a_deg.shape[0]),
+        "solver": "dense" if model.neighbours is None else f"local, {model.neighbours} nearest samples",
+        "loo_samples": kg.loo_samples,
+        "joint_weights": model.metric.joint_weights.tolist(),
         "direction_separation_deg": model.metric.dir_separation_deg.tolist(),
         "direction_candidates": [
             {"separation_deg": list(sep), "loo_rms_mm": loo} for sep, loo in kg.candidates
         ],
+        "joint_weight_candidates": len(kg.weight_candidates),
         "variograms": [v.to_dict() for v in model.variograms],
     }
 
@@ -301,6 +324,8 @@ def _fit_kriging(
         payload_kg=rows.payload_kg,
         temp_c=rows.temp_c,
         direction=direction,
+        neighbours="auto" if spec.neighbours is None else spec.neighbours,
+        anisotropic=spec.anisotropic,
     )
     info = {
         "kind": spec.kind,
@@ -314,15 +339,18 @@ def _fit_kriging(
 def fit_kriging_kind(
     robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
-    """Kriging of the kinematic calibration's residual over the plain joint-space distance."""
-    return _fit_kriging(robot, rows, spec, options, (), "blind")
+    """Kriging of the residual of the kinematic calibration (with the spec's effects, if any) over
+    the plain joint-space distance."""
+    return _fit_kriging(robot, rows, spec, options, spec.effects, "blind")
 
 
 def fit_kriging_backlash_kind(
     robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
-    """Seed 001 §2: direction-aware kriging on the kinematic + ratio + backlash calibration."""
-    return _fit_kriging(robot, rows, spec, options, SEED001_EFFECTS, "aware")
+    """Seed 001 §2: direction-aware kriging on the kinematic + ratio + backlash calibration (and
+    the spec's further effects, e.g. ``kriging-backlash+compliance``)."""
+    effects = tuple(dict.fromkeys((*SEED001_EFFECTS, *spec.effects)))
+    return _fit_kriging(robot, rows, spec, options, effects, "aware")
 
 
 def fit_compliance_kind(

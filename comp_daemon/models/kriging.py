@@ -52,11 +52,12 @@ from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
 import numpy as np
-import scipy.linalg
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.local_kriging import LocalKriging
+from comp_daemon.models.ordinary_kriging import OrdinaryKriging
 from comp_daemon.models.variogram import (
     EmpiricalVariogram,
     VariogramModel,
@@ -82,6 +83,12 @@ BaseLoader = Callable[[str, RobotDescription, dict[str, Any], "int | None", NDAr
 AXES = ("x", "y", "z")
 DEFAULT_DIR_GRID_DEG: tuple[float, ...] = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0)
 DirectionChoice = Literal["aware", "blind"]
+DENSE_MAX_SAMPLES = 2000  # above this many sampling points the default is a local neighbourhood
+DEFAULT_NEIGHBOURS = 64  # samples per local neighbourhood (the default above DENSE_MAX_SAMPLES)
+VARIOGRAM_MAX_SAMPLES = 1500  # the empirical variogram of larger sets is taken on a random subset
+LOO_MAX_SAMPLES = 1000  # the leave-one-out RMS of local models is taken on a random subset
+ANISO_MAX_SAMPLES = 600  # the per-joint weights are searched on at most this many samples
+ANISO_FACTORS = (0.25, 0.5, 2.0, 4.0)  # multipliers tried on each joint weight per sweep
 
 
 def _dir_array(dir: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
@@ -169,178 +176,6 @@ def joint_space_semivariogram(
     return empirical_semivariogram(x, error_mm, n_bins=n_bins, max_lag=max_lag)
 
 
-class OrdinaryKriging:
-    """Ordinary kriging of k components on shared coordinates, one fitted variogram per component.
-
-    ``coords`` (n, d), ``values`` (n, k), ``variograms`` k models. Solved as in the module docstring;
-    ``alpha``/``beta`` may be given (a stored model) to skip the solve for prediction; ``distances``
-    (n, n) among the samples, if already computed.
-    """
-
-    def __init__(
-        self,
-        coords: NDArray[np.float64],
-        values: NDArray[np.float64],
-        variograms: Sequence[VariogramModel],
-        *,
-        alpha: NDArray[np.float64] | None = None,
-        beta: NDArray[np.float64] | None = None,
-        distances: NDArray[np.float64] | None = None,
-    ) -> None:
-        x = np.asarray(coords, dtype=float)
-        z = np.asarray(values, dtype=float)
-        if z.ndim == 1:
-            z = z[:, None]
-        if x.ndim != 2 or z.ndim != 2 or x.shape[0] != z.shape[0]:
-            raise ValueError(
-                f"coords (n, d) and values (n, k) must have the same n, got {x.shape}, {z.shape}"
-            )
-        if x.shape[0] < 2:
-            raise ValueError(f"kriging needs at least 2 samples, got {x.shape[0]}")
-        if len(variograms) != z.shape[1]:
-            raise ValueError(f"{z.shape[1]} components but {len(variograms)} variograms")
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(z))):
-            raise ValueError("kriging samples must be finite")
-        self.coords = x
-        self.values = z
-        self.variograms = tuple(variograms)
-        self._dist: NDArray[np.float64] | None = None if distances is None else np.asarray(distances)
-        self._factors: list[tuple[NDArray[np.float64], bool]] | None = None
-        self._ones: list[NDArray[np.float64]] | None = None  # R⁻¹1 per component
-        if alpha is not None and beta is not None:
-            self.alpha = np.asarray(alpha, dtype=float)
-            self.beta = np.asarray(beta, dtype=float)
-            if self.alpha.shape != z.shape or self.beta.shape != (z.shape[1],):
-                raise ValueError(f"alpha must be {z.shape} and beta ({z.shape[1]},)")
-        else:
-            self._solve()
-
-    @property
-    def n_samples(self) -> int:
-        return int(self.coords.shape[0])
-
-    def _sample_distances(self) -> NDArray[np.float64]:
-        if self._dist is None:
-            self._dist = pairwise_distances(self.coords)
-        return self._dist
-
-    def _factorise(self) -> None:
-        if self._factors is not None:
-            return
-        dist = self._sample_distances()
-        n = dist.shape[0]
-        factors: list[tuple[NDArray[np.float64], bool]] = []
-        ones: list[NDArray[np.float64]] = []
-        iu, ju = np.triu_indices(n, k=1)
-        has_duplicates = bool(np.any(dist[iu, ju] <= 1e-9 * max(float(dist.max()), 1e-300)))
-        for c, vg in enumerate(self.variograms):
-            if has_duplicates and vg.nugget == 0.0:
-                raise ValueError(
-                    _singular_message(dist, vg, AXES[c] if len(self.variograms) == 3 else str(c))
-                )
-            r = vg.correlation(dist)
-            r[np.diag_indices(n)] = 1.0 + vg.nugget / vg.psill
-            factor = None
-            for jitter in (0.0, 1e-10, 1e-8):
-                try:
-                    factor = scipy.linalg.cho_factor(
-                        r + jitter * np.eye(n) if jitter else r, lower=True, check_finite=False
-                    )
-                    break
-                except np.linalg.LinAlgError:
-                    continue
-            if factor is None:
-                raise ValueError(
-                    _singular_message(dist, vg, AXES[c] if len(self.variograms) == 3 else str(c))
-                )
-            factors.append(factor)
-            ones.append(scipy.linalg.cho_solve(factor, np.ones(n), check_finite=False))
-        self._factors = factors
-        self._ones = ones
-
-    def _solve(self) -> None:
-        self._factorise()
-        assert self._factors is not None and self._ones is not None
-        k = self.values.shape[1]
-        alpha = np.empty_like(self.values)
-        beta = np.empty(k)
-        for c in range(k):
-            z = self.values[:, c]
-            v = self._ones[c]
-            rz = scipy.linalg.cho_solve(self._factors[c], z, check_finite=False)
-            beta[c] = float(v @ z) / float(v.sum())
-            alpha[:, c] = rz - beta[c] * v  # R⁻¹(z − 1β)
-        self.alpha = alpha
-        self.beta = beta
-
-    def predict(
-        self, coords: NDArray[np.float64], *, return_std: bool = False
-    ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
-        """(m, k) predictions at ``coords`` (m, d); with ``return_std`` also the kriging std (m, k)."""
-        q = np.asarray(coords, dtype=float)
-        if q.ndim != 2 or q.shape[1] != self.coords.shape[1]:
-            raise ValueError(f"query coordinates must be (m, {self.coords.shape[1]}), got {q.shape}")
-        dist = pairwise_distances(q, self.coords)
-        k = self.values.shape[1]
-        out = np.empty((q.shape[0], k))
-        std = np.empty((q.shape[0], k)) if return_std else None
-        for c, vg in enumerate(self.variograms):
-            r = vg.correlation(dist)  # (m, n)
-            out[:, c] = self.beta[c] + r @ self.alpha[:, c]
-            if std is not None:
-                self._factorise()
-                assert self._factors is not None and self._ones is not None
-                rr = scipy.linalg.cho_solve(self._factors[c], r.T, check_finite=False)  # (n, m)
-                v = self._ones[c]
-                lag_term = 1.0 - v @ r.T  # 1 − 1ᵀR⁻¹r
-                mse = 1.0 - np.einsum("mn,nm->m", r, rr) + lag_term**2 / float(v.sum())
-                std[:, c] = np.sqrt(np.maximum(vg.psill * mse, 0.0))
-        if std is not None:
-            return out, std
-        return out
-
-    def weights(self, coords: NDArray[np.float64], component: int = 0) -> NDArray[np.float64]:
-        """(m, n) kriging weights λ of the samples for each query (each row sums to 1)."""
-        self._factorise()
-        assert self._factors is not None and self._ones is not None
-        q = np.asarray(coords, dtype=float)
-        r = self.variograms[component].correlation(pairwise_distances(q, self.coords))
-        rr = scipy.linalg.cho_solve(self._factors[component], r.T, check_finite=False)  # (n, m)
-        v = self._ones[component]
-        return (rr + np.outer(v, 1.0 - v @ r.T) / float(v.sum())).T
-
-    def loo_residuals(self) -> NDArray[np.float64]:
-        """(n, k) leave-one-out residuals ``z_i − ẑ_{−i}`` in closed form (Dubrule's formula).
-
-        With ``Q`` the sample block of the inverse of the bordered kriging matrix,
-        ``Q = R⁻¹ − R⁻¹11ᵀR⁻¹/1ᵀR⁻¹1``, the residual is ``α_i / Q_ii``.
-        """
-        self._factorise()
-        assert self._factors is not None and self._ones is not None
-        n = self.n_samples
-        out = np.empty_like(self.values)
-        eye = np.eye(n)
-        for c in range(self.values.shape[1]):
-            rinv_diag = np.diag(scipy.linalg.cho_solve(self._factors[c], eye, check_finite=False))
-            v = self._ones[c]
-            q_diag = rinv_diag - v * v / float(v.sum())
-            out[:, c] = self.alpha[:, c] / q_diag
-        return out
-
-
-def _singular_message(dist: NDArray[np.float64], vg: VariogramModel, comp: str) -> str:
-    n = dist.shape[0]
-    iu, ju = np.triu_indices(n, k=1)
-    dup = np.flatnonzero(dist[iu, ju] <= 1e-9 * max(float(dist.max()), 1e-300))
-    if dup.size and vg.nugget == 0.0:
-        i, j = int(iu[dup[0]]), int(ju[dup[0]])
-        return (
-            f"kriging system of component {comp} is singular: samples {i + 1} and {j + 1} are the same "
-            f"joint state ({dup.size} such pair(s)); fit a variogram with a nugget or drop repeats"
-        )
-    return f"kriging system of component {comp} is not positive definite ({vg.kind} model)"
-
-
 class KrigingModel(ErrorModel):
     """A base model plus the ordinary-kriging prediction of its residual (seed 001)."""
 
@@ -358,6 +193,7 @@ class KrigingModel(ErrorModel):
         alpha: NDArray[np.float64] | None = None,
         beta: NDArray[np.float64] | None = None,
         distances: NDArray[np.float64] | None = None,
+        neighbours: int | None = None,
     ) -> None:
         a = as_axes(sample_a_deg)
         res = np.asarray(residual_mm, dtype=float)
@@ -374,14 +210,15 @@ class KrigingModel(ErrorModel):
         self.sample_dir = None if sample_dir is None else _dir_array(sample_dir, a.shape[0])
         self.residual_mm = res
         self.variograms = tuple(variograms)
-        self.kriging = OrdinaryKriging(
-            metric.embed(a, self.sample_dir),
-            res,
-            self.variograms,
-            alpha=alpha,
-            beta=beta,
-            distances=distances,
-        )
+        self.neighbours = None if neighbours is None else int(neighbours)
+        coords = metric.embed(a, self.sample_dir)
+        self.kriging: OrdinaryKriging | LocalKriging
+        if self.neighbours is None:
+            self.kriging = OrdinaryKriging(
+                coords, res, self.variograms, alpha=alpha, beta=beta, distances=distances
+            )
+        else:
+            self.kriging = LocalKriging(coords, res, self.variograms, self.neighbours)
 
     def predict_residual_mm(
         self, a_deg: NDArray[np.float64], dir: NDArray[np.float64] | None = None, *, return_std: bool = False
@@ -406,7 +243,10 @@ class KrigingModel(ErrorModel):
     def weights(
         self, a_deg: NDArray[np.float64], dir: NDArray[np.float64] | None = None, axis: int = 0
     ) -> NDArray[np.float64]:
-        """(m, n) kriging weights of the sampling points for the queries, for error axis 0/1/2."""
+        """(m, n) kriging weights of the sampling points for the queries, for error axis 0/1/2
+        (dense models; a local model's weights differ per query neighbourhood)."""
+        if not isinstance(self.kriging, OrdinaryKriging):
+            raise ValueError("kriging weights over every sample exist for dense models only")
         a = as_axes(a_deg)
         return self.kriging.weights(self.metric.embed(a, _dir_array(dir, a.shape[0])), axis)
 
@@ -428,8 +268,9 @@ class KrigingModel(ErrorModel):
                 "dir": None if self.sample_dir is None else self.sample_dir.astype(int).tolist(),
                 "residual_mm": self.residual_mm.tolist(),
             },
-            "alpha": self.kriging.alpha.tolist(),
-            "beta": self.kriging.beta.tolist(),
+            "neighbours": self.neighbours,
+            "alpha": self.kriging.alpha.tolist() if isinstance(self.kriging, OrdinaryKriging) else None,
+            "beta": self.kriging.beta.tolist() if isinstance(self.kriging, OrdinaryKriging) else None,
         }
 
     @classmethod
@@ -469,8 +310,9 @@ class KrigingModel(ErrorModel):
                 None if samples["dir"] is None else np.array(samples["dir"], dtype=float),
                 np.array(samples["residual_mm"], dtype=float),
                 variograms,
-                alpha=np.array(payload["alpha"], dtype=float),
-                beta=np.array(payload["beta"], dtype=float),
+                alpha=None if payload["alpha"] is None else np.array(payload["alpha"], dtype=float),
+                beta=None if payload["beta"] is None else np.array(payload["beta"], dtype=float),
+                neighbours=None if payload.get("neighbours") is None else int(payload["neighbours"]),
             )
         except KeyError as exc:
             raise ValueError(f"kriging model: missing field {exc.args[0]!r}") from None
@@ -482,9 +324,18 @@ class KrigingFit:
 
     model: KrigingModel
     empirical: EmpiricalVariogram  # of the base model's residual under the chosen metric
-    loo_rms_mm: float  # leave-one-out 3-D RMS of the chosen model on the sampling points
+    loo_rms_mm: float  # leave-one-out 3-D RMS of the chosen model (on loo_samples sampling points)
     candidates: tuple[tuple[tuple[float, ...], float], ...]  # (dir separation per joint, LOO RMS)
     base_rms_mm: float  # 3-D RMS of the base model's residual on the sampling points
+    loo_samples: int = 0  # sampling points the LOO RMS was taken on
+    weight_candidates: tuple[tuple[tuple[float, ...], float], ...] = ()  # anisotropic search: (w, LOO)
+
+
+def _subset(n: int, most: int, seed: int) -> NDArray[np.intp]:
+    """Every index below ``n``, or ``most`` of them drawn reproducibly."""
+    if n <= most:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, most, replace=False))
 
 
 def _fit_for_metric(
@@ -497,15 +348,26 @@ def _fit_for_metric(
     n_bins: int,
     max_lag: float | None,
     nugget: bool,
-) -> tuple[KrigingModel, EmpiricalVariogram, float]:
+    neighbours: int | None,
+) -> tuple[KrigingModel, EmpiricalVariogram, float, int]:
+    """The model under ``metric``, its empirical variogram and its LOO 3-D RMS (and on how many points)."""
+    n = a.shape[0]
     x = metric.embed(a, d)
-    dist = pairwise_distances(x)
-    emp = empirical_semivariogram(None, residual, n_bins=n_bins, max_lag=max_lag, distances=dist)
+    dist: NDArray[np.float64] | None = None
+    if neighbours is None:
+        dist = pairwise_distances(x)
+        emp = empirical_semivariogram(None, residual, n_bins=n_bins, max_lag=max_lag, distances=dist)
+    else:
+        sub = _subset(n, VARIOGRAM_MAX_SAMPLES, 1)
+        emp = empirical_semivariogram(x[sub], residual[sub], n_bins=n_bins, max_lag=max_lag)
     dim = 12 if metric.direction_aware else N_JOINTS
     variograms = [fit_variogram(emp, c, kind=kind, dim=dim, nugget=nugget) for c in range(3)]
-    model = KrigingModel(base, metric, a, d, residual, variograms, distances=dist)
-    loo = model.kriging.loo_residuals()
-    return model, emp, float(np.sqrt(np.mean(np.sum(loo**2, axis=1))))
+    model = KrigingModel(base, metric, a, d, residual, variograms, distances=dist, neighbours=neighbours)
+    if isinstance(model.kriging, OrdinaryKriging):
+        loo = model.kriging.loo_residuals()
+    else:
+        loo = model.kriging.loo_residuals(_subset(n, LOO_MAX_SAMPLES, 2))
+    return model, emp, float(np.sqrt(np.mean(np.sum(loo**2, axis=1)))), loo.shape[0]
 
 
 def fit_kriging(
@@ -523,6 +385,8 @@ def fit_kriging(
     nugget: bool = True,
     joint_weights: Sequence[float] | None = None,
     dir_grid_deg: Sequence[float] = DEFAULT_DIR_GRID_DEG,
+    neighbours: int | Literal["auto"] | None = "auto",
+    anisotropic: bool = False,
 ) -> KrigingFit:
     """Fit the error-similarity model of seed 001 on sampling points, on top of ``base``.
 
@@ -531,6 +395,17 @@ def fit_kriging(
     ``direction``: ``"blind"`` (ρ = 0), ``"aware"`` (one ρ for every joint, chosen by the
     leave-one-out 3-D RMS over ``dir_grid_deg``), or six explicit direction separations (deg).
     Without ``dir`` data the metric is blind.
+
+    ``neighbours``: ``None`` one dense system over every sample; an int, local neighbourhoods of
+    that many samples (:mod:`comp_daemon.models.local_kriging`); ``"auto"`` dense up to
+    :data:`DENSE_MAX_SAMPLES` samples, :data:`DEFAULT_NEIGHBOURS` beyond. Local models take their
+    empirical variogram and their LOO RMS on random subsets (:data:`VARIOGRAM_MAX_SAMPLES`,
+    :data:`LOO_MAX_SAMPLES`).
+
+    ``anisotropic``: after the direction separation, the six joint weights (the inverse per-joint
+    ranges) are chosen by a coordinate search on the LOO RMS (each weight times
+    :data:`ANISO_FACTORS`, two sweeps, on at most :data:`ANISO_MAX_SAMPLES` samples) instead of the
+    paper's isotropic distance (``joint_weights``, default 1, is the starting point).
     """
     a = as_axes(a_deg)
     n = a.shape[0]
@@ -544,20 +419,26 @@ def fit_kriging(
     d = None if dir is None else _dir_array(dir, n)
     if variogram != "auto" and variogram not in valid_models(12 if direction != "blind" else N_JOINTS):
         raise ValueError(f"variogram '{variogram}' is not valid in joint space (use exponential or gaussian)")
+    if neighbours == "auto":
+        neighbours = None if n <= DENSE_MAX_SAMPLES else DEFAULT_NEIGHBOURS
+    if neighbours is not None and int(neighbours) < 4:
+        raise ValueError(f"a kriging neighbourhood needs at least 4 samples, got {neighbours}")
     residual = p - base.predict_tcp_mm(a, d, payload_kg, temp_c)
     base_rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
     weights = np.ones(N_JOINTS) if joint_weights is None else np.asarray(joint_weights, dtype=float)
 
-    def evaluate(sep: NDArray[np.float64]) -> tuple[KrigingModel, EmpiricalVariogram, float]:
-        metric = JointStateMetric(weights, sep if d is not None else np.zeros(N_JOINTS))
-        return _fit_for_metric(base, metric, a, d, residual, variogram, n_bins, max_lag, nugget)
+    def evaluate(
+        sep: NDArray[np.float64], w: NDArray[np.float64] = weights
+    ) -> tuple[KrigingModel, EmpiricalVariogram, float, int]:
+        metric = JointStateMetric(w, sep if d is not None else np.zeros(N_JOINTS))
+        return _fit_for_metric(base, metric, a, d, residual, variogram, n_bins, max_lag, nugget, neighbours)
 
     candidates: list[tuple[tuple[float, ...], float]] = []
     if isinstance(direction, str):
         if direction not in ("aware", "blind"):
             raise ValueError(f"direction must be 'aware', 'blind' or 6 separations (deg), got {direction!r}")
         grid = [0.0] if direction == "blind" or d is None else [float(g) for g in dir_grid_deg]
-        best: tuple[KrigingModel, EmpiricalVariogram, float] | None = None
+        best: tuple[KrigingModel, EmpiricalVariogram, float, int] | None = None
         for g in grid:
             sep = np.full(N_JOINTS, g)
             result = evaluate(sep)
@@ -571,7 +452,62 @@ def fit_kriging(
             raise ValueError(f"direction separations: expected 6 values (deg), got shape {sep.shape}")
         best = evaluate(sep)
         candidates.append((tuple(sep.tolist()), best[2]))
-    model, emp, loo = best
+    weight_candidates: tuple[tuple[tuple[float, ...], float], ...] = ()
+    if anisotropic:
+        chosen_sep = best[0].metric.dir_separation_deg
+        w_best, weight_candidates = _search_weights(
+            base, a, d, residual, chosen_sep, weights, variogram, n_bins, max_lag, nugget
+        )
+        if not np.array_equal(w_best, weights):
+            best = evaluate(chosen_sep, w_best)
+    model, emp, loo, n_loo = best
     return KrigingFit(
-        model=model, empirical=emp, loo_rms_mm=loo, candidates=tuple(candidates), base_rms_mm=base_rms
+        model=model,
+        empirical=emp,
+        loo_rms_mm=loo,
+        candidates=tuple(candidates),
+        base_rms_mm=base_rms,
+        loo_samples=n_loo,
+        weight_candidates=weight_candidates,
     )
+
+
+def _search_weights(
+    base: ErrorModel,
+    a: NDArray[np.float64],
+    d: NDArray[np.float64] | None,
+    residual: NDArray[np.float64],
+    sep: NDArray[np.float64],
+    start: NDArray[np.float64],
+    kind: str,
+    n_bins: int,
+    max_lag: float | None,
+    nugget: bool,
+) -> tuple[NDArray[np.float64], tuple[tuple[tuple[float, ...], float], ...]]:
+    """Per-joint weights by coordinate search on the dense LOO RMS of a subset (see fit_kriging)."""
+    sub = _subset(a.shape[0], ANISO_MAX_SAMPLES, 3)
+    a_s, d_s, r_s = a[sub], None if d is None else d[sub], residual[sub]
+
+    def loo(w: NDArray[np.float64]) -> float:
+        metric = JointStateMetric(w, sep)
+        try:
+            return _fit_for_metric(base, metric, a_s, d_s, r_s, kind, n_bins, max_lag, nugget, None)[2]
+        except ValueError:  # a degenerate metric (e.g. a singular system): not a candidate
+            return float("inf")
+
+    w = np.array(start, dtype=float)
+    best = loo(w)
+    tried: list[tuple[tuple[float, ...], float]] = [(tuple(w.tolist()), best)]
+    for _sweep in range(2):
+        improved = False
+        for j in range(N_JOINTS):
+            for f in ANISO_FACTORS:
+                trial = w.copy()
+                trial[j] *= f
+                value = loo(trial)
+                tried.append((tuple(trial.tolist()), value))
+                if value < best:
+                    best, w, improved = value, trial, True
+        if not improved:
+            break
+    return w, tuple(tried)

@@ -10,11 +10,16 @@ adding a model kind is one module with its model class and fit function, and one
 
 Model names (:func:`parse_model_name`)::
 
-    kind[:order][+effect…]      nominal, kinematic, kinematic+ratio+backlash, chebyshev,
-                                chebyshev:3, chebyshev:cv, kriging, kriging-backlash, compliance
+    kind[:order|:option…][+effect…]   nominal, kinematic, kinematic+ratio+backlash, chebyshev,
+                                      chebyshev:3, chebyshev:cv, kriging, kriging:k=64:aniso,
+                                      kriging-backlash, kriging-backlash+compliance, compliance
 
 ``:order`` is the Chebyshev order (0..8; ``cv``: chosen by cross-validation; default 3, seed 000's);
-``+effect`` adds a joint effect of :data:`comp_daemon.models.effects.EFFECTS` to the kinematic model.
+the kriging kinds take the options ``:k=N`` (local neighbourhoods of N nearest samples, N ≥ 4) and
+``:aniso`` (per-joint ranges); ``+effect`` adds a joint effect of
+:data:`comp_daemon.models.effects.EFFECTS` to the kinematic model, or to a kriging model's
+kinematic base (a stack: ``kriging-backlash+compliance`` krigs the residual of
+kinematic + ratio + backlash + compliance).
 
 Artifacts store the model class's ``kind`` (``kriging-backlash`` is a ``kriging`` model whose base
 has ratio and backlash and whose distance sees approach directions); :func:`model_from_payload`
@@ -98,6 +103,7 @@ class ModelKind:
     parameters: Callable[[ModelSpec], int]  # before identifiability analysis
     takes_effects: bool = False  # "+ratio+backlash"
     takes_order: bool = False  # ":3", ":cv"
+    takes_options: bool = False  # kriging: ":k=64", ":aniso"
     needs: tuple[str, ...] = ()  # data columns without which the fit is refused
     uses: tuple[str, ...] = ()  # optional columns the fit takes when the data have them
     load: Loader | None = None  # rebuilds an artifact's model; default: model_class.from_payload
@@ -117,6 +123,15 @@ def _kriging_loader(
 
 def _kinematic_parameters(spec: ModelSpec) -> int:
     return KINEMATIC_PARAMETERS + (len(effect_param_names(spec.effects)) if spec.effects else 0)
+
+
+def _kriging_parameters(spec: ModelSpec) -> int:
+    return _kinematic_parameters(ModelSpec("kinematic", spec.effects))
+
+
+def _kriging_backlash_parameters(spec: ModelSpec) -> int:
+    effects = tuple(dict.fromkeys((*SEED001_EFFECTS, *spec.effects)))
+    return _kinematic_parameters(ModelSpec("kinematic", effects))
 
 
 def _chebyshev_parameters(spec: ModelSpec) -> int:
@@ -154,10 +169,14 @@ KINDS: dict[str, ModelKind] = {
         ),
         ModelKind(
             "kriging",
-            "kriging of the kinematic calibration's residual over the joint-space distance (seed 001 §2)",
+            "kriging of the kinematic calibration's residual over the joint-space distance (seed 001 §2);"
+            " kriging:k=64 local neighbourhoods, kriging:aniso per-joint ranges, +effect on the base",
             KrigingModel,
             fit_kriging_kind,
-            lambda spec: KINEMATIC_PARAMETERS,
+            _kriging_parameters,
+            takes_effects=True,
+            takes_options=True,
+            uses=("payload_kg", "temp_c"),
             load=_kriging_loader,
         ),
         ModelKind(
@@ -165,7 +184,9 @@ KINDS: dict[str, ModelKind] = {
             "direction-aware kriging on kinematic+ratio+backlash (seed 001 §2)",
             KrigingModel,
             fit_kriging_backlash_kind,
-            lambda spec: _kinematic_parameters(ModelSpec("kinematic", SEED001_EFFECTS)),
+            _kriging_backlash_parameters,
+            takes_effects=True,
+            takes_options=True,
             needs=("dir",),
             uses=("payload_kg", "temp_c"),
             load=_kriging_loader,
@@ -208,7 +229,10 @@ def parse_model_name(name: str) -> ModelSpec:
     kind = get_kind(kind_name.strip())
     order: int | None = None
     by_cv = False
-    if sep:
+    options: tuple[str, ...] = ()
+    if sep and kind.takes_options:
+        options = _parse_options(name, kind, order_text)
+    elif sep:
         if not kind.takes_order:
             raise UnknownModelError(f"model '{name}': the {kind.name} model takes no order")
         order_text = order_text.strip()
@@ -223,7 +247,7 @@ def parse_model_name(name: str) -> ModelSpec:
     if effects:
         if not kind.takes_effects:
             takers = ", ".join(k.name for k in KINDS.values() if k.takes_effects)
-            raise UnknownModelError(f"model '{name}': joint effects are offered by the {takers} model only")
+            raise UnknownModelError(f"model '{name}': joint effects are offered by the {takers} models only")
         bad = [e or "(empty)" for e in effects if e not in EFFECTS]
         if bad:
             raise UnknownModelError(
@@ -231,7 +255,27 @@ def parse_model_name(name: str) -> ModelSpec:
             )
         if len(set(effects)) != len(effects):
             raise UnknownModelError(f"model '{name}': an effect is named twice")
-    return ModelSpec(kind.name, effects, order, by_cv)
+    return ModelSpec(kind.name, effects, order, by_cv, options)
+
+
+MAX_NEIGHBOURS = 100_000
+
+
+def _parse_options(name: str, kind: ModelKind, text: str) -> tuple[str, ...]:
+    """The ``:k=N`` / ``:aniso`` options of a kriging kind, canonical (k first, each once)."""
+    k: int | None = None
+    aniso = False
+    for part in (p.strip() for p in text.split(":")):
+        if part == "aniso" and not aniso:
+            aniso = True
+        elif part.startswith("k=") and k is None and part[2:].isdigit() and 4 <= int(part[2:]) <= MAX_NEIGHBOURS:
+            k = int(part[2:])
+        else:
+            raise UnknownModelError(
+                f"model '{name}': the {kind.name} model takes the options k=N (N 4..{MAX_NEIGHBOURS}, "
+                f"local neighbourhoods) and aniso (per-joint ranges), each once; got {part!r}"
+            )
+    return (*(() if k is None else (f"k={k}",)), *(("aniso",) if aniso else ()))
 
 
 def with_order(spec: ModelSpec, order: int | Literal["cv"] | None) -> ModelSpec:
@@ -241,9 +285,9 @@ def with_order(spec: ModelSpec, order: int | Literal["cv"] | None) -> ModelSpec:
     if not get_kind(spec.kind).takes_order:
         raise UnknownModelError(f"model '{spec.name}': the {spec.kind} model takes no order")
     if order == "cv":
-        new = ModelSpec(spec.kind, spec.effects, None, True)
+        new = ModelSpec(spec.kind, spec.effects, None, True, spec.options)
     elif isinstance(order, int) and not isinstance(order, bool) and 0 <= order <= MAX_ORDER:
-        new = ModelSpec(spec.kind, spec.effects, order, False)
+        new = ModelSpec(spec.kind, spec.effects, order, False, spec.options)
     else:
         raise UnknownModelError(f"the order must be 0..{MAX_ORDER} or 'cv', got {order!r}")
     if (spec.order is not None or spec.order_by_cv) and new != spec:
