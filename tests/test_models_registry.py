@@ -32,7 +32,13 @@ from comp_daemon.robot.description import load_robot
 KR = load_robot("kr210")
 N, N_FIT = 170, 110
 # every kind of the table, and the named variants the papers use
-MODELS = (*KINDS, "kinematic+ratio+backlash", "chebyshev:1", "kriging-backlash+compliance", "kriging:k=40:aniso")
+MODELS = (
+    *KINDS,
+    "kinematic+ratio+backlash",
+    "chebyshev:1",
+    "kriging-backlash+compliance",
+    "kriging:k=40:aniso",
+)
 
 
 def _axes(n: int, seed: int) -> np.ndarray:

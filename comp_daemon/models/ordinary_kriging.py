@@ -21,6 +21,7 @@ __all__ = ["OrdinaryKriging"]
 
 AXES = ("x", "y", "z")
 
+
 class OrdinaryKriging:
     """Ordinary kriging of k components on shared coordinates, one fitted variogram per component.
 

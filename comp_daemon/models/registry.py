@@ -261,6 +261,10 @@ def parse_model_name(name: str) -> ModelSpec:
 MAX_NEIGHBOURS = 100_000
 
 
+def _neighbours_ok(text: str) -> bool:
+    return text.isdigit() and 4 <= int(text) <= MAX_NEIGHBOURS
+
+
 def _parse_options(name: str, kind: ModelKind, text: str) -> tuple[str, ...]:
     """The ``:k=N`` / ``:aniso`` options of a kriging kind, canonical (k first, each once)."""
     k: int | None = None
@@ -268,7 +272,12 @@ def _parse_options(name: str, kind: ModelKind, text: str) -> tuple[str, ...]:
     for part in (p.strip() for p in text.split(":")):
         if part == "aniso" and not aniso:
             aniso = True
-        elif part.startswith("k=") and k is None and part[2:].isdigit() and 4 <= int(part[2:]) <= MAX_NEIGHBOURS:
+        elif (
+            part.startswith("k=")
+            and k is None
+            and part[2:].isdigit()
+            and 4 <= int(part[2:]) <= MAX_NEIGHBOURS
+        ):
             k = int(part[2:])
         else:
             raise UnknownModelError(
