@@ -155,7 +155,7 @@ def test_user_errors_exit_2_with_a_message(
         main(["fit", str(campaign), "--robot", "kr210", "--model", "chebyshev+backlash", "--out", str(out)])
         == 2
     )
-    assert "kinematic model only" in capsys.readouterr().err
+    assert "models only" in capsys.readouterr().err
     short = tmp_path / "short.csv"
     write_dataset(read_dataset(campaign).subset(np.arange(10)), short)
     assert main(["fit", str(short), "--robot", "kr210", "--model", "kinematic", "--out", str(out)]) == 2

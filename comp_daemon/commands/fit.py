@@ -2,9 +2,16 @@
 
 - ``fit DATA --robot R --model NAME [--order m|cv] --out MODEL.json`` fits one model on the data
   set's fit rows (every row when there is no ``split`` column) and writes the artifact.
-- ``evaluate DATA --robot R --models nominal,kinematic,chebyshev [--json OUT.json]`` fits each
+- ``evaluate DATA --robot R --models nominal,kinematic,chebyshev|all [--json OUT.json]`` fits each
   model on the fit rows and prints seed 000's Table 2 on the check rows (drawn reproducibly when
-  the file has no ``split`` column).
+  the file has no ``split`` column), sorted by the check rows' 3-D RMS, with each model's fit and
+  predict time; ``all`` is every kind and the seeds' stacks
+  (:data:`comp_daemon.models.registry.ALL_MODELS`). One progress line per model goes to stderr.
+
+On a data set without ``dir1..dir6`` columns, ``fit`` and ``evaluate`` of a model that needs the
+approach directions (backlash) derive them from the pose order
+(:func:`comp_daemon.data.directions.with_inferred_directions`) and say so; ``--no-infer-dir``
+turns that off.
 - ``compensate MODEL.json TARGETS.csv --out CORRECTED.csv`` writes, for every target, the axis
   values whose predicted TCP (by the model) is the wanted one.
 
@@ -18,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import time
 from pathlib import Path
 from typing import Any, Literal
 
@@ -26,6 +34,7 @@ import numpy as np
 from comp_daemon.cli import UserError
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
+from comp_daemon.data.directions import with_inferred_directions
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
@@ -33,6 +42,7 @@ from comp_daemon.models.compensation import compensate, nominal_targets
 from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
 from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel
 from comp_daemon.models.registry import (
+    ALL_MODELS,
     KINDS,
     MAX_ORDER,
     MissingColumnError,
@@ -42,6 +52,7 @@ from comp_daemon.models.registry import (
     get_kind,
     max_parameters,
     parse_model_name,
+    uses_directions,
     with_order,
 )
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, RobotDescription, load_robot
@@ -84,7 +95,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument(
         "--models",
         default="nominal,kinematic,chebyshev",
-        help="comma-separated models (default nominal,kinematic,chebyshev; e.g. kinematic+ratio+backlash)",
+        help="comma-separated models (default nominal,kinematic,chebyshev; e.g. kinematic+ratio+backlash), "
+        f"or all ({', '.join(ALL_MODELS)})",
     )
     ev.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
     _common(ev)
@@ -115,6 +127,24 @@ def _common(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
     parser.add_argument("--seed", type=int, default=0, help="seed of the cross-validation folds (default 0)")
+    parser.add_argument(
+        "--no-infer-dir",
+        dest="infer_dir",
+        action="store_false",
+        help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
+        "(models with backlash then refuse the data)",
+    )
+
+
+def _directions(
+    dataset: Dataset, specs: list[ModelSpec], args: argparse.Namespace
+) -> tuple[Dataset, str | None]:
+    """``dataset`` with the approach directions inferred when a model needs them and the file has
+    none (and ``--no-infer-dir`` is not given), and the sentence that says so."""
+    if not args.infer_dir or not any(uses_directions(s) for s in specs):
+        return dataset, None
+    out, inferred = with_inferred_directions(dataset)
+    return out, None if inferred is None else inferred.describe()
 
 
 def _parse_model(token: str, order: Order | None) -> ModelSpec:
@@ -154,6 +184,10 @@ def _fit(args: argparse.Namespace) -> int:
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
     dataset = _read(args.data, robot, max_parameters(spec), "measurement")
+    data_sha256 = dataset.content_sha256
+    dataset, directions = _directions(dataset, [spec], args)
+    if directions:
+        print(f"{dataset.source}: {directions}")
     rows = dataset.fit_rows()
     if len(rows) < 3:
         raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
@@ -162,12 +196,14 @@ def _fit(args: argparse.Namespace) -> int:
     fit_info["model"] = spec.name
     fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
     fit_info["data_source"] = dataset.source
+    if directions:
+        fit_info["directions"] = directions
     if spec.kind == "kinematic" and len(rows) < fitted.info["identifiability"]["identifiable"]:
         raise UserError(
             f"{dataset.source}: {len(rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
             "identifiable parameters"
         )
-    save_model(fitted.model, args.out, data_sha256=dataset.content_sha256, frame=fitted.frame, fit=fit_info)
+    save_model(fitted.model, args.out, data_sha256=data_sha256, frame=fitted.frame, fit=fit_info)
     order = f", order {fitted.model.order}" if fitted.model.order is not None else ""
     extra = ""
     if "identifiability" in fitted.info:
@@ -180,18 +216,36 @@ def _fit(args: argparse.Namespace) -> int:
     return 0
 
 
-def _evaluate(args: argparse.Namespace) -> int:
+def _evaluate_specs(args: argparse.Namespace) -> list[tuple[str, ModelSpec]]:
+    """The models ``--models`` names, parsed (``all``: :data:`ALL_MODELS`, ``--order`` for the plain
+    ``chebyshev``)."""
     tokens = [t.strip() for t in args.models.split(",") if t.strip()]
     if not tokens:
         raise UserError("--models: name at least one model")
+    if tokens == ["all"]:
+        return [(t, _parse_model(t, args.order if t == "chebyshev" else None)) for t in ALL_MODELS]
     if len(set(tokens)) != len(tokens):
         raise UserError("--models: a model is named twice")
-    parsed = [(t, _parse_model(t, args.order if get_kind(_head(t)).takes_order else None)) for t in tokens]
+    return [(t, _parse_model(t, args.order if get_kind(_head(t)).takes_order else None)) for t in tokens]
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
     min_rows = max(max_parameters(spec) for _, spec in parsed)
     dataset = _read(args.data, robot, min_rows, "measurement")
     if len(dataset) < 2:
         raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
+    data_sha256 = dataset.content_sha256
+    dataset, directions = _directions(dataset, [spec for _, spec in parsed], args)
+    if directions:
+        print(f"{dataset.source}: {directions}")
+    skipped: dict[str, str] = {}
+    if args.models.strip() == "all" and dataset.dir is None:
+        skipped = {t: "no dir1..dir6 columns (--no-infer-dir)" for t, spec in parsed if uses_directions(spec)}
+        parsed = [(t, spec) for t, spec in parsed if t not in skipped]
+        if skipped:
+            print(f"{dataset.source}: left out (no dir columns): {', '.join(skipped)}", file=sys.stderr)
     split = dataset.split_or_draw()
     if split.drawn:
         print(split.message, file=sys.stderr)
@@ -203,22 +257,36 @@ def _evaluate(args: argparse.Namespace) -> int:
     temp_check = None if dataset.temp_c is None else dataset.temp_c[check]
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
-    for token, spec in parsed:
+    timing: dict[str, dict[str, float]] = {}
+    for i, (token, spec) in enumerate(parsed, 1):
+        t0 = time.perf_counter()
         fitted = _fit_rows(dataset, spec, args, split.fit_rows)
+        t1 = time.perf_counter()
         pred = fitted.model.predict_tcp_mm(
             dataset.a_deg[check], dir_check, dataset.payload_kg[check], temp_check
         )
+        t2 = time.perf_counter()
         table[token] = error_statistics(dataset.xyz_mm[check], pred)
+        timing[token] = {"fit_s": t1 - t0, "predict_s": t2 - t1, "predict_rows": len(check)}
         fits[token] = {"frame": fitted.frame, **fitted.info}
         if isinstance(fitted.model, ChebyshevModel):
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()
             )
+        if len(parsed) > 1:
+            print(
+                f"[{i}/{len(parsed)}] {token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
+                f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms",
+                file=sys.stderr,
+                flush=True,
+            )
+    ranking = sorted(table, key=lambda name: table[name]["3d"]["rms"])
+    table = {name: table[name] for name in ranking}
     print(
         f"{dataset.source}: {len(split.fit_rows)} fit rows, {len(check)} check rows; "
-        "error = measured - model (mm)"
+        "error = measured - model (mm); sorted by the check rows' 3-D RMS"
     )
-    print(format_table2(table))
+    print(format_table2(table, timing))
     ref = "; ".join(
         f"{k} " + "/".join(f"{s} {v:.2f}" for s, v in row.items()) for k, row in SEED000_TABLE2_MM.items()
     )
@@ -226,7 +294,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.json:
         doc = {
             "data": dataset.source,
-            "data_sha256": dataset.content_sha256,
+            "data_sha256": data_sha256,
             "robot": {"name": robot.name, "sha256": robot.sha256},
             "split": {
                 "drawn": split.drawn,
@@ -235,9 +303,13 @@ def _evaluate(args: argparse.Namespace) -> int:
                 "check_rows": len(check),
                 "message": split.message,
             },
+            "directions": directions,
             "error_definition": "measured - predicted, mm; per axis signed mean/std and max |component|; "
-            "3-D |error| mean/std/max (seed 000 eq. 27)",
+            "3-D |error| mean/std/max/rms (seed 000 eq. 27)",
+            "ranking": ranking,
             "table2": table,
+            "timing": {name: timing[name] for name in ranking},
+            "skipped": skipped,
             "fits": fits,
             "seed000_table2_mm": SEED000_TABLE2_MM,
         }

@@ -54,13 +54,17 @@ def error_statistics(measured_mm: NDArray[np.float64], predicted_mm: NDArray[np.
     return out
 
 
-def format_table2(rows: Mapping[str, Mapping[str, Any]]) -> str:
-    """A text table: one line per model, per-axis mean/std/max|·| and 3-D mean/std/max (mm)."""
+def format_table2(
+    rows: Mapping[str, Mapping[str, Any]], timing: Mapping[str, Mapping[str, float]] | None = None
+) -> str:
+    """A text table: one line per model, per-axis mean/std/max|·| and 3-D mean/std/max (mm); with
+    ``timing`` (per model ``fit_s`` and ``predict_s``) also the 3-D RMS and the two times."""
     w = max([12, *(len(name) for name in rows)])
     head = (
         f"{'model':<{w}} {'n':>4} | "
         + " | ".join(f"{ax + ' mean':>7} {'std':>6} {'max|.|':>6}" for ax in "xyz")
         + f" | {'3D mean':>7} {'std':>6} {'max':>6}"
+        + (f" | {'3D rms':>6} {'fit s':>7} {'pred ms':>8}" if timing is not None else "")
     )
     lines = [head, "-" * len(head)]
     for name, st in rows.items():
@@ -68,7 +72,9 @@ def format_table2(rows: Mapping[str, Mapping[str, Any]]) -> str:
             f"{st[ax]['mean']:>7.3f} {st[ax]['std']:>6.3f} {st[ax]['max_abs']:>6.3f}" for ax in "xyz"
         )
         d = st["3d"]
-        lines.append(
-            f"{name:<{w}} {st['n']:>4} | {cells} | {d['mean']:>7.3f} {d['std']:>6.3f} {d['max']:>6.3f}"
-        )
+        line = f"{name:<{w}} {st['n']:>4} | {cells} | {d['mean']:>7.3f} {d['std']:>6.3f} {d['max']:>6.3f}"
+        if timing is not None:
+            t = timing[name]
+            line += f" | {d['rms']:>6.3f} {t['fit_s']:>7.2f} {1e3 * t['predict_s']:>8.2f}"
+        lines.append(line)
     return "\n".join(lines)

@@ -58,6 +58,7 @@ from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
+    "ALL_MODELS",
     "ARTIFACT_KINDS",
     "KINDS",
     "MAX_ORDER",
@@ -73,6 +74,7 @@ __all__ = [
     "max_parameters",
     "model_from_payload",
     "parse_model_name",
+    "uses_directions",
     "with_order",
 ]
 
@@ -201,6 +203,26 @@ KINDS: dict[str, ModelKind] = {
         ),
     )
 }
+
+
+# what ``evaluate --models all`` compares: every kind, and the stacks of the seeds
+ALL_MODELS: tuple[str, ...] = (
+    "nominal",
+    "kinematic",
+    "kinematic+ratio+backlash",
+    "kinematic+ratio+backlash+compliance",
+    "chebyshev",
+    "chebyshev:cv",
+    "kriging",
+    "kriging-backlash",
+    "kriging-backlash+compliance",
+    "compliance",
+)
+
+
+def uses_directions(spec: ModelSpec) -> bool:
+    """Whether the model ``spec`` needs the approach directions (``dir``: backlash)."""
+    return "dir" in get_kind(spec.kind).needed_columns(spec)
 
 
 def kind_names() -> tuple[str, ...]:
