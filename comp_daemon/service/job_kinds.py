@@ -17,6 +17,7 @@ Fit result (``job.result``) and model ``stats``::
     {"model": name, "kind": kind, "artifact_kind": the stored model's kind (kriging-backlash: kriging),
      "effects": [...], "order": m, "frame": "base"|"tracker",
      "rows": {"fit": n, "check": n}, "split": message,
+     "directions": null | how the approach directions were inferred from the pose order,
      "table2": {"nominal": T, "model": T}, "errors_3d_mm": {"nominal": [...], "model": [...]},
      "fit": {...fit_model's summary...}}
 
@@ -56,20 +57,39 @@ Progress = Callable[..., None]
 
 
 def fit_job_args(
-    csv_text: str, robot: str, model: str, order: int | None, dataset_id: int
+    csv_text: str, robot: str, model: str, order: int | None, dataset_id: int, *, infer_dir: bool = True
 ) -> tuple[Any, ...]:
-    return (csv_text, robot, model, order, dataset_id)
+    return (csv_text, robot, model, order, dataset_id, infer_dir)
 
 
 def run_fit(
-    csv_text: str, robot_name: str, model: str, order: int | None, dataset_id: int, *, progress: Progress
+    csv_text: str,
+    robot_name: str,
+    model: str,
+    order: int | None,
+    dataset_id: int,
+    infer_dir: bool = True,
+    *,
+    progress: Progress,
 ) -> dict[str, Any]:
-    """Fit ``model`` on the fit rows of the data set, judge it and the nominal twin on the check rows."""
+    """Fit ``model`` on the fit rows of the data set, judge it and the nominal twin on the check rows.
+
+    ``infer_dir``: a data set without ``dir`` columns gets the approach directions from the pose
+    order when the model needs them (:func:`comp_daemon.data.directions.with_inferred_directions`);
+    the stats' ``directions`` says so.
+    """
     from comp_daemon.data.dataset import parse_dataset
+    from comp_daemon.data.directions import with_inferred_directions
     from comp_daemon.models.artifact import model_document
     from comp_daemon.models.evaluation import error_statistics
     from comp_daemon.models.fitting import FitRows, ModelSpec
-    from comp_daemon.models.registry import fit_spec, max_parameters, parse_model_name, with_order
+    from comp_daemon.models.registry import (
+        fit_spec,
+        max_parameters,
+        parse_model_name,
+        uses_directions,
+        with_order,
+    )
     from comp_daemon.robot.description import load_robot
 
     spec = with_order(parse_model_name(model), order)
@@ -83,6 +103,11 @@ def run_fit(
         min_rows=max_parameters(spec),
         kind="measurement",
     )
+    data_sha256 = ds.content_sha256
+    directions = None
+    if infer_dir and uses_directions(spec):
+        ds, inferred = with_inferred_directions(ds)
+        directions = None if inferred is None else inferred.describe()
     split = ds.split_or_draw()
     fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
     if len(check_rows) == 0:
@@ -108,6 +133,8 @@ def run_fit(
     pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
     p_check = check.xyz_mm
     info = {**fitted.info, "model": spec.name, "data_source": ds.source, "data_rows_used": "fit rows"}
+    if directions:
+        info["directions"] = directions
     stats = {
         "model": model,
         "kind": spec.kind,
@@ -117,6 +144,7 @@ def run_fit(
         "frame": fitted.frame,
         "rows": {"fit": len(fit_rows), "check": len(check_rows)},
         "split": split.message,
+        "directions": directions,
         "table2": {
             "nominal": error_statistics(p_check, pred_nominal),
             "model": error_statistics(p_check, pred_model),
@@ -127,7 +155,7 @@ def run_fit(
         },
         "fit": info,
     }
-    artifact = model_document(fitted.model, data_sha256=ds.content_sha256, frame=fitted.frame, fit=info)
+    artifact = model_document(fitted.model, data_sha256=data_sha256, frame=fitted.frame, fit=info)
     return {"stats": stats, "artifact": artifact}
 
 

@@ -203,6 +203,11 @@ class FitIn(BaseModel):
     order: int | None = Field(
         None, ge=0, le=8, description="Chebyshev order; omitted: the model name's (default 3, seed 000)"
     )
+    infer_dir: bool = Field(
+        True,
+        description="a data set without dir1..dir6 columns gets the approach directions from the pose "
+        "order when the model needs them (backlash); false: such models refuse the data",
+    )
 
 
 class DiagnosisIn(BaseModel):

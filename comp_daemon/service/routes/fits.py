@@ -66,14 +66,22 @@ async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
         with_order(parse_model_name(body.model), body.order)
     except UnknownModelError as exc:
         raise ApiError(422, "invalid_request", str(exc), column="model") from None
-    params = {"model": body.model, "order": body.order, "dataset_id": body.dataset_id, "by": who.name}
+    params = {
+        "model": body.model,
+        "order": body.order,
+        "infer_dir": body.infer_dir,
+        "dataset_id": body.dataset_id,
+        "by": who.name,
+    }
     robot_name = svc.settings.robot.name
     job = await launch_job(
         svc,
         job_kinds.FIT,
         params,
         body.dataset_id,
-        lambda csv: job_kinds.fit_job_args(csv, robot_name, body.model, body.order, body.dataset_id),
+        lambda csv: job_kinds.fit_job_args(
+            csv, robot_name, body.model, body.order, body.dataset_id, infer_dir=body.infer_dir
+        ),
     )
     _log.info("fit queued", job_id=job.id, model=body.model, order=body.order, by=who.name)
     return JobOut.of(job)
