@@ -92,7 +92,7 @@ def test_fit_job_infers_directions_unless_told_not_to(backlash_no_dir: Path) -> 
     stats = done["stats"]
     assert "inferred" in stats["directions"]
     assert stats["table2"]["model"]["3d"]["rms"] < 0.1
-    with pytest.raises(ValueError, match="dir1..dir6"):
+    with pytest.raises(ValueError, match=r"dir1\.\.dir6"):
         run_fit(csv, "kr210", "kinematic+ratio+backlash", None, 1, False, progress=lambda *a, **k: None)
     plain = run_fit(csv, "kr210", "kinematic", None, 1, progress=lambda *a, **k: None)
     assert plain["stats"]["directions"] is None  # the model does not use them: nothing inferred

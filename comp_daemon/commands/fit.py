@@ -13,7 +13,8 @@ approach directions (backlash) derive them from the pose order
 (:func:`comp_daemon.data.directions.with_inferred_directions`) and say so; ``--no-infer-dir``
 turns that off.
 - ``compensate MODEL.json TARGETS.csv --out CORRECTED.csv`` writes, for every target, the axis
-  values whose predicted TCP (by the model) is the wanted one.
+  values whose predicted TCP (by the model) is the wanted one, and, where the model has one, the
+  3-D 1-σ uncertainty of that prediction (``sigma_mm``, :meth:`ErrorModel.predict_std_mm`).
 
 Model names and kinds are those of :mod:`comp_daemon.models.registry`: ``kind[:order][+effect…]``,
 e.g. ``kinematic+ratio+backlash`` (the MDH calibration with seed 001's per-joint reduction-ratio
@@ -386,6 +387,9 @@ def _compensate(args: argparse.Namespace) -> int:
             repr(float(v)) for v in result.a_deg[:, k] - result.a_uncompensated_deg[:, k]
         )
     extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
+    sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
+    if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
+        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
     extra["model_kind"] = (model.kind,) * n
     out = Dataset(
         a_deg=result.a_deg,

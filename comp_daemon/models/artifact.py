@@ -11,6 +11,9 @@ Document (``format`` = ``comp-daemon-model``, ``format_version`` = 1)::
     registration    4×4 robot base frame in the measurement frame (targets in the base frame map
                     through it)
     model           the kind's parameters / coefficients, by name (see each model's ``to_payload``)
+    uncertainty     (parametric fits only) the fit's parameter covariance
+                    (:meth:`comp_daemon.models.uncertainty.ParameterCovariance.to_dict`), which
+                    gives the loaded model its ``predict_std_mm``
     data_sha256     hash of the fitted data (Dataset.content_sha256, or of the arrays fitted on)
     fit             fit statistics (rows, RMS, iterations, identifiability, selection, …)
     library_version comp_daemon.__version__
@@ -44,6 +47,7 @@ from comp_daemon import __version__
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.registry import ARTIFACT_KINDS, model_from_payload
+from comp_daemon.models.uncertainty import ParameterCovariance
 from comp_daemon.robot.description import Joint, RobotDescription
 
 __all__ = [
@@ -143,6 +147,7 @@ def model_document(
         "frame": frame,
         "registration": model.registration.tolist(),
         "model": model.to_payload(),
+        **({"uncertainty": model.uncertainty.to_dict()} if model.uncertainty is not None else {}),
         "data_sha256": data_sha256,
         "fit": _json_ready(fit or {}),
         "library_version": __version__,
@@ -262,6 +267,11 @@ def parse_model(text: str, source: str = "<model>", robot: RobotDescription | No
         model = model_from_payload(kind, embedded, payload, order, registration)
     except (KeyError, TypeError, ValueError) as exc:
         raise ModelArtifactError(f"{source}: {kind} model content is malformed ({exc})") from None
+    if "uncertainty" in doc:
+        try:
+            model.uncertainty = ParameterCovariance.from_dict(_field(doc, "uncertainty", dict, source))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ModelArtifactError(f"{source}: field 'uncertainty' is malformed ({exc})") from None
     return LoadedModel(model=model, document=doc)
 
 

@@ -12,13 +12,19 @@ frame into the measurement frame. ``world_T_base`` is the model's own (possibly 
 ``ik_params()`` are the kinematic parameters (measurement frame) that the compensation uses to invert
 the commanded axes.
 
+``predict_std_mm(a_deg, dir, payload_kg, temp_c) -> (n, 3) | None`` is the 1-σ uncertainty (mm,
+per coordinate) of those predictions where the model has one: the parameter covariance of a
+parametric fit propagated through its Jacobian (``uncertainty``, a
+:class:`comp_daemon.models.uncertainty.ParameterCovariance` set by the fit or the artifact
+loader), or a kriging model's kriging variance; None otherwise.
+
 The nominal model is the robot description's geometry, nothing fitted but the frame.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -27,7 +33,7 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["ErrorModel", "NominalModel", "as_axes"]
+__all__ = ["ErrorModel", "NominalModel", "PredictionUncertainty", "as_axes"]
 
 
 def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -40,6 +46,21 @@ def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
     return a
 
 
+class PredictionUncertainty(Protocol):
+    """What a model's ``uncertainty`` offers (:class:`comp_daemon.models.uncertainty.ParameterCovariance`)."""
+
+    def std_mm(
+        self,
+        model: ErrorModel,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]: ...
+
+    def to_dict(self) -> dict[str, Any]: ...
+
+
 class ErrorModel(ABC):
     """A fitted (or nominal) model of where the TCP really goes."""
 
@@ -47,6 +68,19 @@ class ErrorModel(ABC):
     robot: RobotDescription
     world_T_base: NDArray[np.float64]
     registration: NDArray[np.float64]
+    uncertainty: PredictionUncertainty | None = None
+
+    def predict_std_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64] | None:
+        """(n, 3) 1-σ uncertainty (mm) of :meth:`predict_tcp_mm` at ``a_deg``, or None (module docstring)."""
+        if self.uncertainty is None:
+            return None
+        return self.uncertainty.std_mm(self, as_axes(a_deg), dir, payload_kg, temp_c)
 
     @abstractmethod
     def predict_tcp_mm(

@@ -63,6 +63,7 @@ __all__ = [
     "ComplianceFit",
     "ComplianceModel",
     "calibrate_compliance",
+    "compliance_jacobian",
     "finite_array",
     "joint_numbers",
     "standard_errors",
@@ -207,6 +208,64 @@ def standard_errors(jac: NDArray[np.float64], residual: NDArray[np.float64]) -> 
     return np.sqrt(s2 * np.sum((vt / sv[:, None]) ** 2, axis=0)) / norms
 
 
+def _unpack(
+    start: KinematicParams, geo_idx: NDArray[np.intp], cj: Sequence[int], x: NDArray[np.float64]
+) -> tuple[KinematicParams, NDArray[np.float64], NDArray[np.float64]]:
+    """Parameters, compliance (6,) and geometric increments of the unknowns ``x`` (geometric, then C)."""
+    dx = np.zeros(N_PARAMS)
+    dx[geo_idx] = x[: geo_idx.size]
+    comp = np.zeros(N_JOINTS)
+    for k, j in enumerate(cj):
+        comp[j - 1] = x[geo_idx.size + k]
+    return start.apply(dx), comp, dx
+
+
+def _tcp_and_jac(
+    mass: MassModel,
+    start: KinematicParams,
+    geo_idx: NDArray[np.intp],
+    cj: Sequence[int],
+    x: NDArray[np.float64],
+    a: NDArray[np.float64],
+    payload: NDArray[np.float64] | float,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """TCP (n, 3) and its derivative (n, 3, len(x)) w.r.t. the unknowns ``x`` of the calibration."""
+    params, comp, dx = _unpack(start, geo_idx, cj, x)
+    # the twin of the model (torques at the commanded configuration, as in predict_tcp_mm)
+    st = twin_state(mass, params, EffectParams(compliance_rad_per_nm=comp), a, None, payload, None)
+    ch = st.chain
+    tau = st.tau_nm
+    if not cj or not np.any(comp != 0.0):
+        q_cmd = params.sign * np.deg2rad(a)
+        tau = gravity_torques_nm(params, q_cmd, mass.link_mass_kg, mass.link_com_mm, payload)
+    jac_all = identification_jacobian(params, st.q_rad, ch)
+    jac_all[:, :, 33:36] = -skew(ch.tcp_mm - dx[30:33]) @ left_jacobian(dx[33:36])
+    cols = [jac_all[:, :, geo_idx]]
+    cols += [jac_all[:, :, joint_param_index("theta", j)][:, :, None] * tau[:, None, j - 1, None] for j in cj]
+    return ch.tcp_mm, np.concatenate(cols, axis=2)
+
+
+def compliance_jacobian(
+    model: ComplianceModel,
+    names: Sequence[str],
+    values: NDArray[np.float64],
+    a_deg: NDArray[np.float64],
+    payload_kg: NDArray[np.float64] | float = 0.0,
+) -> NDArray[np.float64]:
+    """(n, 3, p) derivative of the model's TCP at ``a_deg`` w.r.t. its calibration's identified
+    parameters ``names`` (geometric increments, then ``C{j}``) at their ``values``."""
+    a = as_axes(a_deg)
+    geo = [nm for nm in names if nm in PARAM_NAMES]
+    c_names = [nm for nm in names if nm not in PARAM_NAMES]
+    if list(names) != geo + c_names or any(not (nm.startswith("C") and nm[1:].isdigit()) for nm in c_names):
+        raise ValueError(f"compliance parameters must be geometric names then C1..C6, got {list(names)}")
+    geo_idx = np.array([PARAM_NAMES.index(nm) for nm in geo], dtype=np.intp)
+    cj = [int(nm[1:]) for nm in c_names]
+    start = model.robot.nominal_params().with_base(model.registration)
+    payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (a.shape[0],))
+    return _tcp_and_jac(model.mass, start, geo_idx, cj, np.asarray(values, dtype=float), a, payload)[1]
+
+
 def calibrate_compliance(
     robot: RobotDescription,
     a_deg: NDArray[np.float64],
@@ -251,31 +310,13 @@ def calibrate_compliance(
     c_names = [f"C{j}" for j in cj]
     all_names = [*geo_names, *c_names]
 
+    start = nominal.with_base(registration)
+
     def unpack(x: NDArray[np.float64]) -> tuple[KinematicParams, NDArray[np.float64], NDArray[np.float64]]:
-        dx = np.zeros(N_PARAMS)
-        dx[geo_idx] = x[: geo_idx.size]
-        comp = np.zeros(N_JOINTS)
-        for k, j in enumerate(cj):
-            comp[j - 1] = x[geo_idx.size + k]
-        start = nominal.with_base(registration)
-        return start.apply(dx), comp, dx
+        return _unpack(start, geo_idx, cj, x)
 
     def tcp_and_jac(x: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-        params, comp, dx = unpack(x)
-        # the twin of the model (torques at the commanded configuration, as in predict_tcp_mm)
-        st = twin_state(mass, params, EffectParams(compliance_rad_per_nm=comp), a, None, payload, None)
-        ch = st.chain
-        tau = st.tau_nm
-        if not cj or not np.any(comp != 0.0):
-            q_cmd = params.sign * np.deg2rad(a)
-            tau = gravity_torques_nm(params, q_cmd, mass.link_mass_kg, mass.link_com_mm, payload)
-        jac_all = identification_jacobian(params, st.q_rad, ch)
-        jac_all[:, :, 33:36] = -skew(ch.tcp_mm - dx[30:33]) @ left_jacobian(dx[33:36])
-        cols = [jac_all[:, :, geo_idx]]
-        cols += [
-            jac_all[:, :, joint_param_index("theta", j)][:, :, None] * tau[:, None, j - 1, None] for j in cj
-        ]
-        return ch.tcp_mm, np.concatenate(cols, axis=2)
+        return _tcp_and_jac(mass, start, geo_idx, cj, x, a, payload)
 
     x0 = np.zeros(len(all_names))
     _, jac0 = tcp_and_jac(x0)

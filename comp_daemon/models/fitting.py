@@ -47,6 +47,7 @@ from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
 from comp_daemon.models.registration import detect_frame, rigid_registration
+from comp_daemon.models.uncertainty import attach_covariance
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -242,6 +243,7 @@ def fit_kinematic_kind(
 ) -> FittedModel:
     """MDH calibration with the spec's joint effects."""
     kf = _kinematic(robot, rows, spec.effects, options)
+    attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
     return FittedModel(
         kf.model, kf.frame, {"kind": spec.kind, "rows": rows.n, **_kinematic_info(kf, spec.effects)}
     )
@@ -274,6 +276,9 @@ def fit_chebyshev_kind(
     else:
         order = DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order
     cf = fit_chebyshev(robot, rows.a_deg, rows.xyz_mm, order, frame=options.frame, rtol=rtol)
+    active = np.flatnonzero(cf.model.active)
+    names = [cf.model.names[i] for i in active]
+    attach_covariance(cf.model, names, cf.model.coefficients[active], cf.lm.jacobian, cf.lm.residual)
     info = {
         "kind": spec.kind,
         "rows": rows.n,
@@ -358,6 +363,7 @@ def fit_compliance_kind(
 ) -> FittedModel:
     """Seed 004: zero offsets and the compliance of joints 2 and 3 under the rows' payloads."""
     cf = calibrate_compliance(robot, rows.a_deg, rows.xyz_mm, payload_kg=rows.payload_kg, frame=options.frame)
+    attach_covariance(cf.model, cf.identified, cf.values, cf.lm.jacobian, cf.lm.residual)
     info = {
         "kind": spec.kind,
         "rows": rows.n,

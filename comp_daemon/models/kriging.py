@@ -240,6 +240,19 @@ class KrigingModel(ErrorModel):
         assert isinstance(res, np.ndarray)
         return base + res
 
+    def predict_std_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        """(m, 3) ordinary-kriging standard deviation of the kriged residual (mm, per axis), the
+        nugget filtered: the uncertainty of the prediction, not of a new measurement."""
+        out = self.predict_residual_mm(a_deg, dir, return_std=True)
+        assert isinstance(out, tuple)
+        return out[1]
+
     def weights(
         self, a_deg: NDArray[np.float64], dir: NDArray[np.float64] | None = None, axis: int = 0
     ) -> NDArray[np.float64]:

@@ -1,0 +1,180 @@
+"""Uncertainty of a parametric model's predictions: the fit's parameter covariance through the Jacobian.
+
+A least-squares fit ``min |F(x)|²`` over the identifiable parameters ``x`` (p of them, m = 3n
+residuals) leaves the parameters with the covariance ``Σ = s²·(JᵀJ)⁻¹`` (``J`` the residual's
+Jacobian at the solution, ``s² = |F|²/(m − p)`` the residual variance per coordinate). A
+prediction at new axis values ``A`` moves with the parameters as ``G(A) = ∂TCP/∂x`` (3 × p per
+point), so its covariance is ``G Σ Gᵀ`` and the 1-σ uncertainty of each coordinate is
+``sqrt(diag(G Σ Gᵀ))`` (mm). This is the uncertainty of the *model* (where the fitted robot would
+put the TCP), not of a new measurement: a measured error adds the measurement noise on top.
+
+``G`` is the fit's own Jacobian evaluated at the new rows, so the parameters are those the fit
+iterated (increments of the geometric parameters from the registered nominal start, effect
+values): :class:`~comp_daemon.models.kinematic.KinematicProblem` for the kinematic model and its
+effects, :func:`~comp_daemon.models.chebyshev.chebyshev_jacobian` for the Chebyshev model,
+:func:`~comp_daemon.models.compliance.compliance_jacobian` for the compliance model. The inverse is
+taken on scaled columns (unit norms), with singular values below 1e-14 of the largest treated as
+zero (an unidentifiable direction contributes nothing instead of infinity).
+
+The covariance is saved with the model's artifact (``uncertainty``, :meth:`to_dict`) and attached
+to the loaded model, whose :meth:`~comp_daemon.models.base.ErrorModel.predict_std_mm` then answers.
+Kriging models have their own uncertainty, the ordinary-kriging variance of their residual.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.kinematics.params import PARAM_NAMES
+from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.chebyshev import ChebyshevModel, chebyshev_jacobian
+from comp_daemon.models.compliance import ComplianceModel, compliance_jacobian
+from comp_daemon.models.effects import EffectParams
+from comp_daemon.models.kinematic import KinematicModel, KinematicProblem
+
+__all__ = ["ParameterCovariance", "attach_covariance", "covariance_from_fit"]
+
+SV_RTOL = 1e-14
+
+
+def covariance_from_fit(
+    jacobian: NDArray[np.float64], residual: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], float]:
+    """``(s²·(JᵀJ)⁻¹, s)`` of a least-squares fit from its Jacobian (m, p) and residual (m,)."""
+    jac = np.asarray(jacobian, dtype=float)
+    res = np.asarray(residual, dtype=float)
+    m, p = jac.shape
+    if m <= p:
+        raise ValueError(f"{m} residuals for {p} parameters: no residual variance to scale by")
+    s2 = float(res @ res) / (m - p)
+    norms = np.linalg.norm(jac, axis=0)
+    norms = np.where(norms > 0, norms, 1.0)
+    _, sv, vt = np.linalg.svd(jac / norms, full_matrices=False)
+    inv = np.where(sv > SV_RTOL * sv[0], 1.0 / np.where(sv > 0, sv, 1.0) ** 2, 0.0)
+    scaled = (vt.T * inv) @ vt
+    return s2 * scaled / np.outer(norms, norms), float(np.sqrt(s2))
+
+
+@dataclass(frozen=True, slots=True)
+class ParameterCovariance:
+    """The identified parameters of a fit, their values and covariance (module docstring)."""
+
+    names: tuple[str, ...]
+    values: NDArray[np.float64]  # (p,) as the fit iterated them
+    covariance: NDArray[np.float64]  # (p, p)
+    sigma_mm: float  # s: the fit's residual standard deviation per coordinate
+    rows: int
+
+    def __post_init__(self) -> None:
+        p = len(self.names)
+        values = np.asarray(self.values, dtype=float)
+        cov = np.asarray(self.covariance, dtype=float)
+        if values.shape != (p,) or cov.shape != (p, p):
+            raise ValueError(f"uncertainty: {p} names need ({p},) values and a ({p}, {p}) covariance")
+        if not (np.all(np.isfinite(values)) and np.all(np.isfinite(cov))):
+            raise ValueError("uncertainty: values and covariance must be finite")
+        object.__setattr__(self, "names", tuple(str(n) for n in self.names))
+        object.__setattr__(self, "values", values)
+        object.__setattr__(self, "covariance", cov)
+
+    @classmethod
+    def of_fit(
+        cls,
+        names: Sequence[str],
+        values: NDArray[np.float64],
+        jacobian: NDArray[np.float64],
+        residual: NDArray[np.float64],
+    ) -> ParameterCovariance:
+        cov, s = covariance_from_fit(jacobian, residual)
+        return cls(tuple(names), np.asarray(values, dtype=float), cov, s, int(np.asarray(residual).size // 3))
+
+    def std_mm(
+        self,
+        model: ErrorModel,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        """(n, 3) 1-σ uncertainty (mm) of ``model``'s predicted TCP at ``a_deg`` (n, 6)."""
+        g = prediction_jacobian(self, model, as_axes(a_deg), dir, payload_kg, temp_c)  # (n, 3, p)
+        var = np.einsum("nip,pq,niq->ni", g, self.covariance, g)
+        return np.sqrt(np.maximum(var, 0.0))
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "method": "s^2 (J^T J)^-1 of the fit on its identifiable parameters, through the Jacobian",
+            "names": list(self.names),
+            "values": self.values.tolist(),
+            "covariance": self.covariance.tolist(),
+            "sigma_mm": self.sigma_mm,
+            "rows": self.rows,
+        }
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> ParameterCovariance:
+        return cls(
+            tuple(data["names"]),
+            np.array(data["values"], dtype=float),
+            np.array(data["covariance"], dtype=float),
+            float(data["sigma_mm"]),
+            int(data["rows"]),
+        )
+
+
+def prediction_jacobian(
+    cov: ParameterCovariance,
+    model: ErrorModel,
+    a: NDArray[np.float64],
+    dir: NDArray[np.float64] | None,
+    payload_kg: NDArray[np.float64] | float | None,
+    temp_c: NDArray[np.float64] | None,
+) -> NDArray[np.float64]:
+    """(n, 3, p) derivative of ``model``'s TCP at ``a`` w.r.t. the parameters of ``cov``."""
+    n = a.shape[0]
+    payload = 0.0 if payload_kg is None else payload_kg
+    if isinstance(model, KinematicModel):
+        geo_idx = np.array([PARAM_NAMES.index(nm) for nm in cov.names if nm in PARAM_NAMES], dtype=np.intp)
+        eff_names = [nm for nm in cov.names if nm not in PARAM_NAMES]
+        if list(cov.names) != [PARAM_NAMES[i] for i in geo_idx] + eff_names:
+            raise ValueError("uncertainty: the geometric parameters must come before the effect parameters")
+        eff0 = (
+            EffectParams.zeros(model.effects.n_harmonics, model.effects.t_ref_c)
+            if model.effects is not None
+            else EffectParams.zeros()
+        )
+        start = model.robot.nominal_params().with_base(model.registration)
+        d = None if dir is None else np.asarray(dir, dtype=float)
+        problem = KinematicProblem(
+            model.robot, start, eff0, geo_idx, eff_names, a, np.zeros((n, 3)), d, payload, temp_c
+        )
+        return problem.jacobian(cov.values).reshape(n, 3, len(cov.names))
+    if isinstance(model, ChebyshevModel):
+        index = {nm: i for i, nm in enumerate(model.names)}
+        cols = np.array([index[nm] for nm in cov.names], dtype=np.intp)
+        jac = chebyshev_jacobian(model.ik_params(), a, model.range_deg, model.order, model.coefficients)
+        return jac[:, :, cols]
+    if isinstance(model, ComplianceModel):
+        return compliance_jacobian(model, cov.names, cov.values, a, payload)
+    raise ValueError(f"no parameter covariance for a {model.kind} model")
+
+
+def attach_covariance(
+    model: ErrorModel,
+    names: Sequence[str],
+    values: NDArray[np.float64],
+    jacobian: NDArray[np.float64],
+    residual: NDArray[np.float64],
+) -> ParameterCovariance | None:
+    """Set ``model.uncertainty`` from a fit (None, and nothing set, when the fit has no residual
+    degrees of freedom)."""
+    if np.asarray(jacobian).shape[0] <= np.asarray(jacobian).shape[1]:
+        return None
+    cov = ParameterCovariance.of_fit(names, values, jacobian, residual)
+    model.uncertainty = cov
+    return cov
