@@ -84,7 +84,7 @@ AXES = ("x", "y", "z")
 DEFAULT_DIR_GRID_DEG: tuple[float, ...] = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0)
 DirectionChoice = Literal["aware", "blind"]
 DENSE_MAX_SAMPLES = 2000  # above this many sampling points the default is a local neighbourhood
-DEFAULT_NEIGHBOURS = 64  # samples per local neighbourhood (the default above DENSE_MAX_SAMPLES)
+DEFAULT_NEIGHBOURS = 32  # samples per local neighbourhood (the default above DENSE_MAX_SAMPLES)
 VARIOGRAM_MAX_SAMPLES = 1500  # the empirical variogram of larger sets is taken on a random subset
 LOO_MAX_SAMPLES = 1000  # the leave-one-out RMS of local models is taken on a random subset
 ANISO_MAX_SAMPLES = 600  # the per-joint weights are searched on at most this many samples
@@ -514,8 +514,9 @@ def _search_weights(
     for _sweep in range(2):
         improved = False
         for j in range(N_JOINTS):
+            current = w.copy()
             for f in ANISO_FACTORS:
-                trial = w.copy()
+                trial = current.copy()
                 trial[j] *= f
                 value = loo(trial)
                 tried.append((tuple(trial.tolist()), value))

@@ -31,7 +31,8 @@ from comp_daemon.models.variogram import VariogramModel
 
 __all__ = ["LocalKriging"]
 
-BATCH = 512  # queries per stacked solve (bounds the (batch, k+1, k+1) work arrays)
+BATCH = 512  # queries per stacked solve at most
+BATCH_ELEMENTS = 4_000_000  # and at most this many elements in the (batch, k+1, k+1) work arrays
 
 
 class LocalKriging:
@@ -69,6 +70,7 @@ class LocalKriging:
         self.variograms = tuple(variograms)
         self.neighbours = min(int(neighbours), x.shape[0])
         self.tree = cKDTree(x)
+        self.batch = max(1, min(BATCH, BATCH_ELEMENTS // (self.neighbours + 2) ** 2))
 
     @property
     def n_samples(self) -> int:
@@ -82,8 +84,9 @@ class LocalKriging:
         pts = self.coords[idx]  # (m, kn, d)
         centred = pts - pts.mean(axis=1, keepdims=True)  # Gram form, centred to keep the digits
         sq = np.einsum("mid,mid->mi", centred, centred)
-        d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * np.matmul(centred, centred.transpose(0, 2, 1))
-        d_ss = np.sqrt(np.maximum(d2, 0.0))
+        gram = np.matmul(centred, np.ascontiguousarray(centred.transpose(0, 2, 1)))
+        d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * gram
+        d_ss = np.sqrt(np.maximum(d2, 0.0, out=d2), out=d2)
         d_ss[:, np.arange(kn), np.arange(kn)] = 0.0
         d_qs = np.linalg.norm(pts - q[:, None, :], axis=2)  # (m, kn)
         n_comp = self.values.shape[1]
@@ -116,8 +119,8 @@ class LocalKriging:
             raise ValueError(f"query coordinates must be (m, {self.coords.shape[1]}), got {q.shape}")
         out = np.empty((q.shape[0], self.values.shape[1]))
         std = np.empty_like(out) if return_std else None
-        for start in range(0, q.shape[0], BATCH):
-            block = q[start : start + BATCH]
+        for start in range(0, q.shape[0], self.batch):
+            block = q[start : start + self.batch]
             _, idx = self.tree.query(block, k=self.neighbours)
             idx = np.asarray(idx, dtype=np.intp).reshape(block.shape[0], self.neighbours)
             pred, s = self._solve(block, idx, return_std)
@@ -133,8 +136,8 @@ class LocalKriging:
         sel = np.arange(self.n_samples) if rows is None else np.asarray(rows, dtype=np.intp)
         kn = min(self.neighbours, self.n_samples - 1)
         out = np.empty((sel.size, self.values.shape[1]))
-        for start in range(0, sel.size, BATCH):
-            rows_b = sel[start : start + BATCH]
+        for start in range(0, sel.size, self.batch):
+            rows_b = sel[start : start + self.batch]
             _, idx = self.tree.query(self.coords[rows_b], k=kn + 1)
             idx = np.asarray(idx, dtype=np.intp).reshape(rows_b.size, kn + 1)
             # drop the sample itself (first unless a duplicate state came first)
