@@ -13,7 +13,11 @@ Run: ``.venv/bin/python benchmarks/bench_fit.py [--sizes 100,1000,10000] [--repe
    improved LM of seed 000 and by ``scipy.optimize.least_squares`` (``method="lm"``, MINPACK, and
    ``"trf"``), same residual, Jacobian and start: iterations, function/Jacobian evaluations, time,
    final cost. Also Rosenbrock as a least-squares problem.
-3. ``--trial``: seed 000's experiment on the simulated cell (kr210-cell): 204 sampled poses, 100 fit
+3. ``--kinds``: every model of the registry (``evaluate --models all``) fitted through
+   :func:`comp_daemon.models.registry.fit_spec` at 100, 1 000 and 10 000 poses of the same
+   campaign (with payloads 0 / 120 kg), once each: fit time (everything included) and the time of
+   1 000 predictions. ``chebyshev:cv`` is timed up to 1 000 poses only (``--cv-max``).
+4. ``--trial``: seed 000's experiment on the simulated cell (kr210-cell): 204 sampled poses, 100 fit
    the models, the other 104 are targets. Each model compensates the targets (``compensate``; the
    approach directions are those of the visiting order), the plant moves to the compensated
    commands and the tracker measures; Table 2 of the measured errors (measured − wanted).
@@ -46,10 +50,11 @@ from comp_daemon.models.chebyshev import (
 from comp_daemon.models.compensation import compensate
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_jacobian, twin_tcp_mm
 from comp_daemon.models.evaluation import error_statistics, format_table2
+from comp_daemon.models.fitting import FitRows
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.lm import improved_lm
-from comp_daemon.models.registry import fit_model
+from comp_daemon.models.registry import ALL_MODELS, fit_model, fit_spec, parse_model_name
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.campaign import measure_at, run_campaign, sample_poses
 from comp_daemon.sim.plant import RobotPlant
@@ -119,6 +124,30 @@ def fit_times(sizes: list[int], repeat: int) -> None:
             f"{n:>6} | {t_k:>9.3f} {kf.lm.iterations:>3} | {t_e:>18.3f} {ke.lm.iterations:>3} | "
             f"{t_c:>13.3f} {cf.lm.iterations:>3} {cf.report.n_identifiable:>5} | {cv:>8}"
         )
+
+
+def kind_times(sizes: list[int], cv_max: int) -> None:
+    print("\n## every model of the registry: fit time (s, once, everything included), 1 000 predictions (ms)")
+    print(f"{'model':<38} " + " ".join(f"{f'{n} fit':>10} {'predict':>8}" for n in sizes))
+    data = {}
+    for n in sizes:
+        robot, a, p, dirs = campaign(n)
+        payload = np.where(np.arange(n) % 2 == 0, 0.0, 120.0)
+        data[n] = (robot, FitRows(a, p, dirs, payload))
+    _, q_a, _, q_dirs = campaign(1000, seed=7)
+    for name in ALL_MODELS:
+        cells = []
+        for n in sizes:
+            if name == "chebyshev:cv" and n > cv_max:
+                cells.append(f"{'-':>10} {'-':>8}")
+                continue
+            robot, rows = data[n]
+            t0 = time.perf_counter()
+            model = fit_spec(parse_model_name(name), robot, rows).model
+            t_fit = time.perf_counter() - t0
+            t_pred, _ = best_time(lambda: model.predict_tcp_mm(q_a, q_dirs, 60.0), 3)  # noqa: B023
+            cells.append(f"{t_fit:>10.3f} {1e3 * t_pred:>8.1f}")
+        print(f"{name:<38} " + " ".join(cells), flush=True)
 
 
 def compare_solvers(repeat: int) -> None:
@@ -235,11 +264,16 @@ def main() -> None:
         "--trial", action="store_true", help="run seed 000's trial on the simulated cell only"
     )
     parser.add_argument("--seed", type=int, default=0, help="campaign seed of the trial")
+    parser.add_argument("--kinds", action="store_true", help="time every model of the registry only")
+    parser.add_argument("--cv-max", type=int, default=1000, help="largest campaign for chebyshev:cv")
     args = parser.parse_args()
     print("# bench_fit")
     print(machine_info())
     if args.trial:
         seed000_trial(args.seed)
+        return
+    if args.kinds:
+        kind_times([int(s) for s in args.sizes.split(",")], args.cv_max)
         return
     fit_times([int(s) for s in args.sizes.split(",")], args.repeat)
     compare_solvers(args.repeat)

@@ -1,6 +1,11 @@
 """Kriging prediction time (1 000 queries, 500 sampling points), and seed 001's comparison in simulation.
 
-Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.bench_kriging`` (timing), and
+Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.bench_kriging`` (timing;
+``--samples 10000`` fits local neighbourhoods, :data:`comp_daemon.models.kriging.DEFAULT_NEIGHBOURS`
+nearest samples, beyond 2 000 samples; ``--neighbours K`` forces K, ``--neighbours dense`` one
+dense system), ``… --scale`` (10 000 samples: fit and 1 000 predictions at 32 and 64 neighbours,
+direction-blind and direction-aware, and the local predictions against the dense ones at 2 000
+samples), and
 ``… python -m benchmarks.bench_kriging --seed001`` (seed 001's experiment on a simulated KR 210:
 497 Latin-hypercube sampling + 300 validation poses in a 700 × 1200 × 900 mm box, A/B/C within
 [−15, 15] × [−15, 5] × [−15, 15]°, the models of seed 001 Tables 6–7 side by side with the paper).
@@ -13,7 +18,7 @@ import datetime as dt
 import json
 import time
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -25,7 +30,7 @@ from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
-from comp_daemon.models.kriging import JointStateMetric, fit_kriging, joint_space_semivariogram
+from comp_daemon.models.kriging import JointStateMetric, KrigingModel, fit_kriging, joint_space_semivariogram
 from comp_daemon.robot.description import RobotDescription, load_robot
 
 HOME_DEG = (0.0, -85.0, 125.0, 0.0, -40.0, 0.0)
@@ -180,7 +185,18 @@ def seed001(seed: int, n_fit: int, n_check: int) -> dict[str, Any]:
     return out
 
 
-def timing(n_samples: int, n_queries: int, repeats: int) -> dict[str, Any]:
+Neighbours = int | Literal["auto"] | None
+
+
+def timing(
+    n_samples: int,
+    n_queries: int,
+    repeats: int,
+    neighbours: Neighbours = "auto",
+    direction: Literal["aware", "blind"] | list[float] | None = None,
+) -> dict[str, Any]:
+    """Fit on ``n_samples`` points of the seed 001 plant (direction separation 20° unless
+    ``direction`` says otherwise), then time ``n_queries`` predictions of the residual."""
     robot = load_robot("kr210")
     plant = seed001_plant(robot)
     rng = np.random.default_rng(0)
@@ -191,7 +207,12 @@ def timing(n_samples: int, n_queries: int, repeats: int) -> dict[str, Any]:
     p = twin_tcp_mm(robot, plant.params, plant.effects, a, d, PAYLOAD_KG)
     t0 = time.perf_counter()
     model = fit_kriging(
-        NominalModel(robot), a[:n_samples], p[:n_samples], dir=d[:n_samples], direction=[20.0] * 6
+        NominalModel(robot),
+        a[:n_samples],
+        p[:n_samples],
+        dir=d[:n_samples],
+        direction=[20.0] * 6 if direction is None else direction,
+        neighbours=neighbours,
     ).model
     fit_s = time.perf_counter() - t0
     q, qd = a[n_samples:], d[n_samples:]
@@ -209,9 +230,73 @@ def timing(n_samples: int, n_queries: int, repeats: int) -> dict[str, Any]:
         "best_ms": round(min(times) * 1e3, 2),
         "median_ms": round(float(np.median(times)) * 1e3, 2),
         "fit_s": round(fit_s, 3),
+        "solver": "dense" if model.neighbours is None else f"local, {model.neighbours} neighbours",
+        "direction": "20 deg" if direction is None else direction,
         "date": dt.date.today().isoformat(),
         "machine": machine_info(),
     }
+
+
+def local_vs_dense(n_samples: int, n_queries: int, neighbours: list[int]) -> dict[str, Any]:
+    """Local neighbourhoods against the dense solution on the same fitted variograms and metric."""
+    robot = load_robot("kr210")
+    plant = seed001_plant(robot)
+    rng = np.random.default_rng(3)
+    lo = np.array([-30.0, -110.0, 90.0, -60.0, -90.0, -90.0])
+    hi = np.array([30.0, -60.0, 150.0, 60.0, -20.0, 90.0])
+    a = lo + rng.random((n_samples + n_queries, 6)) * (hi - lo)
+    d = rng.choice([-1.0, 1.0], a.shape)
+    p = (
+        twin_tcp_mm(robot, plant.params, plant.effects, a, d, PAYLOAD_KG)
+        + rng.normal(size=a[:, :3].shape) * 0.01
+    )
+    base = calibrate_kinematic(
+        robot, a[:n_samples], p[:n_samples], dir=d[:n_samples], effects=("ratio", "backlash")
+    )
+    dense = fit_kriging(base.model, a[:n_samples], p[:n_samples], dir=d[:n_samples], neighbours=None).model
+    q, qd, pq = a[n_samples:], d[n_samples:], p[n_samples:]
+
+    def rms(e: NDArray[np.float64]) -> float:
+        return round(float(np.sqrt(np.mean(np.sum(e**2, axis=1)))), 5)
+
+    p_dense = dense.predict_tcp_mm(q, qd)
+    out: dict[str, Any] = {
+        "samples": n_samples,
+        "checks": n_queries,
+        "check_rms_mm": {
+            "kinematic+ratio+backlash": rms(pq - base.model.predict_tcp_mm(q, qd)),
+            "dense": rms(pq - p_dense),
+        },
+        "rms_gap_to_dense_mm": {},
+    }
+    for k in neighbours:
+        local = KrigingModel(
+            base.model,
+            dense.metric,
+            a[:n_samples],
+            d[:n_samples],
+            dense.residual_mm,
+            dense.variograms,
+            neighbours=k,
+        )
+        p_local = local.predict_tcp_mm(q, qd)
+        out["check_rms_mm"][f"k={k}"] = rms(pq - p_local)
+        out["rms_gap_to_dense_mm"][f"k={k}"] = rms(p_local - p_dense)
+    return out
+
+
+def scale(repeats: int) -> None:
+    """10 000 samples: fit and 1 000 predictions at 32 and 64 neighbours; local vs dense at 2 000."""
+    print(f"kriging at scale on {machine_line()}")
+    for k in (32, 64):
+        for direction in ("blind", "aware"):
+            r = timing(10_000, 1000, repeats, neighbours=k, direction=direction)
+            print(
+                f"10 000 samples, {r['solver']}, direction-{direction}: fit {r['fit_s']} s, "
+                f"1 000 predictions best {r['best_ms']} ms, median {r['median_ms']} ms",
+                flush=True,
+            )
+    print(json.dumps(local_vs_dense(2000, 500, [16, 32, 64, 128])))
 
 
 def main() -> None:
@@ -221,15 +306,24 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=20)
     parser.add_argument("--seed001", action="store_true", help="run seed 001's comparison instead")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--neighbours", default="auto", help="auto (default), dense, or a number")
+    parser.add_argument("--scale", action="store_true", help="10 000 samples, local vs dense")
     args = parser.parse_args()
+    if args.scale:
+        scale(args.repeats)
+        return
+    neighbours: Neighbours = (
+        "auto" if args.neighbours == "auto" else None if args.neighbours == "dense" else int(args.neighbours)
+    )
     if args.seed001:
         result = seed001(args.seed, 497, 300)
         print(f"seed 001 comparison (simulated KR 210, 497 + 300 poses) on {machine_line()}")
         print(json.dumps(result, indent=1))
         return
-    result = timing(args.samples, args.queries, args.repeats)
+    result = timing(args.samples, args.queries, args.repeats, neighbours)
     print(
-        f"kriging prediction, {args.queries} queries on {args.samples} sampling points: best "
+        f"kriging prediction ({result['solver']}), {args.queries} queries on {args.samples} "
+        f"sampling points: best "
         f"{result['best_ms']} ms, median {result['median_ms']} ms (fit {result['fit_s']} s)"
         f" on {machine_line()}"
     )
