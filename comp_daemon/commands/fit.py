@@ -35,13 +35,12 @@ import numpy as np
 from comp_daemon.cli import UserError
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
-from comp_daemon.data.directions import with_inferred_directions
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import compensate, nominal_targets
 from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
-from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel
+from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, directions_of, infer_fit_directions
 from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
@@ -139,13 +138,13 @@ def _common(parser: argparse.ArgumentParser) -> None:
 
 def _directions(
     dataset: Dataset, specs: list[ModelSpec], args: argparse.Namespace
-) -> tuple[Dataset, str | None]:
+) -> tuple[Dataset, np.ndarray | None, str | None]:
     """``dataset`` with the approach directions inferred when a model needs them and the file has
-    none (and ``--no-infer-dir`` is not given), and the sentence that says so."""
+    none (and ``--no-infer-dir`` is not given), the mask of those still unknown, and the sentence
+    that says so (:func:`comp_daemon.models.fitting.infer_fit_directions`)."""
     if not args.infer_dir or not any(uses_directions(s) for s in specs):
-        return dataset, None
-    out, inferred = with_inferred_directions(dataset)
-    return out, None if inferred is None else inferred.describe()
+        return dataset, None, None
+    return infer_fit_directions(dataset)
 
 
 def _parse_model(token: str, order: Order | None) -> ModelSpec:
@@ -163,10 +162,16 @@ def _read(path: str, robot: RobotDescription, min_rows: int, kind: Any) -> Datas
         raise UserError(str(exc)) from None
 
 
-def _fit_rows(dataset: Dataset, spec: ModelSpec, args: argparse.Namespace, rows: np.ndarray) -> FittedModel:
+def _fit_rows(
+    dataset: Dataset,
+    spec: ModelSpec,
+    args: argparse.Namespace,
+    rows: np.ndarray,
+    unknown_dir: np.ndarray | None = None,
+) -> FittedModel:
     options = FitOptions(frame=args.frame, cv_folds=args.folds, seed=args.seed)
     try:
-        return fit_spec(spec, load_robot_cached(args), FitRows.of(dataset, rows), options)
+        return fit_spec(spec, load_robot_cached(args), FitRows.of(dataset, rows, unknown_dir), options)
     except MissingColumnError as exc:
         raise UserError(f"{dataset.source}: {exc}") from None
     except np.linalg.LinAlgError as exc:
@@ -186,13 +191,13 @@ def _fit(args: argparse.Namespace) -> int:
     robot = load_robot_cached(args)
     dataset = _read(args.data, robot, max_parameters(spec), "measurement")
     data_sha256 = dataset.content_sha256
-    dataset, directions = _directions(dataset, [spec], args)
+    dataset, unknown_dir, directions = _directions(dataset, [spec], args)
     if directions:
         print(f"{dataset.source}: {directions}")
     rows = dataset.fit_rows()
     if len(rows) < 3:
         raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
-    fitted = _fit_rows(dataset, spec, args, rows)
+    fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
     fit_info = dict(fitted.info)
     fit_info["model"] = spec.name
     fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
@@ -238,7 +243,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if len(dataset) < 2:
         raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
     data_sha256 = dataset.content_sha256
-    dataset, directions = _directions(dataset, [spec for _, spec in parsed], args)
+    dataset, unknown_dir, directions = _directions(dataset, [spec for _, spec in parsed], args)
     if directions:
         print(f"{dataset.source}: {directions}")
     skipped: dict[str, str] = {}
@@ -254,14 +259,14 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise UserError(f"{dataset.source}: no check rows to evaluate on")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
     check = split.check_rows
-    dir_check = None if dataset.dir is None else dataset.dir[check].astype(float)
+    dir_check = None if dataset.dir is None else directions_of(dataset, check, unknown_dir)
     temp_check = None if dataset.temp_c is None else dataset.temp_c[check]
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
     for i, (token, spec) in enumerate(parsed, 1):
         t0 = time.perf_counter()
-        fitted = _fit_rows(dataset, spec, args, split.fit_rows)
+        fitted = _fit_rows(dataset, spec, args, split.fit_rows, unknown_dir)
         t1 = time.perf_counter()
         pred = fitted.model.predict_tcp_mm(
             dataset.a_deg[check], dir_check, dataset.payload_kg[check], temp_check

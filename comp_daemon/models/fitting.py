@@ -37,6 +37,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import Dataset
+from comp_daemon.data.directions import with_inferred_directions
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
@@ -62,6 +63,7 @@ __all__ = [
     "fit_kriging_backlash_kind",
     "fit_kriging_kind",
     "fit_nominal_kind",
+    "infer_fit_directions",
 ]
 
 DEFAULT_CHEBYSHEV_ORDER = 3  # seed 000 fits m = 3
@@ -134,17 +136,54 @@ class FitRows:
         object.__setattr__(self, "n", a.shape[0])
 
     @classmethod
-    def of(cls, dataset: Dataset, rows: NDArray[np.intp] | slice = slice(None)) -> FitRows:
-        """These rows of a measurement data set (axis values and positions required)."""
+    def of(
+        cls,
+        dataset: Dataset,
+        rows: NDArray[np.intp] | slice = slice(None),
+        unknown_dir: NDArray[np.bool_] | None = None,
+    ) -> FitRows:
+        """These rows of a measurement data set (axis values and positions required);
+        ``unknown_dir`` (n, 6) marks approach directions that are not known (set to 0)."""
         if dataset.a_deg is None or dataset.xyz_mm is None:
             raise ValueError(f"{dataset.source}: a fit needs a1..a6 and x, y, z")
         return cls(
             dataset.a_deg[rows],
             dataset.xyz_mm[rows],
-            dir=None if dataset.dir is None else dataset.dir[rows].astype(float),
+            dir=None if dataset.dir is None else directions_of(dataset, rows, unknown_dir),
             payload_kg=dataset.payload_kg[rows],
             temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
         )
+
+
+def directions_of(
+    dataset: Dataset, rows: NDArray[np.intp] | slice, unknown_dir: NDArray[np.bool_] | None
+) -> NDArray[np.float64]:
+    """The ``dir`` columns of ``rows`` as floats, 0 (unknown) where ``unknown_dir`` says so."""
+    assert dataset.dir is not None
+    d = dataset.dir[rows].astype(float)
+    if unknown_dir is not None:
+        d[unknown_dir[rows]] = 0.0
+    return d
+
+
+def infer_fit_directions(dataset: Dataset) -> tuple[Dataset, NDArray[np.bool_] | None, str | None]:
+    """``dataset`` with ``dir`` derived from the pose order when it has none
+    (:func:`comp_daemon.data.directions.with_inferred_directions`), the (n, 6) mask of the
+    directions that stay unknown (an axis that has not moved yet: no backlash offset is applied
+    there, and the kriging distance puts it half way), and the sentence that says so; the data set
+    unchanged, None, None when it has ``dir`` columns."""
+    out, inferred = with_inferred_directions(dataset)
+    if inferred is None:
+        return dataset, None, None
+    note = (
+        "approach directions (dir1..dir6) inferred from the sign of each axis' last motion "
+        f"in {inferred.order}"
+    )
+    per_axis = inferred.assumed.sum(axis=0)
+    if per_axis.any():
+        counts = ", ".join(f"A{k + 1} {int(c)}" for k, c in enumerate(per_axis) if c)
+        note += f"; unknown (0) before an axis first moved, rows of {len(inferred.dir)}: {counts}"
+    return out, inferred.assumed, note
 
 
 @dataclass(frozen=True, slots=True)

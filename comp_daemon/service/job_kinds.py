@@ -79,10 +79,9 @@ def run_fit(
     the stats' ``directions`` says so.
     """
     from comp_daemon.data.dataset import parse_dataset
-    from comp_daemon.data.directions import with_inferred_directions
     from comp_daemon.models.artifact import model_document
     from comp_daemon.models.evaluation import error_statistics
-    from comp_daemon.models.fitting import FitRows, ModelSpec
+    from comp_daemon.models.fitting import FitRows, ModelSpec, infer_fit_directions
     from comp_daemon.models.registry import (
         fit_spec,
         max_parameters,
@@ -104,10 +103,9 @@ def run_fit(
         kind="measurement",
     )
     data_sha256 = ds.content_sha256
-    directions = None
+    directions = unknown_dir = None
     if infer_dir and uses_directions(spec):
-        ds, inferred = with_inferred_directions(ds)
-        directions = None if inferred is None else inferred.describe()
+        ds, unknown_dir, directions = infer_fit_directions(ds)
     split = ds.split_or_draw()
     fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
     if len(check_rows) == 0:
@@ -116,7 +114,7 @@ def run_fit(
         raise ValueError(f"{source}: {len(fit_rows)} fit rows; a fit needs at least 3")
 
     progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
-    train = FitRows.of(ds, fit_rows)
+    train = FitRows.of(ds, fit_rows, unknown_dir)
     try:
         fitted = fit_spec(spec, robot, train)
     except ValueError as exc:
@@ -128,7 +126,7 @@ def run_fit(
         )
     progress(0.9, "judging on the check rows")
     nominal = fit_spec(ModelSpec("nominal"), robot, train)
-    check = FitRows.of(ds, check_rows)
+    check = FitRows.of(ds, check_rows, unknown_dir)
     pred_model = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
     pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
     p_check = check.xyz_mm
