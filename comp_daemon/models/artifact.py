@@ -12,7 +12,7 @@ Document (``format`` = ``comp-daemon-model``, ``format_version`` = 1)::
                     through it)
     model           the kind's parameters / coefficients, by name (see each model's ``to_payload``)
     uncertainty     (parametric fits only) the fit's parameter covariance
-                    (:meth:`comp_daemon.models.uncertainty.ParameterCovariance.to_dict`), which
+                    (:meth:`comp_daemon.models.covariance.ParameterCovariance.to_dict`), which
                     gives the loaded model its ``predict_std_mm``
     data_sha256     hash of the fitted data (Dataset.content_sha256, or of the arrays fitted on)
     fit             fit statistics (rows, RMS, iterations, identifiability, selection, …)
@@ -47,7 +47,7 @@ from comp_daemon import __version__
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.registry import ARTIFACT_KINDS, model_from_payload
-from comp_daemon.models.uncertainty import ParameterCovariance
+from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.robot.description import Joint, RobotDescription
 
 __all__ = [

@@ -15,7 +15,7 @@ the commanded axes.
 ``predict_std_mm(a_deg, dir, payload_kg, temp_c) -> (n, 3) | None`` is the 1-σ uncertainty (mm,
 per coordinate) of those predictions where the model has one: the parameter covariance of a
 parametric fit propagated through its Jacobian (``uncertainty``, a
-:class:`comp_daemon.models.uncertainty.ParameterCovariance` set by the fit or the artifact
+:class:`comp_daemon.models.covariance.ParameterCovariance` set by the fit or the artifact
 loader), or a kriging model's kriging variance; None otherwise.
 
 The nominal model is the robot description's geometry, nothing fitted but the frame.
@@ -47,7 +47,7 @@ def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
 
 
 class PredictionUncertainty(Protocol):
-    """What a model's ``uncertainty`` offers (:class:`comp_daemon.models.uncertainty.ParameterCovariance`)."""
+    """What a model's ``uncertainty`` offers (:class:`comp_daemon.models.covariance.ParameterCovariance`)."""
 
     def std_mm(
         self,

@@ -48,7 +48,7 @@ from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
 from comp_daemon.models.registration import detect_frame, rigid_registration
-from comp_daemon.models.uncertainty import attach_covariance
+from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

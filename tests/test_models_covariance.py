@@ -15,7 +15,7 @@ from comp_daemon.models.artifact import load_model, save_model
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.fitting import FitRows
 from comp_daemon.models.registry import fit_model, fit_spec, parse_model_name
-from comp_daemon.models.uncertainty import covariance_from_fit
+from comp_daemon.models.covariance import covariance_from_fit
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")
