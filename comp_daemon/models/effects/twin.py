@@ -35,7 +35,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import Chain, chain, gravity_torques_nm, identification_jacobian
 from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.models.effects.base import N_JOINTS, Effect, ParamRef, TwinInputs
+from comp_daemon.models.effects.base import N_JOINTS, Effect, TwinInputs
 from comp_daemon.models.effects.catalogue import EFFECT_CATALOGUE
 from comp_daemon.models.effects.params import EffectParams, parse_param_name
 
@@ -280,12 +280,25 @@ def _effect_columns(
     return out
 
 
-def _refs(effects: EffectParams, names: Sequence[str]) -> list[ParamRef]:
-    return [parse_param_name(name, effects.n_harmonics) for name in names]
-
-
 def _needs_torques(effects: EffectParams, names: Sequence[str]) -> bool:
-    return any(ref.effect.needs_torques for ref in _refs(effects, names))
+    return any(parse_param_name(name, effects.n_harmonics).effect.needs_torques for name in names)
+
+
+def _jacobian_parts(
+    robot_or_arrays: RobotDescription | MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: Sequence[str],
+    a_deg: FloatArray,
+    dir: FloatArray | None,
+    payload_kg: FloatArray | float,
+    temp_c: FloatArray | None,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """TCP (n, 3), geometric columns (n, 3, 39) and the named effect columns (n, 3, len(names))."""
+    torques = _needs_torques(effects, names)
+    st = twin_state(robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, with_torques=torques)
+    geo = _geometric(params, effects, st)
+    return st.tcp_mm, geo, _effect_columns(params, effects, st, names, geo)
 
 
 def effect_jacobian(
@@ -302,17 +315,7 @@ def effect_jacobian(
 
     Columns are in mm per the parameter's unit (the catalogue's units); exact for every name.
     """
-    st = twin_state(
-        robot_or_arrays,
-        params,
-        effects,
-        a_deg,
-        dir,
-        payload_kg,
-        temp_c,
-        with_torques=_needs_torques(effects, names),
-    )
-    return _effect_columns(params, effects, st, names, _geometric(params, effects, st))
+    return _jacobian_parts(robot_or_arrays, params, effects, names, a_deg, dir, payload_kg, temp_c)[2]
 
 
 def twin_jacobian(
@@ -330,16 +333,5 @@ def twin_jacobian(
     The geometric block is the derivative w.r.t. :meth:`KinematicParams.apply`'s vector at the
     twin's effective configuration (the gravity torque held fixed, see the module docstring).
     """
-    st = twin_state(
-        robot_or_arrays,
-        params,
-        effects,
-        a_deg,
-        dir,
-        payload_kg,
-        temp_c,
-        with_torques=_needs_torques(effects, names),
-    )
-    geo = _geometric(params, effects, st)
-    eff = _effect_columns(params, effects, st, names, geo)
-    return st.tcp_mm, np.concatenate([geo, eff], axis=2)
+    tcp, geo, eff = _jacobian_parts(robot_or_arrays, params, effects, names, a_deg, dir, payload_kg, temp_c)
+    return tcp, np.concatenate([geo, eff], axis=2)
