@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-import comp_daemon.models.effects as effects_pkg
+import comp_daemon.models.effects.catalogue as catalogue_module
 from comp_daemon.diagnosis.candidates import all_candidates, effect_params_json
 from comp_daemon.models.effects import (
     EFFECT_CATALOGUE,
@@ -48,17 +48,13 @@ def _poses(rng: np.random.Generator, n: int = 9):
     return a, d, rng.uniform(0.0, 200.0, n), rng.uniform(15.0, 32.0, n)
 
 
-#: a plausible size per unit, so that every effect moves the TCP by about 0.1..1 mm
-SIZES = {"deg": 0.01, "1": 2e-4, "rad / (N m)": 2e-7, "1 / K": 1.2e-5}
-
-
 def _random(rng: np.random.Generator) -> EffectParams:
     """Every parameter of every catalogue entry non-zero."""
     arrays = {}
     for e in EFFECT_CATALOGUE:
         for arr in e.arrays:
             shape = {"joint": (6,), "harmonic": (6, K), "scalar": ()}[arr.layout]
-            value = SIZES[arr.unit] * rng.uniform(0.5, 1.5, shape) * rng.choice([-1.0, 1.0], shape)
+            value = arr.typical * rng.uniform(0.5, 1.5, shape) * rng.choice([-1.0, 1.0], shape)
             arrays[arr.attr] = float(value) if arr.layout == "scalar" else value
     return EffectParams(**arrays)
 
@@ -86,7 +82,7 @@ def test_entry_declares_units_columns_and_words(effect: Effect) -> None:
         assert arr.unit and arr.meaning and arr.json_key
         assert arr.layout in ("joint", "harmonic", "scalar")
         assert re.fullmatch(r"[A-Za-z]+", arr.symbol)
-        assert arr.unit in SIZES, f"{effect.name}: no test size for unit {arr.unit!r}"
+        assert arr.typical > 0
     assert set(effect.columns) <= DATA_COLUMNS
     assert set(effect.required) <= set(effect.columns)
     assert all(words.strip() for words in effect.required.values())
@@ -95,8 +91,8 @@ def test_entry_declares_units_columns_and_words(effect: Effect) -> None:
     assert effect_by_name(effect.name) is effect
 
 
-def test_package_docstring_table_lists_every_parameter_with_its_unit() -> None:
-    doc = effects_pkg.__doc__ or ""
+def test_catalogue_docstring_table_lists_every_parameter_with_its_unit() -> None:
+    doc = catalogue_module.__doc__ or ""
     for e in EFFECT_CATALOGUE:
         for arr in e.arrays:
             stem = {
@@ -105,7 +101,7 @@ def test_package_docstring_table_lists_every_parameter_with_its_unit() -> None:
                 "scalar": arr.symbol,
             }
             row = next((line for line in doc.splitlines() if f"``{stem[arr.layout]}``" in line), None)
-            assert row is not None, f"{arr.symbol} missing from the effects package docstring"
+            assert row is not None, f"{arr.symbol} missing from the table of the catalogue's docstring"
             assert arr.unit in row
 
 
@@ -119,7 +115,7 @@ def test_jacobian_agrees_with_central_differences_of_the_twin(effect: Effect) ->
     values = eff.get(names)
     moving = 0
     for col, name in enumerate(names):
-        h = 0.1 * SIZES[next(arr.unit for arr in effect.arrays if name in effect_param_names_of(arr, K))]
+        h = 0.1 * next(arr.typical for arr in effect.arrays if name in effect_param_names_of(arr, K))
         plus = twin_tcp_mm(ROBOT, PARAMS, eff.with_values([name], [values[col] + h]), a, d, payload, temp)
         minus = twin_tcp_mm(ROBOT, PARAMS, eff.with_values([name], [values[col] - h]), a, d, payload, temp)
         num = (plus - minus) / (2 * h)

@@ -55,7 +55,8 @@ class ParamArray:
     ``attr`` is its attribute of :class:`~comp_daemon.models.effects.params.EffectParams`;
     parameter names are ``{symbol}{j}`` (layout ``joint``, shape (6,)), ``{symbol}{j}_{k}``
     (``harmonic``, shape (6, K), k = 1..K) or ``{symbol}`` (``scalar``, one float);
-    ``json_key`` names the fitted values in the diagnosis document.
+    ``json_key`` names the fitted values in the diagnosis document; ``typical`` is a size (in
+    ``unit``) the effect has on an industrial robot, a scale for tests and finite differences.
     """
 
     attr: str
@@ -64,6 +65,7 @@ class ParamArray:
     layout: Layout
     json_key: str
     meaning: str
+    typical: float
 
     def names(self, joint: int, n_harmonics: int) -> list[str]:
         """Parameter names of this array on ``joint`` (1-based; ignored for a scalar)."""

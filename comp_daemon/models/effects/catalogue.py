@@ -6,6 +6,30 @@ Jacobians (:mod:`comp_daemon.models.effects.twin`), the diagnosis's candidates, 
 fitted-value JSON, and the report's drivers and advice all iterate :data:`EFFECT_CATALOGUE`;
 none of them names an effect. The order of the catalogue is the order of the vocabulary of
 ``shared/spec/diagnose.md`` (and of the diagnosis's candidates and skip list).
+
+The effects, for pose r and joint i (1..6), with the controller's axis value ``A_i`` (deg), the
+approach direction ``dir_i`` (−1 / +1, 0 = unknown), the payload (kg) and the temperature
+``temp_c`` (°C), composed by stage (:mod:`comp_daemon.models.effects.twin`)::
+
+    A_eff_i = A_i·(1 + eps_i) + h_i·dir_i + Σ_k (c_ik·sin(k·a_i) + s_ik·cos(k·a_i))     [deg]
+              with a_i = A_i in rad (the commanded axis value converted to radians), k = 1..K
+    q_i     = sign_i · A_eff_i in rad                                                     [rad]
+    theta_i = q_i + offset_i + C_i·tau_i                                                  [rad]
+    a_i, d_i  ← a_i·(1 + kappa·(temp_c − t_ref_c)),  d_i·(1 + kappa·(temp_c − t_ref_c))
+    TCP     = forward kinematics of theta with the grown a, d (base frame and tool unchanged)
+
+=============  ==========================  ==========================================
+name           parameter                   unit
+=============  ==========================  ==========================================
+``h{i}``       backlash of joint i         deg (half the play: ±h around the command)
+``eps{i}``     reduction-ratio error       1
+``c{i}_{k}``   sine coefficient c_ik       deg (joint i, harmonic k)
+``s{i}_{k}``   cosine coefficient s_ik     deg (joint i, harmonic k)
+``C{i}``       compliance                  rad / (N m)
+``kappa``      thermal expansion           1 / K
+=============  ==========================  ==========================================
+
+The entries below are the definition; this table is their summary (a test keeps them in step).
 """
 
 from __future__ import annotations
@@ -45,7 +69,17 @@ BACKLASH = Effect(
     name="backlash",
     meaning="play in the gear train: the joint lags the command by h on the side it came from",
     formula="A_eff_i += h_i·dir_i",
-    arrays=(ParamArray("backlash_deg", "h", "deg", "joint", "h_deg", "backlash, half the play (±h)"),),
+    arrays=(
+        ParamArray(
+            attr="backlash_deg",
+            symbol="h",
+            unit="deg",
+            layout="joint",
+            json_key="h_deg",
+            meaning="backlash, half the play (±h)",
+            typical=0.01,
+        ),
+    ),
     stage="axis",
     basis=_backlash_basis,
     columns=("dir",),
@@ -72,7 +106,17 @@ RATIO = Effect(
     name="ratio",
     meaning="reduction-ratio error: the joint turns (1 + eps) times the commanded angle",
     formula="A_eff_i += eps_i·A_i",
-    arrays=(ParamArray("ratio", "eps", "1", "joint", "eps", "reduction-ratio error"),),
+    arrays=(
+        ParamArray(
+            attr="ratio",
+            symbol="eps",
+            unit="1",
+            layout="joint",
+            json_key="eps",
+            meaning="reduction-ratio error",
+            typical=2e-4,
+        ),
+    ),
     stage="axis",
     basis=_ratio_basis,
     data_reason=_axis_moves,
@@ -93,8 +137,24 @@ CYCLIC = Effect(
     meaning="transmission error periodic in the axis angle, K harmonics",
     formula="A_eff_i += Σ_k (c_ik·sin(k·a_i) + s_ik·cos(k·a_i)),  a_i = A_i in rad",
     arrays=(
-        ParamArray("cyclic_sin_deg", "c", "deg", "harmonic", "c_deg", "sine coefficient of harmonic k"),
-        ParamArray("cyclic_cos_deg", "s", "deg", "harmonic", "s_deg", "cosine coefficient of harmonic k"),
+        ParamArray(
+            attr="cyclic_sin_deg",
+            symbol="c",
+            unit="deg",
+            layout="harmonic",
+            json_key="c_deg",
+            meaning="sine coefficient of harmonic k",
+            typical=0.01,
+        ),
+        ParamArray(
+            attr="cyclic_cos_deg",
+            symbol="s",
+            unit="deg",
+            layout="harmonic",
+            json_key="s_deg",
+            meaning="cosine coefficient of harmonic k",
+            typical=0.01,
+        ),
     ),
     stage="axis",
     basis=_cyclic_basis,
@@ -132,7 +192,17 @@ COMPLIANCE = Effect(
     name="compliance",
     meaning="joint stiffness: the joint deflects by C times the gravity torque (links and payload)",
     formula="q_i += C_i·tau_i  (tau: gravity torque, DH sign, at the commanded configuration)",
-    arrays=(ParamArray("compliance_rad_per_nm", "C", "rad / (N m)", "joint", "C_rad_per_nm", "compliance"),),
+    arrays=(
+        ParamArray(
+            attr="compliance_rad_per_nm",
+            symbol="C",
+            unit="rad / (N m)",
+            layout="joint",
+            json_key="C_rad_per_nm",
+            meaning="compliance",
+            typical=2e-7,
+        ),
+    ),
     stage="joint",
     basis=_compliance_basis,
     needs_torques=True,
@@ -206,7 +276,17 @@ THERMAL = Effect(
     name="thermal",
     meaning="thermal growth of the links: every a_i, d_i grows by kappa per kelvin from t_ref_c",
     formula="a_i, d_i ← a_i·(1 + kappa·(temp_c − t_ref_c)), d_i·(1 + kappa·(temp_c − t_ref_c))",
-    arrays=(ParamArray("thermal_per_k", "kappa", "1 / K", "scalar", "kappa_per_k", "thermal expansion"),),
+    arrays=(
+        ParamArray(
+            attr="thermal_per_k",
+            symbol="kappa",
+            unit="1 / K",
+            layout="scalar",
+            json_key="kappa_per_k",
+            meaning="thermal expansion",
+            typical=1.2e-5,
+        ),
+    ),
     stage="chain",
     chain=ChainStage(apply=_thermal_apply, geometric=_thermal_geometric, column=_thermal_column),
     columns=("temp_c",),
