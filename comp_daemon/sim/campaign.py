@@ -33,7 +33,6 @@ from comp_daemon.sim.scenario import Scenario
 from comp_daemon.sim.tracker import LaserTracker
 
 __all__ = [
-
     "GRATING_RESOLUTION_MM",
     "Iso9283Result",
     "RawErrorStats",

@@ -49,10 +49,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.daemon.compensation import model_from_artifact
-from comp_daemon.daemon.gratings import default_calibration_poses
+from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, dataset_to_csv
+from comp_daemon.models.artifact import ModelArtifactError, load_model
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.compensation import compensate
+from comp_daemon.rt.grating_cal import default_calibration_poses
 from comp_daemon.sim.scenario import Scenario, load_scenario
 from comp_daemon.trial.cell import CellError, CellSettings, TrialCell, environment
 from comp_daemon.trial.compare import ComparisonData, compare_models
@@ -252,6 +254,17 @@ class _Trial:
         }
         self.result.models[label] = entry
         return entry
+
+    async def fetch_model(self, model_id: int) -> ErrorModel:
+        """A model's artifact over HTTP, kept in the working directory and loaded from there."""
+        artifact = await self.cell.api("GET", f"/api/models/{model_id}/artifact")
+        folder = self.cell.workdir / "models"
+        folder.mkdir(parents=True, exist_ok=True)
+        path = write_json_atomic(folder / f"model-{model_id}.json", artifact)
+        try:
+            return load_model(path, self.scenario.robot).model
+        except ModelArtifactError as exc:
+            raise TrialError(f"the artifact of model {model_id}: {exc}") from None
 
     async def activate(self, model_id: int) -> None:
         await self.cell.api("POST", f"/api/models/{model_id}/activate")
@@ -466,8 +479,7 @@ class _Trial:
         self.end(f"data set {open_id}; models {', '.join(str(m['id']) for m in r.models.values())}")
 
         self.begin("target points, kinematic calibration")
-        artifact = await self.cell.api("GET", f"/api/models/{kinematic['id']}/artifact")
-        model = model_from_artifact(artifact, self.scenario.robot, f"model {kinematic['id']}")
+        model = await self.fetch_model(kinematic["id"])
         comp = compensate(
             model,
             tg.wanted_mm,
