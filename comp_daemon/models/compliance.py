@@ -145,7 +145,7 @@ class ComplianceModel(ErrorModel):
         self.compliance_rad_per_nm = _vec(compliance_rad_per_nm, (N_JOINTS,), "compliance_rad_per_nm")
         self.world_T_base = np.eye(4) if world_T_base is None else _vec(world_T_base, (4, 4), "world_T_base")
         self.registration = np.eye(4) if registration is None else _vec(registration, (4, 4), "registration")
-        nominal = robot.nominal_params()
+        nominal = KinematicParams.from_robot(robot)
         tool = nominal.tool_xyz_mm if tool_xyz_mm is None else _vec(tool_xyz_mm, (3,), "tool_xyz_mm")
         dx = np.zeros(N_PARAMS)
         dx[0:30:5] = self.zero_offset_rad
@@ -280,7 +280,7 @@ def calibrate_compliance(
     cj = _joints(compliance_joints, "compliance_joints")
     oj = _joints(offset_joints, "offset_joints")
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (n,))
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen: Literal["base", "tracker"] = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
@@ -546,7 +546,7 @@ def calibrate_point_constraint(
     cj = _joints(compliance_joints, "compliance_joints")
     oj = _joints(offset_joints, "offset_joints")
     mass = MassModel.from_robot(robot)
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     names = [*(f"theta{j}" for j in oj), *(f"C{j}" for j in cj), "P_x", "P_y", "P_z"]
     n_th, n_c = len(oj), len(cj)
 
@@ -835,7 +835,7 @@ def reproduce_seed004(
     comp_true = _vec(compliance_rad_per_nm, (N_JOINTS,), "compliance_rad_per_nm")
     dx = np.zeros(N_PARAMS)
     dx[0:30:5] = offsets
-    true_params = robot.nominal_params().apply(dx)
+    true_params = KinematicParams.from_robot(robot).apply(dx)
     poses = simulate_psd_poses(
         robot, true_params, comp_true, setup, n_poses, rng, link5_noise_mm=link5_noise_mm
     )

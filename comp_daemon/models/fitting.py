@@ -21,7 +21,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, n_coefficients, select_order
 from comp_daemon.models.identifiability import IdentifiabilityReport
@@ -112,7 +112,7 @@ def fit_model(
     if kind not in FITTABLE_KINDS:
         raise ValueError(f"unknown model kind '{kind}' (known: {', '.join(FITTABLE_KINDS)})")
     if kind == "nominal":
-        nominal = robot.nominal_params()
+        nominal = KinematicParams.from_robot(robot)
         p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
         chosen = detect_frame(p_nom, p) if frame == "auto" else frame
         reg = rigid_registration(p_nom, p) if chosen == "tracker" else np.eye(4)

@@ -179,7 +179,7 @@ class Scenario:
 
     def true_params(self) -> KinematicParams:
         """The hidden robot's kinematic parameters, in its own base frame (nominal + errors)."""
-        params: KinematicParams = self.robot.nominal_params()
+        params = KinematicParams.from_robot(self.robot)
         return params.apply(self.true_dx())
 
     def tracker_T_base(self) -> NDArray[np.float64]:
