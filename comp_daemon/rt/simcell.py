@@ -23,7 +23,7 @@ import contextlib
 import json
 import signal
 import sys
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from functools import cache
 from importlib import resources
 from pathlib import Path
@@ -78,6 +78,12 @@ class SimCellInfo:
     bits: int
     home_deg: tuple[float, ...]
     cycle_ms: int
+
+    def to_json(self) -> str:
+        """The child's ready line (one line of JSON)."""
+        doc = asdict(self)
+        doc["gratings"] = {str(j): path for j, path in self.gratings.items()}
+        return json.dumps(doc)
 
     @classmethod
     def from_json(cls, line: str | bytes) -> SimCellInfo:

@@ -40,6 +40,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from comp_daemon.common.logs import configure_logging, get_logger
+from comp_daemon.rt.simcell import SimCellInfo
 from comp_daemon.sim.converter import ConverterConfig, ConverterFault, SimulatedConverter
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.rsi_controller import RsiControllerConfig, SimulatedRsiController, serve_lines
@@ -54,7 +55,7 @@ CONVERTER_ZERO_DEG = -200.0
 CONVERTER_BITS = 26
 
 
-async def _child(args: argparse.Namespace, scenario: Scenario) -> int:
+async def _run_cell(args: argparse.Namespace, scenario: Scenario) -> int:
     plant = RobotPlant.from_scenario(scenario, seed=args.seed, payload_kg=args.payload_kg)
     controller = SimulatedRsiController(
         RsiControllerConfig(
@@ -154,22 +155,22 @@ async def _child(args: argparse.Namespace, scenario: Scenario) -> int:
                 stop.set()
 
         loop.add_reader(stdin_fd, parent_gone)
-    info = {
-        "pid": os.getpid(),
-        "motion_host": motion_host,
-        "motion_port": motion_port,
-        "cell_host": cell_host,
-        "cell_port": cell_port,
-        "rsi_local_port": controller.local_address[1],
-        "gratings": {str(j): c.port for j, c in converters.items()},
-        "radius_mm": radius,
-        "zero_deg": CONVERTER_ZERO_DEG,
-        "resolution_nm": converters[joints[0]].config.resolution_nm if joints else 50.0,
-        "bits": CONVERTER_BITS,
-        "home_deg": [float(v) for v in scenario.campaign.home_deg],
-        "cycle_ms": args.cycle_ms,
-    }
-    sys.stdout.write(json.dumps(info) + "\n")
+    info = SimCellInfo(
+        pid=os.getpid(),
+        motion_host=motion_host,
+        motion_port=motion_port,
+        cell_host=str(cell_host),
+        cell_port=int(cell_port),
+        rsi_local_port=controller.local_address[1],
+        gratings={j: c.port for j, c in converters.items()},
+        radius_mm=radius,
+        zero_deg=CONVERTER_ZERO_DEG,
+        resolution_nm=converters[joints[0]].config.resolution_nm if joints else 50.0,
+        bits=CONVERTER_BITS,
+        home_deg=tuple(float(v) for v in scenario.campaign.home_deg),
+        cycle_ms=args.cycle_ms,
+    )
+    sys.stdout.write(info.to_json() + "\n")
     sys.stdout.flush()
     await stop.wait()
     cell_server.close()
@@ -209,7 +210,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ScenarioError as exc:
         print(f"simulated cell: {exc}", file=sys.stderr)
         return 2
-    return asyncio.run(_child(args, scenario))
+    return asyncio.run(_run_cell(args, scenario))
 
 
 if __name__ == "__main__":
