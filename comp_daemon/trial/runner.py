@@ -11,9 +11,10 @@ Phases (seed 000 §3; the numbers are those of the full trial, :data:`comp_daemo
 4. **Targets, uncompensated**: the 104 target points at their nominal axis values; tracker.
    Phases 3 + 4 are uploaded as one data set (sampling rows ``fit``, target rows ``check``) and the
    kinematic model (and, in the quick trial, the Chebyshev model) is fitted over HTTP.
-5. **Targets, kinematic calibration**: the kinematic model's artifact is fetched over HTTP and the
-   targets are compensated with it offline (``comp-daemon compensate``, seed 000's baseline); the
-   robot program runs the compensated commands; tracker.
+5. **Targets, kinematic calibration**: the kinematic model's artifact is fetched over HTTP, kept
+   in the working directory (``models/model-ID.json``) and loaded from there as ``comp-daemon
+   compensate`` loads a model file; the targets are compensated with it offline (seed 000's
+   baseline); the robot program runs the compensated commands; tracker.
 6. **ISO 9283 with feedback**: the nominal model is activated; each test point is a target of the
    daemon (start point by the robot program), measured once the daemon reports it settled.
 7. **Sampling with feedback** (full trial): the 100 sampling points as targets of the daemon with
