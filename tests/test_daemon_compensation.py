@@ -11,7 +11,7 @@ import pytest
 
 from comp_daemon.daemon.compensation import ActiveModelCompensator
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
 from comp_daemon.models.base import NominalModel
 from comp_daemon.models.kinematic import KinematicModel
@@ -45,14 +45,16 @@ def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(s
     dx = np.random.default_rng(4).normal(0.0, 1.0, N_PARAMS) * np.where(
         np.arange(N_PARAMS) % 5 == 0, 1e-4, 0.1
     )
-    model = KinematicModel(robot, robot.nominal_params().apply(dx))
+    model = KinematicModel(robot, KinematicParams.from_robot(robot).apply(dx))
     model_id = activate(store, model_document(model, data_sha256="a" * 64, frame="base"))
     comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
     request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
     out = comp(request)
     assert out.model_id == model_id
     assert out.loop_target_deg == out.commanded_deg[:3]
-    wanted = tcp_position_mm(robot.nominal_params(), axes_deg_to_q_rad(np.array([HOME]), robot.sign))
+    wanted = tcp_position_mm(
+        KinematicParams.from_robot(robot), axes_deg_to_q_rad(np.array([HOME]), robot.sign)
+    )
     predicted = model.predict_tcp_mm(np.array([out.commanded_deg]))
     np.testing.assert_allclose(predicted, wanted, atol=1e-6)
     assert np.abs(np.subtract(out.commanded_deg, HOME)).max() > 1e-4  # the model did change it

@@ -15,6 +15,7 @@ import pytest
 
 import comp_daemon.models.effects.catalogue as catalogue_module
 from comp_daemon.diagnosis.candidates import all_candidates, effect_params_json
+from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.models.effects import (
     EFFECT_CATALOGUE,
     EFFECTS,
@@ -32,7 +33,7 @@ from comp_daemon.models.effects import (
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("kr210")
-PARAMS = ROBOT.nominal_params()
+PARAMS = KinematicParams.from_robot(ROBOT)
 K = 2
 #: the per-pose data columns the twin and the diagnosis know
 DATA_COLUMNS = {"dir", "payload_kg", "temp_c"}

@@ -142,7 +142,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
             "of the geometric step"
         )
     mass = MassModel.from_robot(robot)
-    nominal: KinematicParams = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
 
     # 1. frame

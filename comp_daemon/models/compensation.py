@@ -66,7 +66,7 @@ def nominal_targets(
     model: ErrorModel, a_deg: NDArray[np.float64]
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Wanted TCP positions (n, 3) and orientations (n, 3, 3), robot base frame, of nominal commands."""
-    params = model.robot.nominal_params()
+    params = KinematicParams.from_robot(model.robot)
     ch = chain(params, axes_deg_to_q_rad(as_axes(a_deg), params.sign))
     return ch.tcp_mm, ch.world_T_frame[:, 6, :3, :3]
 

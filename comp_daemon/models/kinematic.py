@@ -119,7 +119,7 @@ class KinematicModel(ErrorModel):
         order: int | None,
         registration: NDArray[np.float64],
     ) -> KinematicModel:
-        nominal = robot.nominal_params()
+        nominal = KinematicParams.from_robot(robot)
         params = KinematicParams(
             theta_offset_rad=_floats(payload["theta_offset_rad"], (6,), "theta_offset_rad"),
             d_mm=_floats(payload["d_mm"], (6,), "d_mm"),
@@ -249,7 +249,7 @@ def calibrate_kinematic(
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
