@@ -16,6 +16,7 @@ import sys
 from collections.abc import Sequence
 
 from comp_daemon import __version__
+from comp_daemon.commands.errors import UserError
 
 COMMAND_MODULES: dict[str, str] = {
     "robot": "comp_daemon.commands.robot",
@@ -28,10 +29,6 @@ COMMAND_MODULES: dict[str, str] = {
 }
 #: commands whose module is imported only to run them, with the help line of the command listing
 ON_DEMAND: dict[str, str] = {"sim": "the simulated drilling cell: measurement campaigns, figures"}
-
-
-class UserError(Exception):
-    """An error in what the user asked for; printed without a traceback."""
 
 
 def build_parser(command: str | None = None) -> argparse.ArgumentParser:

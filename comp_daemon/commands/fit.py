@@ -23,7 +23,7 @@ from typing import Any, Literal
 
 import numpy as np
 
-from comp_daemon.cli import UserError
+from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
