@@ -188,8 +188,13 @@ def nominal_solution(
         a_seed = np.broadcast_to(np.asarray(a_seed_deg, dtype=float), (n, 6))
     params = robot.nominal_params()
     res = solve_ik(
-        params, axis_limits_q_rad(robot), target, rot, axes_deg_to_q_rad(a_seed, params.sign),
-        tol_mm=1e-10, tol_rad=1e-12,
+        params,
+        axis_limits_q_rad(robot),
+        target,
+        rot,
+        axes_deg_to_q_rad(a_seed, params.sign),
+        tol_mm=1e-10,
+        tol_rad=1e-12,
     )
     return q_rad_to_axes_deg(require_reachable(res, "target"), params.sign)
 
@@ -291,9 +296,7 @@ def _change_refusals(
                 f"(A{j + 1} changes by {size:+.3f}°)"
             )
         elif abs(size) > limits.max_axis_change_deg:
-            reason = (
-                f"A{j + 1} would change by {size:+.3f}° (limit {limits.max_axis_change_deg:g}° per axis)"
-            )
+            reason = f"A{j + 1} would change by {size:+.3f}° (limit {limits.max_axis_change_deg:g}° per axis)"
         else:
             continue
         out.append(Refusal(i, j + 1, size, reason))
