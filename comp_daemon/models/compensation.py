@@ -24,6 +24,7 @@ Limits (:class:`CompensationLimits`; the daemon's ``[compensation]`` settings). 
 with :class:`CompensationRefused`, whose message names the target, the axis, the size and the
 reason, rather than compensated when
 
+- the TCP lies inside the robot's own base (:func:`base_refusals`);
 - its orientation is held and the nominal wrist is within ``wrist_singularity_deg`` of the wrist
   singularity (axes 4 and 6 in line; |A5| on a KUKA wrist): there A4 and A6 turn against each other
   by the orientation correction over sin(A5) — 0.06° of correction needs 0.7° at 5° and swings the
@@ -75,6 +76,7 @@ __all__ = [
     "FeedForward",
     "Refusal",
     "axis_limits_q_rad",
+    "base_refusals",
     "compensate",
     "configuration",
     "feed_forward",
@@ -123,23 +125,31 @@ DEFAULT_LIMITS = CompensationLimits()
 
 @dataclass(frozen=True, slots=True)
 class Refusal:
-    """Why one target is not compensated: ``axis`` (1-based) and ``value_deg`` (its value or change)."""
+    """Why one target is not compensated: ``axis`` (1-based; None when no axis is at fault) and
+    ``value_deg`` (its value or change; nan without an axis)."""
 
     index: int  # 0-based position of the target in the call
-    axis: int
+    axis: int | None
     value_deg: float
     reason: str  # names the axis, the size and the reason
 
 
 class CompensationRefused(ValueError):
     """Targets whose compensation is refused (wrist singularity, too large a change, another
-    configuration, outside the model's validity region); ``refusals`` has one entry per target."""
+    configuration, outside the model's validity region); ``refusals`` has one entry per target.
 
-    def __init__(self, refusals: Sequence[Refusal], what: str = "target") -> None:
+    The message is the reason itself when the call had one target, else ``target <i>: <reason>``
+    for the first five (1-based ``i``); callers that number targets otherwise use ``refusals``.
+    """
+
+    def __init__(self, refusals: Sequence[Refusal], n_targets: int) -> None:
         self.refusals = tuple(sorted(refusals, key=lambda r: r.index))
-        shown = "; ".join(f"{what} {r.index + 1}: {r.reason}" for r in self.refusals[:5])
+        if n_targets == 1 and len(self.refusals) == 1:
+            super().__init__(self.refusals[0].reason)
+            return
+        shown = "; ".join(f"target {r.index + 1}: {r.reason}" for r in self.refusals[:5])
         more = f"; and {len(self.refusals) - 5} more" if len(self.refusals) > 5 else ""
-        super().__init__(f"compensation refused: {shown}{more}")
+        super().__init__(f"{shown}{more}")
 
 
 @dataclass(frozen=True, slots=True)
@@ -197,6 +207,29 @@ def nominal_solution(
         tol_rad=1e-12,
     )
     return q_rad_to_axes_deg(require_reachable(res, "target"), params.sign)
+
+
+def base_refusals(robot: RobotDescription, target_p_base_mm: NDArray[np.float64]) -> list[Refusal]:
+    """Targets inside the robot's own base: nearer to axis 1 than the shoulder (the first link's
+    offset ``a1``) and below it (``d1``), robot base frame. The inverse kinematics may well fold the
+    arm there (the base origin of a KR 210 has a solution inside the axis limits), but the TCP would
+    be inside the robot's column."""
+    p = np.atleast_2d(np.asarray(target_p_base_mm, dtype=float))
+    params = robot.nominal_params()
+    radius_mm, shoulder_mm = float(params.a_mm[0]), float(params.d_mm[0])
+    r = np.hypot(p[:, 0], p[:, 1])
+    inside = (r < radius_mm) & (p[:, 2] < shoulder_mm)
+    return [
+        Refusal(
+            int(i),
+            None,
+            math.nan,
+            f"the TCP ({p[i, 0]:.1f}, {p[i, 1]:.1f}, {p[i, 2]:.1f}) mm is inside the robot's base: "
+            f"{r[i]:.1f} mm from axis 1 (the shoulder is {radius_mm:g} mm out) and below the shoulder "
+            f"({shoulder_mm:g} mm)",
+        )
+        for i in np.flatnonzero(inside)
+    ]
 
 
 def wrist_angle_deg(params: KinematicParams, a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -336,13 +369,16 @@ def compensate(
     n = target.shape[0]
     robot = model.robot
     rot_base = None if target_R_base is None else np.asarray(target_R_base, dtype=float).reshape(n, 3, 3)
+    inside = base_refusals(robot, target)
+    if inside:
+        raise CompensationRefused(inside, n)
     a_nominal = nominal_solution(robot, target, rot_base, a_seed_deg)
     region = sampling_range_deg(model)
     refused = wrist_refusals(robot, a_nominal, limits) if rot_base is not None else []
     if region is not None:
         refused += region_refusals(region, a_nominal, limits.hull_margin_deg)
     if refused:
-        raise CompensationRefused(_first_per_target(refused))
+        raise CompensationRefused(_first_per_target(refused), n)
 
     reg = model.registration
     wanted = transform_points(reg, target)
@@ -373,7 +409,7 @@ def compensate(
     if region is not None:
         refused += region_refusals(region, a_final, limits.hull_margin_deg)
     if refused:
-        raise CompensationRefused(_first_per_target(refused))
+        raise CompensationRefused(_first_per_target(refused), n)
     residual = np.linalg.norm(predicted - wanted, axis=1)
     return CompensationResult(
         a_deg=a_final,
