@@ -14,9 +14,13 @@ the daemon's executor alike: :func:`compensate`.
    (``ik_params``); then repeat: predict the actual TCP of the current command with the model, move
    the IK target by the remaining error (``target_ik ← target_ik + (wanted − predicted)``) and solve
    the IK again from the current command, until the predicted TCP is within ``tol_mm`` of the wanted
-   one. The orientation, when given, is held on the IK parameters (the tracker data are positions
-   only). This is a fixed-point iteration that contracts with the ratio of the model's error slope
+   one. This is a fixed-point iteration that contracts with the ratio of the model's error slope
    to the Jacobian's (per mille for a robot), so a handful of iterations reach rounding level.
+   A target with an orientation keeps the orientation its nominal solution has on the model's
+   chain: the tracker data are positions only, and a rotation of the flange with the opposite
+   rotation of the tool vector puts the TCP on the same point, so a model knows nothing about the
+   tool's orientation that would justify turning the wrist; compensation moves the TCP. Without an
+   orientation the wrist is free and each IK step is the smallest from the nominal solution.
 3. The axis changes are measured against the nominal solution
    (:attr:`CompensationResult.da_deg`).
 
@@ -382,8 +386,11 @@ def compensate(
 
     reg = model.registration
     wanted = transform_points(reg, target)
-    rot = None if rot_base is None else reg[:3, :3] @ rot_base
     params: KinematicParams = model.ik_params()
+    q_nominal = axes_deg_to_q_rad(a_nominal, params.sign)
+    rot = None  # the orientation the nominal solution has on the model's chain, held
+    if rot_base is not None:
+        rot = chain(params, q_nominal).world_T_frame[:, 6, :3, :3]
     limits_q = axis_limits_q_rad(robot)
     ik_tol = min(tol_mm, 1e-9) / 10.0
 
@@ -391,7 +398,7 @@ def compensate(
         res = solve_ik(params, limits_q, p_ik, rot, seed, tol_mm=ik_tol, tol_rad=1e-12)
         return require_reachable(res, what)
 
-    q = solve(wanted, axes_deg_to_q_rad(a_nominal, params.sign), "compensated target")
+    q = solve(wanted, q_nominal, "compensated target")
     p_ik = wanted.copy()
     converged = False
     iterations = 0
