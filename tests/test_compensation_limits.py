@@ -407,3 +407,25 @@ async def test_the_executor_fails_a_target_near_the_wrist_singularity(tmp_path: 
         assert outcome.reason.startswith(f"compensation: near wrist singularity: A5 = {a5:.1f}°")
         assert ports.calls == []
         assert store.get_target(target.id).reason == outcome.reason
+
+
+def test_a_rotation_the_tracker_cannot_see_does_not_turn_the_wrist() -> None:
+    """A flange turned by 0.7° with the tool vector turned back puts every TCP on the same point:
+    position data cannot tell it from the nominal geometry, and the compensation leaves A6 alone."""
+    nominal = KR.nominal_params()
+    turn = np.deg2rad(0.7)
+    c, s = np.cos(-turn), np.sin(-turn)
+    tool = nominal.tool_xyz_mm
+    dx = np.zeros(len(PARAM_NAMES))
+    dx[PARAM_NAMES.index("theta6")] = turn
+    dx[PARAM_NAMES.index("tool_x") : PARAM_NAMES.index("tool_z") + 1] = [
+        c * tool[0] - s * tool[1] - tool[0],
+        s * tool[0] + c * tool[1] - tool[1],
+        0.0,
+    ]
+    model = KinematicModel(KR, nominal.apply(dx))
+    a_nominal = _program(6, 10)
+    wanted, rot = nominal_targets(model, a_nominal)
+    np.testing.assert_allclose(model.predict_tcp_mm(a_nominal), wanted, atol=1e-9)
+    res = compensate(model, wanted, rot, a_seed_deg=a_nominal)
+    assert np.abs(res.da_deg).max() < 1e-6
