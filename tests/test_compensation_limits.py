@@ -176,6 +176,9 @@ def test_outside_the_models_sampled_region_is_refused_and_global_models_are_not_
     region = sampling_range_deg(cheb)
     assert region is not None and np.all(region[:, 0] >= LO) and np.all(region[:, 1] <= HI)
     assert sampling_range_deg(MODELS["kinematic"]) is None
+    truth, eff = _truth()
+    a = _sampled(60, 11)
+    assert sampling_range_deg(fit_chebyshev(KR, a, twin_tcp_mm(KR, truth, eff, a), 0).model) is None
     assert sampling_range_deg(MODELS["kriging"]) is not None
     a = _program(1, 6)[0]
     a[0] = region[0, 1] + 3.0  # A1 3° beyond the sampled range
@@ -237,7 +240,7 @@ def test_compensate_writes_da_as_compensated_minus_nominal(
     assert biggest == pytest.approx(np.abs(da).max(), abs=1e-4)
     if kind != "nominal":
         assert biggest > 1e-3
-    assert ("records no sampled region" in printed) is (kind not in ("chebyshev", "kriging"))
+    assert ("no sampled region to keep to" in printed) is (kind not in ("chebyshev", "kriging"))
 
 
 def test_compensate_refuses_a_singular_target_by_row(

@@ -390,7 +390,7 @@ def _compensate(args: argparse.Namespace) -> int:
     region = (
         f"within {limits.hull_margin_deg:g} deg of the model's sampled axis ranges"
         if result.region_deg is not None
-        else f"the {model.kind} model records no sampled region (not checked)"
+        else f"the {model.kind} model has no sampled region to keep to"
     )
     print(
         f"{n} targets compensated with the {model.kind} model in {result.iterations} iterations "

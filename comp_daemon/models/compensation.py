@@ -39,13 +39,14 @@ reason, rather than compensated when
   joint loop's default correction budget, ``controller.max_total_deg``);
 - the compensated axis values leave the nominal configuration: the arm's branch (shoulder, elbow)
   or the wrist's (flip) (:func:`configuration`);
-- the model records the axis ranges of the poses it was fitted on (Chebyshev: its Chebyshev ranges;
-  kriging: its sampling points) and an axis of the nominal or compensated values lies more than
-  ``hull_margin_deg`` beyond them (the Chebyshev model would only hold its edge value there).
+- the model records the axis ranges of the poses it was fitted on (Chebyshev of order 1 or more:
+  its Chebyshev ranges; kriging: its sampling points) and an axis of the nominal or compensated
+  values lies more than ``hull_margin_deg`` beyond them (the Chebyshev model would only hold its
+  edge value there, the kriging prediction fall back to its mean) (:func:`sampling_range_deg`).
   Default 25°: seed 000's target points, drawn in the same Cartesian box and A/B/C ranges as the
   sampling points, lie up to 22° beyond the sampled wrist ranges (A4, A6) and up to 5° beyond the
-  arm's; a target in another part of the workspace is refused. Nominal, kinematic and compliance
-  models are global and record no such region: there is nothing to check (``region_deg`` None).
+  arm's; a target in another part of the workspace is refused. Nominal, kinematic, compliance and
+  order-0 Chebyshev models are global: there is no region to check (``region_deg`` None).
 
 :func:`joint_mapping` — the joint mapping of seed 000 (§2.2): the estimated Cartesian error ``ΔP``
 (predicted actual − wanted, mm) of a command is mapped to corrections of joints 1–3 by least
@@ -264,10 +265,11 @@ def configuration(params: KinematicParams, a_deg: NDArray[np.float64]) -> NDArra
 
 
 def sampling_range_deg(model: ErrorModel) -> NDArray[np.float64] | None:
-    """(6, 2) axis ranges of the poses the model was fitted on, or None when the model does not
-    record them (nominal, kinematic and compliance models are global: no region is checked)."""
+    """(6, 2) axis ranges of the poses the model was fitted on, or None when there is no such region
+    to keep to: nominal, kinematic and compliance models are global, and so is an order-0 Chebyshev
+    model (constant, geometric error terms only)."""
     if isinstance(model, ChebyshevModel):
-        return np.array(model.range_deg, dtype=float)
+        return np.array(model.range_deg, dtype=float) if model.order > 0 else None
     if isinstance(model, KrigingModel):
         a = model.sample_a_deg
         return np.stack([a.min(axis=0), a.max(axis=0)], axis=1)
