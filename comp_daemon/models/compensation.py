@@ -30,10 +30,11 @@ reason, rather than compensated when
 
 - the TCP lies inside the robot's own base (:func:`base_refusals`);
 - its orientation is held and the nominal wrist is within ``wrist_singularity_deg`` of the wrist
-  singularity (axes 4 and 6 in line; |A5| on a KUKA wrist): there A4 and A6 turn against each other
-  by the orientation correction over sin(A5) — 0.06° of correction needs 0.7° at 5° and swings the
-  wrist through tens of degrees at 0°. Default 5°, where every 0.01° of orientation correction
-  costs 0.11° on A4 and A6;
+  singularity (axes 4 and 6 in line; |A5| on a KUKA wrist): to hold the orientation, A4 and A6
+  turn against each other by the forearm's rotation over sin(A5) — an arm correction of 0.07° (a
+  KR 210 with 0.3 mm, 0.01° errors) costs them 0.3–0.4° at 10°, 0.6–0.8° at 5° and 6–9° at 0.5°,
+  and at 0° the solution is not even unique. Default 5°, below which the wrist turns more than ten
+  times the correction;
 - an axis would change by more than ``max_axis_change_deg`` from the nominal solution (default
   0.5°: a calibrated robot's compensation is hundredths to tenths of a degree, and 0.5° is also the
   joint loop's default correction budget, ``controller.max_total_deg``);
@@ -279,6 +280,8 @@ def sampling_range_deg(model: ErrorModel) -> NDArray[np.float64] | None:
 def wrist_refusals(
     robot: RobotDescription, a_deg: NDArray[np.float64], limits: CompensationLimits
 ) -> list[Refusal]:
+    """One refusal per axis-value row (n, 6) whose wrist is within ``limits.wrist_singularity_deg``
+    of the singularity, judged on the nominal geometry."""
     angle = wrist_angle_deg(robot.nominal_params(), a_deg)
     return [
         Refusal(
