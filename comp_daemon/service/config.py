@@ -30,7 +30,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from comp_daemon.models.compensation import CompensationLimits
+from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits
 
 __all__ = [
     "AuthSettings",
@@ -296,14 +296,14 @@ class ControllerSettings(_Section):
 class CompensationSettings(_Section):
     """What a compensated target may do (:class:`comp_daemon.models.compensation.CompensationLimits`).
 
-    ``max_axis_change_deg``: largest change of any axis from the nominal solution; ``wrist_singularity_deg``:
-    targets whose axes 4 and 6 are nearer than this to in line (|A5|) are refused;
-    ``hull_margin_deg``: how far beyond the sampled axis ranges of the model a target may lie.
+    ``max_axis_change_deg``: largest change of any axis from the nominal solution;
+    ``wrist_singularity_deg``: targets whose axes 4 and 6 are nearer than this to in line (|A5|) are
+    refused; ``hull_margin_deg``: how far beyond the sampled axis ranges of the model a target may lie.
     """
 
-    max_axis_change_deg: float = Field(default=0.5, gt=0, le=10.0)
-    wrist_singularity_deg: float = Field(default=5.0, ge=0, lt=90.0)
-    hull_margin_deg: float = Field(default=25.0, ge=0, le=360.0)
+    max_axis_change_deg: float = Field(default=DEFAULT_LIMITS.max_axis_change_deg, gt=0, le=10.0)
+    wrist_singularity_deg: float = Field(default=DEFAULT_LIMITS.wrist_singularity_deg, ge=0, lt=90.0)
+    hull_margin_deg: float = Field(default=DEFAULT_LIMITS.hull_margin_deg, ge=0, le=360.0)
 
     def limits(self) -> CompensationLimits:
         return CompensationLimits(self.max_axis_change_deg, self.wrist_singularity_deg, self.hull_margin_deg)
