@@ -123,7 +123,8 @@ def test_compensate_writes_commands_whose_prediction_is_the_target(campaign: Pat
         == 0
     )
     model = load_model(model_path).model
-    a_nominal = _axes(8, 5)
+    a_nominal = _axes(40, 5)
+    a_nominal = a_nominal[np.abs(a_nominal[:, 4]) > 10.0][:8]  # away from the wrist singularity
     wanted, _ = nominal_targets(model, a_nominal)
     targets = tmp_path / "targets.csv"
     write_dataset(Dataset(a_deg=None, target_xyz_mm=wanted, pose_id=[f"h{i}" for i in range(8)]), targets)
