@@ -14,6 +14,7 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
 from comp_daemon.models.base import NominalModel
+from comp_daemon.models.compensation import CompensationLimits
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import load_robot
 from comp_daemon.rt.executor import CompensationError, ModelMissingError
@@ -62,6 +63,33 @@ def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(s
     tcp = {"tx": float(wanted[0, 0]), "ty": float(wanted[0, 1]), "tz": float(wanted[0, 2])}
     by_position = comp(tcp)
     np.testing.assert_allclose(model.predict_tcp_mm(np.array([by_position.commanded_deg])), wanted, atol=1e-6)
+
+
+def test_the_daemon_compensator_applies_its_configured_limits(store: Store) -> None:
+    robot = load_robot("kr210")
+    dx = np.random.default_rng(4).normal(0.0, 1.0, N_PARAMS) * np.where(
+        [n.startswith(("theta", "alpha", "beta", "base_r")) for n in PARAM_NAMES], 1e-4, 0.1
+    )
+    activate(
+        store,
+        model_document(
+            KinematicModel(robot, KinematicParams.from_robot(robot).apply(dx)),
+            data_sha256="a" * 64,
+            frame="base",
+        ),
+    )
+    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    loose = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
+    change = np.abs(np.subtract(loose(request).commanded_deg, HOME)).max()
+    tight = ActiveModelCompensator(
+        store,
+        robot,
+        [0, 1, 2],
+        current_axes=lambda: tuple(HOME),
+        limits=CompensationLimits(max_axis_change_deg=change / 2),
+    )
+    with pytest.raises(ValueError, match=r"A[1-6].*(limit|change)"):
+        tight(request)
 
 
 def test_an_artifact_that_is_not_a_model_document_is_refused(store: Store) -> None:
