@@ -48,6 +48,7 @@ __all__ = [
     "POE_PRIORITY",
     "NullDirection",
     "PoeFit",
+    "fit_least_squares_subset",
     "fit_poe_positions",
     "null_directions",
     "poe_identifiability",
@@ -217,7 +218,7 @@ class PoeFit:
         return float(self.theta[self.names.index(name)])
 
 
-def _fit_least_squares(
+def fit_least_squares_subset(
     fn: Callable[[NDArray[np.float64]], tuple[NDArray[np.float64], NDArray[np.float64]]],
     theta0: NDArray[np.float64],
     keep: NDArray[np.intp],
@@ -288,7 +289,7 @@ def fit_poe_positions(
     report = poe_identifiability(jac0, names, BASE_NAMES if fit_base else (), rtol)
     null = null_directions(report, jac0)
     keep = report.identifiable_index
-    theta, std, its, reason, r = _fit_least_squares(
+    theta, std, its, reason, r = fit_least_squares_subset(
         fn, theta0, keep, inverse_variance=weights_are_inverse_variance
     )
     rms0 = float(np.sqrt(np.mean(np.sum((r0.reshape(-1, 3) / sw[:, None]) ** 2, axis=1))))
