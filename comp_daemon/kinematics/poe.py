@@ -117,7 +117,8 @@ class PoeModel:
         length = np.broadcast_to(self.segment_length_mm, (dl_mm.shape[0], self.segment_length_mm.size)).copy()
         length[:, :6] += dl_mm
         moves = (self.segment_first_point[:, None] <= np.arange(7)[None, :]).astype(float)  # (m, 7)
-        return self.anchor_mm[None] + np.einsum("nm,mj,mk->njk", length, moves, self.segment_dir)
+        per_point = np.einsum("nm,mj->njm", length, moves)  # (n, 7, m) length reaching point j
+        return self.anchor_mm[None] + per_point @ self.segment_dir
 
 
 def irb120_table1(robot: RobotDescription) -> PoeModel:
@@ -205,31 +206,30 @@ def poe_chain(model: PoeModel, a_deg: NDArray[np.float64], x: NDArray[np.float64
     theta = np.deg2rad(a) + xx[:, 6:]
     pts = model.points_mm(xx[:, :6])  # (n, 7, 3)
     w = model.omega
-    rot = np.empty((n, 4, 4))
-    rot[:] = np.eye(4)
+    rot = np.empty((n, 3, 3))
+    rot[:] = np.eye(3)
+    trans = np.zeros((n, 3))
     r_before = np.empty((n, 7, 3, 3))
-    r_before[:, 0] = np.eye(3)
+    r_before[:, 0] = rot
     axis = np.empty((n, 6, 3))
     axis_pt = np.empty((n, 6, 3))
     eye3 = np.eye(3)
     for i in range(6):
+        # 3×3 blocks and vectors: batched 4×4 products are several times slower
         k = np.array([[0.0, -w[i, 2], w[i, 1]], [w[i, 2], 0.0, -w[i, 0]], [-w[i, 1], w[i, 0], 0.0]])
         s, c = np.sin(theta[:, i]), np.cos(theta[:, i])
         r_i = eye3 + s[:, None, None] * k + (1.0 - c)[:, None, None] * (k @ k)
-        e = np.zeros((n, 4, 4))
-        e[:, :3, :3] = r_i
-        e[:, :3, 3] = pts[:, i] - np.einsum("nij,nj->ni", r_i, pts[:, i])
-        e[:, 3, 3] = 1.0
-        axis[:, i] = rot[:, :3, :3] @ w[i]
-        axis_pt[:, i] = np.einsum("nij,nj->ni", rot[:, :3, :3], pts[:, i]) + rot[:, :3, 3]
-        rot = rot @ e
-        r_before[:, i + 1] = rot[:, :3, :3]
-    home = np.zeros((n, 4, 4))
-    home[:, :3, :3] = model.base_R_flange0
-    home[:, :3, 3] = pts[:, 6]
-    home[:, 3, 3] = 1.0
-    flange = rot @ home
-    tcp = np.einsum("nij,j->ni", flange[:, :3, :3], model.tool_xyz_mm) + flange[:, :3, 3]
+        t_i = pts[:, i] - (r_i @ pts[:, i, :, None])[..., 0]
+        axis[:, i] = rot @ w[i]
+        axis_pt[:, i] = (rot @ pts[:, i, :, None])[..., 0] + trans
+        trans = (rot @ t_i[..., None])[..., 0] + trans
+        rot = rot @ r_i
+        r_before[:, i + 1] = rot
+    flange = np.zeros((n, 4, 4))
+    flange[:, :3, :3] = rot @ model.base_R_flange0
+    flange[:, :3, 3] = (rot @ pts[:, 6, :, None])[..., 0] + trans
+    flange[:, 3, 3] = 1.0
+    tcp = flange[:, :3, :3] @ model.tool_xyz_mm + flange[:, :3, 3]
     return PoeChain(base_T_flange=flange, tcp_mm=tcp, R_before=r_before, axis=axis, axis_point_mm=axis_pt)
 
 
