@@ -218,6 +218,7 @@ class BallbarFit:
 
     theta: NDArray[np.float64]  # (15,) BALLBAR_PARAM_NAMES
     std: NDArray[np.float64]  # standard uncertainty (NaN for the not identifiable)
+    cov: NDArray[np.float64]  # (15, 15) covariance; rows/columns of the not identifiable zero
     report: IdentifiabilityReport
     null_space: tuple[NullDirection, ...]
     h_before_mm: float  # RMS length error (unweighted) at the start
@@ -276,12 +277,22 @@ def fit_ballbar(
     keep = report.identifiable_index
     start[np.setdiff1d(np.arange(N_BALLBAR_PARAMS), keep)] = 0.0
     h0 = float(np.sqrt(np.mean((ballbar_lengths_mm(model, a, start, pivot_mm) - measured) ** 2)))
-    theta, std, its, reason, _ = fit_least_squares_subset(
+    theta, std, cov, its, reason, _ = fit_least_squares_subset(
         fn, start, keep, inverse_variance=weights_are_inverse_variance
     )
     h1 = float(np.sqrt(np.mean((ballbar_lengths_mm(model, a, theta, pivot_mm) - measured) ** 2)))
     _log.info("ballbar_fit", points=measured.size, rank=report.rank_svd, h_before_mm=h0, h_after_mm=h1)
-    return BallbarFit(theta, std, report, null, h0, h1, its, reason)
+    return BallbarFit(
+        theta=theta,
+        std=std,
+        cov=cov,
+        report=report,
+        null_space=null,
+        h_before_mm=h0,
+        h_after_mm=h1,
+        iterations=its,
+        reason=reason,
+    )
 
 
 def to_canonical(theta: NDArray[np.float64], pivot_mm: Sequence[float]) -> NDArray[np.float64]:

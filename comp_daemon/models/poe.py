@@ -201,6 +201,7 @@ class PoeFit:
     names: tuple[str, ...]  # POE_PARAM_NAMES (+ BASE_NAMES when the frame was fitted)
     theta: NDArray[np.float64]  # values of ``names``
     std: NDArray[np.float64]  # standard uncertainty of each (NaN for removed ones)
+    cov: NDArray[np.float64]  # covariance of ``theta`` (rows and columns of removed ones zero: fixed)
     world_T_base: NDArray[np.float64] | None
     report: IdentifiabilityReport
     null_space: tuple[NullDirection, ...]
@@ -224,8 +225,11 @@ def fit_least_squares_subset(
     keep: NDArray[np.intp],
     *,
     inverse_variance: bool,
-) -> tuple[NDArray[np.float64], NDArray[np.float64], int, str, NDArray[np.float64]]:
-    """LM on the ``keep`` columns of ``fn(theta) -> (residual, jacobian)``; (theta, std, its, reason, r)."""
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64], int, str, NDArray[np.float64]]:
+    """LM on the ``keep`` columns of ``fn(theta) -> (residual, jacobian)``.
+
+    Returns (theta, std, cov, iterations, reason, residual); std is NaN and cov zero for the fixed.
+    """
 
     def full(u: NDArray[np.float64]) -> NDArray[np.float64]:
         th = theta0.copy()
@@ -246,12 +250,13 @@ def fit_least_squares_subset(
     dof = max(r.size - keep.size, 1)
     s2 = 1.0 if inverse_variance else float(r @ r) / dof
     std = np.full(theta.size, np.nan)
+    cov = np.zeros((theta.size, theta.size))
     try:
-        cov = np.linalg.inv(jk.T @ jk) * s2
-        std[keep] = np.sqrt(np.clip(np.diag(cov), 0.0, None))
+        cov[np.ix_(keep, keep)] = np.linalg.inv(jk.T @ jk) * s2
+        std[keep] = np.sqrt(np.clip(np.diag(cov)[keep], 0.0, None))
     except np.linalg.LinAlgError:
         pass
-    return theta, std, res.iterations, res.reason, r
+    return theta, std, cov, res.iterations, res.reason, r
 
 
 def fit_poe_positions(
@@ -289,7 +294,7 @@ def fit_poe_positions(
     report = poe_identifiability(jac0, names, BASE_NAMES if fit_base else (), rtol)
     null = null_directions(report, jac0)
     keep = report.identifiable_index
-    theta, std, its, reason, r = fit_least_squares_subset(
+    theta, std, cov, its, reason, r = fit_least_squares_subset(
         fn, theta0, keep, inverse_variance=weights_are_inverse_variance
     )
     rms0 = float(np.sqrt(np.mean(np.sum((r0.reshape(-1, 3) / sw[:, None]) ** 2, axis=1))))
@@ -299,6 +304,7 @@ def fit_poe_positions(
         names=names,
         theta=theta,
         std=std,
+        cov=cov,
         world_T_base=None if start is None else _frame(start, theta[N_POE_PARAMS:]),
         report=report,
         null_space=null,
