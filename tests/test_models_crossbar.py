@@ -72,7 +72,7 @@ def test_rows_match_central_differences_and_first_order_sign() -> None:
     cols = [PARAM_NAMES.index(n) for n in crossbar_columns(x0)]
     scale = np.abs(rows).max(axis=(0, 2))  # per constraint kind (mm/unit, mm²/unit)
     for k in cols:
-        h = 1e-5 if PARAM_NAMES[k][0] in "ad" else 1e-7
+        h = 1e-5 if PARAM_NAMES[k].rstrip("0123456789") in ("a", "d") else 1e-7
         e = np.zeros(len(PARAM_NAMES))
         e[k] = h
         v_plus = constraint_values(x0.apply(e), a_deg, SIGN)
@@ -108,6 +108,13 @@ def test_rank_table_off_and_on_axis() -> None:
     product = crossbar_identifiability(_params(), a_deg, SIGN, lengths, tool=True)
     assert product.rank_svd == 21
     assert set(product.removed_names("zero")) == {"theta1", "d1"}
+
+
+def test_step_bounds_by_unit() -> None:
+    from comp_daemon.models.crossbar import _step_bounds
+
+    bounds = _step_bounds(("theta2", "d3", "a1", "alpha1", "beta2", "tool_x"), 2.0, 0.5)
+    np.testing.assert_allclose(bounds, [np.deg2rad(0.5), 2.0, 2.0, np.deg2rad(0.5), np.deg2rad(0.5), 2.0])
 
 
 def test_plan_check_refuses_a_fixed_a6_and_too_few_placements() -> None:

@@ -32,7 +32,7 @@ vectors ((12,) or one per pose, (n, 12)), positions in mm in the robot base fram
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from numpy.typing import NDArray
@@ -108,8 +108,6 @@ class PoeModel:
 
     def with_tool(self, tool_xyz_mm: NDArray[np.float64] | tuple[float, float, float]) -> PoeModel:
         """The same robot with another TCP offset in the flange frame (mm)."""
-        from dataclasses import replace
-
         return replace(self, tool_xyz_mm=np.array(tool_xyz_mm, dtype=float))
 
     def points_mm(self, dl_mm: NDArray[np.float64]) -> NDArray[np.float64]:

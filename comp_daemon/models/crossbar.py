@@ -325,9 +325,9 @@ class CrossbarFit:
 
 
 def _step_bounds(names: tuple[str, ...], length_mm: float, angle_deg: float) -> NDArray[np.float64]:
-    return np.array(
-        [length_mm if n[0] in "ad" or n.startswith("tool") else np.deg2rad(angle_deg) for n in names]
-    )
+    """The error bound e_j of each parameter: ``length_mm`` for d, a and the tool, ``angle_deg`` else."""
+    is_length = [n.rstrip("0123456789") in ("d", "a") or n.startswith("tool") for n in names]
+    return np.where(is_length, length_mm, np.deg2rad(angle_deg))
 
 
 def calibrate_crossbar(
