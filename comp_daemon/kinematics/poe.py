@@ -42,6 +42,7 @@ from comp_daemon.robot.description import RobotDescription
 __all__ = [
     "N_POE_PARAMS",
     "POE_PARAM_NAMES",
+    "PoeChain",
     "PoeModel",
     "irb120_table1",
     "poe_chain",
