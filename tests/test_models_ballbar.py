@@ -18,7 +18,9 @@ from comp_daemon.models.ballbar import (
     ballbar_jacobian,
     ballbar_lengths_mm,
     default_arcs,
+    error_variogram,
     fit_ballbar,
+    pair_variogram,
     plan_ballbar_axes,
     sphere_point_mm,
     to_canonical,
@@ -205,3 +207,24 @@ def test_noisy_recovery_spread_matches_reported_uncertainty() -> None:
     ratio = thetas.std(axis=0, ddof=1) / reported
     assert np.all((ratio > 0.6) & (ratio < 1.5))
     assert all(f.h_after_mm < 1.2 * sigma for f in fits)
+
+
+# ---- A.6 variogram ---------------------------------------------------------------------------
+
+
+def test_error_variogram_matches_the_spec_and_has_no_nugget() -> None:
+    model = irb120_table1(ROBOT)
+    lim = ROBOT.axis_limits_deg.copy()
+    lim[5] = [-180.0, 180.0]
+    rng = np.random.default_rng(0)
+    base = rng.uniform(lim[:, 0], lim[:, 1], (4000, 6))
+    lags = [0.5, 5.0, 10.0, 20.0, 40.0, 60.0, 90.0, 120.0]
+    gamma = error_variogram(model, TRUTH[:12], base, lags, rng)
+    spec = np.array([0.0014, 0.0059, 0.021, 0.085, 0.19, 0.36, 0.56])  # mm², spec A.6
+    np.testing.assert_allclose(gamma[1:], spec, rtol=0.15)
+    assert gamma[0] < 1e-4  # no nugget: a smooth, purely geometric error field
+    assert 3.5 < gamma[2] / gamma[1] < 4.5  # quadratic at the origin
+    pairs = rng.uniform(lim[:, 0], lim[:, 1], (2000, 6))
+    sill, count = pair_variogram(model, TRUTH[:12], pairs, [200.0, 300.0])
+    assert np.all(count > 1000)
+    assert np.all((sill > 0.6) & (sill < 0.78))  # spec: sill 0.69 mm² from about 150–200°

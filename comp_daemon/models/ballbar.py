@@ -56,7 +56,9 @@ __all__ = [
     "ballbar_jacobian",
     "ballbar_lengths_mm",
     "default_arcs",
+    "error_variogram",
     "fit_ballbar",
+    "pair_variogram",
     "plan_ballbar_axes",
     "sphere_point_mm",
     "to_canonical",
@@ -169,6 +171,56 @@ def plan_ballbar_axes(
             a_all.append(a_deg[0])
             arc_id.append(k + 1)
     return np.array(a_all), np.array(arc_id, dtype=np.intp)
+
+
+# ---- variogram of the error field (A.6) -------------------------------------------------------
+
+
+def _error_field(model: PoeModel, a_deg: NDArray[np.float64], x: NDArray[np.float64]) -> NDArray[np.float64]:
+    """ΔP(A) = p(A; x) − p(A; 0), mm."""
+    return poe_chain(model, a_deg, x).tcp_mm - poe_chain(model, a_deg).tcp_mm
+
+
+def error_variogram(
+    model: PoeModel,
+    x: NDArray[np.float64],
+    base_a_deg: NDArray[np.float64],
+    lags_deg: Sequence[float],
+    rng: np.random.Generator,
+) -> NDArray[np.float64]:
+    """γ(h) in mm² at exact joint-space lags h (deg): ``mean ‖ΔP(A + h·u) − ΔP(A)‖² / 2`` over the
+    base poses, u a random unit direction in the six joints (one draw per pose and lag)."""
+    base = np.asarray(base_a_deg, dtype=float)
+    d0 = _error_field(model, base, x)
+    out = []
+    for h in lags_deg:
+        u = rng.normal(size=base.shape)
+        u /= np.linalg.norm(u, axis=1)[:, None]
+        diff = _error_field(model, base + h * u, x) - d0
+        out.append(0.5 * float(np.mean(np.sum(diff**2, axis=1))))
+    return np.array(out)
+
+
+def pair_variogram(
+    model: PoeModel,
+    x: NDArray[np.float64],
+    a_deg: NDArray[np.float64],
+    lags_deg: Sequence[float],
+    width_deg: float = 5.0,
+) -> tuple[NDArray[np.float64], NDArray[np.intp]]:
+    """The binned semivariogram of spec eqs 22–24 over all pairs of ``a_deg``: γ(h) (mm², NaN for an
+    empty bin) and the pair count N(h), pairs with ``|h_ij − h| < width/2``."""
+    a = np.asarray(a_deg, dtype=float)
+    d = _error_field(model, a, x)
+    i, j = np.triu_indices(a.shape[0], 1)
+    h_ij = np.linalg.norm(a[i] - a[j], axis=1)
+    g_ij = 0.5 * np.sum((d[i] - d[j]) ** 2, axis=1)
+    gamma, count = [], []
+    for h in lags_deg:
+        sel = np.abs(h_ij - h) < width_deg / 2
+        count.append(int(sel.sum()))
+        gamma.append(float(g_ij[sel].mean()) if sel.any() else float("nan"))
+    return np.array(gamma), np.array(count, dtype=np.intp)
 
 
 # ---- model ------------------------------------------------------------------------------------
