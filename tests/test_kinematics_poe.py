@@ -13,6 +13,7 @@ from comp_daemon.kinematics.poe import (
     irb120_table1,
     poe_error_jacobian,
     poe_flange_pose,
+    poe_ik,
     poe_tcp_position_mm,
 )
 from comp_daemon.robot.description import load_robot
@@ -105,3 +106,18 @@ def test_length_error_moves_points_as_the_segment_table_says() -> None:
     pts = model.points_mm(dl)[0]
     np.testing.assert_allclose(pts[:3], model.point_mm[:3])
     np.testing.assert_allclose(pts[3:6] - model.point_mm[3:], [[2.0, 0, 0]] * 3)
+
+
+def test_poe_ik_round_trip_with_errors() -> None:
+    model = irb120_table1(load_robot("irb120")).with_tool((30.0, 20.0, 50.0))
+    x = np.random.default_rng(8).normal(0.0, [0.3] * 6 + [0.003] * 6)
+    a_true = _random_axes("irb120", 30, seed=9) * 0.5
+    pose = poe_flange_pose(model, a_true, x)
+    p = poe_tcp_position_mm(model, a_true, x)
+    a_found, err = poe_ik(model, p, pose[:, :3, :3], a_true + 2.0, x)
+    assert err.max() < 1e-9
+    pose_found = poe_flange_pose(model, a_found, x)
+    assert np.abs(pose_found[:, :3, :3] - pose[:, :3, :3]).max() < 1e-9
+    assert np.abs(poe_tcp_position_mm(model, a_found, x) - p).max() < 1e-9
+    regular = np.abs(np.sin(np.deg2rad(a_true[:, 4]))) > 0.2  # away from the wrist singularity
+    np.testing.assert_allclose(a_found[regular], a_true[regular], atol=1e-7)

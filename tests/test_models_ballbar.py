@@ -9,7 +9,7 @@ import pytest
 
 from comp_daemon.kinematics.forward import flange_pose
 from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.kinematics.poe import irb120_table1
+from comp_daemon.kinematics.poe import irb120_table1, poe_chain, poe_ik
 from comp_daemon.models.ballbar import (
     BALLBAR_PARAM_NAMES,
     PAPER_PIVOT_MM,
@@ -228,3 +228,39 @@ def test_error_variogram_matches_the_spec_and_has_no_nugget() -> None:
     sill, count = pair_variogram(model, TRUTH[:12], pairs, [200.0, 300.0])
     assert np.all(count > 1000)
     assert np.all((sill > 0.6) & (sill < 0.78))  # spec: sill 0.69 mm² from about 150–200°
+
+
+# ---- simulated Table 7 (spec A.9, acceptance 10) ---------------------------------------------
+
+
+def test_simulated_campaign_improves_every_arc_by_more_than_95_percent() -> None:
+    """Only modelled errors (Table 5 + pivot offset), 3.5 µm repeat noise per axis, 0.5 µm ballbar
+    noise; after calibration the arcs are commanded through the identified model about the identified
+    pivot and measured again. The paper reports 49.83 % (mean) on a real robot."""
+    model = irb120_table1(ROBOT)
+    arcs = default_arcs()
+    a_deg, arc_id = plan_ballbar_axes(
+        PARAMS, ROBOT.sign, ROBOT.axis_limits_deg, arcs, [VERTICAL] * 3, SEED_DEG
+    )
+    rng = np.random.default_rng(0)
+    pivot = np.array(PAPER_PIVOT_MM)
+    pivot_true = pivot + TRUTH[12:]
+
+    def measure(a: np.ndarray) -> np.ndarray:
+        p = poe_chain(model, a, TRUTH[:12]).tcp_mm + rng.normal(0.0, 0.0035, (len(a), 3))
+        return np.linalg.norm(p - pivot_true, axis=1) + rng.normal(0.0, 0.0005, len(a))
+
+    bar = measure(a_deg)
+    fit = fit_ballbar(model, a_deg, bar, PAPER_PIVOT_MM)
+    directions = np.vstack([arc.sample() for arc in arcs]) - pivot
+    targets = pivot + fit.theta[12:] + directions
+    a_comp, err = poe_ik(
+        model, targets, np.broadcast_to(VERTICAL, (*targets.shape, 3)), a_deg, fit.theta[:12]
+    )
+    assert err.max() < 1e-9
+    after = measure(a_comp) - 100.0
+    before = bar - 100.0
+    for k in (1, 2, 3):
+        on_arc = arc_id == k
+        assert np.abs(before[on_arc]).mean() > 0.2
+        assert 1.0 - np.abs(after[on_arc]).mean() / np.abs(before[on_arc]).mean() >= 0.95

@@ -26,6 +26,9 @@ The derivative of the TCP with respect to ``dl_s`` is ``R_{<f}·dir_s`` (the rot
 before the segment's first moved point; the contributions of the moved joint points telescope), and
 with respect to ``dtheta_i`` the spatial twist ``omega'_i × (p − q'_i)``.
 
+:func:`poe_ik` solves the inverse kinematics of a model with errors (position and flange
+orientation, Gauss–Newton from a nearby seed): the compensation step after a calibration.
+
 Frames and units live in the names: ``a_deg`` axis values in degrees (batch (n, 6)), ``x`` error
 vectors ((12,) or one per pose, (n, 12)), positions in mm in the robot base frame.
 """
@@ -37,6 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.kinematics.so3 import matrix_to_rotvec
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -48,6 +52,7 @@ __all__ = [
     "poe_chain",
     "poe_error_jacobian",
     "poe_flange_pose",
+    "poe_ik",
     "poe_tcp_position_mm",
 ]
 
@@ -260,3 +265,45 @@ def poe_error_jacobian(
     jac[:, :, :6] = np.einsum("nsij,sj->nis", ch.R_before[:, first], model.segment_dir[:6])
     jac[:, :, 6:] = np.cross(ch.axis, ch.tcp_mm[:, None, :] - ch.axis_point_mm).transpose(0, 2, 1)
     return jac
+
+
+def poe_ik(
+    model: PoeModel,
+    target_p_mm: NDArray[np.float64],
+    target_R: NDArray[np.float64],
+    seed_a_deg: NDArray[np.float64],
+    x: NDArray[np.float64] | None = None,
+    *,
+    max_iter: int = 50,
+    tol_mm: float = 1e-9,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Axis values (n, 6) in deg that put the TCP of the model with errors ``x`` at ``target_p_mm``
+    (n, 3) with flange orientation ``target_R`` (n, 3, 3); Gauss–Newton from ``seed_a_deg`` (the
+    nominal solution), no joint limits. Returns the answer and the remaining position error (mm)."""
+    a = np.array(np.broadcast_to(seed_a_deg, (np.shape(target_p_mm)[0], 6)), dtype=float)
+    lever_mm = 1000.0  # orientation residual in mm at this lever, as the MDH IK does
+    err_p = np.full(a.shape[0], np.inf)
+    for _ in range(max_iter):
+        ch = poe_chain(model, a, x)
+        e_p = target_p_mm - ch.tcp_mm
+        delta = target_R @ np.swapaxes(ch.base_T_flange[:, :3, :3], 1, 2)
+        # near the target the antisymmetric part (sin φ·axis) is exact to rounding; arccos is not
+        vee = 0.5 * np.stack(
+            [
+                delta[:, 2, 1] - delta[:, 1, 2],
+                delta[:, 0, 2] - delta[:, 2, 0],
+                delta[:, 1, 0] - delta[:, 0, 1],
+            ],
+            axis=1,
+        )
+        far = np.linalg.norm(vee, axis=1) > 1e-3
+        e_r = np.where(far[:, None], matrix_to_rotvec(delta), vee)
+        err_p = np.linalg.norm(e_p, axis=1)
+        if err_p.max() < tol_mm and np.abs(e_r).max() < tol_mm / lever_mm:
+            break
+        lin = np.cross(ch.axis, ch.tcp_mm[:, None, :] - ch.axis_point_mm)  # (n, 6, 3) per joint
+        jac = np.concatenate([lin, ch.axis * lever_mm], axis=2).transpose(0, 2, 1)  # (n, 6, 6)
+        err = np.concatenate([e_p, e_r * lever_mm], axis=1)
+        d_theta = np.linalg.solve(jac, err[..., None])[..., 0]
+        a = a + np.rad2deg(d_theta)
+    return a, err_p
