@@ -40,7 +40,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.so3 import matrix_to_rotvec
+from comp_daemon.kinematics.inverse import orientation_error_rad
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -286,18 +286,7 @@ def poe_ik(
     for _ in range(max_iter):
         ch = poe_chain(model, a, x)
         e_p = target_p_mm - ch.tcp_mm
-        delta = target_R @ np.swapaxes(ch.base_T_flange[:, :3, :3], 1, 2)
-        # near the target the antisymmetric part (sin φ·axis) is exact to rounding; arccos is not
-        vee = 0.5 * np.stack(
-            [
-                delta[:, 2, 1] - delta[:, 1, 2],
-                delta[:, 0, 2] - delta[:, 2, 0],
-                delta[:, 1, 0] - delta[:, 0, 1],
-            ],
-            axis=1,
-        )
-        far = np.linalg.norm(vee, axis=1) > 1e-3
-        e_r = np.where(far[:, None], matrix_to_rotvec(delta), vee)
+        e_r = orientation_error_rad(ch.base_T_flange[:, :3, :3], target_R)
         err_p = np.linalg.norm(e_p, axis=1)
         if err_p.max() < tol_mm and np.abs(e_r).max() < tol_mm / lever_mm:
             break
