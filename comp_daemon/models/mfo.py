@@ -65,7 +65,7 @@ DEFAULT_BOUNDS: dict[str, float] = {"dl": 1.0, "dtheta": 0.01, "pivot": 2.0}
 
 @dataclass(frozen=True, slots=True)
 class MfoResult:
-    """Best point and value; per-iteration best value, flame number and A (1.0 … 0 schedule)."""
+    """Best point and value; per iteration the best value, the flame number N_f and A (2 → 0)."""
 
     x: NDArray[np.float64]
     fun: float
