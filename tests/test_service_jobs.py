@@ -333,12 +333,13 @@ async def test_every_kind_fits_over_http_and_compensates_once_active(service: An
         assert record.kind == name.split("+")[0].split(":")[0]
         artifact = (await client.get(f"/api/models/{record.id}/artifact", headers=auth("viewer"))).json()
         assert artifact["kind"] == stats["artifact_kind"]
-        # activation: the daemon's compensator loads the stored artifact and compensates with it
+        # activation: the daemon's compensator loads the stored artifact and compensates with it (a target
+        # inside the sampled axis ranges: a model is not used outside its validity region)
         assert (
             await client.post(f"/api/models/{record.id}/activate", headers=auth("engineer"))
         ).status_code == 200
         comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: home)
         out = comp(
-            {"a1": 10.0, "a2": -80.0, "a3": 110.0, "a4": 0.0, "a5": -30.0, "a6": 0.0, "payload_kg": 100.0}
+            {"a1": 10.0, "a2": -80.0, "a3": 110.0, "a4": 0.0, "a5": 50.0, "a6": 0.0, "payload_kg": 100.0}
         )
         assert out.model_id == record.id and out.info["predicted_residual_mm"] < 1e-5, name
