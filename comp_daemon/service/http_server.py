@@ -15,8 +15,10 @@ keep-alive timer starts only after a response):
 - **A connection cap**, ``max_connections``: a connection opened beyond it closes the oldest
   connection that is still sending its headers or idling between requests (a half-sent request
   costs an attacker nothing, an answered one does), or, when every connection is busy with a
-  request, is itself answered 503 and closed. The descriptors the HTTP side holds are thus bounded,
-  whatever clients do, so the process never reaches its file limit on their account.
+  request, is itself answered 503 and closed. The descriptors the HTTP side holds are thus bounded
+  by about ``max_connections + 2 * listen_backlog`` (asyncio accepts up to a backlog's worth before
+  the first of them is seen), whatever clients do, so the process never reaches its file limit on
+  their account.
 - **The accept error** asyncio logs for every pending connection once the process is out of file
   descriptors ("socket.accept() out of system resource", thousands of lines a second) is let
   through once per :data:`ACCEPT_ERROR_LOG_INTERVAL_S`, with the number held back.
