@@ -164,3 +164,36 @@ def test_workers_end_when_the_daemon_is_killed(tmp_path: Path) -> None:
         daemon.wait(10)
         if daemon.stdout is not None:
             daemon.stdout.close()
+
+
+async def test_a_pool_broken_under_cancelled_waiting_jobs_still_takes_work(tmp_path: Path) -> None:
+    """One worker busy with a deaf job, three jobs waiting behind it, the last cancelled; the deaf
+    one is cancelled and its worker killed. The waiting jobs still wanted run in the new pool, the
+    cancelled one never does, and later work completes."""
+    store = Store(tmp_path / "s.sqlite3")
+    runner = JobRunner(store, JobSettings(workers=1, cancel_grace_s=0.3))
+    for kind in (JobKind("deaf", deaf), JobKind("quick", quick)):
+        runner.register(kind)
+    runner.start()
+    try:
+        busy = store.create_job("deaf", {})
+        await asyncio.to_thread(runner.launch, busy, (120.0,))
+        await until(lambda: worker_pid(store, busy) is not None)
+        wanted = [store.create_job("quick", {}) for _ in range(2)]  # fill the pool's call queue
+        for job in wanted:
+            await asyncio.to_thread(runner.launch, job, (2,))
+        dropped = store.create_job("quick", {})  # waits in the pool itself
+        await asyncio.to_thread(runner.launch, dropped, (1,))
+        runner.cancel(dropped.id, by="test")
+        runner.cancel(busy.id, by="test")
+        await until(lambda: all(store.get_job(j.id).state in ("done", "failed") for j in wanted), 60.0)
+        assert [store.get_job(j.id).state for j in wanted] == ["done", "done"]
+        assert store.get_job(dropped.id).state == "cancelled" and store.get_job(dropped.id).result is None
+        later = store.create_job("quick", {})
+        await asyncio.to_thread(runner.launch, later, (3,))
+        await until(lambda: store.get_job(later.id).state in ("done", "failed"), 60.0)
+        assert (store.get_job(later.id).result or {}).get("value") == 3
+    finally:
+        await runner.drain()
+        runner.shutdown()
+        store.close()

@@ -263,6 +263,48 @@ def _install_error_handlers(app: FastAPI) -> None:
         return response
 
 
+# ------------------------------------------------------------------------------- the OpenAPI
+
+_HTTP_METHODS = frozenset({"get", "put", "post", "delete", "patch", "head", "options", "trace"})
+_COMMON_ANSWERS: tuple[tuple[str, int, str], ...] = (
+    ("security", 401, "no token, an unknown token or a malformed Authorization header"),
+    ("security", 403, "the token's role is too low for this operation"),
+    ("requestBody", 400, "invalid Content-Length"),
+    ("requestBody", 413, "request body over http.max_upload_bytes"),
+    ("", 500, "internal error; error_id names the log record"),
+)
+
+
+def _document_common_answers(app: FastAPI) -> None:
+    """Add to the OpenAPI description the answers that come from authentication and middleware
+    rather than from one route: 401/403 where a token is asked for, 400/413 where a body is taken,
+    500 everywhere."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = build()
+        error = {"$ref": "#/components/schemas/ErrorOut"}
+        has_error_model = "ErrorOut" in schema.get("components", {}).get("schemas", {})
+        for path_item in schema.get("paths", {}).values():
+            for method, operation in path_item.items():
+                if method not in _HTTP_METHODS:
+                    continue
+                responses = operation.setdefault("responses", {})
+                for needs, status, description in _COMMON_ANSWERS:
+                    if needs and needs not in operation:
+                        continue
+                    answer: dict[str, Any] = {"description": description}
+                    if has_error_model:
+                        answer["content"] = {"application/json": {"schema": error}}
+                    responses.setdefault(str(status), answer)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 # ------------------------------------------------------------------------------------- the app
 
 
@@ -347,6 +389,7 @@ def create_app(
     app.state.tokens = state.tokens
     app.state.uploads = uploads
     _install_error_handlers(app)
+    _document_common_answers(app)
     app.add_middleware(
         BodyLimitMiddleware, limit_bytes=settings.http.max_upload_bytes + _MULTIPART_OVERHEAD_BYTES
     )

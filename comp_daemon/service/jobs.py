@@ -234,7 +234,7 @@ class JobRunner:
             return
         _log.warning("job worker process died; starting a new pool")
         self._executor = self._new_executor()
-        old.shutdown(wait=False, cancel_futures=True)
+        old.shutdown(wait=False)
 
     def shutdown(self) -> None:
         """Stop taking jobs, cancel what waits, end the workers (running jobs fail at the next start)."""
@@ -245,7 +245,7 @@ class JobRunner:
         self._timers.clear()
         if executor is not None:
             processes = list(getattr(executor, "_processes", {}).values())
-            executor.shutdown(wait=False, cancel_futures=True)
+            executor.shutdown(wait=False)  # not cancel_futures: see _stop_worker
             for proc in processes:
                 with contextlib.suppress(Exception):
                     proc.terminate()
@@ -305,8 +305,11 @@ class JobRunner:
 
     def _stop_worker(self, job_id: int) -> None:
         """Ask a cancelled or timed-out job to stop; kill its worker if it has not after the grace."""
+        # No Future.cancel(): a pool that breaks later (a worker killed) fails on a cancelled future
+        # in its manager thread (CPython 3.11), and then completes nothing more. A worker that takes
+        # a flagged job returns at once.
         future = self._futures.get(job_id)
-        if future is None or future.cancel() or self._cancel_flags is None:
+        if future is None or future.done() or self._cancel_flags is None:
             return
         self._cancel_flags[self._cancel_next % _CANCEL_SLOTS] = job_id
         self._cancel_next += 1
