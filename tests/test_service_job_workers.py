@@ -39,6 +39,15 @@ def steady(seconds: float, *, progress: Callable[..., None]) -> dict[str, Any]:
     return {"slept": seconds, "pid": os.getpid()}
 
 
+def attentive(seconds: float, *, progress: Callable[..., None]) -> dict[str, Any]:
+    """Reports progress every 10 ms (so stops at once when cancelled)."""
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        progress(0.5, f"pid {os.getpid()}")
+        time.sleep(0.01)
+    return {"spun": seconds}
+
+
 def alive(pid: int) -> bool:
     try:
         os.kill(pid, 0)
@@ -105,10 +114,8 @@ async def test_cancelling_a_job_that_never_reports_kills_its_worker(runner: Any)
 
 async def test_a_job_that_stops_when_asked_keeps_its_worker(runner: Any) -> None:
     runner, store = runner
-    from test_service_jobs import spin  # reports progress every 10 ms
-
-    runner.register(JobKind("spin", spin))
-    job = store.create_job("spin", {})
+    runner.register(JobKind("attentive", attentive))
+    job = store.create_job("attentive", {})
     await asyncio.to_thread(runner.launch, job, (60.0,))
     await until(lambda: (store.get_job(job.id).message or "").startswith("pid "))
     pid = int((store.get_job(job.id).message or "").split()[1])
