@@ -389,7 +389,7 @@ def big_csv(target_bytes: int) -> bytes:
     import numpy as np
 
     rng = np.random.default_rng(7)
-    n = target_bytes // 200
+    n = target_bytes // 150  # rows are about 175 bytes; cut to size below
     a = rng.uniform([-60, -120, 40, -90, 20, -90], [60, -40, 130, 90, 100, 90], (n, 6))
     xyz = rng.uniform(-2000, 2000, (n, 3))
     lines = ["a1,a2,a3,a4,a5,a6,x,y,z,note"]
