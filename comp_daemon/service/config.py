@@ -87,6 +87,12 @@ class HttpSettings(_Section):
     max_page_items: int = Field(default=500, ge=1)
     sse_keepalive_s: float = Field(default=15.0, gt=0)
     sse_queue_events: int = Field(default=256, ge=8)
+    max_connections: int = Field(default=256, ge=2)
+    header_timeout_s: float = Field(default=10.0, gt=0)
+    body_timeout_s: float = Field(default=60.0, gt=0)
+    keep_alive_s: int = Field(default=5, ge=1)
+    listen_backlog: int = Field(default=128, ge=1)
+    max_concurrent_uploads: int = Field(default=2, ge=1)
 
 
 class StoreSettings(_Section):
@@ -174,6 +180,7 @@ class JobSettings(_Section):
     cpus: list[int] = Field(default_factory=list)  # CPUs of the workers; empty: all but the real-time one
     start_method: Literal["spawn", "forkserver"] = "spawn"
     max_runtime_s: float = Field(default=3600.0, gt=0)
+    cancel_grace_s: float = Field(default=2.0, ge=0)
 
     @field_validator("cpus")
     @classmethod
