@@ -37,7 +37,7 @@ import scipy
 from scipy.optimize import least_squares
 
 from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
-from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES
+from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.chebyshev import (
     ChebyshevProblem,
@@ -164,7 +164,7 @@ def compare_solvers(repeat: int) -> None:
         np.array([-1.2, 1.0]),
     )
     # kinematic calibration with ratio and backlash, identifiable subset, scaled variables
-    start = robot.nominal_params()
+    start = KinematicParams.from_robot(robot)
     names = effect_param_names(["ratio", "backlash"])
     eff0 = EffectParams.zeros()
     _, jac0 = twin_jacobian(robot, start, eff0, names, a, dirs)

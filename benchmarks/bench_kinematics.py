@@ -14,13 +14,13 @@ import numpy as np
 
 from benchmarks.machine import machine_info, machine_line
 from comp_daemon.kinematics.forward import chain, identification_jacobian
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import load_robot
 
 
 def run(n: int, repeats: int) -> dict[str, object]:
     robot = load_robot("kr210")
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     lim = robot.axis_limits_deg
     q = axes_deg_to_q_rad(np.random.default_rng(0).uniform(lim[:, 0], lim[:, 1], (n, 6)), robot.sign)
     chain(params, q[:10])  # warm-up

@@ -77,7 +77,9 @@ def seed001_plant(robot: RobotDescription) -> Plant:
         cyclic_cos_deg=amp * np.sin(phase),
         compliance_rad_per_nm=np.array([1.2e-7, 1.2e-7, 1.8e-7, 6e-7, 6e-7, 6e-7]),
     )
-    return Plant(robot.nominal_params().apply(dx), effects, np.array([0.0012] * 3 + [0.0024] * 3), 0.01)
+    return Plant(
+        KinematicParams.from_robot(robot).apply(dx), effects, np.array([0.0012] * 3 + [0.0024] * 3), 0.01
+    )
 
 
 def latin_hypercube(rng: np.random.Generator, n: int, d: int) -> NDArray[np.float64]:
@@ -87,7 +89,7 @@ def latin_hypercube(rng: np.random.Generator, n: int, d: int) -> NDArray[np.floa
 
 def box_poses(robot: RobotDescription, n: int, rng: np.random.Generator) -> NDArray[np.float64]:
     """(n, 6) axis values of Latin-hypercube poses in seed 001's box (nominal IK, seeded at home)."""
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     limits = np.sort(np.deg2rad(robot.axis_limits_deg) * robot.sign[:, None], axis=1)
     q_home = axes_deg_to_q_rad(np.asarray(HOME_DEG)[None, :], params.sign)
     r_home = flange_pose(params, q_home)[0, :3, :3]
@@ -163,7 +165,7 @@ def seed001(seed: int, n_fit: int, n_check: int) -> dict[str, Any]:
     out["fit_time_s"] = round(time.perf_counter() - t0, 1)
     # seed 001 §2.1 (Figs 3-4): error similarity of geometric vs backlash errors in joint space
     zero = EffectParams.zeros()
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     a_s, d_s = a[fit], d[fit]
     e_geo = twin_tcp_mm(robot, plant.params, zero, a_s) - twin_tcp_mm(robot, nominal, zero, a_s)
     bl = EffectParams(backlash_deg=plant.effects.backlash_deg)

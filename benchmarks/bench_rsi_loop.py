@@ -5,7 +5,7 @@ Run: ``python -m benchmarks.bench_rsi_loop [--cycles 50000] [--cycle-ms 12 --cyc
 
 Set-up, per cycle time (all on 127.0.0.1, each a separate process):
 
-- the simulated cell (``python -m comp_daemon.daemon.simcell``): robot plant, simulated KR C4
+- the simulated cell (``python -m comp_daemon.sim.cell``): robot plant, simulated KR C4
   sending ``<Rob>`` telegrams every ``cycle_ms`` on its absolute schedule, three grating converters
   on pseudo-terminals, the motion command port; at ``SCHED_FIFO`` ``--controller-priority`` (10,
   below the daemon's) on ``--controller-cpu`` (the first CPU, away from the daemon's real-time
@@ -227,7 +227,7 @@ def _cell(
     root: Path, cycle_ms: int, rsi_port: int, priority: int, cpu: int | None
 ) -> Iterator[tuple[subprocess.Popen[bytes], dict[str, Any]]]:
     argv = [
-        sys.executable, "-m", "comp_daemon.daemon.simcell", "--rsi-port", str(rsi_port),
+        sys.executable, "-m", "comp_daemon.sim.cell", "--rsi-port", str(rsi_port),
         "--cycle-ms", str(cycle_ms), "--timeout-count", "1000000000", "--link-dir", str(root / "cell"),
         "--exit-with-parent",
     ]  # fmt: skip

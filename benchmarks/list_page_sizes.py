@@ -21,7 +21,7 @@ from pathlib import Path
 from benchmarks.machine import machine_line
 from comp_daemon.service.job_kinds import run_fit
 from comp_daemon.service.schemas import stats_summary
-from comp_daemon.service.store import _without_details
+from comp_daemon.service.store import without_details as _without_details
 
 MODELS = ("chebyshev", "kinematic+ratio+backlash")
 

@@ -273,7 +273,7 @@ def reproduce_seed004(
     comp_true = finite_array(compliance_rad_per_nm, (N_JOINTS,), "compliance_rad_per_nm")
     dx = np.zeros(N_PARAMS)
     dx[0:30:5] = offsets
-    true_params = robot.nominal_params().apply(dx)
+    true_params = KinematicParams.from_robot(robot).apply(dx)
     poses = simulate_psd_poses(
         robot, true_params, comp_true, setup, n_poses, rng, link5_noise_mm=link5_noise_mm
     )

@@ -247,7 +247,7 @@ def calibrate_point_constraint(
     cj = joint_numbers(compliance_joints, "compliance_joints")
     oj = joint_numbers(offset_joints, "offset_joints")
     mass = MassModel.from_robot(robot)
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     names = [*(f"theta{j}" for j in oj), *(f"C{j}" for j in cj), "P_x", "P_y", "P_z"]
     n_th, n_c = len(oj), len(cj)
 

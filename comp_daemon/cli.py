@@ -1,8 +1,11 @@
-"""The ``comp-daemon`` command line: a dispatcher over the subcommand modules in ``comp_daemon.commands``.
+"""The ``comp-daemon`` command line: a dispatcher over the subcommand modules.
 
-Each module in :data:`COMMAND_MODULES` has ``register(subparsers)``, which adds its subcommand(s) and
-sets ``func`` (taking the parsed arguments, returning an exit code) on each parser it adds.
-Errors that a user can fix (a bad file, an unknown robot) print one line to stderr and exit 2.
+Each module in :data:`COMMAND_MODULES` (``comp_daemon.commands.*``, and the simulator's own
+``comp_daemon.sim.cli``) has ``register(subparsers)``, which adds its subcommand(s) and sets ``func``
+(taking the parsed arguments, returning an exit code) on each parser it adds. A command in
+:data:`ON_DEMAND` is imported only when it is the one that runs (the listing shows its help line),
+so ``comp-daemon run`` never loads the simulator. Errors that a user can fix (a bad file, an
+unknown robot) print one line to stderr and exit 2.
 """
 
 from __future__ import annotations
@@ -13,15 +16,23 @@ import sys
 from collections.abc import Sequence
 
 from comp_daemon import __version__
+from comp_daemon.commands.errors import UserError
 
-COMMAND_MODULES: tuple[str, ...] = ("robot", "data", "sim", "run", "diagnose", "fit", "trial")
+COMMAND_MODULES: dict[str, str] = {
+    "robot": "comp_daemon.commands.robot",
+    "data": "comp_daemon.commands.data",
+    "sim": "comp_daemon.sim.cli",
+    "run": "comp_daemon.commands.run",
+    "diagnose": "comp_daemon.commands.diagnose",
+    "fit": "comp_daemon.commands.fit",
+    "trial": "comp_daemon.commands.trial",
+}
+#: commands whose module is imported only to run them, with the help line of the command listing
+ON_DEMAND: dict[str, str] = {"sim": "the simulated drilling cell: measurement campaigns, figures"}
 
 
-class UserError(Exception):
-    """An error in what the user asked for; printed without a traceback."""
-
-
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser of every command; of those in :data:`ON_DEMAND` only ``command`` is complete."""
     parser = argparse.ArgumentParser(
         prog="comp-daemon",
         description="Accuracy compensation for a robotic drilling cell: error models, "
@@ -29,15 +40,18 @@ def build_parser() -> argparse.ArgumentParser:
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in COMMAND_MODULES:
-        module = importlib.import_module(f"comp_daemon.commands.{name}")
-        module.register(subparsers)
+    for name, module_name in COMMAND_MODULES.items():
+        if name in ON_DEMAND and name != command:
+            subparsers.add_parser(name, help=ON_DEMAND[name])
+            continue
+        importlib.import_module(module_name).register(subparsers)
     return parser
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    words = list(sys.argv[1:] if argv is None else argv)
+    parser = build_parser(next((w for w in words if not w.startswith("-")), None))
+    args = parser.parse_args(words)
     func = getattr(args, "func", None)
     if func is None:
         parser.print_help()

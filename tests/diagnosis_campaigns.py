@@ -19,7 +19,7 @@ import numpy as np
 
 from comp_daemon.data.dataset import Dataset
 from comp_daemon.kinematics.forward import identification_jacobian
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects import EffectParams, effect_jacobian, effect_param_names, twin_tcp_mm
 from comp_daemon.robot.description import RobotDescription, load_robot
 
@@ -122,7 +122,7 @@ def sized_effects(
     rng: np.random.Generator,
 ) -> EffectParams:
     """Effects whose TCP signature beyond geometry has the asked 3-D RMS (mm) each."""
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     zero = EffectParams.zeros(TRUE_HARMONICS)
     # a compliance of 1e-300 moves nothing but makes the effect model compute the gravity torques
     with_tau = zero.with_values(["C1"], [1e-300])
@@ -179,7 +179,7 @@ def make_campaign(
     a_r, dir_r, load_r, temp_r = a[rows], direction[rows], payload[rows], temp[rows]
 
     dx = random_geometry(rng)
-    truth = robot.nominal_params().apply(dx)
+    truth = KinematicParams.from_robot(robot).apply(dx)
     if tracker:
         truth = truth.with_base(tracker_transform(rng) @ truth.world_T_base)
     a_true = a_r + rng.normal(0.0, joint_noise_deg, a_r.shape) if joint_noise_deg > 0 else a_r

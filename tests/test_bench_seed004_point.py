@@ -33,7 +33,7 @@ SETUP = PsdSetup()
 def _true_params() -> KinematicParams:
     dx = np.zeros(N_PARAMS)
     dx[0:30:5] = np.deg2rad(SEED004_ZERO_OFFSETS_DEG)
-    return ROBOT.nominal_params().apply(dx)
+    return KinematicParams.from_robot(ROBOT).apply(dx)
 
 
 @pytest.fixture(scope="module")
@@ -70,7 +70,7 @@ def test_link5_shift_equals_forward_kinematics_with_changed_a5_d5() -> None:
 
     from comp_daemon.kinematics.forward import tcp_position_mm
 
-    p = replace(ROBOT.nominal_params(), tool_xyz_mm=np.array([10.0, 20.0, 30.0]))
+    p = replace(KinematicParams.from_robot(ROBOT), tool_xyz_mm=np.array([10.0, 20.0, 30.0]))
     q = np.deg2rad([[10.0, 20.0, -15.0, 30.0, 50.0, 70.0]])
     delta = np.array([[0.7, -0.4]])
     moved = replace(

@@ -11,9 +11,10 @@ import pytest
 
 from comp_daemon.daemon.compensation import ActiveModelCompensator
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
 from comp_daemon.models.base import NominalModel
+from comp_daemon.models.compensation import CompensationLimits
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import load_robot
 from comp_daemon.rt.executor import CompensationError, ModelMissingError
@@ -43,16 +44,18 @@ def test_without_a_model_the_target_fails_as_model_missing(store: Store) -> None
 def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(store: Store) -> None:
     robot = load_robot("kr210")
     dx = np.random.default_rng(4).normal(0.0, 1.0, N_PARAMS) * np.where(
-        np.arange(N_PARAMS) % 5 == 0, 1e-4, 0.1
+        [n.startswith(("theta", "alpha", "beta", "base_r")) for n in PARAM_NAMES], 1e-4, 0.1
     )
-    model = KinematicModel(robot, robot.nominal_params().apply(dx))
+    model = KinematicModel(robot, KinematicParams.from_robot(robot).apply(dx))
     model_id = activate(store, model_document(model, data_sha256="a" * 64, frame="base"))
     comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
     request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
     out = comp(request)
     assert out.model_id == model_id
     assert out.loop_target_deg == out.commanded_deg[:3]
-    wanted = tcp_position_mm(robot.nominal_params(), axes_deg_to_q_rad(np.array([HOME]), robot.sign))
+    wanted = tcp_position_mm(
+        KinematicParams.from_robot(robot), axes_deg_to_q_rad(np.array([HOME]), robot.sign)
+    )
     predicted = model.predict_tcp_mm(np.array([out.commanded_deg]))
     np.testing.assert_allclose(predicted, wanted, atol=1e-6)
     assert np.abs(np.subtract(out.commanded_deg, HOME)).max() > 1e-4  # the model did change it
@@ -60,6 +63,33 @@ def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(s
     tcp = {"tx": float(wanted[0, 0]), "ty": float(wanted[0, 1]), "tz": float(wanted[0, 2])}
     by_position = comp(tcp)
     np.testing.assert_allclose(model.predict_tcp_mm(np.array([by_position.commanded_deg])), wanted, atol=1e-6)
+
+
+def test_the_daemon_compensator_applies_its_configured_limits(store: Store) -> None:
+    robot = load_robot("kr210")
+    dx = np.random.default_rng(4).normal(0.0, 1.0, N_PARAMS) * np.where(
+        [n.startswith(("theta", "alpha", "beta", "base_r")) for n in PARAM_NAMES], 1e-4, 0.1
+    )
+    activate(
+        store,
+        model_document(
+            KinematicModel(robot, KinematicParams.from_robot(robot).apply(dx)),
+            data_sha256="a" * 64,
+            frame="base",
+        ),
+    )
+    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    loose = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
+    change = np.abs(np.subtract(loose(request).commanded_deg, HOME)).max()
+    tight = ActiveModelCompensator(
+        store,
+        robot,
+        [0, 1, 2],
+        current_axes=lambda: tuple(HOME),
+        limits=CompensationLimits(max_axis_change_deg=change / 2),
+    )
+    with pytest.raises(ValueError, match=r"A[1-6].*(limit|change)"):
+        tight(request)
 
 
 def test_an_artifact_that_is_not_a_model_document_is_refused(store: Store) -> None:

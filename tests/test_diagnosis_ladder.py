@@ -10,7 +10,7 @@ from diagnosis_campaigns import NOISE_FLOOR_MM, make_campaign
 from comp_daemon.data.dataset import Dataset
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_tcp_mm
 
 REQUIRED = (
@@ -33,7 +33,7 @@ def step_names(step: dict, harmonics: int = 2) -> list[str]:
 def independent_check_rms(ds: Dataset, robot, names: list[str]) -> float:
     """Fit all 39 geometric parameters and the named effects with scipy (finite differences, LM) on the
     fit rows, and return the RMS 3-D error on the check rows; no code of the diagnosis involved."""
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     fit, check = ds.fit_rows(), ds.check_rows()
     dirs = np.asarray(ds.dir, dtype=float)
     zero = EffectParams.zeros(2)
@@ -95,7 +95,7 @@ def test_check_rms_and_shrink_agree_with_an_independent_recomputation() -> None:
     ds, robot = camp.dataset, camp.robot
     doc = diagnose(ds, robot).to_json()
     check = ds.check_rows()
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(ds.a_deg[check], nominal.sign))
     base_rms = float(np.sqrt(np.mean(np.sum((p_nom - ds.xyz_mm[check]) ** 2, axis=1))))
     assert doc["baseline"]["check_rms_mm"] == pytest.approx(base_rms, rel=1e-5)

@@ -220,7 +220,7 @@ def test_kill_9_during_a_batch_loses_and_repeats_nothing(daemon: DaemonProcess, 
 
         wait_until(third_active, 60, "the third target to move", every_s=0.02)
     children = daemon.kill9()
-    cells = [p for p in children if "comp_daemon.daemon.simcell" in cmdline(p)]
+    cells = [p for p in children if "comp_daemon.sim.cell" in cmdline(p)]
     assert len(cells) == 1, describe(children)
     # the simulated cell notices that its parent is gone and ends (it would go on sending telegrams);
     # an idle job worker and multiprocessing's resource tracker stay until someone ends them (under

@@ -13,7 +13,7 @@ from comp_daemon.kinematics.inverse import (
     solve_ik,
     solve_ik_axes,
 )
-from comp_daemon.kinematics.params import axes_deg_to_q_rad, q_rad_to_axes_deg
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -29,7 +29,7 @@ def _random_axes(name: str, n: int, seed: int) -> np.ndarray:
 @pytest.mark.parametrize("name", list(PRESETS))
 def test_fk_ik_fk_round_trip_full_pose(name: str) -> None:
     robot = load_robot(name)
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     a_true = _random_axes(name, 200, 1)
     q_true = axes_deg_to_q_rad(a_true, robot.sign)
     ch = chain(params, q_true)
@@ -46,7 +46,7 @@ def test_fk_ik_fk_round_trip_full_pose(name: str) -> None:
 
 def test_position_only_targets_stay_near_the_seed() -> None:
     robot = load_robot("kr210")
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     a_true = _random_axes("kr210", 100, 3)
     target = tcp_position_mm(params, axes_deg_to_q_rad(a_true, robot.sign))
     seed = a_true + np.random.default_rng(4).normal(0, 2.0, a_true.shape)
@@ -62,7 +62,7 @@ def test_position_only_targets_stay_near_the_seed() -> None:
 
 def test_unreachable_target_is_an_explicit_failure() -> None:
     robot = load_robot("kr210")
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     a_seed = np.array([[0.0, -90.0, 90.0, 0.0, 30.0, 0.0]])
     far = np.array([[5000.0, 0.0, 1000.0], [1500.0, 0.0, 1200.0]])
     _, res = solve_ik_axes(params, robot.sign, robot.axis_limits_deg, far, None, np.repeat(a_seed, 2, axis=0))
@@ -76,7 +76,7 @@ def test_unreachable_target_is_an_explicit_failure() -> None:
 def test_joint_limits_are_respected_even_when_the_target_needs_more() -> None:
     """A pose reachable only beyond A2's limit is refused, not reached by leaving the limits."""
     robot = load_robot("kr210")
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     a = np.array([[0.0, -2.0, 90.0, 0.0, 30.0, 0.0]])  # A2 = -2 is beyond max_deg = -5
     target = tcp_position_mm(params, axes_deg_to_q_rad(a, robot.sign))
     seed = np.array([[0.0, -10.0, 90.0, 0.0, 30.0, 0.0]])

@@ -24,7 +24,7 @@ def _perturbed_params(name: str, seed: int) -> KinematicParams:
     dx[30:33] = rng.normal(0, 500, 3)
     dx[33:36] = rng.normal(0, 0.3, 3)
     dx[36:39] = rng.normal(0, 5, 3)
-    return load_robot(name).nominal_params().apply(dx)
+    return KinematicParams.from_robot(load_robot(name)).apply(dx)
 
 
 @pytest.mark.parametrize("name", list(PRESETS))
@@ -81,7 +81,7 @@ def test_parameter_vector_layout_and_apply_difference_round_trip() -> None:
     assert PARAM_NAMES[joint_param_index("beta", 2)] == "beta2"
     assert PARAM_NAMES[joint_param_index("theta", 1)] == "theta1"
     assert len(set(PARAM_NAMES)) == N_PARAMS == 39
-    nominal = load_robot("kr210").nominal_params()
+    nominal = KinematicParams.from_robot(load_robot("kr210"))
     moved = _perturbed_params("kr210", 14)
     dx = moved.difference(nominal)
     again = nominal.apply(dx)
@@ -91,7 +91,7 @@ def test_parameter_vector_layout_and_apply_difference_round_trip() -> None:
 
 
 def test_refuses_wrongly_shaped_inputs() -> None:
-    params = load_robot("kr210").nominal_params()
+    params = KinematicParams.from_robot(load_robot("kr210"))
     with pytest.raises(ValueError, match=r"shape \(n, 6\)"):
         chain(params, np.zeros((3, 5)))
     with pytest.raises(ValueError, match="shape"):

@@ -11,7 +11,7 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.kinematics.forward import chain, gravity_torques_nm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import load_robot
 
 
@@ -28,7 +28,7 @@ def test_presets_match_the_spec_files(spec_dir: Path) -> None:
 def test_kr210_reference_positions_and_torques(spec_dir: Path) -> None:
     rows = _vectors(spec_dir)
     robot = load_robot("kr210")
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     a_deg = np.array([[r[f"a{i}"] for i in range(1, 7)] for r in rows])
     q = axes_deg_to_q_rad(a_deg, robot.sign)
     ch = chain(params, q)
@@ -64,7 +64,7 @@ def test_cli_fk_refuses_axes_outside_limits(capsys: pytest.CaptureFixture[str]) 
 def test_gravity_torque_is_minus_the_gradient_of_potential_energy() -> None:
     """Independent check of the torque formula: tau = -dU/dq by central differences."""
     robot = load_robot("kr210")
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     rng = np.random.default_rng(3)
     q = rng.uniform(-1.5, 1.5, (5, 6))
     payload = 80.0

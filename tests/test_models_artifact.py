@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from comp_daemon import __version__
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.artifact import (
     ModelArtifactError,
@@ -34,7 +34,7 @@ def _data(n: int = 120) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     lim = KR.axis_limits_deg
     a = lim.mean(axis=1) + rng.uniform(-0.5, 0.5, (n, 6)) * np.minimum((lim[:, 1] - lim[:, 0]) / 2, 90)
     dirs = rng.choice([-1.0, 1.0], size=a.shape)
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 3e-4)
     world = np.eye(4)
     world[:3, :3] = rotation_from_rotvec(np.array([0.0, 0.0, 0.4]))
     world[:3, 3] = [-3000.0, 1000.0, -500.0]

@@ -9,7 +9,7 @@ import pytest
 from numpy.polynomial import chebyshev as npcheb
 
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.chebyshev import (
     ChebyshevModel,
@@ -49,7 +49,7 @@ def test_names_and_layout() -> None:
 
 def test_zero_coefficients_are_the_nominal_robot() -> None:
     kr = load_robot("kr210")
-    params = kr.nominal_params()
+    params = KinematicParams.from_robot(kr)
     a = _axes(kr, 20, 0)
     p = chebyshev_tcp_mm(params, a, kr.axis_limits_deg, 3, np.zeros(n_coefficients(3)))
     np.testing.assert_allclose(p, tcp_position_mm(params, axes_deg_to_q_rad(a, kr.sign)), atol=1e-9)
@@ -58,7 +58,7 @@ def test_zero_coefficients_are_the_nominal_robot() -> None:
 def test_single_terms_act_as_differential_motions() -> None:
     """E_6's order-0 translation moves the TCP along the flange axes; E_0's along the base axes."""
     kr = load_robot("kr210")
-    params = kr.nominal_params()
+    params = KinematicParams.from_robot(kr)
     a = _axes(kr, 5, 1)
     names = coefficient_names(1)
     coef = np.zeros(len(names))
@@ -74,7 +74,7 @@ def test_single_terms_act_as_differential_motions() -> None:
 @pytest.mark.parametrize("order", [0, 2])
 def test_jacobian_matches_central_differences(order: int) -> None:
     kr = load_robot("kr210")
-    params = kr.nominal_params().with_base(np.eye(4))
+    params = KinematicParams.from_robot(kr).with_base(np.eye(4))
     a = _axes(kr, 8, 2)
     rng_deg = kr.axis_limits_deg
     coef = np.random.default_rng(3).normal(size=n_coefficients(order)) * 1e-3
@@ -100,7 +100,7 @@ def test_order_zero_matches_the_kinematic_calibration() -> None:
     kr = load_robot("kr210")
     rng = np.random.default_rng(4)
     dx = rng.normal(size=N_PARAMS) * 1e-3
-    truth = kr.nominal_params().apply(dx)
+    truth = KinematicParams.from_robot(kr).apply(dx)
     a = _axes(kr, 150, 5)
     p = tcp_position_mm(truth, axes_deg_to_q_rad(a, kr.sign)) + rng.normal(size=(150, 3)) * 0.01
     cheb = fit_chebyshev(kr, a[:100], p[:100], 0)
@@ -117,14 +117,16 @@ def test_noise_free_chebyshev_errors_are_recovered() -> None:
     a = _axes(kr, 400, 6)
     rng_deg = np.array([a.min(axis=0), a.max(axis=0)]).T
     order = 2
-    probe = fit_chebyshev(kr, a, tcp_position_mm(kr.nominal_params(), axes_deg_to_q_rad(a, kr.sign)), order)
+    probe = fit_chebyshev(
+        kr, a, tcp_position_mm(KinematicParams.from_robot(kr), axes_deg_to_q_rad(a, kr.sign)), order
+    )
     idx = probe.report.identifiable_index
     coef = np.zeros(n_coefficients(order))
     rng = np.random.default_rng(7)
     names = np.array(coefficient_names(order))
     is_rot = np.array([".eps_" in n for n in names])
     coef[idx] = rng.normal(size=idx.size) * np.where(is_rot[idx], 2e-4, 0.1)
-    p = chebyshev_tcp_mm(kr.nominal_params(), a, rng_deg, order, coef)
+    p = chebyshev_tcp_mm(KinematicParams.from_robot(kr), a, rng_deg, order, coef)
     fit = fit_chebyshev(kr, a, p, order, frame="base")
     assert fit.lm.converged
     assert fit.rms_mm < 1e-8
@@ -134,7 +136,7 @@ def test_noise_free_chebyshev_errors_are_recovered() -> None:
 
 def _cyclic_robot(kr: RobotDescription) -> tuple[EffectParams, np.ndarray]:
     rng = np.random.default_rng(8)
-    truth = kr.nominal_params().apply(rng.normal(size=N_PARAMS) * 5e-4)
+    truth = KinematicParams.from_robot(kr).apply(rng.normal(size=N_PARAMS) * 5e-4)
     eff = EffectParams.zeros(2).with_values(["c2_1", "s3_2", "eps2"], [0.01, 0.008, 3e-4])
     return eff, truth
 
@@ -213,7 +215,7 @@ def test_outside_the_range_the_error_is_held_at_the_edge() -> None:
 
 
 def _nominal_tcp(robot: RobotDescription, a: np.ndarray) -> np.ndarray:
-    return tcp_position_mm(robot.nominal_params(), axes_deg_to_q_rad(a, robot.sign))
+    return tcp_position_mm(KinematicParams.from_robot(robot), axes_deg_to_q_rad(a, robot.sign))
 
 
 def test_bad_model_content_is_refused() -> None:

@@ -10,7 +10,7 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import Dataset, read_dataset, write_dataset
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.artifact import load_model
 from comp_daemon.models.compensation import nominal_targets
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
@@ -31,7 +31,7 @@ def campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
     n = 160
     a = _axes(n, 1)
     dirs = rng.choice([-1, 1], size=(n, 6))
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 3e-4)
     eff = EffectParams.zeros().with_values(["h2", "h3", "eps2"], [0.005, 0.004, 1e-4])
     p = twin_tcp_mm(KR, truth, eff, a, dirs.astype(float)) + rng.normal(size=(n, 3)) * 0.01
     split = np.where(np.arange(n) < 100, "fit", "check")
@@ -123,7 +123,8 @@ def test_compensate_writes_commands_whose_prediction_is_the_target(campaign: Pat
         == 0
     )
     model = load_model(model_path).model
-    a_nominal = _axes(8, 5)
+    a_nominal = _axes(40, 5)
+    a_nominal = a_nominal[np.abs(a_nominal[:, 4]) > 10.0][:8]  # away from the wrist singularity
     wanted, _ = nominal_targets(model, a_nominal)
     targets = tmp_path / "targets.csv"
     write_dataset(Dataset(a_deg=None, target_xyz_mm=wanted, pose_id=[f"h{i}" for i in range(8)]), targets)

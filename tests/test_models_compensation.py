@@ -7,7 +7,7 @@ import pytest
 
 from comp_daemon.kinematics.forward import chain, position_jacobian_mm
 from comp_daemon.kinematics.inverse import UnreachableTargetError
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import fit_chebyshev
@@ -35,7 +35,7 @@ def _tracker() -> np.ndarray:
 def _models() -> list[ErrorModel]:
     """A kinematic model with joint effects (tracker frame) and a Chebyshev model fitted on a robot."""
     rng = np.random.default_rng(1)
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 5e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 5e-4)
     eff = EffectParams.zeros(1).with_values(["eps2", "eps3", "c2_1"], [2e-4, -3e-4, 0.01])
     kin = KinematicModel(KR, truth.with_base(_tracker() @ truth.world_T_base), eff, registration=_tracker())
     a = _axes(200, 2)
@@ -87,7 +87,7 @@ def test_unreachable_targets_are_named() -> None:
 
 
 def test_joint_mapping_solves_the_position_jacobian_of_joints_1_to_3() -> None:
-    params = KR.nominal_params()
+    params = KinematicParams.from_robot(KR)
     a = _axes(12, 6)
     error = np.random.default_rng(7).normal(size=(12, 3)) * 0.3
     corr = joint_mapping(params, a, error)
@@ -118,7 +118,7 @@ def test_feed_forward_removes_the_estimated_error_to_first_order() -> None:
 
 def test_calibrated_model_compensates_the_true_robot_to_the_noise_level() -> None:
     rng = np.random.default_rng(9)
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 5e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 5e-4)
     a = _axes(150, 10)
     measured = twin_tcp_mm(KR, truth, EffectParams.zeros(), a) + rng.normal(size=(150, 3)) * 0.01
     model = calibrate_kinematic(KR, a, measured).model

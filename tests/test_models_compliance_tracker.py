@@ -15,7 +15,7 @@ from benchmarks.seed004_compliance import (
 )
 from comp_daemon.kinematics.forward import gravity_torques_nm
 from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.compliance import ComplianceModel, calibrate_compliance
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.robot.description import load_robot
@@ -37,7 +37,12 @@ def test_model_is_the_effects_twin_with_offsets_and_compliance() -> None:
     dx = np.zeros(N_PARAMS)
     dx[0:30:5] = OFFSETS
     twin = twin_tcp_mm(
-        ROBOT, ROBOT.nominal_params().apply(dx), EffectParams(compliance_rad_per_nm=COMP), a, None, payload
+        ROBOT,
+        KinematicParams.from_robot(ROBOT).apply(dx),
+        EffectParams(compliance_rad_per_nm=COMP),
+        a,
+        None,
+        payload,
     )
     np.testing.assert_array_equal(model.predict_tcp_mm(a, None, payload), twin)
     # δθ = C·τ with the gravity torques of the links and the payload (joints 2 and 3 only)

@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from comp_daemon.kinematics.forward import gravity_torques_nm, tcp_position_mm
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects import (
+    EFFECTS,
     EffectParams,
     MassModel,
     effect_jacobian,
@@ -19,10 +20,11 @@ from comp_daemon.models.effects import (
     twin_state,
     twin_tcp_mm,
 )
+from comp_daemon.models.effects.params import parse_param_name
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("kr210")
-PARAMS = ROBOT.nominal_params()
+PARAMS = KinematicParams.from_robot(ROBOT)
 K = 2
 
 
@@ -142,7 +144,7 @@ def test_output_angle_reproduces_the_twin() -> None:
 @pytest.mark.parametrize("robot_name", ["kr210", "irb120"])
 def test_effect_jacobian_matches_central_differences(robot_name: str) -> None:
     robot = load_robot(robot_name)
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     rng = np.random.default_rng(5)
     a = random_axes(rng, 6, robot)
     d = rng.choice([-1.0, 1.0], size=(6, 6))
@@ -150,12 +152,12 @@ def test_effect_jacobian_matches_central_differences(robot_name: str) -> None:
     temp = rng.uniform(15.0, 32.0, 6)
     eff = random_effects(rng)
     names = eff.names()
-    assert len(names) == 6 * (1 + 1 + 2 * K + 1) + 1
+    assert names == effect_param_names(EFFECTS, (1, 2, 3, 4, 5, 6), K)
     jac = effect_jacobian(robot, params, eff, names, a, d, payload, temp)
-    step = {"h": 1e-4, "e": 1e-6, "c": 1e-4, "s": 1e-4, "C": 1e-9, "k": 1e-7}
     x0 = eff.get(names)
     for col, name in enumerate(names):
-        h = step[name[0]]
+        ref = parse_param_name(name, K)
+        h = 0.01 * ref.effect.arrays[ref.array].typical
         e = np.zeros(len(names))
         e[col] = h
         plus = twin_tcp_mm(robot, params, eff.with_values(names, x0 + e), a, d, payload, temp)
@@ -245,7 +247,7 @@ def test_compliance_columns_are_not_zero_where_every_compliance_is_zero() -> Non
     from comp_daemon.robot.description import load_robot
 
     robot = load_robot("kr210")
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     a = np.array([[0.0, -90.0, 90.0, 0.0, 30.0, 0.0], [10.0, -60.0, 100.0, 20.0, -30.0, 45.0]])
     zero = EffectParams.zeros()
     jac = effect_jacobian(robot, params, zero, ["C2", "C3"], a, payload_kg=50.0)

@@ -30,7 +30,7 @@ def _random_q(robot: RobotDescription, n: int, seed: int) -> np.ndarray:
 
 def _mh6_probe_as_frame6() -> KinematicParams:
     """MH6 with seed 003's probe: the tool point is the origin of frame 6 (a6 != 0, tool offset zero)."""
-    p = load_robot("mh6").nominal_params()
+    p = KinematicParams.from_robot(load_robot("mh6"))
     # tool (40, 0, 120) after Rx(alpha6 = 180°) is (40, 0, -120) in the frame before it: a6 += 40, d6 -= 120
     folded = replace(
         p,
@@ -105,7 +105,7 @@ KR210_REMOVED = {
 
 def test_kr210_with_base_and_tool_keeps_27_and_names_the_rest() -> None:
     kr = load_robot("kr210")
-    params = kr.nominal_params()
+    params = KinematicParams.from_robot(kr)
     assert parallel_joints(params) == (False, True, False, False, False, False)
     jac = identification_jacobian(params, _random_q(kr, 100, 3))
     report = analyze_identifiability(jac, PARAM_NAMES, priority=mdh_priority(params))

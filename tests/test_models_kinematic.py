@@ -40,13 +40,13 @@ def _tracker_frame() -> np.ndarray:
 
 
 def _identifiable(robot: RobotDescription, a_deg: np.ndarray) -> np.ndarray:
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     jac = identification_jacobian(params, axes_deg_to_q_rad(a_deg, params.sign))
     return analyze_identifiability(jac, PARAM_NAMES, priority=mdh_priority(params)).identifiable_index
 
 
 def _truth(robot: RobotDescription, dx: np.ndarray, world: np.ndarray | None) -> KinematicParams:
-    p = robot.nominal_params().apply(dx)
+    p = KinematicParams.from_robot(robot).apply(dx)
     return p if world is None else p.with_base(world @ p.world_T_base)
 
 
@@ -75,7 +75,7 @@ def test_calibration_jacobian_matches_central_differences() -> None:
     kr = load_robot("kr210")
     a = _axes(kr, 6, 1)
     dirs = np.random.default_rng(2).choice([-1.0, 1.0], size=a.shape)
-    start = kr.nominal_params().with_base(_tracker_frame())
+    start = KinematicParams.from_robot(kr).with_base(_tracker_frame())
     names = effect_param_names(["ratio", "backlash"], (1, 2, 3))
     geo = np.arange(N_PARAMS)
     problem = KinematicProblem(
@@ -171,7 +171,7 @@ def test_seed001_ratio_and_backlash_are_recovered() -> None:
 def test_backlash_without_directions_is_reported_unidentifiable() -> None:
     kr = load_robot("kr210")
     a = _axes(kr, 60, 10)
-    p = tcp_position_mm(kr.nominal_params(), axes_deg_to_q_rad(a, kr.sign))
+    p = tcp_position_mm(KinematicParams.from_robot(kr), axes_deg_to_q_rad(a, kr.sign))
     fit = calibrate_kinematic(kr, a, p, effects=["backlash"])
     assert set(fit.report.removed_names("zero")) == {f"h{j}" for j in range(1, 7)}
     assert not any(n.startswith("h") for n in fit.identified)

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
@@ -34,7 +34,7 @@ def _campaign(n: int, seed: int, backlash_deg: float = 0.004) -> tuple[np.ndarra
         backlash_deg=np.full(6, backlash_deg),
         compliance_rad_per_nm=np.array([2.0, 2.0, 3.0, 10.0, 10.0, 10.0]) * 6e-8,
     )
-    p = twin_tcp_mm(ROBOT, ROBOT.nominal_params().apply(dx), effects, a, d, 150.0)
+    p = twin_tcp_mm(ROBOT, KinematicParams.from_robot(ROBOT).apply(dx), effects, a, d, 150.0)
     return a, d, p + rng.normal(0.0, 0.01, p.shape)
 
 

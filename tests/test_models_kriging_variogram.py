@@ -7,7 +7,7 @@ import dataclasses
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kriging import JointStateMetric, joint_space_semivariogram
 from comp_daemon.models.variogram import (
@@ -114,7 +114,7 @@ def test_backlash_errors_are_not_similar_in_joint_space_but_are_with_direction()
     """Seed 001 Figs 3–4: geometric errors are similar at small joint distances, backlash errors
     (random approach directions) are not — unless the distance includes the direction."""
     robot = load_robot("kr210")
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     a, d = _joint_box(500, 1)
     rng = np.random.default_rng(2)
     dx = np.zeros(N_PARAMS)

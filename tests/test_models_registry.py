@@ -12,7 +12,7 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import Dataset, read_dataset, write_dataset
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models import base, chebyshev, compliance, kinematic, kriging
 from comp_daemon.models.artifact import load_model, model_from_artifact, save_model
 from comp_daemon.models.base import NominalModel
@@ -61,7 +61,7 @@ def _campaign(seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray
     a = _axes(N, seed + 1)
     dirs = rng.choice([-1, 1], size=(N, 6))
     payload = np.where(np.arange(N) % 2 == 0, 0.0, 100.0)
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 3e-4)
     eff = EffectParams.zeros().with_values(["h2", "h3", "eps2", "C2", "C3"], [0.005, 0.004, 1e-4, 2e-8, 3e-8])
     p = twin_tcp_mm(KR, truth, eff, a, dirs.astype(float), payload) + rng.normal(size=(N, 3)) * 0.01
     return a, dirs, payload, p

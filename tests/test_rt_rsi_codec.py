@@ -106,11 +106,22 @@ def test_junk_after_telegram_is_a_protocol_error(junk: bytes) -> None:
         (b"<Rob><IPOC>&undefined;</IPOC></Rob>", "not well-formed"),
         (b'<?xml version="1.0" encoding="klingon"?><Rob><IPOC>1</IPOC></Rob>', "XML"),
         (b"<Rob><IPOC>1</IPOC></Rob>" + b" " * 20000, "larger than"),
+        (b"<Rob><IPOC>" + b"7" * 5000 + b"</IPOC></Rob>", "IPOC is beyond 64 bits \\(5000 digits\\)"),
+        (b"<Rob><IPOC>" + b"0" * 5000 + b"18446744073709551616</IPOC></Rob>", "IPOC is beyond 64 bits"),
+        (
+            b'<Rob><Delay D="' + b"9" * 4400 + b'"/><IPOC>1</IPOC></Rob>',
+            "Delay attribute D is beyond 64 bits",
+        ),
     ],
 )
 def test_garbage_is_named(data: bytes, reason: str) -> None:
     with pytest.raises(RsiProtocolError, match=reason):
         parse_rob(data)
+
+
+def test_largest_64_bit_ipoc_and_leading_zeros_are_accepted() -> None:
+    assert parse_rob(b"<Rob><IPOC>18446744073709551615</IPOC></Rob>").ipoc == 2**64 - 1
+    assert parse_rob(b"<Rob><IPOC>" + b"0" * 5000 + b"12</IPOC></Rob>").ipoc == 12
 
 
 def test_billion_laughs_rejected_before_parsing() -> None:

@@ -186,3 +186,129 @@ def test_sample_stats_ring_keeps_the_latest_values() -> None:
     assert st.count == 10 and st.min == 0 and st.max == 9000 and st.sum == 45000
     assert st.percentiles((50.0,)) == {"p50": float(np.median([6000, 7000, 8000, 9000]))}
     assert sum(st.histogram) == 10
+
+
+async def test_garbage_behind_a_valid_telegram_does_not_displace_it(
+    make_server: MakeServer, controller_sock: socket.socket
+) -> None:
+    seen: list[int] = []
+
+    def handler(t: RobTelegram) -> SenReply:
+        seen.append(t.ipoc)
+        return SenReply(t.ipoc, AK)
+
+    _, proto, addr = await make_server(handler)
+    huge_ipoc = b"<Rob><IPOC>" + b"9" * 5000 + b"</IPOC></Rob>"
+    for datagram in (telegram(12), telegram(24), b"\x00garbage", huge_ipoc, b"<Rob>"):
+        controller_sock.sendto(datagram, addr)  # all queued before the loop runs
+    assert parse_sen(await recv(controller_sock)).ipoc == 24
+    assert await nothing_arrives(controller_sock)
+    assert seen == [24]
+    stats = proto.stats
+    assert (stats.received, stats.answered, stats.superseded, stats.garbled) == (5, 1, 1, 3)
+
+
+class _StillPlant:
+    """The robot standing still at one pose; actual = setpoint + correction."""
+
+    def __init__(self) -> None:
+        self.setpoint = np.array((0.0, -90.0, 90.0, 0.0, 45.0, 0.0))
+        self.correction = np.zeros(6)
+
+    def advance(self, dt_s: float) -> None:
+        pass
+
+    def axis_setpoint_deg(self) -> np.ndarray:
+        return self.setpoint.copy()
+
+    def axis_actual_deg(self) -> np.ndarray:
+        return self.setpoint + self.correction
+
+    def apply_correction(self, correction_deg: np.ndarray) -> None:
+        self.correction = np.array(correction_deg, dtype=float)
+
+    def start_move(self, target_axes_deg: np.ndarray) -> None:
+        self.setpoint = np.array(target_axes_deg, dtype=float)
+
+    def in_motion(self) -> bool:
+        return False
+
+    def halt(self) -> None:
+        pass
+
+
+_FLOODER = """
+import os, socket, sys, time
+port, rate, seconds, burst = int(sys.argv[1]), float(sys.argv[2]), float(sys.argv[3]), int(sys.argv[4])
+garbage = [
+    os.urandom(200),
+    b"<Rob><IPOC>" + b"7" * 5000 + b"</IPOC></Rob>",
+    b'<Rob Type="KUKA"><AIPos A1="x"/><IPOC>1</IPOC></Rob>',
+    b"<Rob><IPOC>12</IPOC>",
+    b"",
+]
+s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+s.bind(("127.0.0.1", 0))
+sent, t0 = 0, time.perf_counter()
+while (now := time.perf_counter() - t0) < seconds:
+    if sent < now * rate:
+        for _ in range(burst):
+            s.sendto(garbage[sent % len(garbage)], ("127.0.0.1", port))
+            sent += 1
+    time.sleep(0.0002)
+print(sent)
+"""
+
+
+async def test_garbage_flood_from_the_controller_address_misses_no_valid_telegram(
+    make_server: MakeServer,
+) -> None:
+    """A second process floods garbage from the controller's host (2 000 datagrams/s in bursts of 20)
+    while the simulated controller runs its 12 ms cycle and the loop has other work: every telegram
+    the controller sends is answered or, after a machine stall, superseded by a newer valid one; RSI
+    keeps running. (Keeping the newest datagram instead of the newest telegram answered about half
+    and the controller stopped on "10 late replies".)"""
+    import sys
+    import time
+
+    from comp_daemon.sim.rsi_controller import RsiControllerConfig, RsiState, SimulatedRsiController
+
+    answered: list[int] = []
+
+    def handler(t: RobTelegram) -> SenReply:
+        answered.append(t.ipoc)
+        return SenReply(t.ipoc, AK if len(answered) % 2 else tuple(-v for v in AK))
+
+    _, proto, addr = await make_server(handler)
+    controller = SimulatedRsiController(
+        RsiControllerConfig(server_host=addr[0], server_port=addr[1], cycle_ms=12), _StillPlant()
+    )
+    flood_s, rate = 3.0, 2000.0
+    flooder = await asyncio.create_subprocess_exec(
+        sys.executable, "-c", _FLOODER, str(addr[1]), str(rate), str(flood_s), "20",
+        stdout=asyncio.subprocess.PIPE,
+    )  # fmt: skip
+
+    async def other_work() -> None:  # the loop's other duties (gratings, telemetry): busy 2 ms in 5
+        while True:
+            time.sleep(0.002)
+            await asyncio.sleep(0.003)
+
+    await controller.start()
+    busy = asyncio.create_task(other_work())
+    try:
+        out, _ = await asyncio.wait_for(flooder.communicate(), flood_s + 30)
+    finally:
+        busy.cancel()
+        await controller.close()
+    await asyncio.sleep(0.1)  # the server takes the last telegram sent
+    flood = int(out)
+    stats, sent = proto.stats, controller.stats.telegrams_sent
+    assert controller.state is RsiState.STOPPED and controller.stop_reason == "controller shut down"
+    assert flood > 0.8 * rate * flood_s and stats.garbled >= flood - 10  # the flood arrived, all refused
+    assert stats.answered + stats.superseded == sent  # no valid telegram lost to garbage
+    assert answered == sorted(set(answered))  # each answered once, in order
+    # late only behind a machine stall, if at all (then a telegram waits, or the controller's cycle
+    # is itself late and judges before the reply is read)
+    assert controller.stats.late_total <= stats.superseded + controller.stats.overruns + 1
+    assert stats.superseded <= 0.1 * sent, stats.snapshot()

@@ -14,7 +14,7 @@ import pytest
 
 from comp_daemon.common.logs import bound, configure_logging, get_logger
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import PARAM_NAMES, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.api import create_app, open_store
 from comp_daemon.service.config import Settings, load_settings
@@ -44,7 +44,7 @@ def make_settings(tmp_path: Path, **overrides: Any) -> Settings:
 def campaign_csv(n: int = 40, seed: int = 0, noise_mm: float = 0.01) -> str:
     """A measurement campaign of a KR210 with small geometric errors (every 4th row held out to check)."""
     robot = load_robot("kr210")
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     rng = np.random.default_rng(seed)
     lo = np.array([-60, -120, 40, -90, 20, -90.0])
     hi = np.array([60, -40, 130, 90, 100, 90.0])

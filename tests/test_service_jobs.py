@@ -17,7 +17,7 @@ import pytest
 from test_service_api import auth, campaign_csv, make_settings
 
 from comp_daemon.daemon.compensation import ActiveModelCompensator
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.artifact import parse_model
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.robot.description import load_robot
@@ -274,7 +274,7 @@ def _campaign_with_directions_and_payload(n: int, seed: int = 0) -> str:
     a = rng.uniform([-60, -120, 40, -90, 20, -90.0], [60, -40, 130, 90, 100, 90.0], (n, 6))
     dirs = rng.choice([-1, 1], size=(n, 6))
     payload = np.where(np.arange(n) % 2 == 0, 0.0, 100.0)
-    truth = robot.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    truth = KinematicParams.from_robot(robot).apply(rng.normal(size=N_PARAMS) * 3e-4)
     eff = EffectParams.zeros().with_values(["h2", "h3", "C2", "C3"], [0.005, 0.004, 2e-8, 3e-8])
     p = twin_tcp_mm(robot, truth, eff, a, dirs.astype(float), payload) + rng.normal(0.0, 0.01, (n, 3))
     head = "a1,a2,a3,a4,a5,a6,x,y,z," + ",".join(f"dir{k}" for k in range(1, 7)) + ",payload_kg,split"
@@ -333,12 +333,13 @@ async def test_every_kind_fits_over_http_and_compensates_once_active(service: An
         assert record.kind == name.split("+")[0].split(":")[0]
         artifact = (await client.get(f"/api/models/{record.id}/artifact", headers=auth("viewer"))).json()
         assert artifact["kind"] == stats["artifact_kind"]
-        # activation: the daemon's compensator loads the stored artifact and compensates with it
+        # activation: the daemon's compensator loads the stored artifact and compensates with it (a target
+        # inside the sampled axis ranges: a model is not used outside its validity region)
         assert (
             await client.post(f"/api/models/{record.id}/activate", headers=auth("engineer"))
         ).status_code == 200
         comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: home)
         out = comp(
-            {"a1": 10.0, "a2": -80.0, "a3": 110.0, "a4": 0.0, "a5": -30.0, "a6": 0.0, "payload_kg": 100.0}
+            {"a1": 10.0, "a2": -80.0, "a3": 110.0, "a4": 0.0, "a5": 50.0, "a6": 0.0, "payload_kg": 100.0}
         )
         assert out.model_id == record.id and out.info["predicted_residual_mm"] < 1e-5, name

@@ -11,7 +11,7 @@ from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset
 from comp_daemon.kinematics.forward import chain
 from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.campaign import (
     iso9283_multidirection,
@@ -50,7 +50,7 @@ def test_sampled_poses_are_a_latin_hypercube_reached_by_nominal_ik() -> None:
     unit = (poses.target_xyz_mm - cam.box_min_mm) / (cam.box_max_mm - cam.box_min_mm)
     for col in unit.T:  # one sample in each of the n slices of every dimension
         assert sorted(np.floor(col * n).astype(int)) == list(range(n))
-    params = KR210_CELL.robot.nominal_params()
+    params = KinematicParams.from_robot(KR210_CELL.robot)
     ch = chain(params, axes_deg_to_q_rad(poses.a_deg, params.sign))
     np.testing.assert_allclose(ch.tcp_mm, poses.target_xyz_mm, atol=1e-3)
     want_r = rotation_kuka_abc_deg(poses.target_abc_deg)

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.robot.description import load_robot
 from comp_daemon.sim.plant import RobotPlant, TrapezoidProfile
@@ -16,7 +16,7 @@ from comp_daemon.sim.rsi_controller import JointStateSource
 from comp_daemon.sim.scenario import CellSettings, MotionSettings, load_scenario
 
 ROBOT = load_robot("kr210")
-NOMINAL = ROBOT.nominal_params()
+NOMINAL = KinematicParams.from_robot(ROBOT)
 MOTION = MotionSettings(
     v_max_deg_s=np.array([100.0, 90.0, 90.0, 150.0, 150.0, 200.0]),
     a_max_deg_s2=np.array([200.0, 180.0, 180.0, 300.0, 300.0, 400.0]),

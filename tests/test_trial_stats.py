@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.sim.scenario import load_scenario
 from comp_daemon.trial.plan import FULL, QUICK, TrialPlan, TrialSizes, plan_trial, visit_dirs
 from comp_daemon.trial.report import render_html, render_text
@@ -73,7 +73,7 @@ def test_plan_is_seed_000s_layout_and_reproducible() -> None:
     for p in (pts.sampling, pts.targets):
         assert np.all(p.wanted_mm >= cam.box_min_mm - 1e-6) and np.all(p.wanted_mm <= cam.box_max_mm + 1e-6)
         assert np.all(np.abs(p.abc_deg) <= 10.0 + 1e-9)
-        nominal = scenario.robot.nominal_params()
+        nominal = KinematicParams.from_robot(scenario.robot)
         fk = tcp_position_mm(nominal, axes_deg_to_q_rad(p.a_nominal_deg, nominal.sign))
         assert np.allclose(fk, p.wanted_mm, atol=1e-6)
         assert np.array_equal(p.dir, visit_dirs(p.a_nominal_deg, pts.home_deg))

@@ -11,15 +11,15 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 from pathlib import Path
 
+from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset, read_dataset_json
-from comp_daemon.diagnosis.ladder import DiagnoseOptions, diagnose
+from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.models.effects import EFFECTS
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -29,8 +29,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="sim-to-real gap diagnosis: which unmodelled effect, on which joints, how far the error shrinks",
         description="Diagnose the gap between a robot's nominal twin and tracker measurements: a ladder from "
         "the nominal twin through geometric calibration and the significant non-geometric effects "
-        "(backlash, ratio, cyclic, compliance, thermal), chosen on fit rows by cross-validation and "
-        "judged on check rows.",
+        f"({', '.join(EFFECTS)}), chosen on fit rows by cross-validation and judged on check rows.",
     )
     p.add_argument(
         "data", metavar="DATA", help="measurement data set (CSV per the data set spec, or .json records)"
@@ -69,19 +68,6 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_run)
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    path = path.expanduser()
-    directory = path.parent if str(path.parent) else Path(".")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=directory)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-
-
 def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     options = DiagnoseOptions(
@@ -99,9 +85,9 @@ def _run(args: argparse.Namespace) -> int:
     if args.json_out is None:
         print(doc)
     else:
-        _write_atomic(args.json_out, doc + "\n")
+        write_text_atomic(args.json_out.expanduser(), doc + "\n")
     if report is not None:
-        _write_atomic(args.report, report)
+        write_text_atomic(args.report.expanduser(), report)
     if args.json_out is not None:
         out = sys.stdout
         print(

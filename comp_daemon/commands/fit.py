@@ -32,13 +32,19 @@ from typing import Any, Literal
 
 import numpy as np
 
-from comp_daemon.cli import UserError
+from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
-from comp_daemon.models.compensation import compensate, nominal_targets
+from comp_daemon.models.compensation import (
+    DEFAULT_LIMITS,
+    CompensationLimits,
+    CompensationRefused,
+    compensate,
+    nominal_targets,
+)
 from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
 from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, directions_of, infer_fit_directions
 from comp_daemon.models.registry import (
@@ -114,6 +120,27 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     comp.add_argument("--robot", default=None, help="refuse the model unless it belongs to this robot")
     comp.add_argument(
         "--tol-mm", type=float, default=1e-6, help="predicted-position tolerance (default 1e-6 mm)"
+    )
+    comp.add_argument(
+        "--max-axis-change-deg",
+        type=float,
+        default=DEFAULT_LIMITS.max_axis_change_deg,
+        help="refuse a target whose compensation changes an axis by more than this from the nominal "
+        f"solution (default {DEFAULT_LIMITS.max_axis_change_deg:g})",
+    )
+    comp.add_argument(
+        "--wrist-singularity-deg",
+        type=float,
+        default=DEFAULT_LIMITS.wrist_singularity_deg,
+        help="refuse a target whose axes 4 and 6 are nearer than this to in line, |A5| on a KUKA wrist "
+        f"(default {DEFAULT_LIMITS.wrist_singularity_deg:g})",
+    )
+    comp.add_argument(
+        "--hull-margin-deg",
+        type=float,
+        default=DEFAULT_LIMITS.hull_margin_deg,
+        help="refuse a target this far beyond the model's sampled axis ranges "
+        f"(default {DEFAULT_LIMITS.hull_margin_deg:g})",
     )
     comp.set_defaults(func=_compensate)
 
@@ -366,6 +393,12 @@ def _compensate(args: argparse.Namespace) -> int:
         assert targets.a_deg is not None
         wanted, rot = nominal_targets(model, targets.a_deg)
         seed = targets.a_deg
+    try:
+        limits = CompensationLimits(
+            args.max_axis_change_deg, args.wrist_singularity_deg, args.hull_margin_deg
+        )
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
     dir_ = None if targets.dir is None else targets.dir.astype(float)
     try:
         result = compensate(
@@ -377,9 +410,14 @@ def _compensate(args: argparse.Namespace) -> int:
             payload_kg=targets.payload_kg,
             temp_c=targets.temp_c,
             tol_mm=args.tol_mm,
+            limits=limits,
         )
     except UnreachableTargetError as exc:
         raise UserError(f"{targets.source}: {exc}") from None
+    except CompensationRefused as exc:
+        rows = "; ".join(f"row {int(targets.row_numbers[r.index])}: {r.reason}" for r in exc.refusals[:5])
+        more = f"; and {len(exc.refusals) - 5} more" if len(exc.refusals) > 5 else ""
+        raise UserError(f"{targets.source}: compensation refused: {rows}{more}") from None
     if not result.converged:
         worst = int(np.argmax(result.residual_mm))
         raise UserError(
@@ -388,9 +426,7 @@ def _compensate(args: argparse.Namespace) -> int:
         )
     extra = dict(targets.extra)
     for k in range(6):
-        extra[f"da{k + 1}"] = tuple(
-            repr(float(v)) for v in result.a_deg[:, k] - result.a_uncompensated_deg[:, k]
-        )
+        extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
     extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
     sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
     if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
@@ -413,10 +449,17 @@ def _compensate(args: argparse.Namespace) -> int:
         n_out = int(model.outside_range(result.a_deg).sum())
         if n_out:
             outside = f"; {n_out} outside the fitted joint ranges (error held at the range edge)"
+    da = np.abs(result.da_deg)
+    worst_axis = int(np.argmax(da.max(axis=0)))
+    region = (
+        f"within {limits.hull_margin_deg:g} deg of the model's sampled axis ranges"
+        if result.region_deg is not None
+        else f"the {model.kind} model has no sampled region to keep to"
+    )
     print(
         f"{n} targets compensated with the {model.kind} model in {result.iterations} iterations "
         f"(max predicted error {result.residual_mm.max():.2e} mm, "
-        f"max axis change {np.abs(result.a_deg - result.a_uncompensated_deg).max():.4f} deg)"
+        f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
         f"{outside} -> {args.out}"
     )
     return 0

@@ -9,7 +9,7 @@ import math
 import numpy as np
 
 from comp_daemon.kinematics.forward import chain, gravity_torques_nm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -54,7 +54,7 @@ def _fk(args: argparse.Namespace) -> int:
     ]
     if outside:
         raise ValueError("axis values outside the robot's limits: " + "; ".join(outside))
-    params = robot.nominal_params()
+    params = KinematicParams.from_robot(robot)
     q = axes_deg_to_q_rad(a_deg[None, :], robot.sign)
     ch = chain(params, q)
     tau = gravity_torques_nm(params, q, robot.link_mass_kg, robot.link_com_mm, args.payload_kg, ch)

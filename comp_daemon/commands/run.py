@@ -16,7 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from comp_daemon.sim.scenario import PRESET_SCENARIOS
+from comp_daemon.rt.simcell import check_scenario, preset_scenarios
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -41,7 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     run.add_argument(
         "--scenario",
         default="kr210-cell",
-        help=f"with --sim: scenario preset ({', '.join(PRESET_SCENARIOS)}) or TOML path (default kr210-cell)",
+        help=f"with --sim: scenario preset ({', '.join(preset_scenarios())}) or TOML path "
+        "(default kr210-cell)",
     )
     run.add_argument(
         "--sim-seed", type=int, default=0, help="with --sim: seed of the robot's noise (default 0)"
@@ -99,6 +100,8 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError("--motion and --sim exclude each other (the simulated cell has its own)")
     if args.config is None and not args.sim:
         raise ValueError("--config FILE is required (only the simulated cell, --sim, has a quick start)")
+    if args.sim:
+        check_scenario(args.scenario)
     try:
         settings = load_settings(args.config) if args.config else _quick_start_settings(Path("var/sim"))
     except ValidationError as exc:

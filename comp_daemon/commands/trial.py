@@ -21,7 +21,7 @@ import time
 from pathlib import Path
 from typing import TextIO
 
-from comp_daemon.sim.scenario import PRESET_SCENARIOS
+from comp_daemon.rt.simcell import preset_scenarios
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -36,7 +36,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--scenario",
         default="kr210-cell",
-        help=f"simulated cell: {', '.join(PRESET_SCENARIOS)} or a scenario TOML (default kr210-cell)",
+        help=f"simulated cell: {', '.join(preset_scenarios())} or a scenario TOML (default kr210-cell)",
     )
     p.add_argument(
         "--seed", type=int, default=0, help="seed of the poses and of the cell's noise (default 0)"

@@ -26,7 +26,7 @@ import numpy as np
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models import artifact as artifacts
 from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.compensation import compensate, nominal_targets
+from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits, compensate, nominal_targets
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.rt.executor import CompensatedTarget, CompensationError, ModelMissingError
 from comp_daemon.service.store import Store
@@ -57,8 +57,10 @@ class ActiveModelCompensator:
         joints: Sequence[int],
         *,
         current_axes: Callable[[], Sequence[float] | None] | None = None,
+        limits: CompensationLimits = DEFAULT_LIMITS,
     ) -> None:
         self.store = store
+        self.limits = limits  # the [compensation] settings: axis change, wrist, sampled region
         self.robot = robot
         self.joints = tuple(joints)  # 0-based indices of the joints with gratings
         self.current_axes = current_axes
@@ -109,6 +111,7 @@ class ActiveModelCompensator:
                 a_seed_deg=seed,
                 dir=direction,
                 payload_kg=None if payload is None else float(payload),
+                limits=self.limits,
             )
         except UnreachableTargetError as exc:
             raise CompensationError(str(exc)) from None

@@ -32,6 +32,7 @@ from comp_daemon.rt.grating_cal import (
     GratingCalibration,
     GratingCalibrationError,
     build_calibration,
+    default_calibration_poses,
     fit_joint_map,
     save_calibration,
 )
@@ -55,35 +56,6 @@ class SamplingLoop(Protocol):
 class GratingGeometry:
     radius_mm: float
     resolution_nm: float = 50.0
-
-
-def default_calibration_poses(
-    home_deg: Sequence[float],
-    joints: Sequence[int],
-    limits_deg: NDArray[np.float64],
-    *,
-    span_deg: float = 20.0,
-    n: int = 6,
-    margin_deg: float = 2.0,
-) -> list[tuple[float, ...]]:
-    """``n`` poses around ``home_deg`` that sweep every grating joint over ``±span_deg``.
-
-    The joints sweep with different phases (so the poses do not lie on one line in joint space)
-    and stay ``margin_deg`` inside the axis limits.
-    """
-    if n < 3:
-        raise ValueError(f"need at least 3 calibration poses, got {n}")
-    home = np.asarray(home_deg, dtype=float)
-    poses = []
-    for k in range(n):
-        pose = home.copy()
-        for i, j in enumerate(joints):
-            phase = (k + i * (n // max(1, len(joints)))) % n
-            frac = -1.0 + 2.0 * phase / (n - 1)
-            lo, hi = limits_deg[j - 1, 0] + margin_deg, limits_deg[j - 1, 1] - margin_deg
-            pose[j - 1] = float(np.clip(home[j - 1] + frac * span_deg, lo, hi))
-        poses.append(tuple(float(v) for v in pose))
-    return poses
 
 
 async def _still_reading(

@@ -1,5 +1,6 @@
 """Readers of the data set format (``shared/spec/dataset.md``): CSV files and JSON records.
 
+Both build a table of text cells and leave the checks to :func:`comp_daemon.data.cells.build_dataset`.
 Every reader refuses its input as a whole with a :class:`~comp_daemon.data.columns.DatasetError`
 naming the row (1-based, header = row 1; ``record k`` for JSON), the column and the fault, and
 never returns a partial data set. Of several faults, the first in reading order (row, then
@@ -28,29 +29,26 @@ from __future__ import annotations
 import csv
 import io
 import json
-import math
 import os
 import re
 from collections.abc import Iterator, Mapping, Sequence
-from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, BinaryIO, Literal
+from typing import Any, BinaryIO
 
-import numpy as np
-from numpy.typing import ArrayLike, NDArray
+from numpy.typing import ArrayLike
 
+from comp_daemon.data.cells import CellTable, DatasetKind, build_dataset
 from comp_daemon.data.columns import (
     AXIS_COLUMNS,
     DIR_COLUMNS,
     GRATING_COLUMNS,
-    KNOWN_COLUMNS,
     SCALAR_NUMBER_COLUMNS,
     TARGET_ABC_COLUMNS,
     TARGET_XYZ_COLUMNS,
     XYZ_COLUMNS,
     DatasetError,
 )
-from comp_daemon.data.table import SPLIT_VALUES, Dataset, FloatArray, IntArray
+from comp_daemon.data.table import Dataset
 
 __all__ = [
     "DatasetKind",
@@ -60,272 +58,7 @@ __all__ = [
     "read_dataset_json",
 ]
 
-DatasetKind = Literal["measurement", "targets", "any"]
-
-_NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
-_INTEGER = re.compile(r"[+-]?\d+", re.ASCII)
 _UNDECODABLE = re.compile("[\udc80-\udcff]")
-
-
-# ---------------------------------------------------------------------------------------------
-# Reading: a table of text cells -> validated Dataset
-# ---------------------------------------------------------------------------------------------
-@dataclass
-class _Table:
-    """Text cells by column, with where each row came from; the common ground of CSV and JSON."""
-
-    source: str
-    header: list[str]
-    columns: dict[str, list[str]]
-    row_numbers: list[int]
-    row_label: str = "row"
-    # column -> (row index, problem): faults found while building the table (JSON types)
-    pre_errors: dict[str, tuple[int, str]] = field(default_factory=dict)
-
-
-class _Faults:
-    """Collects the first fault of each column; the one reported is the first in reading order."""
-
-    def __init__(self, table: _Table) -> None:
-        self.table = table
-        self.position = {name: k for k, name in enumerate(table.header)}
-        self.best: tuple[int, int, str, str] | None = None
-        for name, (i, problem) in table.pre_errors.items():
-            self.add(name, i, problem)
-
-    def add(self, column: str, i: int, problem: str) -> None:
-        key = (i, self.position.get(column, len(self.position)), column, problem)
-        if self.best is None or key[:2] < self.best[:2]:
-            self.best = key
-
-    def raise_first(self) -> None:
-        if self.best is None:
-            return
-        i, _, column, problem = self.best
-        t = self.table
-        raise DatasetError(
-            problem, source=t.source, row=t.row_numbers[i], column=column, row_label=t.row_label
-        )
-
-
-def _number_fault(cell: str) -> str:
-    text = cell.strip()
-    if not text:
-        return "empty cell; a number is required"
-    try:
-        value = float(text)
-    except ValueError:
-        return f"not a number: {cell!r}"
-    if not math.isfinite(value):
-        return f"non-finite number {cell!r}"
-    return f"not a plain decimal number: {cell!r} (use digits, '.', and an optional exponent)"
-
-
-def _parse_numbers(table: _Table, faults: _Faults, name: str) -> FloatArray | None:
-    """The column as floats, or None after recording its first fault."""
-    cells = table.columns[name]
-    if not all(map(_NUMBER.fullmatch, map(str.strip, cells))):
-        for i, cell in enumerate(cells):
-            if not _NUMBER.fullmatch(cell.strip()):
-                faults.add(name, i, _number_fault(cell))
-                break
-        return None
-    values = np.fromiter(map(float, cells), dtype=np.float64, count=len(cells))
-    bad = np.flatnonzero(~np.isfinite(values))
-    if bad.size:
-        faults.add(name, int(bad[0]), f"non-finite number {cells[bad[0]]!r} (out of the float range)")
-        return None
-    return values
-
-
-def _parse_dir(table: _Table, faults: _Faults, name: str) -> NDArray[np.int8] | None:
-    values = _parse_numbers(table, faults, name)
-    if values is None:
-        return None
-    bad = np.flatnonzero((values != 1.0) & (values != -1.0))
-    if bad.size:
-        cell = table.columns[name][bad[0]]
-        faults.add(name, int(bad[0]), f"direction must be -1 or +1, got {cell!r}")
-        return None
-    return values.astype(np.int8)
-
-
-def _parse_split(table: _Table, faults: _Faults) -> NDArray[np.str_] | None:
-    cells = [c.strip() for c in table.columns["split"]]
-    for i, cell in enumerate(cells):
-        if cell not in SPLIT_VALUES:
-            hint = f"; did you mean '{cell.lower()}'?" if cell.lower() in SPLIT_VALUES else ""
-            faults.add("split", i, f"split must be 'fit' or 'check', got {table.columns['split'][i]!r}{hint}")
-            return None
-    return np.array(cells, dtype="<U5")
-
-
-def _parse_repeat(table: _Table, faults: _Faults) -> IntArray | None:
-    cells = table.columns["repeat"]
-    for i, cell in enumerate(cells):
-        text = cell.strip()
-        if not _INTEGER.fullmatch(text) or int(text) < 0:
-            faults.add("repeat", i, f"repeat must be an integer >= 0, got {cell!r}")
-            return None
-    return np.array([int(c) for c in cells], dtype=np.int64)
-
-
-def _check_header(table: _Table, kind: DatasetKind) -> None:
-    header = table.header
-
-    def refuse(problem: str, column: str | None) -> DatasetError:
-        return DatasetError(problem, source=table.source, row=1, column=column, row_label=table.row_label)
-
-    seen: dict[str, int] = {}
-    known = set(KNOWN_COLUMNS)
-    for k, name in enumerate(header, start=1):
-        if not name:
-            raise refuse(f"column {k} of the header has no name", None)
-        if name in seen:
-            raise refuse(f"duplicate column name (columns {seen[name]} and {k})", name)
-        seen[name] = k
-        if name not in known and name.lower() in known:
-            raise refuse(f"column names are lower case: did you mean '{name.lower()}'?", name)
-
-    present = set(header)
-
-    def hint(column: str) -> str:
-        near = [h for h in header if re.sub(r"_(mm|deg)$", "", h.lower()) == column and h != column]
-        return f" (found {near[0]!r}; this format names it '{column}')" if near else ""
-
-    def group(names: Sequence[str], what: str) -> bool:
-        found = [c for c in names if c in present]
-        if found and len(found) != len(names):
-            missing = next(c for c in names if c not in present)
-            raise refuse(
-                f"column missing ({', '.join(found)} given without it; {what} come together)" + hint(missing),
-                missing,
-            )
-        return bool(found)
-
-    has_axes = group(AXIS_COLUMNS, "a1..a6")
-    has_xyz = group(XYZ_COLUMNS, "x, y, z")
-    group(DIR_COLUMNS, "dir1..dir6")
-    has_targets = group(TARGET_XYZ_COLUMNS, "tx, ty, tz")
-    has_abc = group(TARGET_ABC_COLUMNS, "ta, tb, tc")
-    if has_abc and not has_targets:
-        raise refuse("column missing (ta, tb, tc need the target position tx, ty, tz)", "tx")
-
-    if kind == "measurement":
-        for needed, names in ((has_axes, AXIS_COLUMNS), (has_xyz, XYZ_COLUMNS)):
-            if not needed:
-                raise refuse(
-                    "required column missing (measurement data needs a1..a6 and x, y, z)" + hint(names[0]),
-                    names[0],
-                )
-    elif not (has_axes or has_targets):
-        raise refuse(
-            "required column missing (axis values a1..a6, or a target pose tx, ty, tz, are needed)"
-            + hint("a1"),
-            "a1",
-        )
-
-
-def _build(
-    table: _Table,
-    *,
-    limits_deg: ArrayLike | None,
-    min_rows: int,
-    kind: DatasetKind,
-) -> Dataset:
-    if kind not in ("measurement", "targets", "any"):
-        raise ValueError(f"kind must be 'measurement', 'targets' or 'any', got {kind!r}")
-    _check_header(table, kind)
-    n = len(table.row_numbers)
-    if n == 0:
-        raise DatasetError("no data rows after the header", source=table.source, row=2)
-    present = set(table.header)
-    faults = _Faults(table)
-
-    def block(names: Sequence[str], limits: FloatArray | None = None) -> FloatArray | None:
-        """The group of columns as an (n, len(names)) array; None if absent or faulty."""
-        if names[0] not in present:
-            return None
-        columns = []
-        for j, name in enumerate(names):
-            values = _parse_numbers(table, faults, name)
-            if values is None:
-                continue
-            if limits is not None:
-                outside = np.flatnonzero((values < limits[j, 0]) | (values > limits[j, 1]))
-                if outside.size:
-                    i = int(outside[0])
-                    faults.add(
-                        name,
-                        i,
-                        f"{float(values[i])!r} deg is outside the axis limits "
-                        f"[{limits[j, 0]:g}, {limits[j, 1]:g}] deg",
-                    )
-                    continue
-            columns.append(values)
-        return np.stack(columns, axis=1) if len(columns) == len(names) else None
-
-    limits = None
-    if limits_deg is not None:
-        limits = np.asarray(limits_deg, dtype=float)
-        if limits.shape != (6, 2):
-            raise ValueError(f"limits_deg must have shape (6, 2), got {limits.shape}")
-    a_deg = block(AXIS_COLUMNS, limits)
-    xyz_mm = block(XYZ_COLUMNS)
-    target_xyz_mm = block(TARGET_XYZ_COLUMNS)
-    target_abc_deg = block(TARGET_ABC_COLUMNS)
-
-    dir_sign = None
-    if "dir1" in present:
-        dirs = [d for d in (_parse_dir(table, faults, name) for name in DIR_COLUMNS) if d is not None]
-        if len(dirs) == len(DIR_COLUMNS):
-            dir_sign = np.stack(dirs, axis=1)
-
-    g_present = np.array([name in present for name in GRATING_COLUMNS])
-    g_deg = None
-    if g_present.any():
-        g_deg = np.full((n, 6), np.nan)
-        for j in np.flatnonzero(g_present):
-            values = _parse_numbers(table, faults, GRATING_COLUMNS[j])
-            if values is not None:
-                g_deg[:, j] = values
-
-    scalars: dict[str, FloatArray | None] = {}
-    for name in SCALAR_NUMBER_COLUMNS:
-        scalars[name] = _parse_numbers(table, faults, name) if name in present else None
-    payload = scalars["payload_kg"]
-    if payload is not None and (payload < 0).any():
-        i = int(np.flatnonzero(payload < 0)[0])
-        faults.add("payload_kg", i, f"payload must be >= 0 kg, got {table.columns['payload_kg'][i]!r}")
-
-    split = _parse_split(table, faults) if "split" in present else None
-    repeat = _parse_repeat(table, faults) if "repeat" in present else None
-    faults.raise_first()
-
-    if n < min_rows:
-        raise DatasetError(
-            f"{n} data {table.row_label}s; fewer rows than the chosen model has parameters ({min_rows})",
-            source=table.source,
-        )
-    return Dataset(
-        a_deg=a_deg,
-        xyz_mm=xyz_mm,
-        dir=dir_sign,
-        g_deg=g_deg,
-        g_present=g_present,
-        payload_kg=np.zeros(n) if payload is None else payload,
-        temp_c=scalars["temp_c"],
-        t_s=scalars["t_s"],
-        split=split,
-        repeat=repeat,
-        pose_id=tuple(table.columns["pose_id"]) if "pose_id" in present else None,
-        target_xyz_mm=target_xyz_mm,
-        target_abc_deg=target_abc_deg,
-        extra={name: tuple(table.columns[name]) for name in table.header if name not in KNOWN_COLUMNS},
-        source=table.source,
-        row_numbers=np.asarray(table.row_numbers, dtype=np.int64),
-        row_label=table.row_label,
-    )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -431,8 +164,8 @@ def parse_dataset(
         raise DatasetError("empty file (no header row)", source=source, row=1)
 
     columns = {name: [r[k] for r in rows] for k, name in enumerate(header)}
-    table = _Table(source=source, header=header, columns=columns, row_numbers=row_numbers)
-    return _build(table, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+    table = CellTable(source=source, header=header, columns=columns, row_numbers=row_numbers)
+    return build_dataset(table, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
 
 
 def read_dataset(
@@ -592,7 +325,7 @@ def dataset_from_records(
                 pre_errors[name] = (i, problem)
             columns[name].append(text)
     assert header is not None
-    table = _Table(
+    table = CellTable(
         source=source,
         header=header,
         columns=columns,
@@ -600,7 +333,7 @@ def dataset_from_records(
         row_label="record",
         pre_errors=pre_errors,
     )
-    return _build(table, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+    return build_dataset(table, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
 
 
 def read_dataset_json(

@@ -19,12 +19,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.diagnosis.fitting import linearize, predict_mm
-from comp_daemon.diagnosis.ladder import Diagnosis, Step
+from comp_daemon.diagnosis.result import Diagnosis, Step
 from comp_daemon.diagnosis.svg import Series, bar_chart, histograms, panel
 from comp_daemon.diagnosis.where import equivalent_joint_error_deg
-from comp_daemon.kinematics.forward import gravity_torques_nm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
-from comp_daemon.models.effects import MassModel
+from comp_daemon.models.effects import MassModel, effect_by_name, twin_inputs
 
 __all__ = ["render_report_html"]
 
@@ -54,25 +52,19 @@ def _num(v: float | None, digits: int = 4) -> str:
 
 
 def _driver(diag: Diagnosis, step: Step) -> tuple[FloatArray, str]:
-    """The variable an effect depends on, per row, and its axis label."""
+    """The variable an effect depends on, per row, and its axis label (the catalogue's driver)."""
     obs = diag.obs
-    if step.effect == "thermal":
-        if obs.temp_c is not None:
-            return obs.temp_c, "temp_c (°C)"
-        return np.arange(len(obs), dtype=float), "row"
-    j = step.joints[0] if step.joints else 1
-    if step.effect == "compliance":
-        params = diag.baseline_fit.params
-        mass = MassModel.from_robot(diag.robot)
-        tau = gravity_torques_nm(
-            params,
-            axes_deg_to_q_rad(obs.a_deg, params.sign),
-            mass.link_mass_kg,
-            mass.link_com_mm,
-            obs.payload_kg,
-        )
-        return tau[:, j - 1], f"gravity torque on joint {j} (N m)"
-    return obs.a_deg[:, j - 1], f"A{j} (deg)"
+    params = diag.baseline_fit.params
+    inputs = twin_inputs(
+        MassModel.from_robot(diag.robot),
+        params,
+        obs.a_deg,
+        obs.dir,
+        obs.payload_kg,
+        obs.temp_c,
+        t_ref_c=diag.options.t_ref_c,
+    )
+    return effect_by_name(step.effect).driver(inputs, step.joints[0] if step.joints else None)
 
 
 def _ladder_table(diag: Diagnosis) -> str:
@@ -138,7 +130,8 @@ def _effect_panels(diag: Diagnosis, preds: list[FloatArray]) -> str:
         out.append(f"<h3>Step {k + 1}: {_e(step.effect)}{_e(joints)}{_e(tag)}</h3><div class=grid>")
         order = np.argsort(x, kind="stable")
         for axis, name in enumerate("xyz"):
-            kind = "line" if step.effect in ("ratio", "cyclic") and len(step.joints) == 1 else "points"
+            smooth = effect_by_name(step.effect).smooth_driver
+            kind = "line" if smooth and len(step.joints) == 1 else "points"
             series = [
                 Series(x, before[:, axis], GREY, f"residual before the step ({name})"),
                 Series(

@@ -9,7 +9,7 @@ geometric step, over all rows (fit and check), unless a field says otherwise.
   its mean and the 3-D RMS per bin of the axis value ``A_j`` (error vs joint angle); its mean per
   approach direction and the step between them (error vs approach direction: about ``2·h`` for a
   backlash ``h``); and ``share_pct``, the share of the post-geometric sum of squares on the fit
-  rows that the effects of that joint (backlash, ratio, cyclic, compliance, as far as the data
+  rows that the effects of that joint (the per-joint effects of the catalogue, as far as the data
   allows them) remove when added to the geometric model (in-sample, so noise buys a little).
 * Regions: the workspace split at the median measured x, y and z into eight octants, each with its
   count, 3-D RMS and maximum.
@@ -19,36 +19,31 @@ geometric step, over all rows (fit and check), unless a field says otherwise.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import TYPE_CHECKING, Any
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.diagnosis.fitting import FitResult, linearize
+from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize
+from comp_daemon.diagnosis.result import Step, final_step, implicated_joints
 from comp_daemon.diagnosis.stats import LinearProblem
-from comp_daemon.models.effects import MassModel
+from comp_daemon.models.effects import MassModel, effect_by_name
 
-if TYPE_CHECKING:
-    from comp_daemon.diagnosis.ladder import Diagnosis
-
-__all__ = ["ACTIONS", "equivalent_joint_error_deg", "locate"]
+__all__ = ["Baseline", "equivalent_joint_error_deg", "locate"]
 
 FloatArray = NDArray[np.float64]
 N_ANGLE_BINS = 6
 
-#: what a calibration engineer can do about each effect
-ACTIONS: dict[str, str] = {
-    "backlash": "approach drilling targets on {axes} from one direction, or compensate the play by "
-    "approach direction (h per joint); a grating on the joint measures the output side directly",
-    "ratio": "correct the reduction ratio of {axes} in the controller's machine data, or add the ratio "
-    "error to the compensation model",
-    "cyclic": "model the transmission error of {axes} as a function of the axis angle (Chebyshev / "
-    "harmonic terms), or close the loop on a grating for that joint",
-    "compliance": "add gravity compliance of {axes} to the compensation, with the payload declared "
-    "correctly for every job",
-    "thermal": "calibrate at working temperature, or add thermal growth (κ with the temperature "
-    "input) to the compensation",
-}
+
+@dataclass(frozen=True)
+class Baseline:
+    """What the summary says about the start of the ladder and its end."""
+
+    check_rms_mm: float  # the nominal (registered) twin on the check rows
+    check_max_mm: float
+    noise_floor_mm: float
+    skipped: list[dict[str, Any]]  # the diagnosis's skip list
 
 
 def _r(value: float, digits: int = 4) -> float:
@@ -123,14 +118,20 @@ def _regions(xyz_mm: FloatArray, dist_mm: FloatArray) -> list[dict[str, Any]]:
 
 
 def locate(
-    diag: Diagnosis,
+    obs: Observations,
+    mass: MassModel,
+    steps: Sequence[Step],
+    baseline: Baseline,
     problem: Callable[[FitResult, Sequence[str]], LinearProblem],
     joint_names: dict[int, list[str]],
 ) -> dict[str, Any]:
-    """The ``where`` section of the diagnosis (see the module docstring)."""
-    geo = diag.steps[0].fit
-    obs = diag.obs
-    mass = MassModel.from_robot(diag.robot)
+    """The ``where`` section of the diagnosis (see the module docstring).
+
+    ``obs`` are all rows, ``steps`` the ladder (the first is the geometric step), ``problem`` the
+    linear problem on the fit rows at a fit with extra columns, ``joint_names`` the effect
+    parameters each joint's share is measured with.
+    """
+    geo = steps[0].fit
     resid, jac = linearize(mass, geo.params, geo.effects, [], obs)
     dist = np.linalg.norm(resid, axis=1)
     jac_theta = jac[:, :, 0:30:5]
@@ -175,11 +176,11 @@ def locate(
         "rows": "all",
         "axis_rms_mm": {ax: _r(float(v)) for ax, v in zip("xyz", axis_rms, strict=True)},
         "rms_mm": _r(float(np.sqrt(np.mean(dist**2)))),
-        "joints": diag.implicated_joints,
+        "joints": implicated_joints(steps),
         "per_joint": per_joint,
         "regions": regions,
     }
-    out["summary"] = _summary(diag, out)
+    out["summary"] = _summary(steps, baseline, out)
     return out
 
 
@@ -194,13 +195,12 @@ def _fmt(mm: float) -> str:
     return f"{mm:.3f} mm"
 
 
-def _summary(diag: Diagnosis, where: dict[str, Any]) -> str:
-    steps = diag.steps
+def _summary(steps: Sequence[Step], baseline: Baseline, where: dict[str, Any]) -> str:
     geo = steps[0]
-    floor = diag.noise_floor_mm
+    floor = baseline.noise_floor_mm
     parts = [
-        f"The nominal twin misses the check points by {_fmt(diag.baseline_check_rms_mm)} RMS "
-        f"(max {_fmt(diag.baseline_check_max_mm)}); geometric calibration "
+        f"The nominal twin misses the check points by {_fmt(baseline.check_rms_mm)} RMS "
+        f"(max {_fmt(baseline.check_max_mm)}); geometric calibration "
         f"({geo.n_params} identifiable parameters) brings that to {_fmt(geo.check_rms_mm)} "
         f"(max {_fmt(geo.check_max_mm)}), against a noise floor of {_fmt(floor)}."
     ]
@@ -211,14 +211,14 @@ def _summary(diag: Diagnosis, where: dict[str, Any]) -> str:
     if worst_region is not None:
         gap += f" and in the region {worst_region['region']} ({_fmt(worst_region['rms_mm'])} RMS)"
     parts.append(gap + ".")
-    effect_steps = [s for s in diag.significant_steps if s.effect != "geometric"]
+    effect_steps = [s for s in steps if s.significant and s.effect != "geometric"]
     if effect_steps:
         described = []
         for s in effect_steps:
             on = f" on {_axes(s.joints)}" if s.joints else ""
             described.append(f"{s.effect}{on} (check error −{s.shrink_pct:.0f} % to {_fmt(s.check_rms_mm)})")
         parts.append("It is explained by " + "; then ".join(described) + ".")
-        left = diag.unexplained_rms_mm
+        left = final_step(steps).check_rms_mm
         if left <= 1.25 * floor:
             parts.append(f"What is left ({_fmt(left)}) is at the noise floor.")
         else:
@@ -227,7 +227,7 @@ def _summary(diag: Diagnosis, where: dict[str, Any]) -> str:
                 "vocabulary is significant: look for an effect outside it "
                 "(fixture, tracker set-up, dynamics)."
             )
-        actions = [ACTIONS[s.effect].format(axes=_axes(s.joints)) for s in effect_steps]
+        actions = [effect_by_name(s.effect).action.format(axes=_axes(s.joints)) for s in effect_steps]
         parts.append("To act: " + "; ".join(actions) + ".")
     else:
         if geo.check_rms_mm <= 1.25 * floor:
@@ -241,7 +241,7 @@ def _summary(diag: Diagnosis, where: dict[str, Any]) -> str:
                 "noise floor: look for an effect outside it (fixture, tracker set-up, dynamics) or measure "
                 "more poses, directions, payloads or temperatures."
             )
-    skipped = [s for s in diag.skipped if "combination" not in s["reason"]]
+    skipped = [s for s in baseline.skipped if "combination" not in s["reason"]]
     if skipped:
         notes = "; ".join(f"{s['effect']}: {s['reason']}" for s in skipped[:3])
         parts.append(f"Not tested for lack of data — {notes}.")

@@ -21,15 +21,12 @@ adds such a vector; the identification Jacobian is the derivative of the TCP wit
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from typing import TYPE_CHECKING
 
 import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.so3 import matrix_to_rotvec, rotvec_to_matrix
-
-if TYPE_CHECKING:
-    from comp_daemon.robot.description import RobotDescription
+from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "BASE_SLICE",

@@ -94,7 +94,7 @@ class ErrorModel(ABC):
 
     def ik_params(self) -> KinematicParams:
         """Kinematic parameters (measurement frame) the compensation inverts the axes with."""
-        return self.robot.nominal_params().with_base(self.world_T_base)
+        return KinematicParams.from_robot(self.robot).with_base(self.world_T_base)
 
     @abstractmethod
     def to_payload(self) -> dict[str, Any]:
@@ -125,7 +125,7 @@ class NominalModel(ErrorModel):
         self.robot = robot
         self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
         self.world_T_base = self.registration
-        self._params = robot.nominal_params().with_base(self.world_T_base)
+        self._params = KinematicParams.from_robot(robot).with_base(self.world_T_base)
 
     def predict_tcp_mm(
         self,

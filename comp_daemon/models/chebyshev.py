@@ -302,7 +302,7 @@ class ChebyshevModel(ErrorModel):
         self.range_deg = rng
         self.coefficients = coef
         self.active = np.ones(coef.size, bool) if active is None else np.array(active, dtype=bool)
-        self._params = robot.nominal_params().with_base(self.world_T_base)
+        self._params = KinematicParams.from_robot(robot).with_base(self.world_T_base)
 
     @property
     def order(self) -> int:
@@ -467,7 +467,7 @@ def fit_chebyshev(
         raise ValueError(f"measured positions must have shape ({n}, 3), got {p_meas.shape}")
     if order < 0:
         raise ValueError(f"Chebyshev order must be >= 0, got {order}")
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
@@ -517,7 +517,7 @@ def select_order(
     if not orders or not rtols:
         raise ValueError("cross-validation needs at least one order and one rtol")
     rng_deg = motion_range_deg(a) if range_source == "data" else robot.axis_limits_deg
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen_frame = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     fold_of = np.random.default_rng(seed).permutation(n) % folds

@@ -119,7 +119,7 @@ class ComplianceModel(ErrorModel):
         self.registration = (
             np.eye(4) if registration is None else finite_array(registration, (4, 4), "registration")
         )
-        nominal = robot.nominal_params()
+        nominal = KinematicParams.from_robot(robot)
         tool = nominal.tool_xyz_mm if tool_xyz_mm is None else finite_array(tool_xyz_mm, (3,), "tool_xyz_mm")
         dx = np.zeros(N_PARAMS)
         dx[0:30:5] = self.zero_offset_rad
@@ -295,7 +295,7 @@ def calibrate_compliance(
     cj = joint_numbers(compliance_joints, "compliance_joints")
     oj = joint_numbers(offset_joints, "offset_joints")
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (n,))
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen: Literal["base", "tracker"] = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)

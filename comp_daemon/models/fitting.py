@@ -39,7 +39,7 @@ from numpy.typing import NDArray
 from comp_daemon.data.dataset import Dataset
 from comp_daemon.data.directions import with_inferred_directions
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
 from comp_daemon.models.compliance import calibrate_compliance
@@ -244,7 +244,7 @@ def fit_nominal_kind(
     robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """The nominal geometry; on tracker data the base frame is registered (rigid fit), nothing else."""
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
     chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
     reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)

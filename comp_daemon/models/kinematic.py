@@ -3,8 +3,8 @@
 Model. The TCP is ``world_T_base · T_01 … T_56 · tool`` with MDH links (conventions in
 :mod:`comp_daemon.kinematics.params`); optionally the joint angle carries the non-geometric effects
 of :mod:`comp_daemon.models.effects` — per joint a reduction-ratio error ``eps{j}`` and a backlash
-``h{j}`` (deg, signed by the approach direction ``dir``), the extended parameters of seed 001; the
-effects module also offers compliance, cyclic transmission error and thermal growth.
+``h{j}`` (deg, signed by the approach direction ``dir``), the extended parameters of seed 001, or
+any other entry of the effect catalogue (:data:`~comp_daemon.models.effects.EFFECTS`).
 
 Identification. ``ΔP = J·Δx`` (seed 000 eq. 3) over the 39 parameters of :data:`PARAM_NAMES` (MDH
 parameters of every joint, base frame 6, tool 3) and the chosen effect parameters, solved in the
@@ -21,7 +21,7 @@ least-squares sense (eq. 6) and iterated to convergence:
    the base rotation being a rotation vector (its Jacobian through the SO(3) left Jacobian).
 
 Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`); effect units as in
-:mod:`comp_daemon.models.effects` (deg for backlash, 1 for the ratio error).
+:mod:`comp_daemon.models.effects` (the catalogue: deg for backlash, 1 for the ratio error …).
 """
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ class KinematicModel(ErrorModel):
         order: int | None,
         registration: NDArray[np.float64],
     ) -> KinematicModel:
-        nominal = robot.nominal_params()
+        nominal = KinematicParams.from_robot(robot)
         params = KinematicParams(
             theta_offset_rad=_floats(payload["theta_offset_rad"], (6,), "theta_offset_rad"),
             d_mm=_floats(payload["d_mm"], (6,), "d_mm"),
@@ -249,7 +249,7 @@ def calibrate_kinematic(
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
-    nominal = robot.nominal_params()
+    nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)

@@ -38,7 +38,7 @@ from numpy.typing import NDArray
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
 from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
-from comp_daemon.models.effects import EFFECTS, effect_param_names
+from comp_daemon.models.effects import EFFECTS, effect_by_name, effect_param_names
 from comp_daemon.models.fitting import (
     DEFAULT_CHEBYSHEV_ORDER,
     SEED001_EFFECTS,
@@ -80,7 +80,6 @@ __all__ = [
 
 MAX_ORDER = 8
 KINEMATIC_PARAMETERS = 39  # 30 MDH + 6 base + 3 tool
-EFFECT_COLUMNS: dict[str, str] = {"backlash": "dir", "thermal": "temp_c"}
 
 FitFunction = Callable[[RobotDescription, FitRows, ModelSpec, FitOptions], FittedModel]
 Loader = Callable[[RobotDescription, dict[str, Any], "int | None", NDArray[np.float64]], ErrorModel]
@@ -112,7 +111,7 @@ class ModelKind:
 
     def needed_columns(self, spec: ModelSpec) -> tuple[str, ...]:
         """The columns this spec cannot be fitted without (the kind's, and its effects')."""
-        extra = tuple(EFFECT_COLUMNS[e] for e in spec.effects if e in EFFECT_COLUMNS)
+        extra = tuple(column for e in spec.effects for column in effect_by_name(e).required)
         return tuple(dict.fromkeys((*self.needs, *extra)))
 
 

@@ -1,9 +1,9 @@
 """Robot descriptions: the TOML form of ``shared/spec/kr210_r2700_extra.toml``, loaded and validated.
 
-A description is read once, at the edge, and turned into arrays for the numerics
-(:meth:`RobotDescription.nominal_params`). Everything inside the package trusts a loaded
-description; everything that reads a file refuses it with a message that names the joint and
-field at fault.
+A description is read once, at the edge, and turned into arrays for the numerics one layer up
+(``comp_daemon.kinematics.params.KinematicParams.from_robot``; this package imports no kinematics).
+Everything inside the package trusts a loaded description; everything that reads a file refuses it
+with a message that names the joint and field at fault.
 """
 
 from __future__ import annotations
@@ -117,12 +117,6 @@ class RobotDescription:
     def link_com_mm(self) -> NDArray[np.float64]:
         """(6, 3): centre of mass of link i in frame i."""
         return np.array([j.com_mm for j in self.joints], dtype=float)
-
-    def nominal_params(self) -> Any:
-        """The nominal :class:`comp_daemon.kinematics.KinematicParams` of this robot."""
-        from comp_daemon.kinematics.params import KinematicParams
-
-        return KinematicParams.from_robot(self)
 
     def to_dict(self) -> dict[str, Any]:
         return {

@@ -6,7 +6,12 @@ Lifecycle of a target (the store's states)::
                   └───────────┴─────────┴──→ failed (reason)      shutdown ──→ interrupted
 
 1. *compensating*: the target is claimed from the queue (oldest first) and compensated by the
-   active model (``Compensator``, run in a worker thread: it may iterate a model and IK).
+   active model (``Compensator``, run in a worker thread: it may iterate a model and IK). A
+   compensator refuses a target by raising ``ValueError`` (:class:`CompensationError` and the
+   compensation library's refusals — unreachable, near the wrist singularity, too large an axis
+   change, outside the model's region — are such errors); the target then fails with the refusal's
+   message as its reason and is never driven. Any other exception is a fault of the compensator:
+   the target fails too, and the traceback is logged.
 2. *moving*: the loop is armed with the commanded axis values and the loop target (the
    compensated joint angles of the joints with gratings), then the robot is commanded
    (:class:`MotionPort`). Arrival is read off the RSI telegrams by the loop, not assumed.
@@ -27,13 +32,13 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
-import logging
 import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Protocol
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.rt.safety import Arrived, Event, Faulted, FaultKind, Settled
 
 __all__ = [
@@ -49,7 +54,7 @@ __all__ = [
     "TargetQueue",
 ]
 
-log = logging.getLogger(__name__)
+log = get_logger("comp_daemon.rt.executor")
 
 
 class CompensationError(ValueError):
@@ -227,7 +232,7 @@ class TargetExecutor:
         await asyncio.to_thread(
             self.queue.advance_target, tid, state, reason=reason, final_joint_errors_deg=errors
         )
-        log.info("target %d %s%s", tid, state, f": {reason}" if reason else "")
+        log.info("target finished", target_id=tid, state=state, reason=reason)
         return TargetOutcome(tid, state, reason, errors)
 
     async def _execute(self, tid: int, request: Mapping[str, Any]) -> TargetOutcome:
@@ -235,10 +240,10 @@ class TargetExecutor:
             comp = await asyncio.to_thread(self.compensate, request)
         except ModelMissingError as exc:
             return await self._finish(tid, "failed", f"{FaultKind.MODEL_MISSING}: {exc}")
-        except CompensationError as exc:
+        except ValueError as exc:  # a refusal: CompensationError, or the library's own refusals
             return await self._finish(tid, "failed", f"compensation: {exc}")
         except Exception as exc:  # a bug in a model must fail the target, not the daemon
-            log.exception("target %d: compensation failed", tid)
+            log.exception("compensation failed", target_id=tid)
             return await self._finish(tid, "failed", f"compensation failed: {type(exc).__name__}: {exc}")
         if len(comp.commanded_deg) != 6 or len(comp.loop_target_deg) != len(self.joints):
             return await self._finish(tid, "failed", "compensation returned the wrong number of axis values")
@@ -285,7 +290,7 @@ class TargetExecutor:
                                 assert outcome is not None
                                 return outcome
                 if not isinstance(error, MotionError):
-                    log.error("target %d: motion command failed: %r", tid, error)
+                    log.error("motion command failed", target_id=tid, error=repr(error))
                 return await self._finish(tid, "failed", f"motion: {error}")
         finally:
             self.loop.release()
@@ -310,7 +315,7 @@ class TargetExecutor:
                 f"A{j + 1}×{k:g}" for j, k in zip(self.joints, event.kd_scale, strict=False) if k < 1.0
             ]
             if reduced:
-                log.warning("target %d: hunting guard reduced kD on %s", tid, ", ".join(reduced))
+                log.warning("hunting guard reduced kD", target_id=tid, joints=", ".join(reduced))
             return await self._finish(tid, "done", None, errors)
         f = event.fault
         reason = f"{f.kind}: {f.detail}"

@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from numpy.typing import ArrayLike
+from numpy.typing import ArrayLike, NDArray
 
 from comp_daemon import __version__
 
@@ -40,6 +40,7 @@ __all__ = [
     "GratingCalibrationError",
     "JointGratingMap",
     "build_calibration",
+    "default_calibration_poses",
     "fit_joint_map",
     "load_calibration",
     "load_latest_calibration",
@@ -287,3 +288,32 @@ def build_calibration(
 ) -> GratingCalibration:
     """A new calibration with the next free version number in ``directory``."""
     return GratingCalibration(next_version(directory), created_at, tuple(sorted(maps, key=lambda m: m.joint)))
+
+
+def default_calibration_poses(
+    home_deg: Sequence[float],
+    joints: Sequence[int],
+    limits_deg: NDArray[np.float64],
+    *,
+    span_deg: float = 20.0,
+    n: int = 6,
+    margin_deg: float = 2.0,
+) -> list[tuple[float, ...]]:
+    """``n`` poses around ``home_deg`` that sweep every grating joint over ``±span_deg``.
+
+    The joints sweep with different phases (so the poses do not lie on one line in joint space)
+    and stay ``margin_deg`` inside the axis limits.
+    """
+    if n < 3:
+        raise ValueError(f"need at least 3 calibration poses, got {n}")
+    home = np.asarray(home_deg, dtype=float)
+    poses = []
+    for k in range(n):
+        pose = home.copy()
+        for i, j in enumerate(joints):
+            phase = (k + i * (n // max(1, len(joints)))) % n
+            frac = -1.0 + 2.0 * phase / (n - 1)
+            lo, hi = limits_deg[j - 1, 0] + margin_deg, limits_deg[j - 1, 1] - margin_deg
+            pose[j - 1] = float(np.clip(home[j - 1] + frac * span_deg, lo, hi))
+        poses.append(tuple(float(v) for v in pose))
+    return poses

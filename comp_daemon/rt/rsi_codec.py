@@ -11,7 +11,8 @@ Conventions (see ``shared/spec/rsi.md``):
   six decimals; ``AK`` is the axis correction in degrees, ``IPOC`` echoed as received.
 
 Errors: :class:`RsiProtocolError` means the peer sent something that is not a valid telegram
-(not XML, DTD/entities, wrong root, missing or non-numeric field, two telegrams in one datagram).
+(not XML, DTD/entities, wrong root, missing or non-numeric field, an IPOC or Delay beyond 64 bits,
+two telegrams in one datagram); no other exception escapes :func:`parse_rob` for bytes input.
 A :class:`ValueError` from a builder means the caller (our side) passed a bad value, e.g. a
 non-finite correction.
 
@@ -57,6 +58,8 @@ CARTESIAN_NAMES: tuple[str, ...] = ("X", "Y", "Z", "A", "B", "C")
 MAX_TELEGRAM_BYTES = 16384
 
 _NUMBER_CHARS = "0123456789+-.eE \t\r\n"
+_MAX_UNSIGNED = 2**64 - 1  # IPOC and Delay D: counters the controller keeps in 64 bits at most
+_MAX_UNSIGNED_DIGITS = len(str(_MAX_UNSIGNED))
 _TYPE_NAME = re.compile(r"[A-Za-z0-9_.\-]+\Z")
 _AXIS_ELEMENTS = frozenset({"AIPos", "ASPos"})
 _KNOWN_ROB = frozenset({"IPOC", "AIPos", "ASPos", "RIst", "RSol", "Delay"})
@@ -153,7 +156,10 @@ def _unsigned(value: str | None, where: str, data: bytes) -> int:
     text = value.strip()
     if not (text.isascii() and text.isdigit()):
         raise RsiProtocolError(f"{where} is not an unsigned integer: {value[:20]!r}", data)
-    return int(text)
+    significant = text.lstrip("0") or "0"
+    if len(significant) > _MAX_UNSIGNED_DIGITS or int(significant) > _MAX_UNSIGNED:
+        raise RsiProtocolError(f"{where} is beyond 64 bits ({len(significant)} digits): {value[:20]!r}", data)
+    return int(significant)
 
 
 def _six(element: ET.Element, names: tuple[str, ...], data: bytes) -> tuple[float, ...]:

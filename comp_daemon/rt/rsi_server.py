@@ -7,14 +7,18 @@ queue, no await on the reply path.
 Newest-only answering: asyncio's datagram transport reads *one* datagram per readiness callback, so
 a backlog (the loop was busy for more than a cycle) would otherwise be answered telegram by telegram,
 each answer later than the last. On every receive the protocol therefore drains the socket with
-non-blocking ``recvfrom_into`` on a duplicate of the transport's socket (same kernel queue) and
-answers only the newest telegram from the controller; the older ones are counted as ``superseded``.
-When nothing is queued this costs one ``recvfrom`` returning EAGAIN. Comparing IPOCs alone would not
-do: every queued telegram is newer than the last one answered, so each would still be answered.
+non-blocking ``recvfrom_into`` on a duplicate of the transport's socket (same kernel queue), parses
+every datagram from the controller's address as it is read, and answers only the newest *valid*
+telegram; older valid ones are counted as ``superseded``. Garbage is counted as ``garbled`` and never
+displaces a valid telegram, so a flood of garbage from the controller's address (spoofed or a
+broken device) costs parse time but no reply. When nothing is queued this costs one ``recvfrom``
+returning EAGAIN. Comparing IPOCs alone would not do: every queued telegram is newer than the last
+one answered, so each would still be answered.
 
 Only datagrams from the configured controller address are accepted (host, and port if configured);
-others are counted as ``foreign``, logged (rate-limited) and never answered. Garbage is counted as
-``garbled`` and not answered (the controller counts the missing reply as late). If the handler
+others are counted as ``foreign``, logged (rate-limited) and never answered. A garbled datagram is
+logged (the first, then every ``log_every``-th) and not answered (the controller counts the missing
+reply as late). If the handler
 raises or returns a reply for another IPOC — our bug — the reply is zero correction with ``Stop=1``.
 
 Times are integer nanoseconds from an injectable clock (``time.perf_counter_ns`` by default):
@@ -62,6 +66,8 @@ LATENCY_BUCKETS_NS: tuple[int, ...] = tuple(
 
 _ZERO_AK = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 _MAX_DRAIN = 256  # datagrams read per receive callback at most
+
+_Valid = tuple[RobTelegram, tuple[str, int]]  # a parsed telegram from the controller and its sender
 
 
 @dataclass(frozen=True, slots=True)
@@ -229,24 +235,12 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         t_rx = self.clock()
-        stats = self.stats
-        stats.received += 1
-        newest: tuple[bytes, tuple[str, int]] | None = None
-        if self._accept(addr):
-            newest = (data, addr)
+        self.stats.received += 1
+        newest = self._take(data, addr, None)
         if self._drain_sock is not None:
             newest = self._drain(newest)
-        if newest is None:
-            return
-        data, addr = newest
-        try:
-            telegram = parse_rob(data)
-        except RsiProtocolError as exc:
-            stats.garbled += 1
-            if stats.garbled == 1 or stats.garbled % self.config.log_every == 0:
-                log.warning("rsi: garbled telegram from %s:%s: %s (%d so far)", *addr[:2], exc, stats.garbled)
-            return
-        self._answer(telegram, addr, t_rx)
+        if newest is not None:
+            self._answer(newest[0], newest[1], t_rx)
 
     # internals -----------------------------------------------------------------------------------
 
@@ -263,7 +257,23 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
             log.warning("rsi: ignored datagram from foreign address %s:%s (%d so far)", *key, stats.foreign)
         return False
 
-    def _drain(self, newest: tuple[bytes, tuple[str, int]] | None) -> tuple[bytes, tuple[str, int]] | None:
+    def _take(self, data: bytes, addr: tuple[str | Any, int], newest: _Valid | None) -> _Valid | None:
+        """The newer of ``newest`` and this datagram if it is a telegram from the controller."""
+        if not self._accept(addr):
+            return newest
+        try:
+            telegram = parse_rob(data)
+        except RsiProtocolError as exc:
+            stats = self.stats
+            stats.garbled += 1
+            if stats.garbled == 1 or stats.garbled % self.config.log_every == 0:
+                log.warning("rsi: garbled telegram from %s:%s: %s (%d so far)", *addr[:2], exc, stats.garbled)
+            return newest
+        if newest is not None:
+            self.stats.superseded += 1
+        return telegram, addr
+
+    def _drain(self, newest: _Valid | None) -> _Valid | None:
         sock = self._drain_sock
         assert sock is not None
         buf = self._buf
@@ -276,10 +286,7 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
                 self.error_received(exc)
                 continue
             self.stats.received += 1
-            if self._accept(addr):
-                if newest is not None:
-                    self.stats.superseded += 1
-                newest = (bytes(buf[:n]), addr)
+            newest = self._take(bytes(buf[:n]), addr, newest)
         return newest
 
     def _answer(self, telegram: RobTelegram, addr: tuple[str, int], t_rx: int) -> None:

@@ -1,9 +1,11 @@
 """The HTTP service: ``create_app(settings, store, daemon_view=None) -> FastAPI``.
 
 The daemon opens the store with :func:`open_store` (which runs the recovery), builds the app and
-serves it with uvicorn in its own event loop, beside the RSI loop. Nothing here blocks that loop:
-store calls go through ``asyncio.to_thread``, fits and diagnoses run in a process pool
-(:mod:`comp_daemon.service.jobs`), metrics are rendered in a thread.
+serves it with :func:`comp_daemon.service.http_server.build_http_server` in its own event loop,
+beside the RSI loop. Nothing here blocks that loop: store calls go through ``asyncio.to_thread``,
+fits and diagnoses run in a process pool (:mod:`comp_daemon.service.jobs`), uploads are checked in
+a thread or a process of their own (:mod:`comp_daemon.service.uploads`), metrics are rendered in a
+thread.
 
 Routes (details in the OpenAPI description at ``/openapi.json``):
 
@@ -32,6 +34,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from comp_daemon import __version__
@@ -53,6 +56,7 @@ from comp_daemon.service.store import (
     NotFoundError,
     Store,
 )
+from comp_daemon.service.uploads import UploadChecker
 
 __all__ = ["ApiError", "create_app", "open_store"]
 
@@ -162,6 +166,8 @@ class InternalErrorMiddleware:
 
         try:
             await self.app(scope, receive, tracking_send)
+        except ClientDisconnect:  # nobody to answer; not a fault of ours
+            _log.info("client went away during its request", path=scope.get("path"))
         except Exception:
             error_id = uuid.uuid4().hex[:12]
             metrics.HTTP_ERRORS.inc()
@@ -193,7 +199,11 @@ def _error(status: int, code: str, message: str, **extra: Any) -> JSONResponse:
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def api_error(request: Request, exc: ApiError) -> JSONResponse:
-        return _error(exc.status, exc.code, exc.message, **exc.extra)
+        response = _error(exc.status, exc.code, exc.message, **exc.extra)
+        retry_after = exc.extra.get("retry_after_s")
+        if retry_after is not None:
+            response.headers["Retry-After"] = str(retry_after)
+        return response
 
     @app.exception_handler(AuthError)
     async def auth_error(request: Request, exc: AuthError) -> JSONResponse:
@@ -253,6 +263,48 @@ def _install_error_handlers(app: FastAPI) -> None:
         return response
 
 
+# ------------------------------------------------------------------------------- the OpenAPI
+
+_HTTP_METHODS = frozenset({"get", "put", "post", "delete", "patch", "head", "options", "trace"})
+_COMMON_ANSWERS: tuple[tuple[str, int, str], ...] = (
+    ("security", 401, "no token, an unknown token or a malformed Authorization header"),
+    ("security", 403, "the token's role is too low for this operation"),
+    ("requestBody", 400, "invalid Content-Length"),
+    ("requestBody", 413, "request body over http.max_upload_bytes"),
+    ("", 500, "internal error; error_id names the log record"),
+)
+
+
+def _document_common_answers(app: FastAPI) -> None:
+    """Add to the OpenAPI description the answers that come from authentication and middleware
+    rather than from one route: 401/403 where a token is asked for, 400/413 where a body is taken,
+    500 everywhere."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        if app.openapi_schema is not None:
+            return app.openapi_schema
+        schema = build()
+        error = {"$ref": "#/components/schemas/ErrorOut"}
+        has_error_model = "ErrorOut" in schema.get("components", {}).get("schemas", {})
+        for path_item in schema.get("paths", {}).values():
+            for method, operation in path_item.items():
+                if method not in _HTTP_METHODS:
+                    continue
+                responses = operation.setdefault("responses", {})
+                for needs, status, description in _COMMON_ANSWERS:
+                    if needs and needs not in operation:
+                        continue
+                    answer: dict[str, Any] = {"description": description}
+                    if has_error_model:
+                        answer["content"] = {"application/json": {"schema": error}}
+                    responses.setdefault(str(status), answer)
+        app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 # ------------------------------------------------------------------------------------- the app
 
 
@@ -301,6 +353,7 @@ def create_app(
     for kind in job_kinds if job_kinds is not None else default_kinds.default_job_kinds():
         state.runner.register(kind)
     listener = _forward_store_events(state)
+    uploads = UploadChecker(settings.http.max_concurrent_uploads)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -315,6 +368,7 @@ def create_app(
             state.bus.close()
             await state.runner.drain()
             await asyncio.to_thread(state.runner.shutdown)
+            uploads.shutdown()
             store.remove_listener(listener)
             metrics.set_queue_depth_source(None)
             _log.info("http service stopped")
@@ -333,7 +387,9 @@ def create_app(
     )
     app.state.svc = state
     app.state.tokens = state.tokens
+    app.state.uploads = uploads
     _install_error_handlers(app)
+    _document_common_answers(app)
     app.add_middleware(
         BodyLimitMiddleware, limit_bytes=settings.http.max_upload_bytes + _MULTIPART_OVERHEAD_BYTES
     )

@@ -30,8 +30,11 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
+from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits
+
 __all__ = [
     "AuthSettings",
+    "CompensationSettings",
     "ControllerSettings",
     "EncoderJointSettings",
     "EncoderSettings",
@@ -84,6 +87,12 @@ class HttpSettings(_Section):
     max_page_items: int = Field(default=500, ge=1)
     sse_keepalive_s: float = Field(default=15.0, gt=0)
     sse_queue_events: int = Field(default=256, ge=8)
+    max_connections: int = Field(default=256, ge=2)
+    header_timeout_s: float = Field(default=10.0, gt=0)
+    body_timeout_s: float = Field(default=60.0, gt=0)
+    keep_alive_s: int = Field(default=5, ge=1)
+    listen_backlog: int = Field(default=128, ge=1)
+    max_concurrent_uploads: int = Field(default=2, ge=1)
 
 
 class StoreSettings(_Section):
@@ -171,6 +180,7 @@ class JobSettings(_Section):
     cpus: list[int] = Field(default_factory=list)  # CPUs of the workers; empty: all but the real-time one
     start_method: Literal["spawn", "forkserver"] = "spawn"
     max_runtime_s: float = Field(default=3600.0, gt=0)
+    cancel_grace_s: float = Field(default=2.0, ge=0)
 
     @field_validator("cpus")
     @classmethod
@@ -290,6 +300,22 @@ class ControllerSettings(_Section):
         return self
 
 
+class CompensationSettings(_Section):
+    """What a compensated target may do (:class:`comp_daemon.models.compensation.CompensationLimits`).
+
+    ``max_axis_change_deg``: largest change of any axis from the nominal solution;
+    ``wrist_singularity_deg``: targets whose axes 4 and 6 are nearer than this to in line (|A5|) are
+    refused; ``hull_margin_deg``: how far beyond the sampled axis ranges of the model a target may lie.
+    """
+
+    max_axis_change_deg: float = Field(default=DEFAULT_LIMITS.max_axis_change_deg, gt=0, le=10.0)
+    wrist_singularity_deg: float = Field(default=DEFAULT_LIMITS.wrist_singularity_deg, ge=0, lt=90.0)
+    hull_margin_deg: float = Field(default=DEFAULT_LIMITS.hull_margin_deg, ge=0, le=360.0)
+
+    def limits(self) -> CompensationLimits:
+        return CompensationLimits(self.max_axis_change_deg, self.wrist_singularity_deg, self.hull_margin_deg)
+
+
 class RobotSettings(_Section):
     name: str = "kr210"
 
@@ -326,6 +352,7 @@ class Settings(BaseSettings):
     realtime: RealtimeSettings = Field(default_factory=RealtimeSettings)
     encoders: EncoderSettings = Field(default_factory=EncoderSettings)
     controller: ControllerSettings = Field(default_factory=ControllerSettings)
+    compensation: CompensationSettings = Field(default_factory=CompensationSettings)
     robot: RobotSettings = Field(default_factory=RobotSettings)
     log: LogSettings = Field(default_factory=LogSettings)
 

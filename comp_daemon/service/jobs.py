@@ -10,9 +10,15 @@ A job kind is a picklable, module-level function plus a parent-side hook:
 
 Lifecycle (in the store): ``queued`` (waiting for a worker) → ``running`` → ``done`` | ``failed``,
 or ``cancelled`` at any time before that. A cancelled or timed-out job's result is discarded even if
-the function finishes. Failures are recorded as one line: the message of a ``ValueError`` (a
-problem with the input, e.g. a ``DatasetError`` with row and column) or "internal error (id …)"
-with the traceback in the log under that id.
+the function finishes. Such a job is first asked to stop (its next progress report raises
+:class:`JobCancelled`); if it still runs ``jobs.cancel_grace_s`` later, its worker process is killed,
+so a function that never reports cannot hold a worker. The pool is then renewed and the other jobs
+it held (running or waiting) are started again in the new one. Workers end themselves when the
+daemon is gone (:func:`comp_daemon.service.orphans.exit_with_parent`), also after a ``kill -9``.
+
+Failures are recorded as one line: the message of a ``ValueError`` (a problem with the input, e.g. a
+``DatasetError`` with row and column) or "internal error (id …)" with the traceback in the log
+under that id.
 """
 
 from __future__ import annotations
@@ -37,6 +43,7 @@ from typing import Any
 from comp_daemon.common.logs import bound, get_logger
 from comp_daemon.service.config import JobSettings
 from comp_daemon.service.metrics import JOBS_FINISHED
+from comp_daemon.service.orphans import exit_with_parent
 from comp_daemon.service.store import ConflictError, JobRecord, ModelDraft, Store, StoreError
 
 __all__ = ["JobCancelled", "JobKind", "JobRunner", "ProgressReporter", "json_safe"]
@@ -44,6 +51,7 @@ __all__ = ["JobCancelled", "JobKind", "JobRunner", "ProgressReporter", "json_saf
 _log = get_logger("comp_daemon.jobs")
 _CANCEL_SLOTS = 256
 _PROGRESS_MIN_INTERVAL_S = 0.2
+_KILL_RETRY_S = 0.25
 
 
 class JobCancelled(Exception):
@@ -86,8 +94,12 @@ _worker_queue: Any = None
 _worker_cancel: Any = None
 
 
-def _worker_init(progress_queue: Any, cancel_flags: Any, nice: int, cpus: tuple[int, ...] = ()) -> None:
+def _worker_init(
+    progress_queue: Any, cancel_flags: Any, nice: int, cpus: tuple[int, ...] = (), parent_pid: int = 0
+) -> None:
     global _worker_queue, _worker_cancel
+    if parent_pid:
+        exit_with_parent(parent_pid)
     _worker_queue = progress_queue
     _worker_cancel = cancel_flags
     signal.signal(signal.SIGINT, signal.SIG_IGN)
@@ -133,7 +145,7 @@ def _worker_entry(
     """Runs in the worker: ('ok', result) | ('cancelled',) | ('error', user_message | None, traceback)."""
     if _worker_queue is not None:
         with contextlib.suppress(Exception):
-            _worker_queue.put_nowait(("started", job_id))
+            _worker_queue.put_nowait(("started", job_id, os.getpid()))
     reporter = ProgressReporter(job_id)
     try:
         if reporter.cancelled():
@@ -160,6 +172,10 @@ class JobRunner:
         self._kinds: dict[str, JobKind] = {}
         self._executor: ProcessPoolExecutor | None = None
         self._futures: dict[int, Future[tuple[Any, ...]]] = {}
+        self._launched: dict[int, tuple[ProcessPoolExecutor, tuple[Any, ...]]] = {}  # pool, args
+        self._pids: dict[int, int] = {}  # job id → the worker process running it
+        self._killed: set[int] = set()  # jobs whose worker we killed
+        self._broken_by_us: set[ProcessPoolExecutor] = set()  # pools broken by such a kill
         self._timers: dict[int, asyncio.TimerHandle] = {}
         self._tasks: set[asyncio.Future[None]] = set()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -207,6 +223,7 @@ class JobRunner:
                 self._cancel_flags,
                 self.settings.nice,
                 tuple(self.settings.cpus),
+                os.getpid(),
             ),
         )
 
@@ -217,7 +234,7 @@ class JobRunner:
             return
         _log.warning("job worker process died; starting a new pool")
         self._executor = self._new_executor()
-        old.shutdown(wait=False, cancel_futures=True)
+        old.shutdown(wait=False)
 
     def shutdown(self) -> None:
         """Stop taking jobs, cancel what waits, end the workers (running jobs fail at the next start)."""
@@ -228,7 +245,7 @@ class JobRunner:
         self._timers.clear()
         if executor is not None:
             processes = list(getattr(executor, "_processes", {}).values())
-            executor.shutdown(wait=False, cancel_futures=True)
+            executor.shutdown(wait=False)  # not cancel_futures: see _stop_worker
             for proc in processes:
                 with contextlib.suppress(Exception):
                     proc.terminate()
@@ -269,6 +286,7 @@ class JobRunner:
         except BrokenProcessPool:
             self._replace_broken_executor()
             future = self._executor.submit(_worker_entry, job.id, kind.func, args)
+        self._launched[job.id] = (self._executor, args)
         self._futures[job.id] = future
         loop = self._loop
         job_id = job.id
@@ -286,10 +304,38 @@ class JobRunner:
         return job
 
     def _stop_worker(self, job_id: int) -> None:
+        """Ask a cancelled or timed-out job to stop; kill its worker if it has not after the grace."""
+        # No Future.cancel(): a pool that breaks later (a worker killed) fails on a cancelled future
+        # in its manager thread (CPython 3.11), and then completes nothing more. A worker that takes
+        # a flagged job returns at once.
         future = self._futures.get(job_id)
-        if future is not None and not future.cancel() and self._cancel_flags is not None:
-            self._cancel_flags[self._cancel_next % _CANCEL_SLOTS] = job_id
-            self._cancel_next += 1
+        if future is None or future.done() or self._cancel_flags is None:
+            return
+        self._cancel_flags[self._cancel_next % _CANCEL_SLOTS] = job_id
+        self._cancel_next += 1
+        loop = self._loop
+        if loop is not None:
+            with contextlib.suppress(RuntimeError):  # the loop closed: shutdown ends the workers
+                loop.call_soon_threadsafe(
+                    loop.call_later, self.settings.cancel_grace_s, self._kill_worker, job_id
+                )
+
+    def _kill_worker(self, job_id: int) -> None:
+        """(In the loop) kill the worker still running a job that was asked to stop."""
+        future = self._futures.get(job_id)
+        launched = self._launched.get(job_id)
+        if future is None or future.done() or launched is None:
+            return  # it stopped
+        pid = self._pids.get(job_id)
+        if pid is None:  # not started yet (a worker finds the flag before it starts the job) or
+            if self._loop is not None:  # its start not read yet: look again
+                self._loop.call_later(_KILL_RETRY_S, self._kill_worker, job_id)
+            return
+        self._killed.add(job_id)
+        self._broken_by_us.add(launched[0])
+        _log.warning("job ignored its cancellation; killing its worker", job_id=job_id, pid=pid)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(pid, signal.SIGKILL)
 
     def _arm_timer(self, job_id: int) -> None:
         """Start the job's ``max_runtime_s`` clock (when a worker picked it up)."""
@@ -328,13 +374,33 @@ class JobRunner:
     # ---- completion (in the event loop)
 
     def _on_done(self, job_id: int, future: Future[tuple[Any, ...]]) -> None:
-        self._futures.pop(job_id, None)
+        if self._futures.get(job_id) is future:
+            self._futures.pop(job_id)
+        self._pids.pop(job_id, None)
+        launched = self._launched.pop(job_id, None)
+        killed = job_id in self._killed
+        self._killed.discard(job_id)
         timer = self._timers.pop(job_id, None)
         if timer is not None:
             timer.cancel()
         if not future.cancelled() and isinstance(future.exception(), BrokenProcessPool):
             self._replace_broken_executor()
+            if not killed and launched is not None and launched[0] in self._broken_by_us:
+                # lost with the worker we killed for another job: start it again
+                self._in_thread(self._relaunch, job_id, launched[1])
+                return
         self._in_thread(self._complete, job_id, future)
+
+    def _relaunch(self, job_id: int, args: tuple[Any, ...]) -> None:
+        with bound(job_id=job_id):
+            try:
+                job = self.store.get_job(job_id)
+            except StoreError:
+                return
+            if job.state not in ("queued", "running") or self._closing:
+                return
+            _log.info("job started again: its pool was renewed")
+            self.launch(job, args)
 
     async def drain(self) -> None:
         """Wait until every finished job's result is stored (for an orderly shutdown and for tests)."""
@@ -423,6 +489,7 @@ class JobRunner:
                 if item[0] == "stop":
                     return
                 if item[0] == "started":
+                    self._pids[item[1]] = item[2]
                     job = self.store.get_job(item[1])
                     if job.state == "queued":
                         self.store.start_job(item[1])

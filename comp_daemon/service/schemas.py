@@ -9,10 +9,10 @@ from __future__ import annotations
 
 import datetime as dt
 from collections.abc import Iterable
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 from fastapi.responses import Response
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
 from comp_daemon.service.store import (
     STATS_DETAIL_PATHS,
@@ -215,25 +215,60 @@ class DiagnosisIn(BaseModel):
     dataset_id: int = Field(ge=1, le=2**62)
 
 
-class TargetIn(BaseModel):
-    """One drilling point: axis values ``a1..a6`` (deg), or the wanted TCP ``tx, ty, tz`` (mm) with
-    optional orientation ``ta, tb, tc`` (deg, KUKA A, B, C), as in a target file of the data set spec."""
+_AXES = ("a1", "a2", "a3", "a4", "a5", "a6")
+_TCP = ("tx", "ty", "tz")
+_ABC = ("ta", "tb", "tc")
+#: a JSON number, never a bool or a string (strict); finite (the model's allow_inf_nan)
+Number = Annotated[float, Field(strict=True)]
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    pose_id: str | None = Field(None, min_length=1, max_length=64)
-    a1: float | None = None
-    a2: float | None = None
-    a3: float | None = None
-    a4: float | None = None
-    a5: float | None = None
-    a6: float | None = None
-    tx: float | None = None
-    ty: float | None = None
-    tz: float | None = None
-    ta: float | None = None
-    tb: float | None = None
-    tc: float | None = None
-    payload_kg: float | None = Field(None, ge=0, le=10000)
+
+_FORMS = ((_AXES, "axis values need"), (_TCP, "a TCP needs"), (_ABC, "an orientation needs"))
+
+
+class TargetIn(BaseModel):
+    """One drilling point in exactly one form: axis values ``a1..a6`` (deg), or the wanted TCP
+    ``tx, ty, tz`` (mm, robot base frame) with optional orientation ``ta, tb, tc`` (deg, KUKA A, B,
+    C), as in a target file of the data set spec. Values are JSON numbers (``true`` or ``"20"`` are
+    refused, not converted). Whether the robot reaches the point is checked when the batch is posted."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=True)
+    pose_id: str | None = Field(None, min_length=1, max_length=64, strict=True)
+    a1: Number | None = None
+    a2: Number | None = None
+    a3: Number | None = None
+    a4: Number | None = None
+    a5: Number | None = None
+    a6: Number | None = None
+    tx: Number | None = None
+    ty: Number | None = None
+    tz: Number | None = None
+    ta: Number | None = None
+    tb: Number | None = None
+    tc: Number | None = None
+    payload_kg: Number | None = Field(None, ge=0, le=10000)
+
+    @field_validator(*_AXES, *_TCP, *_ABC, mode="after")
+    @classmethod
+    def _one_form(cls, value: float | None, info: ValidationInfo) -> float | None:
+        """Exactly one form, checked field by field (in field order) so that the error names the
+        field at fault: the first one missing from a partly given group, the first TCP field given
+        next to axis values, or ``tz`` when no form is given at all."""
+        name, data = info.field_name, info.data  # data: the earlier fields that validated
+        assert name is not None
+        group, form = next((g, f) for g, f in _FORMS if name in g)
+        earlier = group[: group.index(name)]
+        if value is None:
+            if any(data.get(k) is not None for k in earlier):
+                raise ValueError(f"{name} is missing: {form} all of {', '.join(group)}")
+            if name == "tz" and all(k in data and data[k] is None for k in (*_AXES, "tx", "ty")):
+                raise ValueError("gives neither axis values a1..a6 nor a TCP tx, ty, tz")
+            return value
+        missing = [k for k in earlier if k in data and data[k] is None]
+        if missing:
+            raise ValueError(f"{', '.join(missing)} missing: {form} all of {', '.join(group)}")
+        if group is not _AXES and any(data.get(k) is not None for k in _AXES):
+            raise ValueError("gives both axis values a1..a6 and a TCP; give exactly one form")
+        return value
 
 
 class BatchIn(BaseModel):

@@ -33,7 +33,6 @@ from comp_daemon.sim.scenario import Scenario
 from comp_daemon.sim.tracker import LaserTracker
 
 __all__ = [
-
     "GRATING_RESOLUTION_MM",
     "Iso9283Result",
     "RawErrorStats",
@@ -70,7 +69,7 @@ def solve_axes(
     seed_axes_deg: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.bool_]]:
     """Nominal IK of TCP targets (xyz, KUKA A/B/C); returns axis values (n, 6) deg and ok (n,)."""
-    params: KinematicParams = scenario.robot.nominal_params()
+    params = KinematicParams.from_robot(scenario.robot)
     limits = _limits_q_rad(params, scenario.robot.axis_limits_deg)
     target_r = rotation_kuka_abc_deg(abc_deg) @ FLANGE_R_KUKA_TOOL.T
     seed = scenario.campaign.home_deg if seed_axes_deg is None else seed_axes_deg
@@ -257,7 +256,7 @@ def raw_error_stats(scenario: Scenario, dataset: Dataset) -> RawErrorStats:
     """Raw error of a data set measured in the robot base frame: measured − nominal FK."""
     if dataset.a_deg is None or dataset.xyz_mm is None:
         raise ValueError("raw_error_stats: the data set needs a1..a6 and x, y, z")
-    params: KinematicParams = scenario.robot.nominal_params()
+    params = KinematicParams.from_robot(scenario.robot)
     nominal = tcp_position_mm(params, axes_deg_to_q_rad(dataset.a_deg, params.sign))
     err = dataset.xyz_mm - nominal
     dist = np.linalg.norm(err, axis=1)

@@ -22,7 +22,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import enum
-import logging
 import math
 import os
 import tty
@@ -40,8 +39,6 @@ from comp_daemon.rt.biss import (
 )
 
 __all__ = ["ConverterConfig", "ConverterFault", "OutputAngleSource", "SimulatedConverter"]
-
-log = logging.getLogger(__name__)
 
 
 class OutputAngleSource(Protocol):

@@ -34,16 +34,16 @@ import asyncio
 import contextlib
 import enum
 import json
-import logging
 import socket
 from collections import deque
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.rt.rsi_codec import RsiProtocolError, SenReply, build_rob, parse_sen
 
 __all__ = [
@@ -53,9 +53,10 @@ __all__ = [
     "RsiControllerStats",
     "RsiState",
     "SimulatedRsiController",
+    "serve_lines",
 ]
 
-log = logging.getLogger(__name__)
+log = get_logger(__name__)
 
 Axes = NDArray[np.float64]
 _SHUTDOWN = "controller shut down"
@@ -311,7 +312,7 @@ class SimulatedRsiController:
         try:
             self._cycle(k, steps)
         except Exception:  # a plant bug must not kill the interpolation cycle silently
-            log.exception("rsi controller: cycle %d failed", k)
+            log.exception("rsi controller: cycle failed", cycle=k)
             self._stop("internal error in the controller cycle")
 
     def _cycle(self, k: int, steps: int) -> None:
@@ -403,10 +404,10 @@ class SimulatedRsiController:
         self._reply = None
         self.stats.history.append(f"RSI stopped at IPOC {self.ipoc}: {reason}")
         if reason == "RSI_OFF":  # a program statement: the motion goes on without RSI
-            log.info("rsi controller: RSI_OFF at IPOC %d", self.ipoc)
+            log.info("rsi controller: RSI_OFF", ipoc=self.ipoc)
             return
-        level = logging.INFO if reason == _SHUTDOWN else logging.WARNING
-        log.log(level, "rsi controller: RSI stopped at IPOC %d: %s", self.ipoc, reason)
+        report = log.info if reason == _SHUTDOWN else log.warning
+        report("rsi controller: RSI stopped", ipoc=self.ipoc, reason=reason)
         self.source.halt()
         move = self._move
         if move is not None and not move.done():
@@ -447,17 +448,7 @@ class SimulatedRsiController:
         return str(sockname[0]), int(sockname[1])
 
     async def _serve_client(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
-        try:
-            while line := await reader.readline():
-                answer = await self._command(line.decode("utf-8", "replace").strip())
-                writer.write(answer.encode() + b"\n")
-                await writer.drain()
-        except (ConnectionError, asyncio.IncompleteReadError):
-            pass
-        finally:
-            writer.close()
-            with contextlib.suppress(ConnectionError):
-                await writer.wait_closed()
+        await serve_lines(reader, writer, self._command)
 
     async def _command(self, line: str) -> str:
         words = line.split()
@@ -481,3 +472,20 @@ class SimulatedRsiController:
         except (ValueError, RuntimeError) as exc:
             return f"ERR {exc}"
         return f"ERR unknown command {line[:40]!r}"
+
+
+async def serve_lines(
+    reader: asyncio.StreamReader, writer: asyncio.StreamWriter, handle: Callable[[str], Awaitable[str]]
+) -> None:
+    """Serve one client of a line port: each line in, ``await handle(line)`` out, until it hangs up."""
+    try:
+        while line := await reader.readline():
+            answer = await handle(line.decode("utf-8", "replace").strip())
+            writer.write(answer.encode() + b"\n")
+            await writer.drain()
+    except (ConnectionError, asyncio.IncompleteReadError):
+        pass
+    finally:
+        writer.close()
+        with contextlib.suppress(ConnectionError):
+            await writer.wait_closed()

@@ -47,6 +47,7 @@ from comp_daemon.kinematics.params import (
 )
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.robot.description import RobotDescription, load_robot
+from comp_daemon.rt.simcell import preset_scenarios
 
 __all__ = [
     "PRESET_SCENARIOS",
@@ -61,7 +62,8 @@ __all__ = [
     "parse_scenario_toml",
 ]
 
-PRESET_SCENARIOS: tuple[str, ...] = ("kr210-cell", "kr210-geometric", "irb120-cell")
+#: The packaged presets (``comp_daemon/sim/scenarios/NAME.toml``).
+PRESET_SCENARIOS: tuple[str, ...] = preset_scenarios()
 
 
 class ScenarioError(ValueError):
@@ -177,7 +179,7 @@ class Scenario:
 
     def true_params(self) -> KinematicParams:
         """The hidden robot's kinematic parameters, in its own base frame (nominal + errors)."""
-        params: KinematicParams = self.robot.nominal_params()
+        params = KinematicParams.from_robot(self.robot)
         return params.apply(self.true_dx())
 
     def tracker_T_base(self) -> NDArray[np.float64]:

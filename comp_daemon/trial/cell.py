@@ -2,7 +2,7 @@
 
 The trial brings the cell up as it stands on the line:
 
-- the simulated cell (:mod:`comp_daemon.daemon.simcell`, the child ``comp-daemon run --sim`` starts):
+- the simulated cell (:mod:`comp_daemon.sim.cell`, the child ``comp-daemon run --sim`` starts too):
   the hidden robot behind a simulated KR C4 (RSI over UDP and a motion command port), one grating
   converter per grating joint on a pseudo-terminal, and the laser tracker (a line port);
 - the daemon as ``comp-daemon run --config FILE --motion HOST:PORT``, a process of its own, with
@@ -39,7 +39,7 @@ import httpx
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.daemon.simcell import SimCellInfo, SimCellProcess, floats, line_command
+from comp_daemon.rt.simcell import SimCellInfo, SimCellProcess, floats, line_command
 from comp_daemon.sim.scenario import Scenario
 
 __all__ = ["CellError", "CellSettings", "TrialCell"]

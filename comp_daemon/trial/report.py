@@ -5,66 +5,27 @@ accuracy with and without joint feedback (seed 000 Fig. 6), the frequency histog
 errors (Fig. 11) and seed 001's model comparison on the same data. The HTML page adds the per-axis
 error of every target point (Figs 7–10) and the details (models, data sets, loop statistics). It
 loads nothing, runs no script, and prints on one page width. Numbers are mm unless marked.
+
+The text is rendered here, the page in :mod:`comp_daemon.trial.report_html`; what both pick out of
+the result is :mod:`comp_daemon.trial.report_data`.
 """
 
 from __future__ import annotations
 
-import html
-from typing import Any
-
 import numpy as np
 
-from comp_daemon.diagnosis.svg import Series, panel
+from comp_daemon.trial.report_data import COMPARISONS, grating_scale, iso_retried, seed_figure, table_rows
+from comp_daemon.trial.report_html import render_html
 from comp_daemon.trial.result import TrialResult
 from comp_daemon.trial.stats import histogram
-from comp_daemon.trial.verdict import SEED000, TABLE_ROWS, verdict
+from comp_daemon.trial.verdict import verdict
 
 __all__ = ["render_html", "render_text"]
-
-COLORS = {
-    "uncompensated": "#c0392b",
-    "kinematic": "#e67e22",
-    "feedback": "#8e44ad",
-    "kinematic+feedback": "#2980b9",
-    "chebyshev+feedback": "#27ae60",
-}
-FONT = "font-family:sans-serif;font-size:11px"
-COMPARISONS = (
-    ("open", "open-loop data"),
-    ("open-gratings", "open-loop data with A1–A3 read from the gratings"),
-    ("closed", "closed-loop data"),
-)
-
-
-def _rows(result: TrialResult) -> list[str]:
-    return [k for k in TABLE_ROWS if k in result.runs and result.runs[k].ok.any()]
-
-
-def _figure_rows(result: TrialResult) -> list[str]:
-    """The three methods of seed 000's figures (the tables show every run)."""
-    return [k for k in _rows(result) if k in SEED000]
-
-
-def _grating_scale(m: dict[str, Any]) -> float:
-    """Fitted slope over the nominal one of a grating map (JointGratingMap.scale)."""
-    return float(m["slope_deg_per_count"]) / float(np.degrees(m["resolution_nm"] * 1e-6 / m["radius_mm"]))
-
-
-def iso_retried(result: TrialResult) -> list[str]:
-    return list(result.iso.get("runs", {}).get("with", {}).get("retried", []))
-
-
-def _seed(key: str, field: str) -> str:
-    v = SEED000.get(key, {}).get(field)
-    return "" if v is None else f"{v:.2f}"
-
-
-# ------------------------------------------------------------------------------------------ text
 
 
 def _text_table2(result: TrialResult) -> list[str]:
     t2 = result.table2()
-    rows = _rows(result)
+    rows = table_rows(result)
     w = max(len(result.runs[k].label) for k in rows) if rows else 10
     head = (
         f"{'method':<{w}} {'n':>4} |"
@@ -81,7 +42,7 @@ def _text_table2(result: TrialResult) -> list[str]:
         lines.append(
             f"{result.runs[k].label:<{w}} {st['n']:>4} |{cells}|"
             f" {d['mean']:>8.3f} {d['std']:>5.3f} {d['max']:>5.3f} |"
-            f" {_seed(k, 'mean'):>13} {_seed(k, 'max'):>4}"
+            f" {seed_figure(k, 'mean'):>13} {seed_figure(k, 'max'):>4}"
         )
     return lines
 
@@ -115,7 +76,7 @@ def _text_iso(result: TrialResult) -> list[str]:
 
 
 def _text_histogram(result: TrialResult) -> list[str]:
-    rows = _rows(result)
+    rows = table_rows(result)
     if not rows:
         return []
     errs = {k: np.linalg.norm(result.runs[k].errors_mm(), axis=1) for k in rows}
@@ -171,7 +132,7 @@ def render_text(result: TrialResult) -> str:
     ]
     if result.gratings:
         g = ", ".join(
-            f"A{m['joint']} scale {_grating_scale(m):.5f} residual rms {m['residual_rms_deg']:.4f}°"
+            f"A{m['joint']} scale {grating_scale(m):.5f} residual rms {m['residual_rms_deg']:.4f}°"
             for m in result.gratings["joints"]
         )
         lines += [f"Grating calibration v{result.gratings['version']}: {g}", ""]
@@ -219,390 +180,3 @@ def render_text(result: TrialResult) -> str:
             f"{loop.get('daemon_exit_code')}"
         )
     return "\n".join(lines) + "\n"
-
-
-# ------------------------------------------------------------------------------------------ HTML
-
-
-def _e(text: object) -> str:
-    return html.escape(str(text))
-
-
-def _f(v: Any, digits: int = 3) -> str:
-    if v is None or (isinstance(v, float) and not np.isfinite(v)):
-        return "—"
-    return f"{float(v):.{digits}f}"
-
-
-def _grouped_bars(
-    edges: list[float], groups: list[tuple[str, list[float], str]], *, title: str, xlabel: str, ylabel: str
-) -> str:
-    """Grouped vertical bars per bin (seed 000 Fig. 11): shares in %, one colour per method."""
-    width, height = 760, 300
-    ml, mr, mt, mb = 52, 10, 24, 44
-    pw, ph = width - ml - mr, height - mt - mb
-    nb = max(1, len(edges) - 1)
-    top = max((max(v) for _, v, _ in groups if v), default=0.0) * 100.0
-    ystep = next(s for s in (5, 10, 20, 25, 50) if top / s <= 6)
-    ymax = max(ystep, ystep * np.ceil(top / ystep))
-    body = [
-        f'<rect x="{ml}" y="{mt}" width="{pw}" height="{ph}" fill="#fff" stroke="#888" stroke-width="0.8"/>',
-        f'<text x="{ml}" y="15" style="{FONT};font-weight:bold">{_e(title)}</text>',
-        f'<text x="{ml + pw / 2}" y="{height - 6}" text-anchor="middle" style="{FONT}">{_e(xlabel)}</text>',
-        f'<text transform="translate(13,{mt + ph / 2}) rotate(-90)" text-anchor="middle" '
-        f'style="{FONT}">{_e(ylabel)}</text>',
-    ]
-    for t in np.arange(0.0, ymax + 1e-9, ystep):
-        y = mt + ph * (1.0 - t / ymax)
-        body.append(f'<line x1="{ml}" x2="{ml + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="#eee"/>')
-        body.append(f'<text x="{ml - 4}" y="{y + 3.5:.1f}" text-anchor="end" style="{FONT}">{t:.0f}</text>')
-    slot = pw / nb
-    bw = 0.8 * slot / max(1, len(groups))
-    for b in range(nb):
-        x_label = ml + (b + 0.5) * slot
-        if nb <= 20 or b % 2 == 0:
-            body.append(
-                f'<text x="{x_label:.1f}" y="{mt + ph + 13}" text-anchor="middle" style="{FONT}">'
-                f"{edges[b]:.2f}–{edges[b + 1]:.2f}</text>"
-                if nb <= 10
-                else f'<text x="{ml + b * slot:.1f}" y="{mt + ph + 13}" text-anchor="middle" '
-                f'style="{FONT}">{edges[b]:.2f}</text>'
-            )
-        for gi, (_, share, color) in enumerate(groups):
-            v = 100.0 * share[b]
-            h = ph * v / ymax
-            x = ml + b * slot + 0.1 * slot + gi * bw
-            body.append(
-                f'<rect x="{x:.1f}" y="{mt + ph - h:.1f}" width="{bw:.1f}" height="{h:.1f}" fill="{color}"/>'
-            )
-    y = mt + 12
-    for label, _, color in groups:
-        body.append(f'<rect x="{ml + pw - 230}" y="{y - 8}" width="9" height="9" fill="{color}"/>')
-        body.append(f'<text x="{ml + pw - 217}" y="{y}" style="{FONT}">{_e(label)}</text>')
-        y += 14
-    return (
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-        f'viewBox="0 0 {width} {height}" role="img" aria-label="{_e(title)}">' + "".join(body) + "</svg>"
-    )
-
-
-def _iso_bars(result: TrialResult) -> str:
-    """vAP per test point without and with feedback, and the largest RP (seed 000 Fig. 6)."""
-    runs = result.iso.get("runs", {})
-    without = runs.get("without", {}).get("stats")
-    with_ = runs.get("with", {}).get("stats")
-    if without is None:
-        return ""
-    n = len(without["vap_mm"])
-    series: list[tuple[str, list[float], str]] = [("vAP, robot alone", without["vap_mm"], "#c0392b")]
-    if with_ is not None:
-        series.append(("vAP, with joint feedback", with_["vap_mm"], "#27ae60"))
-    series.append(("RP (largest direction), robot alone", without["rp_max_mm"], "#7f8c8d"))
-    if with_ is not None:
-        series.append(("RP, with joint feedback", with_["rp_max_mm"], "#bdc3c7"))
-    width, height = 760, 280
-    ml, mr, mt, mb = 52, 10, 24, 36
-    pw, ph = width - ml - mr, height - mt - mb
-    top = max(max(v) for _, v, _ in series)
-    step = next(s for s in (0.02, 0.05, 0.1, 0.2, 0.5, 1.0) if top / s <= 6)
-    ymax = step * np.ceil(top / step + 0.15)
-    body = [
-        f'<rect x="{ml}" y="{mt}" width="{pw}" height="{ph}" fill="#fff" stroke="#888" stroke-width="0.8"/>',
-        f'<text x="{ml}" y="15" style="{FONT};font-weight:bold">ISO 9283 multi-directional pose accuracy '
-        "variation vAP and pose repeatability RP (mm)</text>",
-    ]
-    for t in np.arange(0.0, ymax + 1e-9, step):
-        y = mt + ph * (1.0 - t / ymax)
-        body.append(f'<line x1="{ml}" x2="{ml + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="#eee"/>')
-        body.append(f'<text x="{ml - 4}" y="{y + 3.5:.1f}" text-anchor="end" style="{FONT}">{t:.2f}</text>')
-    slot = pw / n
-    bw = 0.7 * slot / len(series)
-    for i in range(n):
-        body.append(
-            f'<text x="{ml + (i + 0.5) * slot:.1f}" y="{mt + ph + 14}" text-anchor="middle" '
-            f'style="{FONT}">P{i + 1}</text>'
-        )
-        for k, (_, vals, color) in enumerate(series):
-            h = ph * vals[i] / ymax
-            x = ml + i * slot + 0.15 * slot + k * bw
-            body.append(
-                f'<rect x="{x:.1f}" y="{mt + ph - h:.1f}" width="{bw:.1f}" height="{h:.1f}" fill="{color}"/>'
-            )
-            body.append(
-                f'<text x="{x + bw / 2:.1f}" y="{mt + ph - h - 3:.1f}" text-anchor="middle" '
-                f'style="{FONT};font-size:9px">{vals[i]:.3f}</text>'
-            )
-    y = mt + 12
-    for label, _, color in series:
-        body.append(f'<rect x="{ml + pw - 250}" y="{y - 8}" width="9" height="9" fill="{color}"/>')
-        body.append(f'<text x="{ml + pw - 237}" y="{y}" style="{FONT}">{_e(label)}</text>')
-        y += 14
-    return (
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-        f'viewBox="0 0 {width} {height}" role="img" aria-label="ISO 9283">' + "".join(body) + "</svg>"
-    )
-
-
-def _html_table2(result: TrialResult) -> str:
-    t2 = result.table2()
-    head = (
-        "<tr><th rowspan=2>method</th><th rowspan=2>n</th>"
-        + "".join(f"<th colspan=3>{a}</th>" for a in "xyz")
-        + "<th colspan=3>3-D (eq. 27)</th><th colspan=2>seed 000, 3-D</th></tr><tr>"
-        + "<th>mean</th><th>std</th><th>max |·|</th>" * 3
-        + "<th>mean</th><th>std</th><th>max</th><th>mean</th><th>max</th></tr>"
-    )
-    body = []
-    for k in _rows(result):
-        st = t2[k]
-        run = result.runs[k]
-        failed = len(run.failures())
-        label = _e(run.label) + (f" <small>({failed} failed)</small>" if failed else "")
-        cells = "".join(
-            f"<td>{st[a]['mean']:+.3f}</td><td>{st[a]['std']:.3f}</td><td>{st[a]['max_abs']:.3f}</td>"
-            for a in "xyz"
-        )
-        d = st["3d"]
-        body.append(
-            f'<tr><td><span class="dot" style="background:{COLORS.get(k, "#555")}"></span>{label}</td>'
-            f"<td>{st['n']}</td>{cells}<td><b>{d['mean']:.3f}</b></td><td>{d['std']:.3f}</td>"
-            f"<td><b>{d['max']:.3f}</b></td><td class=paper>{_seed(k, 'mean') or '—'}</td>"
-            f"<td class=paper>{_seed(k, 'max') or '—'}</td></tr>"
-        )
-    return f"<table class=num>{head}{''.join(body)}</table>"
-
-
-def _html_iso_table(result: TrialResult) -> str:
-    runs = result.iso.get("runs", {})
-    pts = np.asarray(result.iso.get("points_mm", []), dtype=float)
-    rows = []
-    for i, p in enumerate(pts):
-        cells = []
-        for key in ("without", "with"):
-            st = runs.get(key, {}).get("stats")
-            if st is None:
-                cells.append("<td>—</td>" * 3)
-            else:
-                cells.append(
-                    f"<td>{st['vap_mm'][i]:.3f}</td><td>{st['rp_max_mm'][i]:.3f}</td><td>{st['ratio'][i]:.1f}</td>"
-                )
-        rows.append(f"<tr><td>P{i + 1} ({p[0]:.0f}, {p[1]:.0f}, {p[2]:.0f})</td>{''.join(cells)}</tr>")
-    return (
-        "<table class=num><tr><th rowspan=2>test point (mm)</th><th colspan=3>robot alone</th>"
-        "<th colspan=3>with joint feedback</th></tr><tr>"
-        + "<th>vAP</th><th>RP</th><th>vAP/RP</th>" * 2
-        + f"</tr>{''.join(rows)}</table>"
-    )
-
-
-def _html_comparison(result: TrialResult) -> str:
-    out = []
-    for key, title in COMPARISONS:
-        comp = result.comparison.get(key)
-        if not comp:
-            continue
-        rows = comp["rows"]
-        trs = []
-        for label, m in comp["models"].items():
-            if "table2" not in m:
-                trs.append(f"<tr><td>{_e(label)}</td><td>{_e(m['paper'])}</td><td colspan=6>not fitted: "
-                           f"{_e(m.get('error'))}</td></tr>")  # fmt: skip
-                continue
-            t = m["table2"]
-            d = t["3d"]
-            extra = []
-            if "order" in m:
-                extra.append(f"order {m['order']}")
-            if "dir_separation_deg" in m:
-                extra.append(f"ρ = {m['dir_separation_deg']:g}°")
-            note = f" <small>({', '.join(extra)})</small>" if extra else ""
-            trs.append(
-                f"<tr><td>{_e(label)}{note}</td><td>{_e(m['paper'])}</td><td>{d['mean']:.3f}</td>"
-                f"<td>{d['std']:.3f}</td><td>{d['max']:.3f}</td>"
-                + "".join(f"<td>{t[a]['std']:.3f}</td>" for a in "xyz")
-                + "</tr>"
-            )
-        out.append(
-            f"<h3>On the {title}</h3><p>Fitted on the {rows['fit']} sampling points, judged on the "
-            f"{rows['check']} target points at the commands of the nominal program "
-            "(measured − predicted).</p>"
-            "<table class=num><tr><th>model</th><th>method of</th><th>3-D mean</th><th>std</th><th>max</th>"
-            f"<th>x std</th><th>y std</th><th>z std</th></tr>{''.join(trs)}</table>"
-        )
-    return "".join(out)
-
-
-def _html_models(result: TrialResult) -> str:
-    rows = []
-    for label, m in result.models.items():
-        st = m.get("server_table2", {}).get("model", {}).get("3d", {})
-        rows.append(
-            f"<tr><td>{_e(label)}</td><td>{m['id']}</td><td>{_e(m['kind'])}</td><td>{_e(m.get('order'))}</td>"
-            f"<td>{m['dataset_id']}</td><td>{_e(m.get('fit_rows'))}</td><td>{_f(st.get('mean'))}</td>"
-            f"<td>{_f(st.get('max'))}</td></tr>"
-        )
-    ds = "".join(
-        f"<tr><td>{_e(name)}</td><td>{d['id']}</td><td>{d['rows']}</td><td>{d['fit_rows']}</td>"
-        f"<td>{d['check_rows']}</td><td><code>{_e(d['sha256'][:16])}…</code></td></tr>"
-        for name, d in result.datasets.items()
-    )
-    return (
-        "<table><tr><th>data set</th><th>id</th><th>rows</th><th>fit</th><th>check</th><th>sha256</th></tr>"
-        f"{ds}</table><table class=num><tr><th>model</th><th>id</th><th>kind</th><th>order</th>"
-        "<th>data set</th><th>fit rows</th><th>check 3-D mean</th><th>check max</th></tr>"
-        f"{''.join(rows)}</table>"
-    )
-
-
-def _error_panels(result: TrialResult) -> str:
-    rows = _figure_rows(result)
-    if not rows:
-        return ""
-    panels = []
-    for title, col in (("x", 0), ("y", 1), ("z", 2), ("3-D", None)):
-        series = []
-        for k in rows:
-            run = result.runs[k]
-            e = run.measured_mm - run.wanted_mm
-            y = np.linalg.norm(e, axis=1) if col is None else e[:, col]
-            y = np.where(run.ok, y, np.nan)
-            x = np.arange(1, run.n + 1, dtype=float)
-            series.append(Series(x, y, COLORS.get(k, "#555"), run.label, kind="line"))
-        panels.append(
-            panel(
-                series,
-                title=f"error {title} per target point" + (" (eq. 27)" if col is None else ""),
-                xlabel="target point (visiting order)",
-                ylabel="mm",
-                width=760,
-                height=240,
-            )
-        )
-    return "".join(f"<div class=fig>{p}</div>" for p in panels)
-
-
-CSS = """
-body{font-family:system-ui,sans-serif;margin:24px auto;max-width:900px;color:#222;line-height:1.4}
-h1{font-size:22px;margin-bottom:4px}h2{font-size:17px;margin-top:28px;border-bottom:1px solid #ddd}
-h3{font-size:14px}table{border-collapse:collapse;margin:8px 0;font-size:12px}
-td,th{border:1px solid #ddd;padding:2px 5px}th{background:#f4f4f4}
-table.num td{text-align:right}table.num td:first-child,table.num td:nth-child(2){text-align:left}
-td.paper{color:#666;font-style:italic}.dot{display:inline-block;width:9px;height:9px;margin-right:5px}
-.summary{display:flex;gap:10px;flex-wrap:wrap;margin:14px 0}
-.card{border:1px solid #ddd;border-radius:6px;padding:8px 12px;min-width:170px}
-.card b{font-size:20px;display:block}.card small{color:#666}.ok{color:#1e8449}.bad{color:#c0392b}
-.fig{margin:6px 0}small{color:#666}code{font-size:12px}
-"""
-
-
-def render_html(result: TrialResult, *, command: str | None = None) -> str:
-    plan, sizes = result.plan, result.plan["sizes"]
-    t2 = result.table2()
-    v = verdict(result)
-    cards = []
-    for k in ("uncompensated", "kinematic", "chebyshev+feedback"):
-        if k in t2:
-            d = t2[k]["3d"]
-            seed = f"seed 000: {_seed(k, 'max')}" if _seed(k, "max") else ""
-            cards.append(
-                f'<div class=card><small>{_e(result.runs[k].label)}, max</small><b style="color:'
-                f'{COLORS[k]}">{d["max"]:.3f} mm</b><small>mean {d["mean"]:.3f} · {seed}</small></div>'
-            )
-    verdict_html = ""
-    if "ordering" in v:
-        o, t = v["ordering"], v["claim"]["trial"]
-        good = o["mean"] and o["max"]
-        verdict_html = (
-            f"<p class={'ok' if good else 'bad'}><b>Ordering</b> (3-D mean and max): closed loop &lt; "
-            f"kinematic calibration &lt; uncompensated: <b>{'holds' if good else 'does not hold'}</b>.</p>"
-            f"<p><b>Seed 000's claim</b>: max 0.76 → 0.19 mm (−75 %; −55 % against kinematic calibration). "
-            f"<b>This trial</b>: max {t['before_max']:.3f} → {t['after_max']:.3f} mm "
-            f"(−{100 * t['reduction']:.0f} %; −{100 * t['vs_kinematic']:.0f} % against kinematic "
-            f"calibration), every axis within ±{t['axis_max_abs']:.3f} mm.</p>"
-        )
-    hist = ""
-    rows = _figure_rows(result)
-    if rows:
-        errs = {k: np.linalg.norm(result.runs[k].errors_mm(), axis=1) for k in rows}
-        h = histogram(errs)
-        hist = _grouped_bars(
-            h["edges_mm"],
-            [(result.runs[k].label, h["share"][k], COLORS.get(k, "#555")) for k in rows],
-            title="Frequency of the 3-D positioning error of the target points (seed 000 Fig. 11)",
-            xlabel="3-D error (mm)",
-            ylabel="share of target points (%)",
-        )
-    grat = ""
-    if result.gratings:
-        grat = "<table class=num><tr><th>joint</th><th>readings</th><th>span (°)</th><th>scale</th>" \
-               "<th>zero (°)</th><th>residual rms (°)</th><th>max (°)</th></tr>" + "".join(
-            f"<tr><td>A{m['joint']}</td><td>{m['n_readings']}</td><td>{m['span_deg']:.1f}</td>"
-            f"<td>{_grating_scale(m):.6f}</td><td>{m['zero_deg']:.4f}</td><td>{m['residual_rms_deg']:.4f}</td>"
-            f"<td>{m['residual_max_deg']:.4f}</td></tr>"
-            for m in result.gratings["joints"]
-        ) + "</table>"  # fmt: skip
-    loop = result.loop
-    ctl, dmn = loop.get("controller", {}), loop.get("daemon", {})
-    phases = "".join(
-        f"<tr><td>{_e(p['name'])}</td><td>{p['duration_s']:.0f}</td></tr>" for p in result.phases
-    )
-    failures = [
-        f"<li>{_e(run.label)}, point {f['index'] + 1}: {_e(f['state'])} — {_e(f['reason'])}</li>"
-        for run in [*result.sampling.values(), *result.runs.values()]
-        for f in run.failures()
-    ]
-    retries = [
-        f"<li>{_e(run.label)}, point {f['index'] + 1}: {_e(f['reason'])}</li>"
-        for run in [*result.sampling.values(), *result.runs.values()]
-        for f in run.retried
-    ] + [f"<li>ISO 9283 with joint feedback, {_e(why)}</li>" for why in iso_retried(result)]
-    env = result.environment
-    incomplete = "" if result.complete else f" · <b class=bad>incomplete: {_e(result.error)}</b>"
-    return f"""<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>comp-daemon trial</title>
-<meta name="viewport" content="width=device-width, initial-scale=1"><style>{CSS}</style></head><body>
-<h1>Seed 000's experiment, end to end through the daemon</h1>
-<div><small>scenario <b>{_e(plan["scenario"])}</b> (seed {plan["seed"]}, payload {plan["payload_kg"]:g} kg) ·
-{sizes["n_sampling"]} sampling + {sizes["n_targets"]} target points ·
-Chebyshev order {sizes["chebyshev_order"]}
-· started {_e(result.started_at)} · {result.duration_s / 60:.1f} min · Python {_e(env.get("python"))},
-{_e(env.get("cpus"))} CPUs{incomplete}
-{"<br><code>" + _e(command) + "</code>" if command else ""}</small></div>
-<div class=summary>{"".join(cards)}</div>
-{verdict_html}
-<h2>Table 2: positioning error of the target points</h2>
-<p>Error = tracker − wanted TCP, robot base frame, mm; per axis the signed components, 3-D the distance.
-Seed 000 gives only the 3-D figures quoted in its text.</p>
-{_html_table2(result)}
-<div class=fig>{hist}</div>
-<h2>Per target point (seed 000 Figs 7–10)</h2>
-{_error_panels(result)}
-<h2>ISO 9283 multi-directional pose accuracy (seed 000 Figs 5–6)</h2>
-<p>Each test point approached from +x, +y and +z ({_e(result.iso.get("approach_mm"))} mm moves),
-{_e(result.iso.get("cycles"))} cycles after {_e(result.iso.get("warmup_cycles"))} warm-up cycle(s);
-vAP: largest
-distance between the three directions' barycentres; RP = l̄ + 3·S_l of the worst direction; rated
-repeatability ±{_e(result.iso.get("repeatability_rated_mm"))} mm.</p>
-<div class=fig>{_iso_bars(result)}</div>
-{_html_iso_table(result)}
-<h2>Seed 001's model comparison on the same data</h2>
-{_html_comparison(result)}
-<h2>Data sets and models (over the HTTP API)</h2>
-{_html_models(result)}
-<h2>Grating calibration (seed 000 step 1)</h2>
-{grat}
-<h2>The run</h2>
-<p>RSI: {_e(ctl.get("telegrams_sent"))} telegrams, {_e(ctl.get("late_total"))} late replies counted by the
-controller, {_e(ctl.get("overruns"))} controller overruns; reply latency p50 {_f(dmn.get("latency_p50_ms"))} /
-p99 {_f(dmn.get("latency_p99_ms"))} / max {_f(dmn.get("latency_max_ms"))} ms (recent window); daemon exit
-code {_e(loop.get("daemon_exit_code"))}.</p>
-{"<p>Targets that did not finish:</p><ul>" + "".join(failures) + "</ul>" if failures else ""}
-{
-        "<p>Targets posted again after a failure that says the computer was busy (a grating reading or RSI "
-        "telegrams late), each measured once done:</p><ul>" + "".join(retries) + "</ul>"
-        if retries
-        else ""
-    }
-<table class=num><tr><th>phase</th><th>s</th></tr>{phases}</table>
-</body></html>
-"""

@@ -4,29 +4,32 @@ An upload is validated whole by :mod:`comp_daemon.data.dataset` against the conf
 axis limits; a refused upload is answered 422 with the row (or record) and column at fault and
 nothing is stored. What is stored is the canonical CSV of the data set (exact floats, unknown
 columns kept), whatever the upload format; ``sha256`` is the hash of that text.
+
+An upload never runs on the event loop: its body is streamed to a temporary file (in memory up to
+1 MiB), then parsed, validated, rendered and summarised in a worker thread. At most
+``http.max_concurrent_uploads`` are checked at once (each may take a few hundred MB and seconds of
+CPU at the size limit); one more is answered 503 with ``Retry-After``. JSON follows the file
+reader's rules (a key given twice is refused) and more: a lone surrogate or a NUL in a string and
+an integer beyond any double are refused 422 with the value's path (``$[3].a1``); a NUL in a CSV
+field is refused with its row and column.
 """
 
 from __future__ import annotations
 
-import json
+import asyncio
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 from starlette.datastructures import UploadFile
+from starlette.requests import ClientDisconnect
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.data.dataset import (
-    Dataset,
-    DatasetError,
-    dataset_from_records,
-    dataset_to_csv,
-    parse_dataset,
-)
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.schemas import DatasetOut, ErrorOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.uploads import Spool, UploadChecker, UploadRefused
 
 router = APIRouter(tags=["datasets"])
 _log = get_logger("comp_daemon.api.datasets")
@@ -73,44 +76,31 @@ _UPLOAD_BODY: dict[str, Any] = {
     }
 }
 _REFUSED: dict[int | str, dict[str, Any]] = {
+    400: {"model": ErrorOut, "description": "the client went away before the upload ended"},
     413: {"model": ErrorOut, "description": "body over http.max_upload_bytes"},
     415: {"model": ErrorOut, "description": "not CSV, JSON or multipart"},
-    422: {"model": ErrorOut, "description": "refused data set; row/column name the fault"},
+    422: {"model": ErrorOut, "description": "refused data set; row/column (JSON: path) name the fault"},
+    503: {"model": ErrorOut, "description": "http.max_concurrent_uploads uploads are being checked"},
 }
 
 
-def _json_records(data: bytes, source: str) -> tuple[list[Any], str | None]:
+async def _spool(request: Request, limit: int) -> Spool:
+    """The request body, refused with 413 over ``limit`` bytes."""
+    spool = Spool()
     try:
-        text = data.decode("utf-8").removeprefix("\ufeff")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise DatasetError("not UTF-8 text", source=source, row=line) from None
-    try:
-        doc = json.loads(text)
-    except json.JSONDecodeError as exc:
-        raise DatasetError(
-            f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}", source=source, row=exc.lineno
-        ) from None
-    except RecursionError:
-        raise DatasetError("JSON nested too deeply", source=source) from None
-    if isinstance(doc, list):
-        return doc, None
-    if isinstance(doc, dict) and isinstance(doc.get("records"), list):
-        name = doc.get("name")
-        return doc["records"], name if isinstance(name, str) and name.strip() else None
-    raise DatasetError("expected a list of records or an object with 'records' (a list)", source=source)
-
-
-def _validate(
-    data: bytes, fmt: Literal["csv", "json"], name: str, limits: Any, kind: Literal["measurement", "any"]
-) -> tuple[Dataset, str]:
-    if fmt == "csv":
-        ds = parse_dataset(data, source=name, limits_deg=limits, min_rows=1, kind=kind)
-    else:
-        records, inner = _json_records(data, name)
-        name = (inner or name)[:200]
-        ds = dataset_from_records(records, source=name, limits_deg=limits, min_rows=1, kind=kind)
-    return ds, name
+        async for chunk in request.stream():
+            if spool.size + len(chunk) > limit:
+                raise ApiError(
+                    413, "too_large", f"upload over the limit of {limit} bytes (http.max_upload_bytes)"
+                )
+            await spool.write(chunk)
+    except ClientDisconnect:
+        spool.close()
+        raise ApiError(400, "bad_request", "the client went away before the upload ended") from None
+    except BaseException:
+        spool.close()
+        raise
+    return spool
 
 
 @router.post(
@@ -131,17 +121,61 @@ async def upload_dataset(
         Query(description="measurement: needs a1..a6 and x, y, z; any: target files too"),
     ] = "measurement",
 ) -> DatasetOut:
-    limit = svc.settings.http.max_upload_bytes
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
-    fmt: Literal["csv", "json"]
-    if ctype == "multipart/form-data":
-        form = await request.form(max_files=1, max_fields=4, max_part_size=64 * 1024)
+    if ctype != "multipart/form-data" and ctype not in _CSV_TYPES and ctype != "application/json":
+        raise ApiError(
+            415, "unsupported_media_type", "send text/csv, application/json or multipart/form-data"
+        )
+    checker: UploadChecker = request.app.state.uploads
+    if checker.busy():
+        raise ApiError(
+            503,
+            "busy",
+            f"{checker.concurrency} uploads are being checked (http.max_concurrent_uploads); try again",
+            retry_after_s=2,
+        )
+    async with checker.slots:
+        fmt, source, spool = await _receive(request, svc.settings.http.max_upload_bytes, name, ctype)
+        try:
+            checked = await checker.check(spool, fmt, source, svc.robot.axis_limits_deg, kind)
+        except UploadRefused as exc:
+            raise ApiError(422, "invalid_dataset", exc.message, **exc.where) from None
+        finally:
+            await asyncio.to_thread(spool.close)
+    record = await svc.run(
+        svc.store.add_dataset,
+        name=checked.name,
+        format=fmt,
+        content=checked.content,
+        sha256=checked.sha256,
+        rows=checked.rows,
+        summary=checked.summary,
+    )
+    _log.info("dataset stored", dataset_id=record.id, rows=record.rows, by=who.name)
+    return DatasetOut.of(record)
+
+
+async def _receive(
+    request: Request, limit: int, name: str | None, ctype: str
+) -> tuple[Literal["csv", "json"], str, Spool]:
+    """(format, data set name, body) of an upload."""
+    if ctype != "multipart/form-data":
+        spool = await _spool(request, limit)
+        fmt: Literal["csv", "json"] = "json" if ctype == "application/json" else "csv"
+        return fmt, (name or "upload").strip()[:200] or "upload", spool
+    form = await request.form(max_files=1, max_fields=4, max_part_size=64 * 1024)
+    try:
         part = form.get("file")
         if not isinstance(part, UploadFile):
             raise ApiError(
                 422, "invalid_request", "multipart upload needs a file part named 'file'", column="file"
             )
-        data = await part.read(limit + 1)
+        if part.size is not None and part.size > limit:
+            raise ApiError(
+                413, "too_large", f"upload over the limit of {limit} bytes (http.max_upload_bytes)"
+            )
+        spool = Spool()
+        await asyncio.to_thread(spool.write_from, part.file)
         form_name = form.get("name")
         name = (
             name or (form_name if isinstance(form_name, str) and form_name.strip() else None) or part.filename
@@ -149,32 +183,9 @@ async def upload_dataset(
         is_json = (part.filename or "").lower().endswith(".json") or (part.content_type or "").endswith(
             "json"
         )
-        fmt = "json" if is_json else "csv"
+    finally:
         await form.close()
-    elif ctype in _CSV_TYPES:
-        data, fmt = await request.body(), "csv"
-    elif ctype == "application/json":
-        data, fmt = await request.body(), "json"
-    else:
-        raise ApiError(
-            415, "unsupported_media_type", "send text/csv, application/json or multipart/form-data"
-        )
-    if len(data) > limit:
-        raise ApiError(413, "too_large", f"upload over the limit of {limit} bytes (http.max_upload_bytes)")
-    source = (name or "upload").strip()[:200] or "upload"
-    ds, source = await svc.run(_validate, data, fmt, source, svc.robot.axis_limits_deg, kind)
-    content = await svc.run(dataset_to_csv, ds)
-    record = await svc.run(
-        svc.store.add_dataset,
-        name=source,
-        format=fmt,
-        content=content,
-        sha256=ds.content_sha256,
-        rows=len(ds),
-        summary=ds.summary(),
-    )
-    _log.info("dataset stored", dataset_id=record.id, rows=record.rows, by=who.name)
-    return DatasetOut.of(record)
+    return ("json" if is_json else "csv"), (name or "upload").strip()[:200] or "upload", spool
 
 
 @router.get("/datasets", response_model=list[DatasetOut], summary="List data sets (newest first)")

@@ -5,9 +5,14 @@ the batch (201); the same key with the same body returns that batch (200) withou
 anything again; the same key with another body is refused (409). Bodies are compared after
 validation (same targets, same values: same body, whatever the spacing or key order).
 
-Each target is validated like a row of a target file (``shared/spec/dataset.md``): axis values
-within the robot's limits, or a wanted TCP position; a refused batch names the target (1-based)
-and the field, and nothing of it is queued.
+Each target is validated like a row of a target file (``shared/spec/dataset.md``), in exactly one
+form (axis values ``a1..a6`` within the robot's limits, or a wanted TCP ``tx, ty, tz`` with an
+optional orientation), JSON numbers only. Then the robot must reach it: a TCP may not lie inside
+the robot's base and needs a nominal inverse-kinematics solution inside the axis limits, and a
+target whose orientation is held may not lie near the wrist singularity
+(``[compensation] wrist_singularity_deg``). A refused batch (422) names the target (1-based), the
+field and the reason, and nothing of it is queued. The compensation itself (and its limits on the
+axis changes and the model's region) runs when the target executes.
 """
 
 from __future__ import annotations
@@ -17,10 +22,19 @@ import json
 from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
+import numpy as np
 from fastapi import APIRouter, Depends, Header, Path, Query, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.dataset import DatasetError, dataset_from_records
+from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
+from comp_daemon.models.compensation import (
+    CompensationLimits,
+    base_refusals,
+    nominal_solution,
+    wrist_refusals,
+)
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.schemas import BatchIn, BatchOut, ErrorOut, TargetOut, json_array
@@ -41,7 +55,61 @@ TargetState = Literal[
 _CHANGE_ERRORS: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}, 409: {"model": ErrorOut}}
 
 
-def validate_targets(records: Sequence[dict[str, Any]], limits_deg: Any) -> None:
+def validate_targets(
+    records: Sequence[dict[str, Any]], robot: RobotDescription, limits: CompensationLimits
+) -> None:
+    """Check every target as a target-file record, then that the robot reaches it (module docstring);
+    raise ``DatasetError`` naming the first target at fault (1-based), the field and the problem."""
+    _check_records(records, robot.axis_limits_deg)
+    problems: list[tuple[int, str, str]] = []  # (index, field, problem)
+    axes = [i for i, r in enumerate(records) if "a1" in r]
+    if axes:
+        a = np.array([[float(records[i][f"a{k + 1}"]) for k in range(6)] for i in axes])
+        problems += [(axes[r.index], "a5", r.reason) for r in wrist_refusals(robot, a, limits)]
+    for oriented in (False, True):
+        rows = [i for i, r in enumerate(records) if "tx" in r and ("ta" in r) is oriented]
+        if rows:
+            problems += _reach_problems(records, rows, oriented, robot, limits)
+    if problems:
+        index, field, problem = min(problems)
+        raise DatasetError(problem, source="batch", row=index + 1, column=field, row_label="target")
+
+
+def _reach_problems(
+    records: Sequence[dict[str, Any]],
+    rows: list[int],
+    oriented: bool,
+    robot: RobotDescription,
+    limits: CompensationLimits,
+) -> list[tuple[int, str, str]]:
+    """TCP targets: outside the robot's base, a nominal solution inside the axis limits, not near the
+    wrist singularity."""
+    p = np.array([[float(records[i][k]) for k in ("tx", "ty", "tz")] for i in rows])
+    inside = base_refusals(robot, p)
+    if inside:
+        return [(rows[r.index], "tx", r.reason) for r in inside]
+    rot = None
+    if oriented:
+        abc = np.array([[float(records[i][k]) for k in ("ta", "tb", "tc")] for i in rows])
+        rot = rotation_kuka_abc_deg(abc) @ FLANGE_R_KUKA_TOOL.T
+    try:
+        a = nominal_solution(robot, p, rot)
+    except UnreachableTargetError as exc:
+        return [
+            (
+                rows[int(i)],
+                "tx",
+                f"the robot cannot reach this TCP within its axis limits (nominal inverse kinematics "
+                f"{float(e):.3f} mm short)",
+            )
+            for i, e in zip(exc.indices, exc.position_error_mm, strict=True)
+        ]
+    if not oriented:
+        return []
+    return [(rows[r.index], "ta", r.reason) for r in wrist_refusals(robot, a, limits)]
+
+
+def _check_records(records: Sequence[dict[str, Any]], limits_deg: Any) -> None:
     """Check every target as a target-file record; raise ``DatasetError`` naming target and field."""
     groups: dict[tuple[str, ...], list[int]] = {}
     for i, record in enumerate(records):
@@ -111,7 +179,7 @@ async def post_batch(
             column="targets",
         )
     records = [t.model_dump(exclude_none=True) for t in body.targets]
-    await svc.run(validate_targets, records, svc.robot.axis_limits_deg)
+    await svc.run(validate_targets, records, svc.robot, svc.settings.compensation.limits())
     batch, targets, created = await svc.run(
         svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
     )

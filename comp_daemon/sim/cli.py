@@ -1,5 +1,7 @@
 """``comp-daemon sim sample|report``: measurement campaigns and figures of the simulated cell.
 
+The command line (:mod:`comp_daemon.cli`) imports this module only when the ``sim`` command runs.
+
 ``sim sample`` writes a data set (``shared/spec/dataset.md``) measured on a scenario's hidden robot;
 ``sim report`` measures the scenario's raw error figures (nominal twin vs tracker, robot base
 frame) and its ISO 9283 multi-directional pose accuracy variation against the pose repeatability.

@@ -1,0 +1,185 @@
+"""The candidates of the effect selection, what the data allows of them, and parameters as JSON.
+
+A candidate is one effect of :data:`~comp_daemon.models.effects.EFFECT_CATALOGUE` on one joint (or,
+for an effect that is not per joint, on the whole robot), in catalogue order. A candidate whose data
+is absent or does not vary (:meth:`~comp_daemon.models.effects.Effect.unfit_reason`) or whose TCP
+signature is a combination of the model's columns is skipped with the reason.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.diagnosis.fitting import Observations
+from comp_daemon.diagnosis.result import rounded
+from comp_daemon.kinematics.forward import gravity_torques_nm
+from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
+from comp_daemon.models.effects import (
+    EFFECT_CATALOGUE,
+    EFFECTS,
+    EffectData,
+    EffectParams,
+    MassModel,
+    effect_by_name,
+)
+
+__all__ = [
+    "CANDIDATE_RTOL",
+    "JOINTS",
+    "Candidate",
+    "all_candidates",
+    "data_reasons",
+    "effect_params_json",
+    "geometric_params_json",
+    "group_skips",
+    "unidentifiable_candidates",
+]
+
+FloatArray = NDArray[np.float64]
+JOINTS = (1, 2, 3, 4, 5, 6)
+#: a candidate is unidentifiable when less than this fraction of its (unit) columns is left after
+#: projecting out the model's columns
+CANDIDATE_RTOL = 1e-4
+
+
+@dataclass(frozen=True)
+class Candidate:
+    """One effect on one joint (``joint`` None for an effect of the whole robot) and its names."""
+
+    effect: str
+    joint: int | None
+    names: tuple[str, ...]
+
+    @property
+    def label(self) -> str:
+        return self.effect if self.joint is None else f"{self.effect} J{self.joint}"
+
+
+def all_candidates(harmonics: int) -> list[Candidate]:
+    """Every candidate: the per-joint effects joint by joint, then the whole-robot ones."""
+    out: list[Candidate] = []
+    for e in EFFECT_CATALOGUE:
+        if e.per_joint:
+            out += [Candidate(e.name, j, tuple(e.names([j], harmonics))) for j in JOINTS]
+    for e in EFFECT_CATALOGUE:
+        if not e.per_joint:
+            out.append(Candidate(e.name, None, tuple(e.names([], harmonics))))
+    return out
+
+
+def data_reasons(
+    cands: Sequence[Candidate],
+    obs_fit: Observations,
+    mass: MassModel,
+    params: KinematicParams,
+    jac_theta_norm: FloatArray,
+) -> dict[Candidate, str]:
+    """Why candidates cannot be fitted from these data (absent columns, no variation)."""
+    q = axes_deg_to_q_rad(obs_fit.a_deg, params.sign)
+    data = EffectData(
+        a_deg=obs_fit.a_deg,
+        dir=obs_fit.dir,
+        payload_kg=obs_fit.payload_kg,
+        temp_c=obs_fit.temp_c,
+        tau_nm=gravity_torques_nm(params, q, mass.link_mass_kg, mass.link_com_mm, obs_fit.payload_kg),
+        moves_tcp=jac_theta_norm > 1e-6 * max(float(jac_theta_norm.max(initial=0.0)), 1e-300),
+    )
+    reasons: dict[Candidate, str] = {}
+    for c in cands:
+        why = effect_by_name(c.effect).unfit_reason(data, c.joint)
+        if why is not None:
+            reasons[c] = why
+    return reasons
+
+
+def unidentifiable_candidates(
+    cands: Sequence[Candidate], jac_base: FloatArray, jac_cand: dict[Candidate, FloatArray]
+) -> set[Candidate]:
+    """Candidates whose unit columns are (nearly) in the span of the base model's columns."""
+    norms = np.linalg.norm(jac_base, axis=0)
+    base = jac_base[:, norms > 0] / norms[norms > 0]
+    qmat, _ = np.linalg.qr(base)
+    out: set[Candidate] = set()
+    for c in cands:
+        cols = jac_cand[c]
+        cn = np.linalg.norm(cols, axis=0)
+        if np.any(cn == 0):
+            out.add(c)
+            continue
+        cols = cols / cn
+        rest = cols - qmat @ (qmat.T @ cols)
+        sv = np.linalg.svd(rest, compute_uv=False)
+        if sv.min() < CANDIDATE_RTOL:
+            out.add(c)
+    return out
+
+
+def group_skips(reasons: dict[Candidate, str]) -> list[dict[str, Any]]:
+    """The ``skipped`` list: one entry per effect and reason, with its joints, in catalogue order."""
+    grouped: dict[tuple[str, str], list[int]] = {}
+    for c, why in reasons.items():
+        grouped.setdefault((c.effect, why), [])
+        if c.joint is not None:
+            grouped[(c.effect, why)].append(c.joint)
+    order = {e: i for i, e in enumerate(EFFECTS)}
+    items = sorted(grouped.items(), key=lambda kv: (order[kv[0][0]], kv[1][:1]))
+    return [{"effect": e, "joints": sorted(js), "reason": why} for (e, why), js in items]
+
+
+def geometric_params_json(
+    fitted: KinematicParams, start: KinematicParams, free: NDArray[np.bool_]
+) -> dict[str, Any]:
+    """The fitted geometric increments of the free parameters (deg for angles, mm for lengths)."""
+    dx = fitted.difference(start)
+    out: dict[str, Any] = {}
+    units = {
+        "theta": ("theta_deg", True),
+        "d": ("d_mm", False),
+        "a": ("a_mm", False),
+        "alpha": ("alpha_deg", True),
+        "beta": ("beta_deg", True),
+    }
+    for k, name in enumerate(PARAM_NAMES):
+        if not free[k]:
+            continue
+        value = float(dx[k])
+        if k < 30:
+            kind, joint = name[:-1], name[-1]
+            key, is_angle = units[kind]
+            out.setdefault(key, {})[joint] = rounded(math.degrees(value) if is_angle else value)
+        elif k < 33:
+            out.setdefault("base_mm", {})[name[-1]] = rounded(value)
+        elif k < 36:
+            out.setdefault("base_deg", {})[name[-2:]] = rounded(math.degrees(value))
+        else:
+            out.setdefault("tool_mm", {})[name[-1]] = rounded(value)
+    return out
+
+
+def effect_params_json(effect: str, joints: Sequence[int], eff: EffectParams) -> dict[str, Any]:
+    """The fitted values of ``effect`` on ``joints``, keyed by the catalogue's ``json_key``.
+
+    An effect with harmonic arrays leads with ``harmonics`` (K); per-joint arrays map the joint
+    (as a string) to its value, harmonic arrays to the list over k; a scalar is its value; the
+    effect's settings (``t_ref_c`` of thermal) follow.
+    """
+    entry = effect_by_name(effect)
+    out: dict[str, Any] = {}
+    if any(arr.layout == "harmonic" for arr in entry.arrays):
+        out["harmonics"] = eff.n_harmonics
+    for arr, value in zip(entry.arrays, eff.of(entry), strict=True):
+        if arr.layout == "scalar":
+            out[arr.json_key] = rounded(float(value))
+        elif arr.layout == "joint":
+            out[arr.json_key] = {str(j): rounded(float(value[j - 1])) for j in joints}
+        else:
+            out[arr.json_key] = {str(j): [rounded(float(v)) for v in value[j - 1]] for j in joints}
+    for setting in entry.settings:
+        out[setting] = getattr(eff, setting)
+    return out

@@ -1,0 +1,202 @@
+"""The result of a diagnosis: its settings, the rungs of the ladder and the document of diagnose.md.
+
+Units: mm for positions and errors, the effect parameters in the units of the effect catalogue
+(:mod:`comp_daemon.models.effects`). Joints are numbered 1..6 in every output.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
+from comp_daemon.diagnosis.fitting import FitResult, Observations
+from comp_daemon.robot.description import RobotDescription
+
+__all__ = [
+    "DiagnoseOptions",
+    "Diagnosis",
+    "Frame",
+    "Step",
+    "final_step",
+    "implicated_joints",
+    "rounded",
+    "significant_steps",
+]
+
+FloatArray = NDArray[np.float64]
+Frame = Literal["auto", "base", "tracker"]
+
+
+def rounded(value: float, digits: int = 6) -> float:
+    """A float rounded to ``digits`` significant digits, for JSON."""
+    if not math.isfinite(value) or value == 0.0:
+        return float(value)
+    return float(f"{value:.{digits}g}")
+
+
+@dataclass(frozen=True)
+class DiagnoseOptions:
+    """Settings of a diagnosis; the defaults are the documented method."""
+
+    frame: Frame = "auto"
+    harmonics: int = 2  # K of the cyclic effect
+    folds: int = 5  # k of the cross-validation inside the fit rows
+    alpha: float = 0.002  # family-wise false-alarm level per selection round (calibrated, see docs)
+    seed: int = DEFAULT_SPLIT_SEED  # folds, and the check rows when the data has no split column
+    check_fraction: float = 0.3  # held out when the data has no split column
+    t_ref_c: float = 20.0  # reference temperature of the thermal effect
+    max_effects: int = 12  # at most this many (effect, joint) candidates are accepted
+
+    def __post_init__(self) -> None:
+        if self.frame not in ("auto", "base", "tracker"):
+            raise ValueError(f"frame must be auto, base or tracker, got {self.frame!r}")
+        if not 1 <= self.harmonics <= 8:
+            raise ValueError(f"harmonics must be 1..8, got {self.harmonics}")
+        if not 2 <= self.folds <= 20:
+            raise ValueError(f"folds must be 2..20, got {self.folds}")
+        if not 0.0 < self.alpha < 0.5:
+            raise ValueError(f"alpha must be in (0, 0.5), got {self.alpha}")
+        if not 0.0 < self.check_fraction < 1.0:
+            raise ValueError(f"check_fraction must be in (0, 1), got {self.check_fraction}")
+
+
+@dataclass(frozen=True)
+class Step:
+    """One rung of the ladder, as in the JSON output (plus what the report draws)."""
+
+    effect: str
+    joints: list[int]
+    significant: bool
+    check_rms_mm: float
+    check_max_mm: float
+    shrink_pct: float
+    params: dict[str, Any]
+    fit_rms_mm: float
+    cv_rms_mm: float | None
+    p_value: float | None
+    n_params: int
+    fit: FitResult = field(repr=False)
+    names: tuple[str, ...] = ()
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "effect": self.effect,
+            "joints": self.joints,
+            "significant": self.significant,
+            "check_rms_mm": rounded(self.check_rms_mm),
+            "check_max_mm": rounded(self.check_max_mm),
+            "shrink_pct": round(self.shrink_pct, 2),
+            "params": self.params,
+            "fit_rms_mm": rounded(self.fit_rms_mm),
+            "cv_rms_mm": None if self.cv_rms_mm is None else rounded(self.cv_rms_mm),
+            "p_value": None if self.p_value is None else float(f"{self.p_value:.3g}"),
+            "n_params": self.n_params,
+        }
+
+
+def significant_steps(steps: Sequence[Step]) -> list[Step]:
+    return [s for s in steps if s.significant]
+
+
+def implicated_joints(steps: Sequence[Step]) -> list[int]:
+    """The joints of the significant non-geometric steps."""
+    out: set[int] = set()
+    for s in significant_steps(steps):
+        if s.effect != "geometric":
+            out.update(s.joints)
+    return sorted(out)
+
+
+def final_step(steps: Sequence[Step]) -> Step:
+    """The last significant step (the geometric step when none is)."""
+    sig = significant_steps(steps)
+    return sig[-1] if sig else steps[0]
+
+
+@dataclass(frozen=True)
+class Diagnosis:
+    """The result: ``to_json()`` is the document of diagnose.md; the arrays feed the report."""
+
+    robot: RobotDescription
+    dataset: Dataset
+    obs: Observations
+    fit_rows: NDArray[np.int64]
+    check_rows: NDArray[np.int64]
+    split_message: str
+    split_drawn: bool
+    frame: str
+    world_T_base: FloatArray
+    options: DiagnoseOptions
+    baseline_fit: FitResult
+    baseline_check_rms_mm: float
+    baseline_check_max_mm: float
+    steps: list[Step]
+    skipped: list[dict[str, Any]]
+    selection: list[dict[str, Any]]
+    unidentifiable: list[str]
+    noise_floor_mm: float
+    noise_floor_source: str
+    where: dict[str, Any]
+
+    @property
+    def significant_steps(self) -> list[Step]:
+        return significant_steps(self.steps)
+
+    @property
+    def unmodelled(self) -> list[str]:
+        return [s.effect for s in self.significant_steps if s.effect != "geometric"]
+
+    @property
+    def implicated_joints(self) -> list[int]:
+        return implicated_joints(self.steps)
+
+    @property
+    def final_step(self) -> Step:
+        return final_step(self.steps)
+
+    @property
+    def unexplained_rms_mm(self) -> float:
+        return self.final_step.check_rms_mm
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "robot": self.robot.name,
+            "robot_sha256": self.robot.sha256,
+            "data": {"source": self.dataset.source, "content_sha256": self.dataset.content_sha256},
+            "rows": {"fit": len(self.fit_rows), "check": len(self.check_rows)},
+            "split": {"drawn": self.split_drawn, "message": self.split_message},
+            "frame": {
+                "measured_in": self.frame,
+                "world_T_base": [[rounded(v, 9) for v in row] for row in self.world_T_base],
+            },
+            "baseline": {
+                "effect": "nominal",
+                "check_rms_mm": rounded(self.baseline_check_rms_mm),
+                "check_max_mm": rounded(self.baseline_check_max_mm),
+            },
+            "steps": [s.to_json() for s in self.steps],
+            "unmodelled": self.unmodelled,
+            "joints": self.implicated_joints,
+            "where": self.where,
+            "unexplained_rms_mm": rounded(self.unexplained_rms_mm),
+            "noise_floor_mm": rounded(self.noise_floor_mm),
+            "noise_floor_source": self.noise_floor_source,
+            "unidentifiable": self.unidentifiable,
+            "skipped": self.skipped,
+            "selection": self.selection,
+            "method": {
+                "selection": "greedy forward selection by k-fold CV on fit rows (folds of pose groups)",
+                "significance": "cluster-robust (CR3) Wald test, p < alpha / candidates, and lower CV error",
+                "parsimony": "a runner-up with fewer parameters wins unless the best adds significantly",
+                "alpha": self.options.alpha,
+                "folds": self.options.folds,
+                "cyclic_harmonics": self.options.harmonics,
+                "t_ref_c": self.options.t_ref_c,
+            },
+        }

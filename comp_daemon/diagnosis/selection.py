@@ -1,0 +1,231 @@
+"""The greedy forward selection of effects, with its parsimony and replacement rules.
+
+Every choice is made on the fit rows (:class:`Context`): in each round the candidate with the lowest
+k-fold cross-validated error (folds of pose groups) is tested with a cluster-robust Wald test
+(:mod:`comp_daemon.diagnosis.stats`); it is significant when its p-value is below ``alpha / m``
+(Bonferroni over the m candidates of the round) and it lowers the CV error. A runner-up with fewer
+parameters that the best does not add to significantly is preferred; after each acceptance every
+accepted candidate is offered for replacement by a rejected one. The method is described in full
+in :mod:`comp_daemon.diagnosis.ladder`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.diagnosis.candidates import Candidate
+from comp_daemon.diagnosis.fitting import FitResult, Observations, fit_twin, linearize, predict_mm
+from comp_daemon.diagnosis.result import DiagnoseOptions, rounded
+from comp_daemon.diagnosis.stats import LinearProblem, make_folds
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
+from comp_daemon.models.effects import MassModel
+
+__all__ = ["Context", "distance_stats", "names_of", "select"]
+
+FloatArray = NDArray[np.float64]
+
+
+def distance_stats(resid: FloatArray) -> tuple[float, float]:
+    dist = np.linalg.norm(resid, axis=1)
+    if not len(dist):
+        return float("nan"), float("nan")
+    return float(np.sqrt(np.mean(dist**2))), float(dist.max())
+
+
+class Context:
+    """What every step of one diagnosis shares."""
+
+    def __init__(
+        self,
+        mass: MassModel,
+        obs: Observations,
+        fit_rows: NDArray[np.int64],
+        check_rows: NDArray[np.int64],
+        geo_free: NDArray[np.bool_],
+        options: DiagnoseOptions,
+    ) -> None:
+        self.mass = mass
+        self.obs = obs
+        self.obs_fit = obs.take(fit_rows)
+        self.obs_check = obs.take(check_rows)
+        self.geo_free = geo_free
+        self.geo_idx = np.flatnonzero(geo_free)
+        self.options = options
+        self.fold = make_folds(self.obs_fit.pose_group, options.folds, options.seed)
+
+    def fit(self, start: FitResult, names: Sequence[str]) -> FitResult:
+        return fit_twin(self.mass, self.obs_fit, start.params, start.effects, self.geo_free, names)
+
+    def problem(self, fit: FitResult, names: Sequence[str]) -> LinearProblem:
+        """Linear problem with columns [free geometric | names] at ``fit``."""
+        resid, jac = linearize(self.mass, fit.params, fit.effects, names, self.obs_fit)
+        cols = np.concatenate([self.geo_idx, N_PARAMS + np.arange(len(names))])
+        return LinearProblem(resid, jac[:, :, cols], self.obs_fit.pose_group, self.fold)
+
+    def values(self, fit: FitResult, start: KinematicParams, names: Sequence[str]) -> FloatArray:
+        """Values of the columns [free geometric | names] at ``fit``, measured from ``start``."""
+        geo = fit.params.difference(start)[self.geo_idx]
+        return np.concatenate([geo, fit.effects.get(list(names)) if names else np.zeros(0)])
+
+    def check_stats(self, fit: FitResult) -> tuple[float, float]:
+        resid = self.obs_check.xyz_mm - predict_mm(self.mass, fit.params, fit.effects, self.obs_check)
+        return distance_stats(resid)
+
+
+def _cols_of(cands: Sequence[Candidate], first: int) -> dict[Candidate, list[int]]:
+    out: dict[Candidate, list[int]] = {}
+    for c in cands:
+        out[c] = list(range(first, first + len(c.names)))
+        first += len(c.names)
+    return out
+
+
+def names_of(cands: Sequence[Candidate]) -> list[str]:
+    return [n for c in cands for n in c.names]
+
+
+def select(
+    ctx: Context, geo_fit: FitResult, candidates: Sequence[Candidate], options: DiagnoseOptions
+) -> tuple[list[Candidate], Candidate | None, list[dict[str, Any]], FitResult]:
+    """Greedy forward selection with a replacement pass (see the module docstring).
+
+    Returns the accepted candidates in order, the best rejected one (None if none was left), the
+    record of every round, and the fit of the final model.
+    """
+    avail = list(candidates)
+    accepted: list[Candidate] = []
+    selection: list[dict[str, Any]] = []
+    current = geo_fit
+    rejected: Candidate | None = None
+    while avail and len(accepted) < options.max_effects:
+        lp = ctx.problem(current, names_of(accepted) + names_of(avail))
+        base_cols = list(range(len(ctx.geo_idx) + len(names_of(accepted))))
+        col_of = _cols_of(avail, len(base_cols))
+        cv_base = lp.cv_rms_mm(base_cols)
+        scored = sorted((lp.cv_rms_mm(base_cols + col_of[c]), i) for i, c in enumerate(avail))
+        threshold = options.alpha / len(avail)
+        ranked: list[dict[str, Any]] = []
+        for cv, i in scored[:5]:
+            c = avail[i]
+            wald = lp.wald(base_cols + col_of[c], col_of[c])
+            ranked.append({"candidate": c.label, "cv_rms_mm": rounded(cv), "p_value": wald.p_value})
+        best_cv, best_i = scored[0]
+        best = avail[best_i]
+        best_p = float(ranked[0]["p_value"])
+        simpler = _simpler_alternative(
+            lp, base_cols, col_of, best, [avail[i] for _, i in scored[1:5]], threshold
+        )
+        if simpler is not None:
+            k = next(k for k, (_, i) in enumerate(scored) if avail[i] is simpler)
+            best, best_cv, best_p = simpler, scored[k][0], float(ranked[k]["p_value"])
+        significant = best_p < threshold and best_cv < cv_base
+        for entry in ranked:
+            entry["p_value"] = float(f"{entry['p_value']:.3g}")
+        selection.append(
+            {
+                "round": len(selection) + 1,
+                "cv_rms_mm_before": rounded(cv_base),
+                "candidates": len(avail),
+                "p_threshold": float(f"{threshold:.3g}"),
+                "best": ranked,
+                "preferred_simpler": None if simpler is None else simpler.label,
+                "accepted": best.label if significant else None,
+            }
+        )
+        if not significant:
+            rejected = best
+            break
+        accepted.append(best)
+        avail.remove(best)
+        current = ctx.fit(current, names_of(accepted))
+        current = _replace_pass(ctx, current, accepted, avail, options, selection)
+    return accepted, rejected, selection, current
+
+
+def _simpler_alternative(
+    lp: LinearProblem,
+    base_cols: list[int],
+    col_of: dict[Candidate, list[int]],
+    best: Candidate,
+    runners_up: Sequence[Candidate],
+    threshold: float,
+) -> Candidate | None:
+    """A runner-up with fewer parameters that ``best`` does not significantly improve on, if any.
+
+    Over a limited range of a joint, a few harmonics reproduce a linear ratio error almost exactly,
+    and cross-validation cannot tell the two apart; parsimony can: the larger candidate must add
+    to the smaller one at the selection's own significance threshold, or the smaller one is taken.
+    """
+    for c in runners_up:  # in order of CV error
+        if len(c.names) >= len(best.names):
+            continue
+        if lp.wald(base_cols + col_of[c] + col_of[best], col_of[best]).p_value >= threshold:
+            return c
+    return None
+
+
+def _replace_pass(
+    ctx: Context,
+    current: FitResult,
+    accepted: list[Candidate],
+    avail: list[Candidate],
+    options: DiagnoseOptions,
+    selection: list[dict[str, Any]],
+) -> FitResult:
+    """Replace an accepted candidate by a rejected one while that lowers the CV error.
+
+    Forward selection can take a candidate that stood in for two true effects at once (a cyclic
+    term absorbing a ratio error and part of a thermal drift); once the second one is in, the
+    first may be better explained by another candidate. Each accepted candidate is taken out (its
+    parameters set to zero, the problem linearised there), and the best replacement by CV must beat
+    it and pass the same significance test. Changes are recorded in ``selection``.
+    """
+    for _ in range(3 * max(len(accepted), 1)):
+        swapped = False
+        for k, old in enumerate(accepted):
+            others = [c for c in accepted if c is not old]
+            point = FitResult(
+                current.params,
+                current.effects.with_values(list(old.names), np.zeros(len(old.names))),
+                current.rms_mm,
+                0,
+                True,
+            )
+            pool = [old, *avail]
+            lp = ctx.problem(point, names_of(others) + names_of(pool))
+            base_cols = list(range(len(ctx.geo_idx) + len(names_of(others))))
+            col_of = _cols_of(pool, len(base_cols))
+            cv_old = lp.cv_rms_mm(base_cols + col_of[old])
+            cv_new, i = min((lp.cv_rms_mm(base_cols + col_of[c]), i) for i, c in enumerate(avail))
+            new = avail[i]
+            if cv_new >= cv_old:
+                continue
+            p_value = lp.wald(base_cols + col_of[new], col_of[new]).p_value
+            if p_value >= options.alpha / len(pool):
+                continue
+            if len(new.names) > len(old.names):
+                both = base_cols + col_of[old] + col_of[new]
+                if lp.wald(both, col_of[new]).p_value >= options.alpha / len(pool):
+                    continue  # the larger candidate does not add to the smaller one: keep the smaller
+            selection.append(
+                {
+                    "round": len(selection) + 1,
+                    "replaced": old.label,
+                    "by": new.label,
+                    "cv_rms_mm_before": rounded(cv_old),
+                    "cv_rms_mm_after": rounded(cv_new),
+                    "p_value": float(f"{p_value:.3g}"),
+                }
+            )
+            accepted[k] = new
+            avail[i] = old
+            current = ctx.fit(point, names_of(accepted))
+            swapped = True
+            break
+        if not swapped:
+            break
+    return current

@@ -1,0 +1,168 @@
+"""Data sets and models: uploaded measurement files, fitted (or imported) models and the active one."""
+
+from __future__ import annotations
+
+import json
+import sqlite3
+from collections.abc import Mapping
+from typing import Any, Literal
+
+from comp_daemon.service.store.base import StoreBase
+from comp_daemon.service.store.records import (
+    ConflictError,
+    DatasetRecord,
+    ModelDraft,
+    ModelRecord,
+    dumps,
+    without_details,
+)
+
+__all__ = ["DatasetStore", "ModelStore"]
+
+
+class DatasetStore(StoreBase):
+    """The ``datasets`` table."""
+
+    @staticmethod
+    def _dataset(row: sqlite3.Row, with_content: bool) -> DatasetRecord:
+        return DatasetRecord(
+            id=row["id"],
+            name=row["name"],
+            format=row["format"],
+            sha256=row["sha256"],
+            rows=row["rows"],
+            summary=json.loads(row["summary"]),
+            created_at=row["created_at"],
+            content=row["content"] if with_content else None,
+        )
+
+    def add_dataset(
+        self,
+        *,
+        name: str,
+        format: Literal["csv", "json"],
+        content: str,
+        sha256: str,
+        rows: int,
+        summary: Mapping[str, Any],
+    ) -> DatasetRecord:
+        now = self._clock()
+        with self._tx() as conn:
+            cur = conn.execute(
+                "INSERT INTO datasets (name, format, content, sha256, rows, summary, created_at)"
+                " VALUES (?, ?, ?, ?, ?, ?, ?)",
+                (name, format, content, sha256, int(rows), dumps(dict(summary)), now),
+            )
+            ident = cur.lastrowid
+            assert ident is not None
+            self._event(conn, "dataset.added", {"dataset_id": ident, "name": name, "rows": rows}, at=now)
+            row = self._fetch(conn, "dataset", ident)
+        return self._dataset(row, with_content=False)
+
+    def get_dataset(self, dataset_id: int, *, with_content: bool = False) -> DatasetRecord:
+        with self._lock:
+            return self._dataset(self._fetch(self._conn, "dataset", dataset_id), with_content)
+
+    def list_datasets(self, *, limit: int = 500, offset: int = 0) -> list[DatasetRecord]:
+        rows = self._read("SELECT * FROM datasets ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset))
+        return [self._dataset(r, with_content=False) for r in rows]
+
+    def delete_dataset(self, dataset_id: int) -> None:
+        """Delete a data set; refused while a queued or running job uses it. Models keep their artifact."""
+        with self._tx() as conn:
+            self._fetch(conn, "dataset", dataset_id, "id")
+            busy = conn.execute(
+                "SELECT id FROM jobs WHERE dataset_id = ? AND state IN ('queued', 'running')", (dataset_id,)
+            ).fetchall()
+            if busy:
+                raise ConflictError(
+                    f"dataset {dataset_id} is used by unfinished job(s) {[r['id'] for r in busy]}"
+                )
+            conn.execute("DELETE FROM datasets WHERE id = ?", (dataset_id,))
+            self._event(conn, "dataset.deleted", {"dataset_id": dataset_id})
+
+
+class ModelStore(StoreBase):
+    """The ``models`` table; exactly one model at most is active."""
+
+    @staticmethod
+    def _model(row: sqlite3.Row, with_artifact: bool) -> ModelRecord:
+        return ModelRecord(
+            id=row["id"],
+            kind=row["kind"],
+            order=row["order"],
+            stats=json.loads(row["stats"]),
+            dataset_id=row["dataset_id"],
+            job_id=row["job_id"],
+            active=bool(row["active"]),
+            created_at=row["created_at"],
+            artifact=json.loads(row["artifact"]) if with_artifact else None,
+        )
+
+    def _model_row(self, conn: sqlite3.Connection, model_id: int, *, with_artifact: bool) -> ModelRecord:
+        return self._model(self._fetch(conn, "model", model_id), with_artifact)
+
+    def add_model(self, draft: ModelDraft) -> ModelRecord:
+        """Store a model that did not come from a job (an imported artifact)."""
+        now = self._clock()
+        with self._tx() as conn:
+            return self._insert_model(conn, draft, job_id=None, now=now)
+
+    def _insert_model(
+        self, conn: sqlite3.Connection, draft: ModelDraft, *, job_id: int | None, now: float
+    ) -> ModelRecord:
+        """Insert ``draft`` (inactive) and log ``model.added``, inside the caller's transaction."""
+        cur = conn.execute(
+            'INSERT INTO models (kind, "order", artifact, stats, dataset_id, job_id, active, created_at)'
+            " VALUES (?, ?, ?, ?, ?, ?, 0, ?)",
+            (
+                draft.kind,
+                draft.order,
+                dumps(draft.artifact),
+                dumps(draft.stats),
+                draft.dataset_id,
+                job_id,
+                now,
+            ),
+        )
+        assert cur.lastrowid is not None
+        record = self._model_row(conn, cur.lastrowid, with_artifact=False)
+        self._event(
+            conn,
+            "model.added",
+            {"model_id": record.id, "kind": draft.kind, "order": draft.order},
+            job_id=job_id,
+            at=now,
+        )
+        return record
+
+    def get_model(self, model_id: int, *, with_artifact: bool = False) -> ModelRecord:
+        with self._lock:
+            return self._model_row(self._conn, model_id, with_artifact=with_artifact)
+
+    def list_models(self, *, limit: int = 500, offset: int = 0, summary: bool = False) -> list[ModelRecord]:
+        """Models without artifacts, newest first; ``summary``: stats without :data:`STATS_DETAIL_PATHS`."""
+        stats = without_details("stats") if summary else "stats"
+        rows = self._read(
+            f'SELECT id, kind, "order", {stats} AS stats, dataset_id, job_id, active, created_at '
+            "FROM models ORDER BY id DESC LIMIT ? OFFSET ?",
+            (limit, offset),
+        )
+        return [self._model(r, with_artifact=False) for r in rows]
+
+    def active_model(self, *, with_artifact: bool = True) -> ModelRecord | None:
+        rows = self._read("SELECT * FROM models WHERE active = 1")
+        return self._model(rows[0], with_artifact) if rows else None
+
+    def activate_model(self, model_id: int, *, by: str | None = None) -> ModelRecord:
+        with self._tx() as conn:
+            self._model_row(conn, model_id, with_artifact=False)
+            previous = conn.execute("SELECT id FROM models WHERE active = 1").fetchone()
+            conn.execute("UPDATE models SET active = 0 WHERE active = 1")
+            conn.execute("UPDATE models SET active = 1 WHERE id = ?", (model_id,))
+            self._event(
+                conn,
+                "model.activated",
+                {"model_id": model_id, "previous_model_id": previous["id"] if previous else None, "by": by},
+            )
+            return self._model_row(conn, model_id, with_artifact=False)
