@@ -10,12 +10,12 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import Dataset, read_dataset, write_dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import N_PARAMS, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import load_model, save_model
+from comp_daemon.models.covariance import covariance_from_fit
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.fitting import FitRows
 from comp_daemon.models.registry import fit_model, fit_spec, parse_model_name
-from comp_daemon.models.covariance import covariance_from_fit
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")
@@ -44,7 +44,7 @@ def test_kinematic_sigma_matches_the_spread_of_refits() -> None:
     """Monte Carlo: refit on redrawn noise; the spread of the predictions is the predicted σ."""
     rng = np.random.default_rng(3)
     a, a_new = _axes(70, 1), _axes(15, 2)
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 3e-4)
     p_true = tcp_position_mm(truth, axes_deg_to_q_rad(a, truth.sign))
     preds, sigmas = [], []
     for _ in range(25):
@@ -60,7 +60,7 @@ def test_kinematic_sigma_matches_the_spread_of_refits() -> None:
 
 def _noise_sd(a: np.ndarray) -> np.ndarray:
     """Per-coordinate measurement noise the scenario declares: tracker σ and joint repeatability."""
-    nom = KR.nominal_params()
+    nom = KinematicParams.from_robot(KR)
     p0 = tcp_position_mm(nom, axes_deg_to_q_rad(a, nom.sign))
     var = np.full(p0.shape, TRACKER_SIGMA_MM**2)
     for j in range(6):
@@ -115,7 +115,7 @@ def test_sigma_survives_the_artifact_and_shrinks_with_rows(
 def test_kriging_sigma_is_small_at_samples_and_grows_away() -> None:
     rng = np.random.default_rng(5)
     a = _axes(150, 7)
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 3e-4)
     eff = EffectParams.zeros(2).with_values(["c2_1", "s3_1"], [0.003, 0.002])
     p = twin_tcp_mm(KR, truth, eff, a) + rng.normal(size=(150, 3)) * 0.005
     model = fit_model("kriging", KR, a, p, frame="base").model

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
@@ -30,7 +30,7 @@ def _rms(e: np.ndarray) -> float:
 def cyclic() -> dict[str, np.ndarray]:
     """A robot with geometric and cyclic transmission errors and backlash: 500 samples, 300 checks."""
     rng = np.random.default_rng(0)
-    truth = KR.nominal_params().apply(rng.normal(size=N_PARAMS) * 3e-4)
+    truth = KinematicParams.from_robot(KR).apply(rng.normal(size=N_PARAMS) * 3e-4)
     eff = EffectParams.zeros(2).with_values(
         ["c1_1", "c2_1", "s3_1", "c2_2", "s1_2", "h2"], [0.004, 0.003, 0.002, 0.002, 0.002, 0.003]
     )

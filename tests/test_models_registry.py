@@ -198,13 +198,13 @@ def test_kind_fits_saves_loads_bit_exact_and_compensates(campaign: Path, tmp_pat
 def test_kriging_backlash_refuses_data_without_directions(
     campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """Without dir columns and with their inference turned off (by default they are inferred)."""
     ds = read_dataset(campaign)
     no_dir = tmp_path / "no_dir.csv"
     write_dataset(Dataset(a_deg=ds.a_deg, xyz_mm=ds.xyz_mm, split=ds.split), no_dir)
     out = tmp_path / "m.json"
-    assert (
-        main(["fit", str(no_dir), "--robot", "kr210", "--model", "kriging-backlash", "--out", str(out)]) == 2
-    )
+    argv = ["fit", str(no_dir), "--robot", "kr210", "--model", "kriging-backlash", "--out", str(out)]
+    assert main([*argv, "--no-infer-dir"]) == 2
     assert "needs the dir1..dir6 column" in capsys.readouterr().err and not out.exists()
 
 

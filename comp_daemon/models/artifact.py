@@ -46,8 +46,8 @@ from numpy.typing import NDArray
 from comp_daemon import __version__
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.registry import ARTIFACT_KINDS, model_from_payload
 from comp_daemon.models.covariance import ParameterCovariance
+from comp_daemon.models.registry import ARTIFACT_KINDS, model_from_payload
 from comp_daemon.robot.description import Joint, RobotDescription
 
 __all__ = [

@@ -261,7 +261,7 @@ def compliance_jacobian(
         raise ValueError(f"compliance parameters must be geometric names then C1..C6, got {list(names)}")
     geo_idx = np.array([PARAM_NAMES.index(nm) for nm in geo], dtype=np.intp)
     cj = [int(nm[1:]) for nm in c_names]
-    start = model.robot.nominal_params().with_base(model.registration)
+    start = KinematicParams.from_robot(model.robot).with_base(model.registration)
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (a.shape[0],))
     return _tcp_and_jac(model.mass, start, geo_idx, cj, np.asarray(values, dtype=float), a, payload)[1]
 

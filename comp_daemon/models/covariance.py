@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.params import PARAM_NAMES
+from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.chebyshev import ChebyshevModel, chebyshev_jacobian
 from comp_daemon.models.compliance import ComplianceModel, compliance_jacobian
@@ -148,7 +148,7 @@ def prediction_jacobian(
             if model.effects is not None
             else EffectParams.zeros()
         )
-        start = model.robot.nominal_params().with_base(model.registration)
+        start = KinematicParams.from_robot(model.robot).with_base(model.registration)
         d = None if dir is None else np.asarray(dir, dtype=float)
         problem = KinematicProblem(
             model.robot, start, eff0, geo_idx, eff_names, a, np.zeros((n, 3)), d, payload, temp_c

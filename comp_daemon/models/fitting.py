@@ -43,12 +43,12 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
 from comp_daemon.models.compliance import calibrate_compliance
+from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
 from comp_daemon.models.registration import detect_frame, rigid_registration
-from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
