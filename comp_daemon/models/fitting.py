@@ -315,9 +315,9 @@ def fit_chebyshev_kind(
     else:
         order = DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order
     cf = fit_chebyshev(robot, rows.a_deg, rows.xyz_mm, order, frame=options.frame, rtol=rtol)
-    active = np.flatnonzero(cf.model.active)
-    names = [cf.model.names[i] for i in active]
-    attach_covariance(cf.model, names, cf.model.coefficients[active], cf.lm.jacobian, cf.lm.residual)
+    idx = cf.report.identifiable_index  # the columns of the fit's Jacobian, in its order
+    names = [cf.model.names[i] for i in idx]
+    attach_covariance(cf.model, names, cf.model.coefficients[idx], cf.lm.jacobian, cf.lm.residual)
     info = {
         "kind": spec.kind,
         "rows": rows.n,
