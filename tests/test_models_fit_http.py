@@ -57,6 +57,9 @@ async def test_fit_job_infers_directions_and_can_be_told_not_to(
     )
     assert up.status_code == 201, up.text
     dataset_id = up.json()["id"]
+    kinds = {k["name"]: k for k in (await client.get("/api/fits/kinds", headers=auth("viewer"))).json()}
+    assert kinds["kriging"]["options"] and kinds["kriging-backlash"]["effects"]
+    assert not kinds["chebyshev"]["options"]
     bad = await client.post(
         "/api/fits",
         json={"dataset_id": dataset_id, "model": "kinematic", "infer_dir": "maybe"},

@@ -196,7 +196,8 @@ class FitIn(BaseModel):
     model: str = Field(
         description="a model kind of GET /api/fits/kinds (nominal, kinematic, chebyshev, kriging, "
         "kriging-backlash, compliance); kinematic+ratio+backlash adds seed 001's joint effects; "
-        "chebyshev:m or chebyshev:cv",
+        "chebyshev:m or chebyshev:cv; kriging:k=64 (local neighbourhoods), kriging:aniso (per-joint "
+        "ranges), kriging-backlash+compliance (an effect on the kriging's base)",
         min_length=1,
         max_length=100,
     )

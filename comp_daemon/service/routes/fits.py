@@ -96,6 +96,7 @@ async def fit_kinds(who: Viewer) -> list[dict[str, Any]]:
             "artifact_kind": k.model_class.kind,
             "effects": k.takes_effects,
             "order": k.takes_order,
+            "options": k.takes_options,
             "needs": list(k.needs),
             "uses": list(k.uses),
         }
