@@ -42,7 +42,12 @@ whose solution is ``λ = R⁻¹r + R⁻¹1·(1 − 1ᵀR⁻¹r)/(1ᵀR⁻¹1)`` 
 ``σ²·(1 − rᵀR⁻¹r + (1 − 1ᵀR⁻¹r)²/1ᵀR⁻¹1)``. A nugget ``c0`` (measurement noise and other
 unstructured error) adds ``c0/c`` to the diagonal of ``R`` and is filtered from the prediction; with
 no nugget the predictor interpolates the samples exactly. The system is factorised once
-(Cholesky of ``R``); a batch of m queries costs one (m, n) distance matrix and a product.
+(Cholesky of ``R``, :mod:`comp_daemon.models.ordinary_kriging`); a batch of m queries costs one
+(m, n) distance matrix and a product. Larger sampling sets (beyond :data:`DENSE_MAX_SAMPLES`, or
+whenever ``neighbours`` is given) are kriged in local neighbourhoods: each query on its k nearest
+samples in the same metric (:mod:`comp_daemon.models.local_kriging`), the dense solution when
+k = n. ``anisotropic`` fits replace the isotropic joint weights by per-joint ones (per-joint
+ranges), chosen on the leave-one-out error.
 """
 
 from __future__ import annotations
