@@ -497,7 +497,11 @@ def reproduce_seed004_tracker(
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """``python -m benchmarks.seed004_compliance``: seed 004's simulation (and the tracker variant)."""
+    """``python -m benchmarks.seed004_compliance``: seed 004's simulation (and the tracker variant).
+
+    The defaults are the paper's set-up; each option departs from it in one assumption (see
+    :func:`reproduce_seed004`; :mod:`benchmarks.seed004_variations` tabulates them over seeds).
+    """
     parser = argparse.ArgumentParser(description="Reproduce seed 004's zero-offset calibration simulation")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
@@ -505,16 +509,48 @@ def main(argv: Sequence[str] | None = None) -> None:
         type=float,
         nargs="+",
         default=[0.1, 0.3, 1.0],
-        help="scales of the a5/d5 noise U(0,1) to run (mm)",
+        help="scales s of the a5/d5 noise s·U(0,1) to run (mm)",
     )
     parser.add_argument("--poses", type=int, default=420)
     parser.add_argument("--fit", type=int, default=210)
+    parser.add_argument("--per-calibration", type=int, default=7, help="poses per averaged calibration")
+    parser.add_argument("--noise-kind", choices=["uniform", "centred"], default="uniform")
+    parser.add_argument("--noise-block", type=int, default=1, help="consecutive poses sharing one noise draw")
+    parser.add_argument("--averaging", choices=["mean", "median"], default="mean")
+    parser.add_argument("--known-point", action="store_true", help="give the PSD centre to the calibration")
+    parser.add_argument(
+        "--error", choices=["plane", "line"], default="plane", help="distance-error definition"
+    )
+    parser.add_argument("--compliance-joints", type=int, nargs="*", default=list(COMPLIANCE_JOINTS))
+    parser.add_argument("--compliance-scale", type=float, default=1.0, help="factor on the paper's C2, C3")
+    parser.add_argument("--payload-kg", type=float, default=0.0)
+    parser.add_argument("--cone-deg", type=float, default=PsdSetup().cone_deg)
+    parser.add_argument("--standoff-mm", type=float, nargs=2, default=list(PsdSetup().standoff_mm))
+    parser.add_argument("--no-tracker", action="store_true", help="skip the tracker variant")
     args = parser.parse_args(argv)
+    setup = PsdSetup(cone_deg=args.cone_deg, standoff_mm=(args.standoff_mm[0], args.standoff_mm[1]))
+    comp = tuple(args.compliance_scale * c for c in SEED004_COMPLIANCE_RAD_PER_NM)
     out: dict[str, Any] = {"psd": {}}
     for noise in args.noise_mm:
-        result = reproduce_seed004(seed=args.seed, link5_noise_mm=noise, n_poses=args.poses, n_fit=args.fit)
+        result = reproduce_seed004(
+            seed=args.seed,
+            link5_noise_mm=noise,
+            n_poses=args.poses,
+            n_fit=args.fit,
+            poses_per_calibration=args.per_calibration,
+            noise=args.noise_kind,
+            noise_block=args.noise_block,
+            setup=setup,
+            compliance_rad_per_nm=comp,
+            compliance_joints=args.compliance_joints,
+            payload_kg=args.payload_kg,
+            averaging=args.averaging,
+            known_point=args.known_point,
+            error=args.error,
+        )
         out["psd"][f"noise_{noise:g}_mm"] = result.table()
-    out["tracker"] = reproduce_seed004_tracker(seed=args.seed, n_poses=args.poses, n_fit=args.fit).table()
+    if not args.no_tracker:
+        out["tracker"] = reproduce_seed004_tracker(seed=args.seed, n_poses=args.poses, n_fit=args.fit).table()
     print(json.dumps(out, indent=1))
 
 
