@@ -169,10 +169,12 @@ def simulate_psd_poses(
         return aim.poses(n, rng, lambda m: link5_noise_mm * (rng.random((m, 2)) - centre))
     parts = []
     for start in range(0, n, noise_block):
-        d = link5_noise_mm * (rng.random(2) - centre)
-        parts.append(
-            aim.poses(min(noise_block, n - start), rng, lambda m, d=d: np.repeat(d[None, :], m, axis=0))
-        )
+        shared = link5_noise_mm * (rng.random(2) - centre)
+
+        def same(m: int, d: NDArray[np.float64] = shared) -> NDArray[np.float64]:
+            return np.repeat(d[None, :], m, axis=0)
+
+        parts.append(aim.poses(min(noise_block, n - start), rng, same))
     return PsdPoses(
         a_deg=np.concatenate([p.a_deg for p in parts]),
         link5_delta_mm=np.concatenate([p.link5_delta_mm for p in parts]),
@@ -286,6 +288,7 @@ class Seed004Result:
     compliance_joint_mm: float
     zero_offset_model: ComplianceModel
     compliance_model: ComplianceModel
+    compliance_joint_model: ComplianceModel  # the improved model from one calibration on all fit poses
     true_offsets_rad: NDArray[np.float64]
     true_compliance_rad_per_nm: NDArray[np.float64]
 
@@ -310,6 +313,10 @@ class Seed004Result:
             "compliance_model": {
                 "zero_offset_deg": deg(self.compliance_model.zero_offset_rad).round(4).tolist(),
                 "C2_C3_rad_per_nm": self.compliance_model.compliance_rad_per_nm[1:3].tolist(),
+            },
+            "compliance_model_all_poses": {
+                "zero_offset_deg": deg(self.compliance_joint_model.zero_offset_rad).round(4).tolist(),
+                "C2_C3_rad_per_nm": self.compliance_joint_model.compliance_rad_per_nm[1:3].tolist(),
             },
             "zero_offset_model": {
                 "zero_offset_deg": deg(self.zero_offset_model.zero_offset_rad).round(4).tolist()
@@ -405,6 +412,7 @@ def reproduce_seed004(
         compliance_joint_mm=evaluate(comp_all),
         zero_offset_model=zero,
         compliance_model=comp,
+        compliance_joint_model=comp_all,
         true_offsets_rad=offsets,
         true_compliance_rad_per_nm=comp_true,
     )

@@ -4,11 +4,12 @@ Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.seed004_var
 markdown table; about 3–4 s per variation and seed: the full table over five seeds takes some
 minutes, ``--only`` picks variations). Every variation is
 :func:`benchmarks.seed004_compliance.reproduce_seed004` with the paper's set-up except for the one
-named assumption (:data:`VARIATIONS`); each is run over several random seeds (the pose set and the
-link-5 noise change with the seed) and the columns give mean ± standard deviation over the seeds
-of the mean PSD distance error (mm); :data:`PAIRS` change two at once. The last column counts the
-seeds in which the paper's scheme (7-pose calibrations, averaged) puts the improved model below
-the original one.
+named assumption (:data:`VARIATIONS`; :data:`PAIRS` change two at once); each is run over several
+random seeds (the pose set and the link-5 noise change with the seed) and the columns give mean ±
+standard deviation over the seeds of the mean PSD distance error (mm), then of the improved
+model's identified C2 (×1e-5 rad/(N m); the paper's is 5.92). The last column counts the seeds in
+which the paper's scheme (7-pose calibrations, averaged) puts the improved model below the
+original one.
 Results and their discussion: ``docs/models-001-004.md``.
 """
 
@@ -30,7 +31,16 @@ from benchmarks.seed004_compliance import (
     reproduce_seed004,
 )
 
-__all__ = ["COLUMNS", "PAIRS", "VARIATIONS", "Variation", "VariationRow", "main", "run_variation"]
+__all__ = [
+    "C2_COLUMNS",
+    "COLUMNS",
+    "PAIRS",
+    "VARIATIONS",
+    "Variation",
+    "VariationRow",
+    "main",
+    "run_variation",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -109,15 +119,21 @@ COLUMNS: tuple[tuple[str, Callable[[Seed004Result], float]], ...] = (
     ("original, all poses", lambda r: r.zero_offset_joint_mm),
     ("improved, all poses", lambda r: r.compliance_joint_mm),
 )
+# the improved model's C2 (rad/(N m), ×1e-5; the paper's is 5.92), averaged and from all poses
+C2_COLUMNS: tuple[tuple[str, Callable[[Seed004Result], float]], ...] = (
+    ("C2 averaged", lambda r: 1e5 * r.compliance_model.compliance_rad_per_nm[1]),
+    ("C2 all poses", lambda r: 1e5 * r.compliance_joint_model.compliance_rad_per_nm[1]),
+)
 
 
 @dataclass(frozen=True, slots=True)
 class VariationRow:
-    """A variation's results over the seeds: (n_seeds, len(COLUMNS)) mean distance errors (mm)."""
+    """A variation's results over the seeds: mean distance errors (mm) and the improved model's C2."""
 
     variation: Variation
     seeds: tuple[int, ...]
-    values_mm: np.ndarray
+    values_mm: np.ndarray  # (n_seeds, len(COLUMNS))
+    c2: np.ndarray  # (n_seeds, len(C2_COLUMNS)), rad/(N m) ×1e-5
 
     def improved_wins(self) -> int:
         """Seeds in which the averaged improved model beats the averaged original one."""
@@ -125,9 +141,10 @@ class VariationRow:
 
     def markdown(self) -> str:
         mean, sd = self.values_mm.mean(axis=0), self.values_mm.std(axis=0)
-        cells = [
-            f"{m:.3f} ± {s:.3f}" if len(self.seeds) > 1 else f"{m:.3f}" for m, s in zip(mean, sd, strict=True)
-        ]
+        many = len(self.seeds) > 1
+        cells = [f"{m:.3f} ± {s:.3f}" if many else f"{m:.3f}" for m, s in zip(mean, sd, strict=True)]
+        c_mean, c_sd = self.c2.mean(axis=0), self.c2.std(axis=0)
+        cells += [f"{m:.1f} ± {s:.1f}" if many else f"{m:.1f}" for m, s in zip(c_mean, c_sd, strict=True)]
         wins = f"{self.improved_wins()}/{len(self.seeds)}"
         return f"| {self.variation.name} | {self.variation.changes} | {' | '.join(cells)} | {wins} |"
 
@@ -143,16 +160,20 @@ class VariationRow:
             "sd_mm": self._by_column(self.values_mm.std(axis=0)),
             "per_seed_mm": self.values_mm.round(4).tolist(),
             "improved_wins_averaged": self.improved_wins(),
+            "C2_1e-5_rad_per_nm": {
+                name: self.c2[:, k].round(2).tolist() for k, (name, _) in enumerate(C2_COLUMNS)
+            },
         }
 
 
 def run_variation(variation: Variation, seeds: Sequence[int]) -> VariationRow:
     """``reproduce_seed004`` with the variation's arguments, once per seed."""
-    values = []
+    values, c2 = [], []
     for seed in seeds:
         result = reproduce_seed004(seed=seed, **variation.kwargs)
         values.append([get(result) for _, get in COLUMNS])
-    return VariationRow(variation=variation, seeds=tuple(seeds), values_mm=np.array(values))
+        c2.append([get(result) for _, get in C2_COLUMNS])
+    return VariationRow(variation=variation, seeds=tuple(seeds), values_mm=np.array(values), c2=np.array(c2))
 
 
 def main(argv: Sequence[str] | None = None) -> None:
@@ -168,9 +189,9 @@ def main(argv: Sequence[str] | None = None) -> None:
     args = parser.parse_args(argv)
     chosen = [v for v in everything if v.name in args.only]
     if not args.json:
-        head = " | ".join(n for n, _ in COLUMNS)
+        head = " | ".join(n for n, _ in (*COLUMNS, *C2_COLUMNS))
         print(f"| variation | changes | {head} | improved wins (averaged) |")
-        print("|" + "---|" * (len(COLUMNS) + 3))
+        print("|" + "---|" * (len(COLUMNS) + len(C2_COLUMNS) + 3))
     out: dict[str, Any] = {}
     for variation in chosen:
         row = run_variation(variation, args.seeds)

@@ -225,7 +225,8 @@ def test_variation_table_runs_each_assumption_over_seeds() -> None:
     assert names[0] == "paper" and VARIATIONS[0].kwargs == {} and len(set(names)) == len(names)
     quiet = Variation("quiet", "no noise", {"n_poses": 56, "n_fit": 28, "link5_noise_mm": 0.0})
     row = run_variation(quiet, [0, 1])
-    assert row.values_mm.shape == (2, 6)
+    assert row.values_mm.shape == (2, 6) and row.c2.shape == (2, 2)
+    np.testing.assert_allclose(row.c2, 5.921122, rtol=1e-5)  # noise-free: C2 recovered
     assert np.all(row.values_mm[:, 1] < 1e-6)  # the true model
     assert np.all(row.values_mm[:, 3] < 1e-6) and np.all(row.values_mm[:, 2] > 0.05)
     assert row.improved_wins() == 2
@@ -241,8 +242,14 @@ def test_bad_arguments_are_refused() -> None:
         reproduce_seed004(error="pixels")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="noise must be"):
         simulate_psd_poses(
-            ROBOT, _true_params(), np.zeros(6), SETUP, 3, np.random.default_rng(0), noise="normal"
-        )  # type: ignore[arg-type]
+            ROBOT,
+            _true_params(),
+            np.zeros(6),
+            SETUP,
+            3,
+            np.random.default_rng(0),
+            noise="normal",  # type: ignore[arg-type]
+        )
     with pytest.raises(ValueError, match="noise_block must be"):
         simulate_psd_poses(
             ROBOT, _true_params(), np.zeros(6), SETUP, 3, np.random.default_rng(0), noise_block=0
