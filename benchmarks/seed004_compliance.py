@@ -289,6 +289,7 @@ class Seed004Result:
     zero_offset_model: ComplianceModel
     compliance_model: ComplianceModel
     compliance_joint_model: ComplianceModel  # the improved model from one calibration on all fit poses
+    calibration_sd: dict[str, float]  # SD of the improved model's parameters over the calibrations
     true_offsets_rad: NDArray[np.float64]
     true_compliance_rad_per_nm: NDArray[np.float64]
 
@@ -314,6 +315,7 @@ class Seed004Result:
                 "zero_offset_deg": deg(self.compliance_model.zero_offset_rad).round(4).tolist(),
                 "C2_C3_rad_per_nm": self.compliance_model.compliance_rad_per_nm[1:3].tolist(),
             },
+            "improved_calibrations_sd": {k: float(f"{v:.3g}") for k, v in self.calibration_sd.items()},
             "compliance_model_all_poses": {
                 "zero_offset_deg": deg(self.compliance_joint_model.zero_offset_rad).round(4).tolist(),
                 "C2_C3_rad_per_nm": self.compliance_joint_model.compliance_rad_per_nm[1:3].tolist(),
@@ -396,7 +398,12 @@ def reproduce_seed004(
 
     groups = a_fit.reshape(-1, poses_per_calibration, 6)
     zero = average_models([calibrate(g, ()) for g in groups], averaging)
-    comp = average_models([calibrate(g, compliance_joints) for g in groups], averaging)
+    comp_models = [calibrate(g, compliance_joints) for g in groups]
+    comp = average_models(comp_models, averaging)
+    c_all = np.array([m.compliance_rad_per_nm for m in comp_models])
+    th_all = np.rad2deg([m.zero_offset_rad for m in comp_models])
+    scatter = {f"C{j}_rad_per_nm": float(c_all[:, j - 1].std()) for j in (2, 3)}
+    scatter |= {f"theta{j}_deg": float(th_all[:, j - 1].std()) for j in (2, 3)}
     zero_all = calibrate(a_fit, ())
     comp_all = calibrate(a_fit, compliance_joints)
     nominal = ComplianceModel(robot, np.zeros(N_JOINTS), np.zeros(N_JOINTS))
@@ -413,6 +420,7 @@ def reproduce_seed004(
         zero_offset_model=zero,
         compliance_model=comp,
         compliance_joint_model=comp_all,
+        calibration_sd=scatter,
         true_offsets_rad=offsets,
         true_compliance_rad_per_nm=comp_true,
     )

@@ -163,6 +163,10 @@ def test_reproduction_of_the_papers_simulation_orders_the_models_like_the_paper(
     table = result.table()
     assert table["paper_mm"] == {"zero_offset": 0.9692, "compliance": 0.5772}
     assert table["rows"] == {"fit": 210, "check": 210}
+    # the spread of the 30 seven-pose calibrations, and the true model's floor: the noise alone
+    assert set(result.calibration_sd) == {"C2_rad_per_nm", "C3_rad_per_nm", "theta2_deg", "theta3_deg"}
+    assert 0.0 < result.calibration_sd["C2_rad_per_nm"] < 1e-3
+    assert 0.0 < result.true_model_mm < result.zero_offset_mm
 
 
 def test_a_known_point_makes_theta1_identifiable() -> None:
