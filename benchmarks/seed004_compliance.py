@@ -7,7 +7,10 @@ the point constraint (:mod:`benchmarks.seed004_point`: 7 poses at a time with th
 as the paper does, and once on all of them), 210 validate by the PSD distance error; then the same
 robot measured by a tracker and calibrated with the product's
 :func:`comp_daemon.models.compliance.calibrate_compliance` (:func:`reproduce_seed004_tracker`).
-Results and their discussion: ``docs/models-001-004.md``.
+The defaults are the paper's set-up; the options (``--help``) each change one of its assumptions
+(noise kind, scale and block, poses per calibration, averaging, known point, error definition,
+compliance joints and scale, payload, pose cone and stand-off); :mod:`benchmarks.seed004_variations`
+tabulates them over seeds. Results and their discussion: ``docs/models-001-004.md``.
 """
 
 from __future__ import annotations
