@@ -293,6 +293,7 @@ class Seed004Result:
     compliance_model: ComplianceModel
     compliance_joint_model: ComplianceModel  # the improved model from one calibration on all fit poses
     calibration_sd: dict[str, float]  # SD of the improved model's parameters over the calibrations
+    torque_range_nm: dict[str, tuple[float, float]]  # τ2, τ3 of the true robot over all poses
     true_offsets_rad: NDArray[np.float64]
     true_compliance_rad_per_nm: NDArray[np.float64]
 
@@ -319,6 +320,9 @@ class Seed004Result:
                 "C2_C3_rad_per_nm": self.compliance_model.compliance_rad_per_nm[1:3].tolist(),
             },
             "improved_calibrations_sd": {k: float(f"{v:.3g}") for k, v in self.calibration_sd.items()},
+            "torque_range_nm": {
+                k: [round(lo, 2), round(hi, 2)] for k, (lo, hi) in self.torque_range_nm.items()
+            },
             "compliance_model_all_poses": {
                 "zero_offset_deg": deg(self.compliance_joint_model.zero_offset_rad).round(4).tolist(),
                 "C2_C3_rad_per_nm": self.compliance_joint_model.compliance_rad_per_nm[1:3].tolist(),
@@ -385,6 +389,14 @@ def reproduce_seed004(
         payload_kg=payload_kg,
     )
     a_fit, a_chk = poses.a_deg[:n_fit], poses.a_deg[n_fit:]
+    mass = MassModel.from_robot(robot)
+    tau = gravity_torques_nm(
+        true_params,
+        axes_deg_to_q_rad(poses.a_deg, robot.sign),
+        mass.link_mass_kg,
+        mass.link_com_mm,
+        payload_kg,
+    )
     point = setup.center_mm if known_point else None
 
     def evaluate(model: ComplianceModel) -> float:
@@ -424,6 +436,7 @@ def reproduce_seed004(
         compliance_model=comp,
         compliance_joint_model=comp_all,
         calibration_sd=scatter,
+        torque_range_nm={f"tau{j}": (float(tau[:, j - 1].min()), float(tau[:, j - 1].max())) for j in (2, 3)},
         true_offsets_rad=offsets,
         true_compliance_rad_per_nm=comp_true,
     )

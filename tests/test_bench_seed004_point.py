@@ -167,6 +167,8 @@ def test_reproduction_of_the_papers_simulation_orders_the_models_like_the_paper(
     assert set(result.calibration_sd) == {"C2_rad_per_nm", "C3_rad_per_nm", "theta2_deg", "theta3_deg"}
     assert 0.0 < result.calibration_sd["C2_rad_per_nm"] < 1e-3
     assert 0.0 < result.true_model_mm < result.zero_offset_mm
+    lo, hi = result.torque_range_nm["tau2"]
+    assert lo < hi and table["torque_range_nm"]["tau2"] == [round(lo, 2), round(hi, 2)]
 
 
 def test_a_known_point_makes_theta1_identifiable() -> None:
