@@ -57,6 +57,7 @@ __all__ = [
     "PointConstraintFit",
     "calibrate_point_constraint",
     "laser_lines",
+    "line_distance_errors_mm",
     "point_constraint_jacobian",
     "psd_distance_errors_mm",
 ]
@@ -234,22 +235,29 @@ def calibrate_point_constraint(
     payload_kg: NDArray[np.float64] | float = 0.0,
     compliance_joints: Sequence[int] = COMPLIANCE_JOINTS,
     offset_joints: Sequence[int] = ALL_JOINTS,
+    point_mm: NDArray[np.float64] | Sequence[float] | None = None,
     rtol: float = 1e-8,
     max_iter: int = 100,
 ) -> PointConstraintFit:
     """Zero offsets (and compliance) from poses whose laser lines all pass through one point.
 
     ``a_deg`` (n, 6): commanded axis values of the poses in which the beam hit the PSD centre.
-    Unidentifiable unknowns (``theta1`` always) are removed by name; see ``fit.report``.
+    The point is an unknown (the paper's method) unless ``point_mm`` gives it (a PSD surveyed in
+    the robot base frame; then ``theta1`` is identifiable). Unidentifiable unknowns (``theta1``
+    when the point is unknown) are removed by name; see ``fit.report``.
     """
     a = as_axes(a_deg)
     n = a.shape[0]
     cj = joint_numbers(compliance_joints, "compliance_joints")
     oj = joint_numbers(offset_joints, "offset_joints")
+    known = None if point_mm is None else finite_array(point_mm, (3,), "point_mm")
     mass = MassModel.from_robot(robot)
     nominal = KinematicParams.from_robot(robot)
-    names = [*(f"theta{j}" for j in oj), *(f"C{j}" for j in cj), "P_x", "P_y", "P_z"]
+    names = [*(f"theta{j}" for j in oj), *(f"C{j}" for j in cj)]
+    if known is None:
+        names += ["P_x", "P_y", "P_z"]
     n_th, n_c = len(oj), len(cj)
+    n_x = len(names)
 
     def unpack(x: NDArray[np.float64]) -> tuple[KinematicParams, NDArray[np.float64], NDArray[np.float64]]:
         dx = np.zeros(N_PARAMS)
@@ -258,18 +266,24 @@ def calibrate_point_constraint(
         comp = np.zeros(N_JOINTS)
         for k, j in enumerate(cj):
             comp[j - 1] = x[n_th + k]
-        return nominal.apply(dx), comp, x[n_th + n_c :]
+        return nominal.apply(dx), comp, (x[n_th + n_c :] if known is None else known)
 
-    ln0 = _lines(mass, nominal, np.zeros(N_JOINTS), a, mount, payload_kg)
-    p0 = _intersection_point(ln0.o, ln0.u)
-    x_full = np.concatenate([np.zeros(n_th + n_c), p0])
+    if known is None:
+        ln0 = _lines(mass, nominal, np.zeros(N_JOINTS), a, mount, payload_kg)
+        p0 = _intersection_point(ln0.o, ln0.u)
+        x_full = np.concatenate([np.zeros(n_th + n_c), p0])
+        priority = [*names[-3:], *names[:-3]]
+    else:
+        p0 = known
+        x_full = np.zeros(n_x)
+        priority = None
     # identifiability is structural: judge it on a consistent set of lines (the data's poses moved
     # minimally so that the nominal lines meet at p0), the point offered first, so that a turn of
     # the whole set-up about the base axis is charged to theta1
     a_c = _consistent_poses(mass, nominal, a, mount, p0, payload_kg)
     ln_c = _lines(mass, nominal, np.zeros(N_JOINTS), a_c, mount, payload_kg)
-    priority = [*names[-3:], *names[:-3]]
-    report = analyze_identifiability(_point_jacobian(ln_c, p0, oj, cj), names, priority=priority, rtol=rtol)
+    jac_c = _point_jacobian(ln_c, p0, oj, cj)[:, :, :n_x]
+    report = analyze_identifiability(jac_c, names, priority=priority, rtol=rtol)
     keep = report.identifiable_index
 
     def expand(xk: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -287,7 +301,7 @@ def calibrate_point_constraint(
 
     def jacobian(xk: NDArray[np.float64]) -> NDArray[np.float64]:
         ln, point = lines_at(xk)
-        return _point_jacobian(ln, point, oj, cj)[:, :, keep].reshape(3 * n, keep.size)
+        return _point_jacobian(ln, point, oj, cj)[:, :, :n_x][:, :, keep].reshape(3 * n, keep.size)
 
     result = improved_lm(residual, jacobian, x_full[keep], x_scale="jac", max_iter=max_iter)
     params, comp, point = unpack(expand(result.x))
@@ -331,3 +345,21 @@ def psd_distance_errors_mm(
     t = ((c - o) @ nrm) / un
     hit = o + u * t[:, None]
     return np.linalg.norm(hit - c, axis=1)
+
+
+def line_distance_errors_mm(
+    model: ComplianceModel,
+    a_deg: NDArray[np.float64],
+    mount: LaserMount,
+    psd_center_mm: NDArray[np.float64],
+    payload_kg: NDArray[np.float64] | float = 0.0,
+) -> NDArray[np.float64]:
+    """(n,) perpendicular distance (mm) from the PSD centre to the model's laser line.
+
+    The residual of the point constraint with the point known; an alternative reading of the
+    distance error (:func:`psd_distance_errors_mm` is the paper's: along the PSD plane).
+    """
+    c = finite_array(psd_center_mm, (3,), "psd_center_mm")
+    o, u = laser_lines(model.mass, model.params, model.compliance_rad_per_nm, a_deg, mount, payload_kg)
+    w = c - o
+    return np.linalg.norm(w - u * np.einsum("ni,ni->n", u, w)[:, None], axis=1)

@@ -12,15 +12,18 @@ from benchmarks.seed004_compliance import (
     PsdPoses,
     PsdSetup,
     _link5_shift,
+    average_models,
     reproduce_seed004,
     simulate_psd_poses,
 )
 from benchmarks.seed004_point import (
     calibrate_point_constraint,
     laser_lines,
+    line_distance_errors_mm,
     point_constraint_jacobian,
     psd_distance_errors_mm,
 )
+from benchmarks.seed004_variations import VARIATIONS, Variation, run_variation
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.compliance import ComplianceModel
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state
@@ -160,6 +163,80 @@ def test_reproduction_of_the_papers_simulation_orders_the_models_like_the_paper(
     table = result.table()
     assert table["paper_mm"] == {"zero_offset": 0.9692, "compliance": 0.5772}
     assert table["rows"] == {"fit": 210, "check": 210}
+    # the spread of the 30 seven-pose calibrations, and the true model's floor: the noise alone
+    assert set(result.calibration_sd) == {"C2_rad_per_nm", "C3_rad_per_nm", "theta2_deg", "theta3_deg"}
+    assert 0.0 < result.calibration_sd["C2_rad_per_nm"] < 1e-3
+    assert 0.0 < result.true_model_mm < result.zero_offset_mm
+    lo, hi = result.torque_range_nm["tau2"]
+    assert lo < hi and table["torque_range_nm"]["tau2"] == [round(lo, 2), round(hi, 2)]
+
+
+def test_a_known_point_makes_theta1_identifiable() -> None:
+    offsets = np.array([0.5, *SEED004_ZERO_OFFSETS_DEG[1:]])
+    dx = np.zeros(N_PARAMS)
+    dx[0:30:5] = np.deg2rad(offsets)
+    true = KinematicParams.from_robot(ROBOT).apply(dx)
+    comp = np.array(SEED004_COMPLIANCE_RAD_PER_NM)
+    sim = simulate_psd_poses(ROBOT, true, comp, SETUP, 7, np.random.default_rng(4), link5_noise_mm=0.0)
+    known = calibrate_point_constraint(ROBOT, sim.a_deg, SETUP.mount, point_mm=SETUP.center_mm)
+    assert known.fit.report.removed_names() == ()
+    assert "P_x" not in known.fit.identified
+    np.testing.assert_allclose(np.rad2deg(known.model.zero_offset_rad), offsets, atol=1e-8)
+    np.testing.assert_allclose(known.model.compliance_rad_per_nm, comp, rtol=1e-6, atol=1e-12)
+    np.testing.assert_array_equal(known.point_mm, SETUP.center_mm)
+    unknown = calibrate_point_constraint(ROBOT, sim.a_deg, SETUP.mount)
+    assert unknown.fit.report.removed_names() == ("theta1",)
+
+
+def test_noise_kinds_and_blocks() -> None:
+    true = _true_params()
+    comp = np.array(SEED004_COMPLIANCE_RAD_PER_NM)
+    centred = simulate_psd_poses(
+        ROBOT, true, comp, SETUP, 40, np.random.default_rng(5), link5_noise_mm=2.0, noise="centred"
+    )
+    assert np.all(np.abs(centred.link5_delta_mm) <= 1.0)
+    assert np.any(centred.link5_delta_mm < 0.0)
+    blocks = simulate_psd_poses(ROBOT, true, comp, SETUP, 17, np.random.default_rng(6), noise_block=7)
+    d = blocks.link5_delta_mm
+    assert d.shape == (17, 2)
+    for start in (0, 7, 14):
+        np.testing.assert_array_equal(
+            d[start : start + 7], np.repeat(d[start : start + 1], len(d[start : start + 7]), 0)
+        )
+    assert not np.array_equal(d[0], d[7])
+    # every pose still puts its (noisy) true beam through the PSD centre
+    o, u = laser_lines(ROBOT, true, comp, blocks.a_deg, SETUP.mount)
+    st = twin_state(MassModel.from_robot(ROBOT), true, EffectParams(compliance_rad_per_nm=comp), blocks.a_deg)
+    o = o + _link5_shift(true, st.q_rad, d)
+    w = SETUP.center_mm - o
+    assert np.linalg.norm(w - u * np.einsum("ni,ni->n", u, w)[:, None], axis=1).max() < 1e-6
+
+
+def test_median_averaging_and_the_line_distance(poses: PsdPoses) -> None:
+    models = [ComplianceModel(ROBOT, np.full(6, x), np.full(6, 10.0 * x)) for x in (0.0, 1e-3, 5e-3)]
+    np.testing.assert_allclose(average_models(models, "median").zero_offset_rad, 1e-3)
+    np.testing.assert_allclose(average_models(models).zero_offset_rad, 2e-3)
+    np.testing.assert_allclose(average_models(models, "median").compliance_rad_per_nm, 1e-2)
+    true = ComplianceModel(ROBOT, np.deg2rad(SEED004_ZERO_OFFSETS_DEG), SEED004_COMPLIANCE_RAD_PER_NM)
+    assert line_distance_errors_mm(true, poses.a_deg, SETUP.mount, SETUP.center_mm).max() < 1e-6
+    nominal = ComplianceModel(ROBOT, np.zeros(6), np.zeros(6))
+    line = line_distance_errors_mm(nominal, poses.a_deg, SETUP.mount, SETUP.center_mm)
+    plane = psd_distance_errors_mm(nominal, poses.a_deg, SETUP.mount, SETUP.center_mm, SETUP.normal)
+    # the perpendicular distance is the shortest from the centre to the beam
+    assert np.all(line <= plane + 1e-9) and line.min() > 1.0
+
+
+def test_variation_table_runs_each_assumption_over_seeds() -> None:
+    names = [v.name for v in VARIATIONS]
+    assert names[0] == "paper" and VARIATIONS[0].kwargs == {} and len(set(names)) == len(names)
+    quiet = Variation("quiet", "no noise", {"n_poses": 56, "n_fit": 28, "link5_noise_mm": 0.0})
+    row = run_variation(quiet, [0, 1])
+    assert row.values_mm.shape == (2, 6) and row.c2.shape == (2, 2)
+    np.testing.assert_allclose(row.c2, 5.921122, rtol=1e-5)  # noise-free: C2 recovered
+    assert np.all(row.values_mm[:, 1] < 1e-6)  # the true model
+    assert np.all(row.values_mm[:, 3] < 1e-6) and np.all(row.values_mm[:, 2] > 0.05)
+    assert row.improved_wins() == 2
+    assert row.markdown().startswith("| quiet | no noise | ") and row.markdown().endswith("| 2/2 |")
 
 
 def test_bad_arguments_are_refused() -> None:
@@ -167,6 +244,24 @@ def test_bad_arguments_are_refused() -> None:
         calibrate_point_constraint(ROBOT, np.zeros((7, 6)), SETUP.mount, compliance_joints=(7,))
     with pytest.raises(ValueError, match="multiple of poses_per_calibration"):
         reproduce_seed004(n_poses=40, n_fit=20, poses_per_calibration=7)
+    with pytest.raises(ValueError, match="error must be"):
+        reproduce_seed004(error="pixels")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="noise must be"):
+        simulate_psd_poses(
+            ROBOT,
+            _true_params(),
+            np.zeros(6),
+            SETUP,
+            3,
+            np.random.default_rng(0),
+            noise="normal",  # type: ignore[arg-type]
+        )
+    with pytest.raises(ValueError, match="noise_block must be"):
+        simulate_psd_poses(
+            ROBOT, _true_params(), np.zeros(6), SETUP, 3, np.random.default_rng(0), noise_block=0
+        )
+    with pytest.raises(ValueError, match="averaging must be"):
+        average_models([ComplianceModel(ROBOT, np.zeros(6), np.zeros(6))], "mode")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match=r"LaserMount\.direction must not be zero"):
         from benchmarks.seed004_point import LaserMount
 

@@ -53,6 +53,49 @@ def test_model_is_the_effects_twin_with_offsets_and_compliance() -> None:
     assert np.all(model.deflection_rad(a, payload)[:, [0, 3, 4, 5]] == 0.0)
 
 
+def test_torques_are_the_papers_planar_closed_forms_and_the_arm_sags_under_them() -> None:
+    """Seed 004 eqs 3–4 in the arm's plane (A1 = A4 = A5 = A6 = 0), term by term.
+
+    With the upper arm at A2 from vertical (θ2 = 90° − A2 from horizontal, as in the paper's
+    figure): τ3 = G3·L2·cos(θ2 + θ3) depends on A2 + A3 only, and τ2 − τ3 = (G2·L1 + G3·L3)·cos θ2
+    with G2·L1 = m2·g·|com2|, G3 the weight of links 3–6 and the payload, L3 = a2. δθ = C·τ in rad
+    for C in rad/(N m) and τ in N m: a forward-leaning arm (A2 > 0) is pulled further forward.
+    """
+    g = 9.81
+    a2 = np.linspace(-40.0, 60.0, 11)
+    a3 = np.linspace(30.0, -50.0, 11)
+    payload = 2.0
+    a = np.zeros((11, 6))
+    a[:, 1], a[:, 2] = a2, a3
+    model = ComplianceModel(ROBOT, np.zeros(6), COMP)
+    tau = gravity_torques_nm(
+        model.params, axes_deg_to_q_rad(a, model.params.sign), ROBOT.link_mass_kg, ROBOT.link_com_mm, payload
+    )
+    # τ3 depends on the forearm's angle A2 + A3 alone
+    same_forearm = a.copy()
+    same_forearm[:, 1], same_forearm[:, 2] = 0.0, a2 + a3
+    tau_same = gravity_torques_nm(
+        model.params,
+        axes_deg_to_q_rad(same_forearm, model.params.sign),
+        ROBOT.link_mass_kg,
+        ROBOT.link_com_mm,
+        payload,
+    )
+    np.testing.assert_allclose(tau[:, 2], tau_same[:, 2], atol=1e-9)
+    g2_l1 = ROBOT.link_mass_kg[1] * g * np.linalg.norm(ROBOT.link_com_mm[1]) / 1000.0
+    g3 = (ROBOT.link_mass_kg[2:].sum() + payload) * g
+    l3 = KinematicParams.from_robot(ROBOT).a_mm[1] / 1000.0
+    cos_theta2 = np.cos(np.deg2rad(90.0 - a2))
+    np.testing.assert_allclose(tau[:, 1] - tau[:, 2], (g2_l1 + g3 * l3) * cos_theta2, atol=1e-9)
+    # the deflection follows the torque: C > 0 in our (DH) torque sign, rad = rad/(N m) · N m
+    defl = model.deflection_rad(a, payload)
+    np.testing.assert_allclose(defl[:, 1:3], COMP[1:3] * tau[:, 1:3], rtol=1e-12)
+    lean = a[a2 > 10.0]
+    stiff = ComplianceModel(ROBOT, np.zeros(6), np.zeros(6))
+    dx = model.predict_tcp_mm(lean, None, payload) - stiff.predict_tcp_mm(lean, None, payload)
+    assert np.all(dx[:, 2] < 0.0)  # the TCP sags
+
+
 def test_noise_free_positions_recover_offsets_and_compliance() -> None:
     truth = ComplianceModel(ROBOT, OFFSETS, COMP)
     a = _axes(60, 1)
