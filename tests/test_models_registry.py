@@ -189,6 +189,15 @@ def test_kind_fits_saves_loads_bit_exact_and_compensates(campaign: Path, tmp_pat
     corrected_path = tmp_path / "corrected.csv"
     assert main(["compensate", str(out), str(targets), "--out", str(corrected_path), "--robot", "kr210"]) == 0
     corrected = read_dataset(corrected_path, kind="targets")
+    # every fitted kind states the uncertainty of its prediction; the nominal geometry has none
+    sigma = corrected.extra.get("sigma_mm")
+    assert (sigma is None) == (spec.kind == "nominal"), name
+    if sigma is not None:
+        assert all(0.0 < float(v) < 1.0 for v in sigma), (name, sigma)
+        np.testing.assert_array_equal(
+            stored.predict_std_mm(a[check], dirs[check].astype(float), payload[check]),
+            model.predict_std_mm(a[check], dirs[check].astype(float), payload[check]),
+        )
     assert corrected.a_deg is not None
     assert corrected.extra["model_kind"] == (model.kind,) * 6
     reached = model.predict_tcp_mm(corrected.a_deg, t_dirs.astype(float), t_payload)
