@@ -70,6 +70,11 @@ def test_json_text_faults_name_the_path_record_and_column(
     str(error).encode("utf-8")  # the message itself is Unicode that can be written
 
 
+def test_escapes_that_are_unicode_are_kept() -> None:
+    ds = read_dataset_json("[" + record(', "note": "\\u00e9\\ud83d\\ude00 \\\\u0000"') + "]")
+    assert ds.extra["note"] == ("\u00e9\U0001f600 \\u0000",)
+
+
 def test_a_faulty_value_is_found_in_document_order() -> None:
     text = "[" + record(', "n": ' + "1" * 400) + ", " + record(', "x": 9') + "]"
     with pytest.raises(DatasetError, match="400 digits") as caught:

@@ -19,6 +19,7 @@ Text that is not UTF-8 or not JSON is refused with its line (``row_label="line"`
 from __future__ import annotations
 
 import json
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -31,6 +32,8 @@ __all__ = ["JSON_MAX_INT_DIGITS", "JsonRecords", "json_path", "load_json_records
 JSON_MAX_INT_DIGITS = 309  # a longer integer is beyond every double (1.8e308)
 
 PathPart = str | int
+# only an escape can put a NUL or a surrogate into a parsed string (raw ones are not JSON, or not UTF-8)
+_SUSPECT_ESCAPE = re.compile(r"\\u(?:0000|[dD][89a-fA-F])")
 
 
 class _LongInteger(str):
@@ -135,8 +138,22 @@ def load_json_records(data: bytes, source: str) -> JsonRecords:
         raise DatasetError(
             f"not UTF-8 text (byte 0x{data[exc.start]:02x})", source=source, row=line, row_label="line"
         ) from None
+    marked: list[bool] = []  # a duplicate key or a long integer was parsed
+
+    def object_pairs(pairs: list[tuple[str, Any]]) -> _Object:
+        obj = _object_pairs(pairs)
+        if obj.duplicate_keys:
+            marked.append(True)
+        return obj
+
+    def parse_int(digits: str) -> int | _LongInteger:
+        value = _parse_int(digits)
+        if isinstance(value, _LongInteger):
+            marked.append(True)
+        return value
+
     try:
-        doc = json.loads(text, object_pairs_hook=_object_pairs, parse_int=_parse_int)
+        doc = json.loads(text, object_pairs_hook=object_pairs, parse_int=parse_int)
     except json.JSONDecodeError as exc:
         raise DatasetError(
             f"not valid JSON (invalid JSON at line {exc.lineno}, column {exc.colno}: {exc.msg})",
@@ -146,7 +163,7 @@ def load_json_records(data: bytes, source: str) -> JsonRecords:
         ) from None
     except RecursionError:
         raise DatasetError("not a list of records (JSON nested too deeply)", source=source) from None
-    fault = _first_fault(doc)
+    fault = _first_fault(doc) if marked or _SUSPECT_ESCAPE.search(text) else None
     if fault is not None:
         problem, parts = fault
         prefix: list[PathPart] = ["records"] if isinstance(doc, dict) else []
