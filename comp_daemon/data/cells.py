@@ -30,7 +30,7 @@ from comp_daemon.data.columns import (
 )
 from comp_daemon.data.table import SPLIT_VALUES, Dataset, FloatArray, IntArray
 
-__all__ = ["CellTable", "DatasetKind", "build_dataset", "text_fault"]
+__all__ = ["CellTable", "DatasetKind", "build_dataset", "printable", "text_fault"]
 
 DatasetKind = Literal["measurement", "targets", "any"]
 
@@ -48,6 +48,12 @@ def text_fault(text: str) -> str | None:
     if found.group() == "\x00":
         return "a NUL character (U+0000) in text"
     return f"a lone surrogate (U+{ord(found.group()):04X}) in text: not Unicode"
+
+
+def printable(text: str) -> str:
+    """``text`` with lone surrogates written as escapes (``\\udc80``), so that a message naming it
+    can be written as UTF-8."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 @dataclass

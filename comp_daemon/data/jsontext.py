@@ -24,7 +24,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
-from comp_daemon.data.cells import text_fault
+from comp_daemon.data.cells import printable, text_fault
 from comp_daemon.data.columns import DatasetError
 
 __all__ = ["JSON_MAX_INT_DIGITS", "JsonRecords", "json_path", "load_json_records", "record_path"]
@@ -77,7 +77,7 @@ def _first_fault(doc: Any) -> tuple[str, list[PathPart]] | None:
         elif isinstance(value, dict):
             duplicates = getattr(value, "duplicate_keys", ())
             if duplicates:
-                return f"duplicate key {_printable(duplicates[0])!r} (given twice)", [*path, duplicates[0]]
+                return f"duplicate key {printable(duplicates[0])!r} (given twice)", [*path, duplicates[0]]
             for key in value:
                 problem = text_fault(key)
                 if problem is not None:
@@ -88,11 +88,6 @@ def _first_fault(doc: Any) -> tuple[str, list[PathPart]] | None:
     return None
 
 
-def _printable(text: str) -> str:
-    """``text`` with lone surrogates written as escapes (so that it can be sent as UTF-8)."""
-    return text.encode("utf-8", "backslashreplace").decode("utf-8")
-
-
 def json_path(parts: Sequence[PathPart]) -> str:
     """The JSONPath of a value: ``$``, then ``[i]`` per index and ``.key`` (or ``['key']``) per key."""
     out = "$"
@@ -101,7 +96,7 @@ def json_path(parts: Sequence[PathPart]) -> str:
             out += f"[{part}]"
         else:
             out += f".{part}" if part.isidentifier() else f"[{part!r}]"
-    return _printable(out)
+    return printable(out)
 
 
 @dataclass(frozen=True, slots=True)
@@ -171,7 +166,7 @@ def load_json_records(data: bytes, source: str) -> JsonRecords:
         column: str | None = None
         inside = parts[len(prefix) :]
         if parts[: len(prefix)] == prefix and len(inside) >= 2 and isinstance(inside[0], int):
-            row, column = inside[0] + 1, _printable(str(inside[1]))
+            row, column = inside[0] + 1, printable(str(inside[1]))
         raise DatasetError(
             problem,
             source=source,

@@ -41,7 +41,7 @@ from typing import Any, BinaryIO
 
 from numpy.typing import ArrayLike
 
-from comp_daemon.data.cells import CellTable, DatasetKind, build_dataset, text_fault
+from comp_daemon.data.cells import CellTable, DatasetKind, build_dataset, printable, text_fault
 from comp_daemon.data.columns import (
     AXIS_COLUMNS,
     DIR_COLUMNS,
@@ -115,12 +115,8 @@ def _refuse_text(record: list[str], line: int, header: list[str] | None, source:
         if problem is not None:
             column = header[j] if header is not None and j < len(header) and header[j] else None
             raise DatasetError(
-                f"{problem} (field {j + 1})", source=source, row=line, column=column and _printable(column)
+                f"{problem} (field {j + 1})", source=source, row=line, column=column and printable(column)
             )
-
-
-def _printable(text: str) -> str:
-    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 def parse_dataset(
@@ -327,7 +323,7 @@ def dataset_from_records(
         for key in record:
             problem = text_fault(key)
             if problem is not None:
-                raise refuse(f"{problem} (in a key)", i + 1, _printable(key))
+                raise refuse(f"{problem} (in a key)", i + 1, printable(key))
         stripped = {k.strip(): v for k, v in record.items()}
         if len(stripped) != len(record):
             name = next(k.strip() for k in record if list(map(str.strip, record)).count(k.strip()) > 1)
