@@ -65,7 +65,6 @@ __all__ = [
 ]
 
 _UNDECODABLE = re.compile("[\udc80-\udcff]")
-_TEXT_FAULT = re.compile("[\x00\ud800-\udfff]")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -151,7 +150,7 @@ def parse_dataset(
     row_numbers: list[int] = []
     blank_at: int | None = None
     records = _CsvRecords(text)
-    check_text = _TEXT_FAULT.search(text) is not None
+    check_text = text_fault(text) is not None  # then find the field
     try:
         for line, record in records:
             if check_text:
