@@ -192,7 +192,9 @@ def test_csv_text_with_a_lone_surrogate_is_refused() -> None:
 def test_a_refusal_keeps_its_fields_across_processes() -> None:
     error = DatasetError("bad", source="s", row=2, column="a1", row_label="record", path="$[1].a1")
     copy = pickle.loads(pickle.dumps(error))
-    assert (copy.problem, copy.where(), str(copy)) == (error.problem, error.where(), str(error))
+    fields = ("problem", "source", "row", "column", "row_label", "path")
+    assert [getattr(copy, f) for f in fields] == [getattr(error, f) for f in fields]
+    assert str(copy) == str(error)
 
 
 # ------------------------------------------------------------------------- property: JSON-ish bytes

@@ -80,17 +80,14 @@ class DatasetError(ValueError):
         super().__init__(f"{', '.join(where)}: {problem}")
 
     def __reduce__(self) -> tuple[Any, ...]:  # crosses a process boundary with its fields
-        return (_dataset_error, (self.problem, self.where()))
-
-    def where(self) -> dict[str, Any]:
-        """The keyword arguments that place this fault (``source``, ``row``, …)."""
-        return {
+        where = {
             "source": self.source,
             "row": self.row,
             "column": self.column,
             "row_label": self.row_label,
             "path": self.path,
         }
+        return (_dataset_error, (self.problem, where))
 
 
 def _dataset_error(problem: str, where: dict[str, Any]) -> DatasetError:
