@@ -30,12 +30,30 @@ from comp_daemon.data.columns import (
 )
 from comp_daemon.data.table import SPLIT_VALUES, Dataset, FloatArray, IntArray
 
-__all__ = ["CellTable", "DatasetKind", "build_dataset"]
+__all__ = ["CellTable", "DatasetKind", "build_dataset", "printable", "text_fault"]
 
 DatasetKind = Literal["measurement", "targets", "any"]
 
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 _INTEGER = re.compile(r"[+-]?\d+", re.ASCII)
+_TEXT_FAULT = re.compile("[\x00\ud800-\udfff]")
+
+
+def text_fault(text: str) -> str | None:
+    """Why ``text`` cannot be a cell or a key: a NUL character or a lone surrogate (not Unicode,
+    cannot be written as UTF-8); ``None`` if it can."""
+    found = _TEXT_FAULT.search(text)
+    if found is None:
+        return None
+    if found.group() == "\x00":
+        return "a NUL character (U+0000) in text"
+    return f"a lone surrogate (U+{ord(found.group()):04X}) in text: not Unicode"
+
+
+def printable(text: str) -> str:
+    """``text`` with lone surrogates written as escapes (``\\udc80``), so that a message naming it
+    can be written as UTF-8."""
+    return text.encode("utf-8", "backslashreplace").decode("utf-8")
 
 
 @dataclass

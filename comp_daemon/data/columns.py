@@ -8,6 +8,8 @@ file written for another tool cannot silently lose its axis values.
 
 from __future__ import annotations
 
+from typing import Any
+
 __all__ = [
     "AXIS_COLUMNS",
     "DIR_COLUMNS",
@@ -46,8 +48,10 @@ class DatasetError(ValueError):
     """A data set that is refused as a whole.
 
     ``row`` is the 1-based row of the file (header = row 1), or the 1-based record number for
-    JSON records (then ``row_label`` is ``"record"``); ``column`` is the column's name. Either is
-    ``None`` when the fault is not in one place (an empty file, too few rows).
+    JSON records (then ``row_label`` is ``"record"``; ``"line"`` for a fault in the JSON text
+    itself); ``column`` is the column's name. Either is ``None`` when the fault is not in one
+    place (an empty file, too few rows). ``path`` names the value at fault in a JSON document
+    (``$[3].a1``, ``$.records[0].note``), ``None`` for CSV.
     """
 
     def __init__(
@@ -58,15 +62,33 @@ class DatasetError(ValueError):
         row: int | None = None,
         column: str | None = None,
         row_label: str = "row",
+        path: str | None = None,
     ) -> None:
         self.problem = problem
         self.source = source
         self.row = row
         self.column = column
         self.row_label = row_label
+        self.path = path
         where = [source]
+        if path is not None:
+            where.append(path)
         if row is not None:
             where.append(f"{row_label} {row}")
         if column is not None:
             where.append(f"column '{column}'")
         super().__init__(f"{', '.join(where)}: {problem}")
+
+    def __reduce__(self) -> tuple[Any, ...]:  # crosses a process boundary with its fields
+        where = {
+            "source": self.source,
+            "row": self.row,
+            "column": self.column,
+            "row_label": self.row_label,
+            "path": self.path,
+        }
+        return (_dataset_error, (self.problem, where))
+
+
+def _dataset_error(problem: str, where: dict[str, Any]) -> DatasetError:
+    return DatasetError(problem, **where)

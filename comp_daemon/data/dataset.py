@@ -11,6 +11,7 @@ from __future__ import annotations
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.readers import (
     DatasetKind,
+    dataset_from_json,
     dataset_from_records,
     parse_dataset,
     read_dataset,
@@ -32,6 +33,7 @@ __all__ = [
     "DatasetError",
     "DatasetKind",
     "SplitChoice",
+    "dataset_from_json",
     "dataset_from_records",
     "dataset_to_csv",
     "parse_dataset",

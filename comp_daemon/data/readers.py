@@ -22,6 +22,10 @@ Conventions of this implementation, where the spec leaves room:
 - A UTF-8 byte order mark is accepted. Blank lines are accepted only at the end of the file.
   Quoting follows RFC 4180 (``csv`` module, strict); a malformed quote is refused.
 - Unknown columns are kept verbatim as text (no stripping).
+- No cell may hold a NUL character or a lone surrogate (text that cannot be written as UTF-8).
+- JSON: a list of records or ``{"name": ..., "records": [...]}``; a key given twice, a NUL or a
+  lone surrogate in a string or key, and an integer beyond any double are refused with the value's
+  ``path`` (:mod:`comp_daemon.data.jsontext`); every refusal inside a record names its path too.
 """
 
 from __future__ import annotations
@@ -37,7 +41,7 @@ from typing import Any, BinaryIO
 
 from numpy.typing import ArrayLike
 
-from comp_daemon.data.cells import CellTable, DatasetKind, build_dataset
+from comp_daemon.data.cells import CellTable, DatasetKind, build_dataset, printable, text_fault
 from comp_daemon.data.columns import (
     AXIS_COLUMNS,
     DIR_COLUMNS,
@@ -48,10 +52,12 @@ from comp_daemon.data.columns import (
     XYZ_COLUMNS,
     DatasetError,
 )
+from comp_daemon.data.jsontext import JsonRecords, load_json_records, record_path
 from comp_daemon.data.table import Dataset
 
 __all__ = [
     "DatasetKind",
+    "dataset_from_json",
     "dataset_from_records",
     "parse_dataset",
     "read_dataset",
@@ -101,6 +107,17 @@ def _refuse_undecodable(data: bytes, source: str, exc: UnicodeDecodeError) -> Da
     return DatasetError(f"not UTF-8 text (byte {byte})", source=source, row=line)
 
 
+def _refuse_text(record: list[str], line: int, header: list[str] | None, source: str) -> None:
+    """Refuse a field holding a NUL character or a lone surrogate, naming its row and column."""
+    for j, cell in enumerate(record):
+        problem = text_fault(cell)
+        if problem is not None:
+            column = header[j] if header is not None and j < len(header) and header[j] else None
+            raise DatasetError(
+                f"{problem} (field {j + 1})", source=source, row=line, column=column and printable(column)
+            )
+
+
 def parse_dataset(
     data: str | bytes | bytearray | memoryview,
     *,
@@ -133,8 +150,11 @@ def parse_dataset(
     row_numbers: list[int] = []
     blank_at: int | None = None
     records = _CsvRecords(text)
+    check_text = text_fault(text) is not None  # then find the field
     try:
         for line, record in records:
+            if check_text:
+                _refuse_text(record, line, header, source)
             if header is None:
                 if not record:
                     raise DatasetError("empty line where the header row should be", source=source, row=1)
@@ -198,25 +218,6 @@ def read_dataset(
 # ---------------------------------------------------------------------------------------------
 # JSON records
 # ---------------------------------------------------------------------------------------------
-class _Record(dict[str, Any]):
-    """A JSON object that remembers keys it saw more than once."""
-
-    duplicate_keys: tuple[str, ...] = ()
-
-
-def _object_pairs(pairs: list[tuple[str, Any]]) -> _Record:
-    record = _Record(pairs)
-    if len(record) != len(pairs):
-        seen: set[str] = set()
-        duplicates: list[str] = []
-        for key, _ in pairs:
-            if key in seen:
-                duplicates.append(key)
-            seen.add(key)
-        record.duplicate_keys = tuple(duplicates)
-    return record
-
-
 _NUMERIC_COLUMNS = frozenset(
     (
         *AXIS_COLUMNS,
@@ -229,6 +230,23 @@ _NUMERIC_COLUMNS = frozenset(
         "repeat",
     )
 )
+
+
+_MAX_INT_BITS = 1024  # 2**1024 is beyond every double
+
+
+def _long_integer(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value.bit_length() > _MAX_INT_BITS
+
+
+def _shown(value: Any) -> str:
+    """A short JSON rendering of ``value`` for a message."""
+    if _long_integer(value):
+        return "an integer beyond any number"
+    try:
+        return json.dumps(value)[:40]
+    except (ValueError, TypeError, RecursionError):
+        return f"a {type(value).__name__}"
 
 
 def _json_number_text(value: Any) -> str | None:
@@ -252,24 +270,22 @@ def _json_cell(column: str, value: Any) -> tuple[str, str | None]:
             return "", None
         text = _json_number_text(value)
         if text is None:
-            return "", f"expected a JSON number, got {json.dumps(value)[:40]}"
+            return "", f"expected a JSON number, got {_shown(value)}"
         return text, None
-    if column == "split":
-        if not isinstance(value, str):
-            return "", f"split must be the string 'fit' or 'check', got {json.dumps(value)[:40]}"
-        return value, None
-    if column == "pose_id":
-        if isinstance(value, str):
-            return value, None
-        if isinstance(value, int) and not isinstance(value, bool):
-            return str(value), None
-        return "", f"pose_id must be a string or an integer, got {json.dumps(value)[:40]}"
     if isinstance(value, str):
-        return value, None
+        return value, text_fault(value)
+    if column == "split":
+        return "", f"split must be the string 'fit' or 'check', got {_shown(value)}"
+    if column == "pose_id":
+        if isinstance(value, int) and not isinstance(value, bool) and not _long_integer(value):
+            return str(value), None
+        return "", f"pose_id must be a string or an integer, got {_shown(value)}"
     if value is None:
         return "", None
     if isinstance(value, dict | list):
         return "", "expected a single value (text or number), got a JSON " + type(value).__name__
+    if _long_integer(value):
+        return "", _shown(value)
     return json.dumps(value), None
 
 
@@ -303,9 +319,10 @@ def dataset_from_records(
             raise refuse(f"expected a JSON object, got {type(record).__name__}", i + 1)
         if any(not isinstance(k, str) for k in record):
             raise refuse("keys must be strings", i + 1)
-        duplicates = getattr(record, "duplicate_keys", ())
-        if duplicates:
-            raise refuse("duplicate column name (key given twice)", i + 1, duplicates[0].strip())
+        for key in record:
+            problem = text_fault(key)
+            if problem is not None:
+                raise refuse(f"{problem} (in a key)", i + 1, printable(key))
         stripped = {k.strip(): v for k, v in record.items()}
         if len(stripped) != len(record):
             name = next(k.strip() for k in record if list(map(str.strip, record)).count(k.strip()) > 1)
@@ -336,6 +353,31 @@ def dataset_from_records(
     return build_dataset(table, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
 
 
+def dataset_from_json(
+    doc: JsonRecords,
+    *,
+    source: str,
+    limits_deg: ArrayLike | None = None,
+    min_rows: int = 0,
+    kind: DatasetKind = "measurement",
+) -> Dataset:
+    """:func:`dataset_from_records` of a parsed JSON data set; a refusal also names its ``path``."""
+    try:
+        return dataset_from_records(
+            doc.records, source=source, limits_deg=limits_deg, min_rows=min_rows, kind=kind
+        )
+    except DatasetError as exc:
+        row = exc.row if exc.row_label == "record" else None
+        raise DatasetError(
+            exc.problem,
+            source=exc.source,
+            row=exc.row,
+            column=exc.column,
+            row_label=exc.row_label,
+            path=record_path(doc, row, exc.column),
+        ) from None
+
+
 def read_dataset_json(
     path_or_data: str | os.PathLike[str] | bytes | bytearray,
     *,
@@ -344,9 +386,11 @@ def read_dataset_json(
     kind: DatasetKind = "measurement",
     source: str | None = None,
 ) -> Dataset:
-    """Read a JSON data set: a list of records (see :func:`dataset_from_records`), UTF-8.
+    """Read a JSON data set (UTF-8): a list of records or ``{"name": ..., "records": [...]}``.
 
-    A ``str`` is taken as JSON text when it starts with ``[`` or ``{`` (after spaces), else as a path.
+    The text's rules are :func:`comp_daemon.data.jsontext.load_json_records`'s, the records' those
+    of :func:`dataset_from_records`; every refusal is a :class:`DatasetError`. A ``str`` is taken as
+    JSON text when it starts with ``[`` or ``{`` (after spaces), else as a path.
     """
     if isinstance(path_or_data, bytes | bytearray):
         raw, name = bytes(path_or_data), "<bytes>"
@@ -355,17 +399,5 @@ def read_dataset_json(
     else:
         raw, name = Path(path_or_data).read_bytes(), str(path_or_data)
     name = source or name
-    try:
-        text = raw.decode("utf-8").removeprefix("\ufeff")
-    except UnicodeDecodeError as exc:
-        line = raw.count(b"\n", 0, exc.start) + 1
-        raise DatasetError(f"not UTF-8 text (byte 0x{raw[exc.start]:02x})", source=name, row=line) from None
-    try:
-        records = json.loads(text, object_pairs_hook=_object_pairs)
-    except json.JSONDecodeError as exc:
-        raise DatasetError(
-            f"not valid JSON: {exc.msg} (line {exc.lineno}, column {exc.colno})", source=name
-        ) from None
-    except RecursionError:
-        raise DatasetError("not a list of records (nested too deeply)", source=name) from None
-    return dataset_from_records(records, source=name, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+    doc = load_json_records(raw, name)
+    return dataset_from_json(doc, source=name, limits_deg=limits_deg, min_rows=min_rows, kind=kind)

@@ -2,7 +2,8 @@
 
 Times are ISO 8601 strings in UTC; angles in degrees (``_deg``), lengths in mm (``_mm``).
 Errors have one shape, :class:`ErrorOut`: ``error`` (a stable code), ``message`` (for a person)
-and, for a refused data set or target batch, ``row`` / ``column`` naming the place.
+and, for a refused data set or target batch, ``row`` / ``column`` naming the place (``path`` for a
+value in a JSON upload).
 """
 
 from __future__ import annotations
@@ -70,7 +71,15 @@ class ErrorOut(_Out):
     message: str
     row: int | None = Field(None, description="1-based row (header = row 1) or record number at fault")
     column: str | None = Field(None, description="column or field at fault")
-    row_label: str | None = Field(None, description="'row' (CSV) or 'record' (JSON)")
+    row_label: str | None = Field(
+        None, description="'row' (CSV), 'record' (JSON record), 'line' (JSON text) or 'target' (batch)"
+    )
+    path: str | None = Field(
+        None, description="JSON uploads: the path of the value at fault, e.g. $.records[3].a1 or $[0].note"
+    )
+    retry_after_s: int | None = Field(
+        None, description="503 busy: seconds to wait before trying again (also the Retry-After header)"
+    )
     error_id: str | None = Field(None, description="for internal errors: the id under which it was logged")
     details: list[dict[str, Any]] | None = None
 

@@ -7,22 +7,20 @@
   body held in memory and, for a spooled one, in a process of its own (spawned per upload, so its
   memory goes back to the system and its CPU time never competes with the loop for the GIL); at
   most ``concurrency`` at once.
-- JSON follows the file reader's rules (:func:`comp_daemon.data.dataset.read_dataset_json`: a key
-  given twice is refused) and adds what the reader lets through: a lone surrogate or a NUL in a
-  string, an integer beyond any double. A CSV field with a NUL is refused with its row and column.
+- The rules are the file readers' (:mod:`comp_daemon.data.readers`, :mod:`comp_daemon.data.jsontext`):
+  CSV as :func:`~comp_daemon.data.dataset.parse_dataset` reads it, JSON as
+  :func:`~comp_daemon.data.dataset.read_dataset_json` does (a key given twice, a NUL or a lone
+  surrogate, an integer beyond any double are refused with the value's path).
 
-Every refusal is an :class:`UploadRefused` (a :class:`~comp_daemon.data.dataset.DatasetError`
-becomes one with the same message, row and column); JSON faults carry the value's ``path``
-(``$[3].a1``, ``$.records[0].note``).
+Every refusal is an :class:`UploadRefused`: a :class:`~comp_daemon.data.dataset.DatasetError`
+with the same message, ``row``, ``column`` and, for JSON, the value's ``path`` (``$[3].a1``,
+``$.records[0].note``), in a form that crosses the process boundary.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
-import csv
-import io
-import json
 import multiprocessing
 import os
 import tempfile
@@ -30,7 +28,8 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import IO, Any, Literal
 
-from comp_daemon.data.dataset import DatasetError, dataset_from_records, dataset_to_csv, parse_dataset
+from comp_daemon.data.dataset import DatasetError, dataset_from_json, dataset_to_csv, parse_dataset
+from comp_daemon.data.jsontext import load_json_records
 from comp_daemon.service.orphans import exit_with_parent
 
 __all__ = ["SPOOL_MEMORY_BYTES", "CheckedUpload", "Spool", "UploadChecker", "UploadRefused", "check_upload"]
@@ -62,148 +61,11 @@ class UploadRefused(ValueError):
     @classmethod
     def of(cls, exc: DatasetError) -> UploadRefused:
         label = exc.row_label if exc.row is not None else None
-        return cls(str(exc), row=exc.row, column=exc.column, row_label=label)
+        return cls(str(exc), path=exc.path, row=exc.row, column=exc.column, row_label=label)
 
 
 def _refused(message: str, where: dict[str, Any]) -> UploadRefused:
     return UploadRefused(message, **where)
-
-
-_MAX_INT_DIGITS = 309  # a longer JSON integer is beyond every double (1.8e308)
-
-
-class _LongInteger(str):
-    """A JSON integer too long to be a number of a data set (kept as its text, refused by path)."""
-
-
-class _Object(dict[str, Any]):
-    """A JSON object that remembers keys given more than once."""
-
-    duplicate_keys: tuple[str, ...] = ()
-
-
-def _object_pairs(pairs: list[tuple[str, Any]]) -> _Object:
-    obj = _Object(pairs)
-    if len(obj) != len(pairs):
-        seen: set[str] = set()
-        duplicates = []
-        for key, _ in pairs:
-            if key in seen:
-                duplicates.append(key)
-            seen.add(key)
-        obj.duplicate_keys = tuple(duplicates)
-    return obj
-
-
-def _parse_int(text: str) -> int | _LongInteger:
-    return _LongInteger(text) if len(text.lstrip("-")) > _MAX_INT_DIGITS else int(text)
-
-
-def _text_fault(text: str) -> str | None:
-    if "\x00" in text:
-        return "a NUL character (U+0000) in text"
-    try:
-        text.encode("utf-8")
-    except UnicodeEncodeError as exc:
-        return f"a lone surrogate (U+{ord(text[exc.start]):04X}) in text: not Unicode"
-    return None
-
-
-def _json_fault(doc: Any) -> tuple[str, list[str | int]] | None:
-    """The first value the file reader's rules refuse: (problem, path from the document's root)."""
-    stack: list[tuple[Any, list[str | int]]] = [(doc, [])]
-    while stack:
-        value, path = stack.pop()
-        if isinstance(value, _LongInteger):
-            return f"an integer of {len(value.lstrip('-'))} digits (beyond any number)", path
-        if isinstance(value, str):
-            problem = _text_fault(value)
-            if problem is not None:
-                return problem, path
-        elif isinstance(value, dict):
-            duplicates = getattr(value, "duplicate_keys", ())
-            if duplicates:
-                return f"key {duplicates[0]!r} given twice", [*path, duplicates[0]]
-            for key in value:
-                problem = _text_fault(key)
-                if problem is not None:
-                    return f"{problem} (in a key)", [*path, key]
-            stack.extend((v, [*path, k]) for k, v in reversed(value.items()))
-        elif isinstance(value, list):
-            stack.extend((v, [*path, i]) for i, v in reversed(list(enumerate(value))))
-    return None
-
-
-def _path_text(path: list[str | int]) -> str:
-    out = "$"
-    for part in path:
-        out += f"[{part}]" if isinstance(part, int) else f".{part}" if part.isidentifier() else f"[{part!r}]"
-    return out
-
-
-def _json_records(data: bytes, source: str) -> tuple[list[Any], str | None]:
-    """The records of a JSON upload, by the file reader's rules and stricter: duplicate keys, lone
-    surrogates, NUL characters and integers beyond any double are refused with the value's path."""
-    try:
-        text = data.decode("utf-8").removeprefix("\ufeff")
-    except UnicodeDecodeError as exc:
-        line = data.count(b"\n", 0, exc.start) + 1
-        raise DatasetError("not UTF-8 text", source=source, row=line) from None
-    try:
-        doc = json.loads(text, object_pairs_hook=_object_pairs, parse_int=_parse_int)
-    except json.JSONDecodeError as exc:
-        raise DatasetError(
-            f"invalid JSON at line {exc.lineno} column {exc.colno}: {exc.msg}", source=source, row=exc.lineno
-        ) from None
-    except RecursionError:
-        raise DatasetError("JSON nested too deeply", source=source) from None
-    fault = _json_fault(doc)
-    if fault is not None:
-        problem, path = fault
-        records_at = 1 if isinstance(doc, dict) else 0  # {"records": [...]} or [...]
-        row: int | None = None
-        column: str | None = None
-        index = path[records_at] if len(path) > records_at + 1 else None
-        if isinstance(index, int):
-            key = str(path[records_at + 1])
-            row, column = index + 1, key.encode("utf-8", "backslashreplace").decode("utf-8")
-        where = _path_text(path)
-        raise UploadRefused(
-            f"{source}: {where}: {problem}",
-            path=where,
-            row=row,
-            column=column,
-            row_label="record" if row is not None else None,
-        )
-    if isinstance(doc, list):
-        return doc, None
-    if isinstance(doc, dict) and isinstance(doc.get("records"), list):
-        name = doc.get("name")
-        return doc["records"], name if isinstance(name, str) and name.strip() else None
-    raise DatasetError("expected a list of records or an object with 'records' (a list)", source=source)
-
-
-def _refuse_nul(text: str, source: str) -> None:
-    """Refuse a NUL character in CSV text, naming its row and column (the reader would keep it)."""
-    if "\x00" not in text:
-        return
-    reader = csv.reader(io.StringIO(text, newline=""))
-    header: list[str] = []
-    line = 1
-    with contextlib.suppress(csv.Error):
-        for k, record in enumerate(reader):
-            if k == 0:
-                header = [h.strip() for h in record]
-            for j, cell in enumerate(record):
-                if "\x00" in cell:
-                    column = header[j] if k > 0 and j < len(header) and header[j] else None
-                    raise DatasetError(
-                        f"a NUL character (U+0000) in field {j + 1}", source=source, row=line, column=column
-                    )
-            line = reader.line_num + 1
-    raise DatasetError(
-        "a NUL character (U+0000)", source=source, row=text.count("\n", 0, text.index("\x00")) + 1
-    )
 
 
 @dataclass(frozen=True, slots=True)
@@ -225,13 +87,11 @@ def check_upload(data: bytes, fmt: UploadFormat, name: str, limits: Any, kind: U
     """
     try:
         if fmt == "csv":
-            with contextlib.suppress(UnicodeDecodeError):  # the reader names undecodable bytes itself
-                _refuse_nul(data.decode("utf-8"), name)
             ds = parse_dataset(data, source=name, limits_deg=limits, min_rows=1, kind=kind)
         else:
-            records, inner = _json_records(data, name)
-            name = (inner or name)[:200]
-            ds = dataset_from_records(records, source=name, limits_deg=limits, min_rows=1, kind=kind)
+            doc = load_json_records(data, name)
+            name = (doc.name or name)[:200]
+            ds = dataset_from_json(doc, source=name, limits_deg=limits, min_rows=1, kind=kind)
     except DatasetError as exc:
         raise UploadRefused.of(exc) from None
     del data
