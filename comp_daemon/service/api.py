@@ -224,7 +224,13 @@ def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(DatasetError)
     async def dataset_error(request: Request, exc: DatasetError) -> JSONResponse:
         return _error(
-            422, "invalid_dataset", str(exc), row=exc.row, column=exc.column, row_label=exc.row_label
+            422,
+            "invalid_dataset",
+            str(exc),
+            row=exc.row,
+            column=exc.column,
+            row_label=exc.row_label,
+            path=exc.path,
         )
 
     @app.exception_handler(RequestValidationError)
