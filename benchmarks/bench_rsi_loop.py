@@ -494,6 +494,34 @@ def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
+_BUCKET = re.compile(r'^comp_daemon_loop_reply_latency_seconds_bucket\{le="([^"]+)"\} ([0-9.e+]+)$', re.M)
+
+
+def _reply_histogram(metrics_text: str) -> dict[float, float]:
+    """The daemon's reply-latency histogram (receive callback → sent): upper bound in s → count."""
+    return {float(le): float(n) for le, n in _BUCKET.findall(metrics_text)}
+
+
+def _window(before: dict[float, float], after: dict[float, float]) -> dict[str, Any]:
+    """The histogram of the measured window: share of replies within each bound, and the bounds
+    that hold p50 and p99 (the daemon's own time per reply, from its metrics)."""
+    bounds = sorted(after)
+    counts = np.array([after[b] - before.get(b, 0.0) for b in bounds])
+    if not bounds or counts[-1] <= 0:
+        return {}
+    share = [float(f) for f in counts / counts[-1]]
+    pairs = list(zip(bounds, share, strict=True))
+    within = {f"{b * 1e6:g}us" if b < 1 else f"{b:g}s": round(f, 5) for b, f in pairs if b != float("inf")}
+    p50 = next(b for b, f in pairs if f >= 0.5)
+    p99 = next(b for b, f in pairs if f >= 0.99)
+    return {
+        "replies": int(counts[-1]),
+        "within": within,
+        "p50_at_most_ms": p50 * 1e3,
+        "p99_at_most_ms": p99 * 1e3,
+    }
+
+
 def _latency(ms: np.ndarray) -> dict[str, float]:
     return {
         "p50": _pct(ms, 50),
@@ -635,6 +663,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
                 time.sleep(3.0)  # the first fit and batch under way
                 ctrl0 = json.loads(_line(cell["motion_port"], "status"))
                 status0 = c.get("/api/status").json()["daemon"]["loop"]
+                hist0 = _reply_histogram(c.get("/metrics").text)
                 load_start = os.getloadavg()
                 floor = _floor_start(opts.floor_cpu)
                 steal0 = _steal_s()
@@ -652,6 +681,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
                     platform = _floor_stop(floor, cycle_ms)
                 ctrl1 = json.loads(_line(cell["motion_port"], "status"))
                 status1 = c.get("/api/status").json()["daemon"]["loop"]
+                hist1 = _reply_histogram(c.get("/metrics").text)
                 load.stop()
                 finished_targets = {
                     s: c.get("/api/targets", params={"state": s, "limit": 500}).json()
@@ -713,6 +743,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
             "max_ms": status1.get("latency_max_ms"),
             "late": (status1.get("late_replies") or 0) - (status0.get("late_replies") or 0),
             "realtime": status1.get("realtime"),
+            "in_callback": _window(hist0, hist1),
         },
         controller_late=ctrl1["late_total"] - ctrl0["late_total"],
         controller_overruns=ctrl1["overruns"] - ctrl0["overruns"],
@@ -758,6 +789,7 @@ def _report(r: dict[str, Any]) -> str:
         f"simulated controller counted {r['controller_late']} late, {r['controller_overruns']} own overruns\n"
         f"   daemon's own view (callback → sent, last 65 536): p50 {_ms(dv['p50_ms'])}, "
         f"p99 {_ms(dv['p99_ms'])}, max since start {_ms(dv['max_ms'])}, late {dv['late']}\n"
+        f"   daemon's own view in the measured window (metrics histogram): {_callback_text(dv)}\n"
         f"   real-time path: {dv.get('realtime')}\n"
         f"   load: {r['fits_done']} fits done, targets done {r['targets']['done']} / failed "
         f"{r['targets']['failed']} {r['target_fail_reasons'] or ''}, {r['http_requests']} HTTP requests "
@@ -768,6 +800,15 @@ def _report(r: dict[str, Any]) -> str:
         f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}\n"
         f"   platform: {r['steal_s']} s of CPU time stolen by the hypervisor; {_floor_text(r)}"
     )
+
+
+def _callback_text(dv: dict[str, Any]) -> str:
+    w = dv.get("in_callback") or {}
+    if not w:
+        return "–"
+    shares = ", ".join(f"≤ {k}: {v:.2%}" for k, v in w["within"].items())
+    p50, p99 = w["p50_at_most_ms"], w["p99_at_most_ms"]
+    return f"{w['replies']} replies, p50 ≤ {p50:g} ms, p99 ≤ {p99:g} ms ({shares})"
 
 
 def _floor_text(r: dict[str, Any]) -> str:

@@ -43,7 +43,7 @@ from typing import Any
 from comp_daemon import __version__
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.common.logs import get_logger
-from comp_daemon.daemon.cell import Cell, SimOptions, loop_settings_from, safety_settings_from
+from comp_daemon.daemon.cell import Cell, SimOptions
 from comp_daemon.daemon.rt_process import RealtimeProcess, RemoteRuntime
 from comp_daemon.daemon.sdnotify import Notifier, watchdog_interval_s
 from comp_daemon.daemon.simcell import SimCellInfo, SimCellProcess
@@ -57,7 +57,7 @@ from comp_daemon.service.config import Settings
 from comp_daemon.service.events import EventBus
 from comp_daemon.service.store import Store
 
-__all__ = ["Daemon", "SimOptions", "loop_settings_from", "safety_settings_from"]
+__all__ = ["Daemon", "SimOptions"]
 
 log = get_logger(__name__)
 
