@@ -297,6 +297,16 @@ async def test_child_logs_reach_the_daemon_loggers(
         s.sendto(b"<Rob><IPOC>not a number</IPOC></Rob>", (host, port))
     await until(lambda: any("garbled telegram" in r.getMessage() for r in caplog.records))
     await until(lambda: rtp.rsi_stats.garbled == 1)
+    # the child's own structlog records take the same way
+    caplog.set_level(logging.ERROR, logger="comp_daemon.rt.child")
+    assert rtp.link.send(("bogus", 1))
+    await until(
+        lambda: any(
+            r.name == "comp_daemon.rt.child"
+            and "rt: unknown message 'bogus' from the daemon" in r.getMessage()
+            for r in caplog.records
+        )
+    )
 
 
 async def test_samples_round_trip(rtp: RealtimeProcess) -> None:

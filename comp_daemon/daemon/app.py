@@ -106,7 +106,6 @@ class Daemon:
         self._stop_reason = ""
         self._tasks: dict[str, asyncio.Task[Any]] = {}
         self._uvicorn: Any = None
-        self._max_tick_gap_s = 0.0
 
     # ------------------------------------------------------------------------------ the cell's parts
 
@@ -351,7 +350,6 @@ class Daemon:
             await asyncio.sleep(self.tick_s)
             now_ns = self.clock_ns()
             gap = (now_ns - last_tick_ns) * 1e-9
-            self._max_tick_gap_s = max(self._max_tick_gap_s, gap)
             last_tick_ns = now_ns
             now = time.monotonic()
             if now - last_telemetry >= self.telemetry_s:
