@@ -3,6 +3,14 @@
 Run: ``python -m benchmarks.bench_rsi_loop [--cycles 50000] [--cycle-ms 12 --cycle-ms 4]
 [--http-rate 20] [--json OUT]`` (about 10 min at 12 ms and 3.5 min at 4 ms for 50 000 cycles).
 
+Each run measures the daemon beside a **baseline**: a bare asyncio UDP echo (``echo_main``: a
+minimal ``DatagramProtocol`` answering every telegram with one fixed valid ``<Sen>`` reply, only
+the IPOC copied in) in a process of its own on the daemon's real-time CPU at the same
+``SCHED_FIFO`` priority. The relay hands it a copy of every telegram from the same simulated
+controller half a cycle after the daemon's (so the two never queue behind each other on their
+CPU) and timestamps its reply the same way, under the same load. What the echo takes is what the
+platform, the interpreter and asyncio cost; the difference is the daemon's own.
+
 Set-up, per cycle time (all on 127.0.0.1, each a separate process):
 
 - the simulated cell (``python -m comp_daemon.sim.cell``): robot plant, simulated KR C4
@@ -22,9 +30,8 @@ Set-up, per cycle time (all on 127.0.0.1, each a separate process):
   the daemon's receive path, event-loop delay, handler and send, plus loopback both ways;
 - ``comp-daemon run --config … --motion …`` as in production (grating readers on the
   pseudo-terminals, ``--calibrate-gratings``, the HTTP service, the job pool), with the loop
-  correcting real targets. Its ``[realtime]`` section comes from ``--rt-mode``, ``--rt-priority``
-  (20), ``--switch-interval-ms`` (0.2) and ``--cpu-wakeup-latency-us`` (0), as in
-  ``config.example.toml``.
+  correcting real targets. Its ``[realtime]`` section comes from ``--rt-priority`` (20) and
+  ``--cpu-wakeup-latency-us`` (0), as in ``config.example.toml``.
 
 Load while the ``--cycles`` cycles are measured: the MES queue kept fed (batches of 10 targets
 around the home pose, so the loop is armed and correcting most of the time); fits one after the
@@ -34,14 +41,17 @@ status, queue, models, jobs, metrics, event log and a data set download, plus on
 event stream (a bounded loop: it stops with the measurement and never exceeds 1.5 × the planned
 count). Late: a reply that took longer than one cycle, or none at all.
 
-Printed: the machine, per cycle time the latency p50/p99/p99.9/max, late and missing replies, the
-daemon's own view (handler latency percentiles, late count), the simulated controller's late count,
-what the load achieved (fits done, targets done/failed, HTTP requests and their latency).
+Printed: the machine, per cycle time the latency p50/p99/p99.9/max, late and missing replies of
+the daemon and of the echo baseline, the daemon's own view (handler latency percentiles, late
+count), the simulated controller's late count, what the load achieved (fits done, targets
+done/failed, HTTP requests and their latency).
 """
 
 from __future__ import annotations
 
 import argparse
+import asyncio
+import collections
 import contextlib
 import datetime as dt
 import json
@@ -68,6 +78,8 @@ import httpx
 import numpy as np
 
 from benchmarks.machine import machine_info, machine_line
+from comp_daemon.rt.rsi_codec import SenReply, build_sen
+from comp_daemon.rt.scheduling import apply_scheduling, resolve_cpu
 
 SO_TIMESTAMPNS = 35  # Linux: <asm-generic/socket.h>; SCM_TIMESTAMPNS has the same value
 _IPOC = re.compile(rb"<IPOC>\s*(\d+)\s*</IPOC>")
@@ -87,16 +99,56 @@ def _recv_stamped(sock: socket.socket) -> tuple[bytes, tuple[str, int], int]:
     return data, addr, t_ns
 
 
+# ------------------------------------------------------------------------------------ the baseline
+
+
+class _Echo(asyncio.DatagramProtocol):
+    """Answers every telegram at once with the same valid ``<Sen>`` reply (its IPOC copied in)."""
+
+    def __init__(self, sen_type: str) -> None:
+        head, _, tail = build_sen(SenReply(1, (0.0,) * 6, False, sen_type)).partition(b"<IPOC>1</IPOC>")
+        self.head, self.tail = head + b"<IPOC>", b"</IPOC>" + tail
+        self.transport: asyncio.DatagramTransport | None = None
+
+    def connection_made(self, transport: asyncio.BaseTransport) -> None:
+        self.transport = transport  # type: ignore[assignment]
+
+    def datagram_received(self, data: bytes, addr: tuple[str, int]) -> None:
+        m = _IPOC.search(data)
+        if m is not None and self.transport is not None:
+            self.transport.sendto(self.head + m.group(1) + self.tail, addr)
+
+
+def echo_main(port: int, cpu: int | None, priority: int, sen_type: str, ready: Any) -> None:
+    """The baseline: a bare asyncio UDP echo, pinned and scheduled as the daemon's real-time process."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    apply_scheduling(cpu, priority, who="the echo baseline")
+
+    async def serve() -> None:
+        loop = asyncio.get_running_loop()
+        await loop.create_datagram_endpoint(lambda: _Echo(sen_type), local_addr=("127.0.0.1", port))
+        ready.set()
+        await asyncio.Event().wait()  # until terminated
+
+    asyncio.run(serve())
+
+
+# ------------------------------------------------------------------------------------ the relay
+
+
 def relay_main(
     listen_port: int,
     daemon_port: int,
+    echo_port: int,
+    cycle_ms: int,
     out_path: str,
     cycles: int,
     recording: Any,
     finished: Any,
     ready: Any,
 ) -> None:
-    """Forward controller ↔ daemon; while ``recording`` is set, log the first ``cycles`` telegrams."""
+    """Forward controller ↔ daemon, and a copy of each telegram to the echo half a cycle later;
+    while ``recording`` is set, log the first ``cycles`` telegrams of each."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # the relay stands in for the controller's wire, a real-time system: where permitted it runs
     # SCHED_FIFO above the daemon, so its own hold-ups do not queue two telegrams at the daemon
@@ -108,46 +160,48 @@ def relay_main(
     up = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
     up.bind(("127.0.0.1", 0))
     up.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
+    side = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+    side.bind(("127.0.0.1", 0))
+    side.setsockopt(socket.SOL_SOCKET, SO_TIMESTAMPNS, 1)
     daemon = ("127.0.0.1", daemon_port)
-    ipoc = np.zeros(cycles, dtype=np.int64)
-    t_arrive = np.zeros(cycles, dtype=np.int64)  # telegram at the relay (kernel)
-    t_sent = np.zeros(cycles, dtype=np.int64)  # telegram forwarded to the daemon
-    t_reply = np.zeros(cycles, dtype=np.int64)  # reply at the relay (kernel); 0 = none
-    index: dict[int, int] = {}
-    n = 0
+    echo = ("127.0.0.1", echo_port)
+    half_cycle_ns = cycle_ms * 500_000
+    daemon_log, echo_log = _RelayLog(cycles), _RelayLog(cycles)
+    copies: collections.deque[tuple[int, bytes]] = collections.deque()  # (due, monotonic ns), telegram
     controller: tuple[str, int] | None = None
     poller = select.poll()
-    poller.register(ctrl, select.POLLIN)
-    poller.register(up, select.POLLIN)
+    for sock in (ctrl, up, side):
+        poller.register(sock, select.POLLIN)
     ready.set()
     done_at: float | None = None
     while True:
         if done_at is not None and time.monotonic() > done_at:
             break
-        for fd, _ in poller.poll(100):
+        while copies and copies[0][0] <= time.monotonic_ns():
+            data = copies.popleft()[1]
+            t_tx = time.time_ns()
+            side.sendto(data, echo)
+            echo_log.sent(data, 0, t_tx, recording.is_set())
+        wait_ms = 100 if not copies else max(0, -(-(copies[0][0] - time.monotonic_ns()) // 1_000_000))
+        for fd, _ in poller.poll(wait_ms):
             if fd == ctrl.fileno():
                 data, addr, t_rx = _recv_stamped(ctrl)
                 controller = addr
-                m = _IPOC.search(data)
                 t_tx = time.time_ns()
                 up.sendto(data, daemon)
-                if m is not None and recording.is_set() and n < cycles:
-                    k = int(m.group(1))
-                    ipoc[n], t_arrive[n], t_sent[n] = k, t_rx, t_tx
-                    index[k] = n
-                    n += 1
-                    if n == cycles:
-                        done_at = time.monotonic() + 0.5  # the last replies
-            else:
+                copies.append((time.monotonic_ns() + half_cycle_ns, data))
+                if daemon_log.sent(data, t_rx, t_tx, recording.is_set()) and daemon_log.n == cycles:
+                    done_at = time.monotonic() + 0.5 + cycle_ms / 1000.0  # the last replies
+            elif fd == up.fileno():
                 data, _addr, t_rx = _recv_stamped(up)
                 if controller is not None:
                     ctrl.sendto(data, controller)
-                m = _IPOC.search(data)
-                if m is not None:
-                    i = index.pop(int(m.group(1)), None)
-                    if i is not None:
-                        t_reply[i] = t_rx
-    np.savez(out_path, ipoc=ipoc[:n], t_arrive=t_arrive[:n], t_sent=t_sent[:n], t_reply=t_reply[:n])
+                daemon_log.replied(data, t_rx)
+            else:
+                data, _addr, t_rx = _recv_stamped(side)
+                echo_log.replied(data, t_rx)
+    record: dict[str, Any] = daemon_log.arrays() | {f"echo_{k}": v for k, v in echo_log.arrays().items()}
+    np.savez(out_path, **record)
     finished.set()
     # go on forwarding until terminated, so the cell and the daemon can stop cleanly
     while True:
@@ -155,10 +209,51 @@ def relay_main(
             if fd == ctrl.fileno():
                 data, controller, _ = _recv_stamped(ctrl)
                 up.sendto(data, daemon)
-            else:
+            elif fd == up.fileno():
                 data, _addr, _ = _recv_stamped(up)
                 if controller is not None:
                     ctrl.sendto(data, controller)
+            else:
+                _recv_stamped(side)
+
+
+class _RelayLog:
+    """The first ``cycles`` telegrams sent to one peer while recording: when, and when answered."""
+
+    def __init__(self, cycles: int) -> None:
+        self.cycles = cycles
+        self.ipoc = np.zeros(cycles, dtype=np.int64)
+        self.t_arrive = np.zeros(cycles, dtype=np.int64)  # telegram at the relay (kernel)
+        self.t_sent = np.zeros(cycles, dtype=np.int64)  # telegram forwarded to the peer
+        self.t_reply = np.zeros(cycles, dtype=np.int64)  # reply at the relay (kernel); 0 = none
+        self.index: dict[int, int] = {}
+        self.n = 0
+
+    def sent(self, data: bytes, t_rx: int, t_tx: int, recording: bool) -> bool:
+        m = _IPOC.search(data)
+        if m is None or not recording or self.n >= self.cycles:
+            return False
+        k, n = int(m.group(1)), self.n
+        self.ipoc[n], self.t_arrive[n], self.t_sent[n] = k, t_rx, t_tx
+        self.index[k] = n
+        self.n += 1
+        return True
+
+    def replied(self, data: bytes, t_rx: int) -> None:
+        m = _IPOC.search(data)
+        if m is not None:
+            i = self.index.pop(int(m.group(1)), None)
+            if i is not None:
+                self.t_reply[i] = t_rx
+
+    def arrays(self) -> dict[str, np.ndarray]:
+        n = self.n
+        return {
+            "ipoc": self.ipoc[:n],
+            "t_arrive": self.t_arrive[:n],
+            "t_sent": self.t_sent[:n],
+            "t_reply": self.t_reply[:n],
+        }
 
 
 # ------------------------------------------------------------------------------------ processes
@@ -201,9 +296,7 @@ listen_port = {rsi_port}
 controller_allow = ["127.0.0.1"]
 cycle_ms = {cycle_ms}
 [realtime]
-mode = "{opts.rt_mode}"
 priority = {opts.rt_priority}
-switch_interval_ms = {opts.switch_interval_ms}
 cpu_wakeup_latency_us = {opts.cpu_wakeup_latency_us}
 [encoders]
 poll_period_ms = {float(cycle_ms)}
@@ -279,9 +372,7 @@ class Options:
     fits: bool = True
     targets: bool = True
     campaign_rows: int = 1000
-    rt_mode: str = "process"  # [realtime] mode: where the RSI path runs (process | thread | shared)
-    rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of that thread (0: normal)
-    switch_interval_ms: float = 0.2  # [realtime] switch_interval_ms: the GIL switch interval
+    rt_priority: int = 20  # [realtime] priority: SCHED_FIFO priority of the real-time process (0: normal)
     cpu_wakeup_latency_us: int = 0  # [realtime] cpu_wakeup_latency_us (-1: no PM QoS request)
     controller_priority: int = 10  # SCHED_FIFO priority of the simulated cell (0: normal scheduling)
     controller_cpu: int | None = None  # pin the simulated cell to this CPU (None: not pinned)
@@ -403,6 +494,43 @@ def _pct(values: np.ndarray, q: float) -> float:
     return float(np.percentile(values, q)) if values.size else float("nan")
 
 
+_BUCKET = re.compile(r'^comp_daemon_loop_reply_latency_seconds_bucket\{le="([^"]+)"\} ([0-9.e+]+)$', re.M)
+
+
+def _reply_histogram(metrics_text: str) -> dict[float, float]:
+    """The daemon's reply-latency histogram (receive callback → sent): upper bound in s → count."""
+    return {float(le): float(n) for le, n in _BUCKET.findall(metrics_text)}
+
+
+def _window(before: dict[float, float], after: dict[float, float]) -> dict[str, Any]:
+    """The histogram of the measured window: share of replies within each bound, and the bounds
+    that hold p50 and p99 (the daemon's own time per reply, from its metrics)."""
+    bounds = sorted(after)
+    counts = np.array([after[b] - before.get(b, 0.0) for b in bounds])
+    if not bounds or counts[-1] <= 0:
+        return {}
+    share = [float(f) for f in counts / counts[-1]]
+    pairs = list(zip(bounds, share, strict=True))
+    within = {f"{b * 1e6:g}us" if b < 1 else f"{b:g}s": round(f, 5) for b, f in pairs if b != float("inf")}
+    p50 = next(b for b, f in pairs if f >= 0.5)
+    p99 = next(b for b, f in pairs if f >= 0.99)
+    return {
+        "replies": int(counts[-1]),
+        "within": within,
+        "p50_at_most_ms": p50 * 1e3,
+        "p99_at_most_ms": p99 * 1e3,
+    }
+
+
+def _latency(ms: np.ndarray) -> dict[str, float]:
+    return {
+        "p50": _pct(ms, 50),
+        "p99": _pct(ms, 99),
+        "p99.9": _pct(ms, 99.9),
+        "max": float(ms.max()) if ms.size else float("nan"),
+    }
+
+
 def _steal_s() -> float:
     """CPU time the hypervisor gave to others (``steal`` of ``/proc/stat``, all CPUs), in s."""
     try:
@@ -444,7 +572,8 @@ def _floor_stop(proc: subprocess.Popen[str] | None, cycle_ms: int) -> dict[str, 
     n = np.array([counts[u] for u in us])
     cum = np.cumsum(n) / n.sum()
     pct = {
-        f"p{q:g}_us": int(us[min(np.searchsorted(cum, q / 100), us.size - 1)]) for q in (50, 99, 99.9, 99.99)
+        f"p{q:g}_us": int(us[min(int(np.searchsorted(cum, q / 100)), us.size - 1)])
+        for q in (50, 99, 99.9, 99.99)
     }
     return {
         "wakeups": int(n.sum()),
@@ -458,17 +587,35 @@ def _floor_stop(proc: subprocess.Popen[str] | None, cycle_ms: int) -> dict[str, 
 def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     cycles = opts.cycles
     root = Path(tempfile.mkdtemp(prefix=f"bench-rsi-{cycle_ms}ms-"))
-    relay_port, daemon_rsi, http_port = (
+    relay_port, daemon_rsi, echo_port, http_port = (
+        _free_port(socket.SOCK_DGRAM),
         _free_port(socket.SOCK_DGRAM),
         _free_port(socket.SOCK_DGRAM),
         _free_port(socket.SOCK_STREAM),
     )
     ctx = mp.get_context("spawn")
-    recording, finished, relay_ready = ctx.Event(), ctx.Event(), ctx.Event()
+    recording, finished, relay_ready, echo_ready = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     out = root / "relay.npz"
+    # the echo where the daemon's real-time process runs ([realtime] cpu = "auto"), at its priority
+    echo_cpu = resolve_cpu("auto")
+    echo = ctx.Process(
+        target=echo_main, args=(echo_port, echo_cpu, opts.rt_priority, "ImFree", echo_ready), daemon=True
+    )
+    echo.start()
+    echo_ready.wait(30)
     relay = ctx.Process(
         target=relay_main,
-        args=(relay_port, daemon_rsi, str(out), cycles, recording, finished, relay_ready),
+        args=(
+            relay_port,
+            daemon_rsi,
+            echo_port,
+            cycle_ms,
+            str(out),
+            cycles,
+            recording,
+            finished,
+            relay_ready,
+        ),
         daemon=True,
     )
     relay.start()
@@ -516,6 +663,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
                 time.sleep(3.0)  # the first fit and batch under way
                 ctrl0 = json.loads(_line(cell["motion_port"], "status"))
                 status0 = c.get("/api/status").json()["daemon"]["loop"]
+                hist0 = _reply_histogram(c.get("/metrics").text)
                 load_start = os.getloadavg()
                 floor = _floor_start(opts.floor_cpu)
                 steal0 = _steal_s()
@@ -533,6 +681,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
                     platform = _floor_stop(floor, cycle_ms)
                 ctrl1 = json.loads(_line(cell["motion_port"], "status"))
                 status1 = c.get("/api/status").json()["daemon"]["loop"]
+                hist1 = _reply_histogram(c.get("/metrics").text)
                 load.stop()
                 finished_targets = {
                     s: c.get("/api/targets", params={"state": s, "limit": 500}).json()
@@ -550,6 +699,8 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
             daemon.wait()
         relay.terminate()
         relay.join(10)
+        echo.terminate()
+        echo.join(10)
 
     rec = np.load(out)
     sent, reply, arrive = rec["t_sent"], rec["t_reply"], rec["t_arrive"]
@@ -563,19 +714,25 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     cycle = float(cycle_ms)
     relay_ms = (sent - arrive) / 1e6
     http_ms = np.array(load.request_ms if load else [], dtype=np.float64)
+    echo_sent, echo_reply = rec["echo_t_sent"], rec["echo_t_reply"]
+    echo_ms = (echo_reply[echo_reply > 0] - echo_sent[echo_reply > 0]) / 1e6
     result.update(
         date=dt.date.today().isoformat(),
         recorded=int(sent.size),
         wall_s=round(wall_s, 1),
-        latency_ms={
-            "p50": _pct(lat_ms, 50),
-            "p99": _pct(lat_ms, 99),
-            "p99.9": _pct(lat_ms, 99.9),
-            "max": float(lat_ms.max()) if lat_ms.size else float("nan"),
-        },
+        latency_ms=_latency(lat_ms),
         late=int(np.sum(lat_ms > cycle)) + int(np.sum(~answered)),
         missing=int(np.sum(~answered)),
         missing_in_relay_burst=int(np.sum(~answered & burst)),
+        echo={
+            "cpu": echo_cpu,
+            "priority": opts.rt_priority,
+            "recorded": int(echo_sent.size),
+            "latency_ms": _latency(echo_ms),
+            "late": int(np.sum(echo_ms > cycle)) + int(np.sum(echo_reply == 0)),
+            "missing": int(np.sum(echo_reply == 0)),
+            "over_1ms": int(np.sum(echo_ms > 1.0)),
+        },
         over_1ms=int(np.sum(lat_ms > 1.0)),
         relay_forward_ms_p99=_pct(relay_ms, 99),
         steal_s=round(steal_s, 2),
@@ -586,6 +743,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
             "max_ms": status1.get("latency_max_ms"),
             "late": (status1.get("late_replies") or 0) - (status0.get("late_replies") or 0),
             "realtime": status1.get("realtime"),
+            "in_callback": _window(hist0, hist1),
         },
         controller_late=ctrl1["late_total"] - ctrl0["late_total"],
         controller_overruns=ctrl1["overruns"] - ctrl0["overruns"],
@@ -613,16 +771,25 @@ def _ms(value: float | None) -> str:
 
 
 def _report(r: dict[str, Any]) -> str:
-    lat, dv = r["latency_ms"], r["daemon_view"]
+    lat, dv, echo = r["latency_ms"], r["daemon_view"], r["echo"]
+    elat = echo["latency_ms"]
     return (
         f"{r['cycle_ms']:>2} ms  {r['recorded']} cycles in {r['wall_s']} s\n"
-        f"   reply latency (controller side): p50 {lat['p50']:.3f} ms, p99 {lat['p99']:.3f} ms, "
-        f"p99.9 {lat['p99.9']:.3f} ms, max {lat['max']:.3f} ms; > 1 ms: {r['over_1ms']}\n"
+        f"   {'':<8} {'p50':>8} {'p99':>8} {'p99.9':>8} {'max':>8}  late   (reply latency, ms, relay side)\n"
+        f"   {'daemon':<8} {lat['p50']:8.3f} {lat['p99']:8.3f} {lat['p99.9']:8.3f} {lat['max']:8.3f}  "
+        f"{r['late']}\n"
+        f"   {'echo':<8} {elat['p50']:8.3f} {elat['p99']:8.3f} {elat['p99.9']:8.3f} {elat['max']:8.3f}  "
+        f"{echo['late']}   (bare asyncio echo, {echo['recorded']} telegrams, CPU {echo['cpu']}, "
+        f"SCHED_FIFO {echo['priority']} where granted)\n"
+        f"   daemon p99 / echo p99: {lat['p99'] / elat['p99']:.2f}; > 1 ms: daemon {r['over_1ms']}, "
+        f"echo {echo['over_1ms']}\n"
         f"   late (> {r['cycle_ms']} ms or none): {r['late']} (no reply: {r['missing']}, of which "
-        f"{r['missing_in_relay_burst']} right behind a relay hold-up); "
+        f"{r['missing_in_relay_burst']} right behind a relay hold-up); echo {echo['late']} "
+        f"(no reply: {echo['missing']}); "
         f"simulated controller counted {r['controller_late']} late, {r['controller_overruns']} own overruns\n"
         f"   daemon's own view (callback → sent, last 65 536): p50 {_ms(dv['p50_ms'])}, "
         f"p99 {_ms(dv['p99_ms'])}, max since start {_ms(dv['max_ms'])}, late {dv['late']}\n"
+        f"   daemon's own view in the measured window (metrics histogram): {_callback_text(dv)}\n"
         f"   real-time path: {dv.get('realtime')}\n"
         f"   load: {r['fits_done']} fits done, targets done {r['targets']['done']} / failed "
         f"{r['targets']['failed']} {r['target_fail_reasons'] or ''}, {r['http_requests']} HTTP requests "
@@ -633,6 +800,15 @@ def _report(r: dict[str, Any]) -> str:
         f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}\n"
         f"   platform: {r['steal_s']} s of CPU time stolen by the hypervisor; {_floor_text(r)}"
     )
+
+
+def _callback_text(dv: dict[str, Any]) -> str:
+    w = dv.get("in_callback") or {}
+    if not w:
+        return "–"
+    shares = ", ".join(f"≤ {k}: {v:.2%}" for k, v in w["within"].items())
+    p50, p99 = w["p50_at_most_ms"], w["p99_at_most_ms"]
+    return f"{w['replies']} replies, p50 ≤ {p50:g} ms, p99 ≤ {p99:g} ms ({shares})"
 
 
 def _floor_text(r: dict[str, Any]) -> str:
@@ -666,16 +842,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--no-fits", action="store_true", help="no fit jobs during the measurement")
     parser.add_argument("--no-targets", action="store_true", help="no targets during the measurement")
     parser.add_argument(
-        "--rt-mode",
-        choices=("process", "thread", "shared"),
-        default="process",
-        help="[realtime] mode: the RSI path in its own process, its own thread, or on the HTTP side's loop",
-    )
-    parser.add_argument(
         "--rt-priority", type=int, default=20, help="[realtime] priority (SCHED_FIFO; 0: normal scheduling)"
-    )
-    parser.add_argument(
-        "--switch-interval-ms", type=float, default=0.2, help="[realtime] switch_interval_ms (GIL)"
     )
     parser.add_argument(
         "--cpu-wakeup-latency-us",
@@ -714,9 +881,7 @@ def main(argv: list[str] | None = None) -> int:
         fits=not args.no_fits,
         targets=not args.no_targets,
         campaign_rows=args.campaign_rows,
-        rt_mode=args.rt_mode,
         rt_priority=args.rt_priority,
-        switch_interval_ms=args.switch_interval_ms,
         cpu_wakeup_latency_us=args.cpu_wakeup_latency_us,
         controller_priority=args.controller_priority,
         controller_cpu=_controller_cpu(args.controller_cpu),

@@ -14,7 +14,6 @@ from typing import Any
 
 import pytest
 
-from comp_daemon.daemon.runtime import LoopRuntime
 from comp_daemon.rt.controller import JointLoopSettings
 from comp_daemon.rt.encoder_reader import EncoderFault, EncoderReading
 from comp_daemon.rt.encoder_reader import FaultKind as EncoderFaultKind
@@ -26,6 +25,7 @@ from comp_daemon.rt.executor import (
     TargetOutcome,
 )
 from comp_daemon.rt.grating_cal import GratingCalibration, JointGratingMap
+from comp_daemon.rt.loop import LoopRuntime
 from comp_daemon.rt.rsi_codec import RobTelegram
 from comp_daemon.rt.safety import SafetySettings, SafetyState
 from comp_daemon.service.store import Store

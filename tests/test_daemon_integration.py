@@ -231,28 +231,3 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
     assert rtp.proc.returncode == 0  # stopped with the daemon
     state = json.loads((tmp_path / "data" / "daemon-state.json").read_text())
     assert state["state"] == "stopping" and state["last_reply"]["ak_deg"] == [0.0] * 6
-
-
-@pytest.mark.parametrize(("mode", "word"), [("thread", "own thread"), ("shared", "one event loop")])
-async def test_daemon_realtime_modes(tmp_path: Path, mode: str, word: str) -> None:
-    """The comparison modes still run the cell: RSI answered in this process, a clean stop."""
-    cfg = write_config(tmp_path)
-    cfg.write_text(cfg.read_text() + f'\n[realtime]\nmode = "{mode}"\n', encoding="utf-8")
-    daemon = Daemon(load_settings(cfg), sim=SimOptions(scenario="kr210-cell", seed=1))
-    run = asyncio.create_task(daemon.run())
-    try:
-        async with asyncio.timeout(60):
-            await daemon.started.wait()
-        assert daemon.runtime is not None and daemon.rtp is None
-        await wait_for(daemon.runtime.rsi_alive, 10, "RSI telegrams")
-        await wait_for(lambda: daemon.runtime is not None and daemon.runtime.telegrams > 50, 10, "cycles")
-        assert word in daemon.snapshot().loop.realtime or word in daemon._realtime_word()
-        rsi_port = daemon.rsi_address[1] if daemon.rsi_address else -1
-        assert udp_socket_holders(rsi_port) == {os.getpid()}
-        assert (daemon.rt is not None) == (mode == "thread")
-    finally:
-        daemon.request_stop("test over")
-        code = await asyncio.wait_for(run, 30)
-    assert code == 0
-    state = json.loads((tmp_path / "data" / "daemon-state.json").read_text())
-    assert state["telegrams"] > 50 and state["rsi"]["handler_errors"] == 0

@@ -1,6 +1,7 @@
 """The real-time process: the RSI endpoint and the loop in a child process, driven over real UDP.
 
-What is checked: the link's framing (any split of the stream, bad frames refused); the child answers
+What is checked: where it runs (its CPU, what scheduling it could not get, the PM QoS request); the
+link's framing (any split of the stream, bad frames refused); the child answers
 telegrams while the daemon's event loop is blocked, and the daemon's mirror then has every reply's
 latency, the cycle count and the loop state; commands reach the loop and a target the child refuses
 comes back as ``Faulted``; the child's log records reach the daemon's loggers; ``samples`` round
@@ -16,6 +17,7 @@ import os
 import pickle
 import signal
 import socket
+import struct
 import subprocess
 import sys
 import textwrap
@@ -27,16 +29,9 @@ from pathlib import Path
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from test_daemon_executor import Clock, Grating, Robot, calibration
 
-from comp_daemon.daemon.rt_link import FrameDecoder, LinkError, encode_frame
-from comp_daemon.daemon.rt_process import (
-    LoopStart,
-    ReaderMirror,
-    RealtimeProcess,
-    RemoteRuntime,
-    RtProcessError,
-    RtStart,
-)
+from comp_daemon.daemon.rt_process import ReaderMirror, RealtimeProcess, RemoteRuntime
 from comp_daemon.rt.controller import JointLoopSettings
 from comp_daemon.rt.encoder_reader import (
     EncoderFault,
@@ -45,11 +40,75 @@ from comp_daemon.rt.encoder_reader import (
     LinearGratingCalibration,
 )
 from comp_daemon.rt.encoder_reader import FaultKind as EncoderFaultKind
+from comp_daemon.rt.link import FrameDecoder, LinkError, LoopStart, RtProcessError, RtStart, encode_frame
+from comp_daemon.rt.loop import LoopRuntime
 from comp_daemon.rt.rsi_codec import SenReply, build_rob, parse_sen
 from comp_daemon.rt.rsi_server import RsiServerConfig
 from comp_daemon.rt.safety import Faulted, FaultKind, SafetySettings, SafetyState
+from comp_daemon.rt.scheduling import apply_scheduling, other_cpus, request_wakeup_latency, resolve_cpu
 
 HOME = (10.0, -90.0, 90.0, 0.0, 30.0, 0.0)
+
+# ------------------------------------------------------------------------------------------ where it runs
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+def test_cpu_choice() -> None:
+    cpus = sorted(os.sched_getaffinity(0))
+    assert resolve_cpu("none") is None and resolve_cpu(3) == 3
+    assert resolve_cpu("auto") == (cpus[-1] if len(cpus) > 1 else None)
+    assert other_cpus(None) is None
+    if len(cpus) > 1:
+        assert other_cpus(cpus[-1]) == set(cpus[:-1])
+    with pytest.raises(ValueError, match="'fast'"):
+        resolve_cpu("fast")
+
+
+def test_refused_scheduling_is_reported_not_fatal(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*args: object) -> None:
+        raise PermissionError(1, "Operation not permitted")
+
+    monkeypatch.setattr(os, "sched_setscheduler", refuse)
+    monkeypatch.setattr(os, "sched_setaffinity", refuse)
+    pinned, scheduler, notes = apply_scheduling(0, 20, who="the real-time process")
+    assert pinned is None and scheduler == "normal"
+    assert any("SCHED_FIFO" in n and "CAP_SYS_NICE" in n for n in notes), notes
+    assert any("could not pin the real-time process to CPU 0" in n for n in notes), notes
+
+
+def test_wakeup_latency_request_is_written_as_the_kernel_reads_it(tmp_path: Path) -> None:
+    """The PM QoS request is an s32 held while the file is open; a refusal is a note, not an error."""
+    device = tmp_path / "cpu_dma_latency"
+    device.write_bytes(b"")
+    fh, note = request_wakeup_latency(0, str(device))
+    assert fh is not None and note is None
+    try:
+        assert device.read_bytes() == struct.pack("i", 0)
+    finally:
+        fh.close()
+    fh, note = request_wakeup_latency(0, "/nonexistent/cpu_dma_latency")
+    assert fh is None and note is not None and "wake-up latency of 0 µs" in note
+
+
+def test_loop_forecasts_the_next_telegram() -> None:
+    clock = Clock()
+    robot = Robot(clock)
+    runtime = LoopRuntime(
+        {j: Grating(robot, j) for j in (1, 2, 3)},
+        calibration=calibration(),
+        safety=SafetySettings(),
+        loop=JointLoopSettings(),
+        clock_ns=clock,
+    )  # cycle 12 ms
+    assert runtime.next_telegram_ns() is None  # none seen yet
+    runtime.handle(robot.telegram())
+    t0 = clock.ns
+    assert runtime.next_telegram_ns() == t0 + 12_000_000
+    clock.ns += 30_000_000  # two cycles missed: the one after
+    assert runtime.next_telegram_ns() == t0 + 36_000_000
+    clock.ns += 30_000_000  # five cycles without a telegram: RSI has stopped, no forecast
+    assert runtime.next_telegram_ns() is None
+
 
 # ------------------------------------------------------------------------------------------ framing
 
@@ -165,6 +224,22 @@ async def until(cond: object, timeout_s: float = 5.0) -> None:
             await asyncio.sleep(0.01)
 
 
+@pytest.mark.skipif(not hasattr(os, "sched_getaffinity"), reason="Linux CPU affinity")
+async def test_the_child_pins_itself_and_says_what_it_got(tmp_path: Path) -> None:
+    cpu = sorted(os.sched_getaffinity(0))[0]
+    before = os.sched_getaffinity(0)
+    proc = RealtimeProcess(RtStart(rsi=RsiServerConfig(controller_host="127.0.0.1", bind_port=0), cpu=cpu))
+    await proc.start()
+    try:
+        assert proc.proc is not None
+        assert os.sched_getaffinity(proc.proc.pid) == {cpu}
+        d = proc.describe()
+        assert d["pid"] == proc.proc.pid and d["cpu"] == cpu and d["scheduler"] == "normal"
+        assert os.sched_getaffinity(0) == before  # the daemon keeps its CPUs
+    finally:
+        assert await proc.stop() == 0
+
+
 async def test_child_answers_while_the_daemon_loop_is_blocked(rtp: RealtimeProcess) -> None:
     assert rtp.proc is not None and rtp.proc.pid != os.getpid() and rtp.alive
     ctl = controller_of(rtp)
@@ -222,6 +297,16 @@ async def test_child_logs_reach_the_daemon_loggers(
         s.sendto(b"<Rob><IPOC>not a number</IPOC></Rob>", (host, port))
     await until(lambda: any("garbled telegram" in r.getMessage() for r in caplog.records))
     await until(lambda: rtp.rsi_stats.garbled == 1)
+    # the child's own structlog records take the same way
+    caplog.set_level(logging.ERROR, logger="comp_daemon.rt.child")
+    assert rtp.link.send(("bogus", 1))
+    await until(
+        lambda: any(
+            r.name == "comp_daemon.rt.child"
+            and "rt: unknown message 'bogus' from the daemon" in r.getMessage()
+            for r in caplog.records
+        )
+    )
 
 
 async def test_samples_round_trip(rtp: RealtimeProcess) -> None:
@@ -266,7 +351,8 @@ async def test_a_dead_child_fails_the_active_target_and_tells_the_daemon(tmp_pat
 _PARENT = textwrap.dedent(
     """
     import asyncio, sys
-    from comp_daemon.daemon.rt_process import LoopStart, RealtimeProcess, RtStart
+    from comp_daemon.daemon.rt_process import RealtimeProcess
+    from comp_daemon.rt.link import RtStart
     from comp_daemon.rt.rsi_server import RsiServerConfig
     from test_rt_process import loop_start
 
@@ -343,7 +429,7 @@ def test_the_child_goes_safe_on_its_own(tmp_path: Path, who: str) -> None:
 @pytest.mark.parametrize("fd", ["0", "987"])
 def test_the_child_started_by_hand_says_what_it_needs(fd: str) -> None:
     r = subprocess.run(
-        [sys.executable, "-m", "comp_daemon.daemon.rt_process", "--fd", fd],
+        [sys.executable, "-m", "comp_daemon.rt.child", "--fd", fd],
         capture_output=True,
         text=True,
         timeout=30,
@@ -359,4 +445,4 @@ def test_the_child_started_by_hand_says_what_it_needs(fd: str) -> None:
 def test_messages_pickle_under_their_importable_names() -> None:
     spec = loop_start("/dev/null")
     assert pickle.loads(pickle.dumps(spec)) == spec
-    assert type(pickle.loads(pickle.dumps(spec))).__module__ == "comp_daemon.daemon.rt_process"
+    assert type(pickle.loads(pickle.dumps(spec))).__module__ == "comp_daemon.rt.link"

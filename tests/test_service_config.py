@@ -125,8 +125,11 @@ def test_environment_overrides_file(tmp_path: Path, monkeypatch: pytest.MonkeyPa
         ("[[auth.tokens]]\nname='a'\nrole='admin'\ntoken='0123456789abcdefgh'\n", "role"),
         ("[[auth.tokens]]\nname='a'\nrole='viewer'\ntoken_file='missing.token'\n", "cannot read token_file"),
         ("[controller]\nsettle_tolerance_deg = 0.01\n", "settle_tolerance_deg"),
-        ("[realtime]\nmode = 'fast'\n", "realtime.mode"),
-        ("[realtime]\nthread = true\n", "realtime.thread"),  # the former switch: named, not ignored
+        # keys of earlier versions: named, with the reason, not ignored
+        ("[realtime]\nmode = 'process'\n", "realtime.mode is no longer a setting"),
+        ("[realtime]\nthread = true\n", "realtime.thread is no longer a setting"),
+        ("[realtime]\nswitch_interval_ms = 0.2\n", "realtime.switch_interval_ms is no longer a setting"),
+        ("[realtime]\ncpu = -1\n", "a CPU number is 0 or more"),
         (
             "[[encoders.joints]]\njoint=1\nport='a'\nradius_mm=1\n[[encoders.joints]]\njoint=1\nport='b'\nradius_mm=1\n",
             "one grating",

@@ -15,8 +15,8 @@ import httpx
 import pytest
 
 from comp_daemon.daemon.app import Daemon
-from comp_daemon.daemon.runtime import LoopRuntime
 from comp_daemon.rt.controller import JointLoopSettings
+from comp_daemon.rt.loop import LoopRuntime
 from comp_daemon.rt.safety import FaultKind, SafetySettings, SafetyState
 from comp_daemon.service.api import create_app, open_store
 from comp_daemon.service.config import Settings, load_settings
@@ -174,16 +174,19 @@ async def test_daemon_acknowledges_a_latched_fault_and_refuses_calibration_witho
     tmp_path: Path,
 ) -> None:
     daemon = Daemon(make_settings(tmp_path))
-    assert isinstance(daemon, DaemonControl)
+    view = daemon.view  # what the HTTP service is given
+    assert isinstance(view, DaemonView) and isinstance(view, DaemonControl)
     with pytest.raises(RuntimeError, match="no loop"):
-        daemon.start_grating_calibration(None, "test")
-    assert daemon.grating_status()["calibrating"] is False
-    assert daemon.acknowledge_fault("test") is None
+        view.start_grating_calibration(None, "test")
+    assert view.grating_status()["calibrating"] is False
+    assert view.acknowledge_fault("test") is None
+    assert view.snapshot().state == "starting" and view.readiness_reasons() == ["the daemon is starting"]
     runtime = LoopRuntime({}, calibration=None, safety=SafetySettings(), loop=JointLoopSettings())
-    daemon.runtime = runtime
+    daemon.cell.runtime = runtime  # type: ignore[assignment]  # the loop itself, in place of its view
     runtime.fault(FaultKind.DIVERGING, "A2 diverged")
     assert runtime.core.state is SafetyState.FAULT
-    cleared = daemon.acknowledge_fault("operator-1")
+    assert view.snapshot().state == "fault" and "A2 diverged" in (view.snapshot().hold_reason or "")
+    cleared = view.acknowledge_fault("operator-1")
     assert cleared is not None and cleared["kind"] == "diverging" and cleared["detail"] == "A2 diverged"
     assert runtime.core.state is SafetyState.IDLE
-    assert daemon.acknowledge_fault("operator-1") is None
+    assert view.acknowledge_fault("operator-1") is None

@@ -23,8 +23,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     run = subparsers.add_parser(
         "run",
         help="run the daemon: RSI loop, grating readers, target queue, HTTP service",
-        description="Run the real-time daemon (RSI loop, grating readers, target executor) and its HTTP "
-        "service in one process until SIGTERM/SIGINT.",
+        description="Run the real-time daemon (RSI loop and grating readers in a real-time process of "
+        "their own, target executor, HTTP service) until SIGTERM/SIGINT.",
     )
     run.add_argument(
         "--config",
@@ -93,7 +93,7 @@ def _run(args: argparse.Namespace) -> int:
 
     from comp_daemon.common.logs import configure_logging
     from comp_daemon.daemon.app import Daemon, SimOptions
-    from comp_daemon.rt.rt_thread import check_cpus
+    from comp_daemon.rt.scheduling import check_cpus
     from comp_daemon.service.config import load_settings
 
     if args.sim and args.motion:
@@ -141,12 +141,11 @@ def _run(args: argparse.Namespace) -> int:
 
 
 async def _calibrate_when_running(daemon: object) -> None:
-    import logging
-
+    from comp_daemon.common.logs import get_logger
     from comp_daemon.daemon.app import Daemon
 
     assert isinstance(daemon, Daemon)
-    log = logging.getLogger("comp_daemon.run")
+    log = get_logger("comp_daemon.run")
     await daemon.started.wait()
     runtime = daemon.runtime
     for _ in range(600):  # up to 30 s for the first telegrams
@@ -156,6 +155,6 @@ async def _calibrate_when_running(daemon: object) -> None:
     try:
         cal = await daemon.calibrate_gratings()
     except Exception as exc:
-        log.error("grating calibration failed: %s", exc)
+        log.error(f"grating calibration failed: {exc}")
         return
-    log.info("grating calibration v%d stored and in use", cal.version)
+    log.info(f"grating calibration v{cal.version} stored and in use")

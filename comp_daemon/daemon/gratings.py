@@ -16,7 +16,6 @@ Units: deg (controller axis values), counts of the scale resolution.
 from __future__ import annotations
 
 import asyncio
-import logging
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
@@ -26,7 +25,7 @@ from typing import Protocol
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.daemon.runtime import CycleSample
+from comp_daemon.common.logs import get_logger
 from comp_daemon.rt.executor import MotionPort
 from comp_daemon.rt.grating_cal import (
     GratingCalibration,
@@ -36,14 +35,15 @@ from comp_daemon.rt.grating_cal import (
     fit_joint_map,
     save_calibration,
 )
+from comp_daemon.rt.loop import CycleSample
 
 __all__ = ["GratingGeometry", "SamplingLoop", "calibrate_gratings", "default_calibration_poses"]
 
-log = logging.getLogger(__name__)
+log = get_logger(__name__)
 
 
 class SamplingLoop(Protocol):
-    """What the calibration needs of the loop (a ``LoopRuntime`` or the real-time process's proxy)."""
+    """What the calibration needs of the loop (the daemon's ``RemoteRuntime``, or a ``LoopRuntime``)."""
 
     joints: tuple[int, ...]
 
@@ -142,7 +142,7 @@ async def calibrate_gratings(
             )
             axis_rows.append(axes)
             count_rows.append(counts)
-        log.info("grating calibration: pose %d/%d measured", p + 1, len(poses))
+        log.info(f"grating calibration: pose {p + 1}/{len(poses)} measured")
     axes_all = np.array(axis_rows)
     counts_all = np.array(count_rows)
     maps = [
@@ -168,7 +168,7 @@ async def calibrate_gratings(
     runtime.set_calibration(calibration)
     for m in calibration.joints:
         log.info(
-            "grating A%d: scale %.6f, zero %.6f deg, residual rms %.6f / max %.6f deg over %d readings",
-            m.joint, m.scale, m.zero_deg, m.residual_rms_deg, m.residual_max_deg, m.n_readings,
-        )  # fmt: skip
+            f"grating A{m.joint}: scale {m.scale:.6f}, zero {m.zero_deg:.6f} deg, residual rms "
+            f"{m.residual_rms_deg:.6f} / max {m.residual_max_deg:.6f} deg over {m.n_readings} readings"
+        )
     return calibration

@@ -33,6 +33,7 @@ from pydantic_settings import (
 from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits
 
 __all__ = [
+    "REMOVED_REALTIME_KEYS",
     "AuthSettings",
     "CompensationSettings",
     "ControllerSettings",
@@ -219,20 +220,36 @@ class RsiSettings(_Section):
         return out
 
 
-class RealtimeSettings(_Section):
-    """Where the RSI endpoint and the grating readers run (daemon.rt_process, rt.rt_thread).
+#: ``[realtime]`` keys of earlier versions, and why they are gone
+_OWN_PROCESS = "the RSI endpoint, the grating readers and the loop always run in a process of their own"
+REMOVED_REALTIME_KEYS = {
+    "mode": _OWN_PROCESS,
+    "thread": _OWN_PROCESS,
+    "switch_interval_ms": "the interpreter's switch interval only mattered with the loop on a thread "
+    "of the daemon, which is gone",
+}
 
-    ``mode``: "process" — a child process with its own interpreter (the default); "thread" — a
-    thread of the daemon with its own event loop (shares the GIL with the HTTP side); "shared" — the
-    HTTP side's event loop (for comparison only).
+
+class RealtimeSettings(_Section):
+    """The real-time process (comp_daemon.rt.child): the RSI endpoint, the grating readers and the
+    loop in a process of their own, on ``cpu`` at ``SCHED_FIFO`` ``priority`` where permitted.
+
+    Keys of earlier versions (:data:`REMOVED_REALTIME_KEYS`) are refused by name with the reason.
     """
 
-    mode: Literal["process", "thread", "shared"] = "process"
     cpu: int | Literal["auto", "none"] = "auto"
     priority: int = Field(default=0, ge=0, le=99)
-    switch_interval_ms: float = Field(default=0.2, gt=0, le=10)
     keep_jobs_off_cpu: bool = True
     cpu_wakeup_latency_us: int = Field(default=-1, ge=-1, le=100_000)  # -1: no PM QoS request
+
+    @model_validator(mode="before")
+    @classmethod
+    def _removed_keys(cls, data: Any) -> Any:
+        if isinstance(data, dict):
+            for key, why in REMOVED_REALTIME_KEYS.items():
+                if key in data:
+                    raise ValueError(f"realtime.{key} is no longer a setting: {why}; remove it")
+        return data
 
     @field_validator("cpu")
     @classmethod

@@ -1,4 +1,4 @@
-"""The loop runtime: the RSI handler, the executor's handle on the loop, and what the service may see.
+"""The loop: the RSI handler, the commands that steer it, and what the daemon may see of it.
 
 :meth:`LoopRuntime.handle` is the synchronous handler the RSI server calls in its receive callback.
 Per telegram it reads the latest grating reading of each controlled joint (an O(1) look-up in the
@@ -9,16 +9,13 @@ awaits, allocates beyond a few small tuples, or touches a file, a socket other t
 or a lock. Events for the executor (arrived, settled, faulted) go to an ``asyncio.Queue`` with
 ``put_nowait``.
 
-Threads: the handler runs wherever the RSI endpoint runs — in the daemon, on the real-time thread
-(:mod:`comp_daemon.rt.rt_thread`); the executor, the operator's commands (:meth:`arm`,
-:meth:`release`, :meth:`reset`, :meth:`fault`, :meth:`shutdown`, :meth:`set_calibration`,
-:meth:`tick`) and the views run on the service's event loop. Every read-modify-write of the frozen
-core state holds one lock, so a command is never lost to a telegram handled at the same moment and
-the handler always sees a consistent state. The lock is held for microseconds (pure functions on
-small tuples); commands keep their synchronous meaning (``arm`` raises when the loop refuses).
-Events and sampler results are handed to the event loop that created the runtime (``events`` is its
-queue) with ``call_soon_threadsafe`` when they arise on another thread. Views read single
-attributes, which are replaced whole, never mutated.
+Where it runs: in the real-time process (:mod:`comp_daemon.rt.child`), on that process's one event
+loop — the handler in the RSI endpoint's receive callback, the commands (:meth:`arm`,
+:meth:`release`, :meth:`reset`, :meth:`fault`, :meth:`shutdown`, :meth:`set_calibration`) as the
+daemon's messages arrive, :meth:`tick` on a timer. One thread, so no locks: each command and each
+telegram is a read-modify-write of the frozen core state that no other callback interrupts, and
+commands keep their synchronous meaning (``arm`` raises when the loop refuses). The daemon sees the
+loop through :class:`LoopView` (its :class:`~comp_daemon.daemon.rt_process.RemoteRuntime` is one).
 
 Units: angles in deg (controller axis values); the clock is integer ns (``time.perf_counter_ns``),
 shared with the encoder readers so reading ages compare directly.
@@ -28,7 +25,6 @@ from __future__ import annotations
 
 import asyncio
 import math
-import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -83,24 +79,12 @@ class CycleSample:
     counts: tuple[int | None, ...]
 
 
-def _running_loop() -> asyncio.AbstractEventLoop | None:
-    try:
-        return asyncio.get_running_loop()
-    except RuntimeError:
-        return None
-
-
-def _resolve(fut: asyncio.Future[list[CycleSample]], value: list[CycleSample]) -> None:
-    if not fut.done():
-        fut.set_result(value)
-
-
 class LoopView:
     """What the service may see of the loop: the core state, the last cycle, the gratings' health.
 
     :class:`LoopRuntime` keeps these attributes up to date as it handles telegrams; the real-time
-    process's proxy (:class:`comp_daemon.daemon.rt_process.RemoteRuntime`) keeps them as the child
-    reports them. Joint numbers are 1-based (1 = A1) at this interface.
+    daemon's view (:class:`comp_daemon.daemon.rt_process.RemoteRuntime`) keeps them as the real-time
+    process reports them. Joint numbers are 1-based (1 = A1) at this interface.
     """
 
     def __init__(
@@ -251,9 +235,6 @@ class LoopRuntime(LoopView):
     """See the module docstring: the loop itself, handling telegrams in the RSI receive callback."""
 
     def _post_init(self) -> None:
-        self._lock = threading.Lock()
-        self._owner_loop: asyncio.AbstractEventLoop | None = _running_loop()
-        self._owner_thread = threading.get_ident()
         self._samplers: list[tuple[int, list[CycleSample], asyncio.Future[list[CycleSample]]]] = []
 
     # ------------------------------------------------------------------------------ the handler
@@ -282,9 +263,8 @@ class LoopRuntime(LoopView):
         inp = CycleInput(
             now_ns * 1e-9, telegram.ipoc, telegram.aspos_deg, telegram.aipos_deg, tuple(feedback)
         )
-        with self._lock:
-            result = on_cycle(self.safety, self.loop, self.core, inp)
-            self.core = result.core
+        result = on_cycle(self.safety, self.loop, self.core, inp)
+        self.core = result.core
         for event in result.events:
             self._event(event)
         self.telegrams += 1
@@ -309,54 +289,37 @@ class LoopRuntime(LoopView):
         f = getattr(event, "fault", None)
         if isinstance(f, Fault):
             self._log_fault(f)
-        self._to_owner(self.events.put_nowait, event)
-
-    def _to_owner(self, fn: Callable[..., object], *args: object) -> None:
-        """Call ``fn`` now on the owner's thread, or hand it to the owner's event loop."""
-        loop = self._owner_loop
-        if loop is None or threading.get_ident() == self._owner_thread:
-            fn(*args)
-            return
-        try:
-            loop.call_soon_threadsafe(fn, *args)
-        except RuntimeError:  # the owner's loop is closed: nobody is waiting any more
-            pass
+        self.events.put_nowait(event)
 
     def _sample(self, telegram: RobTelegram, readings: Sequence[EncoderReading | EncoderFault]) -> None:
         counts = tuple(r.count if isinstance(r, EncoderReading) else None for r in readings)
         sample = CycleSample(telegram.ipoc, telegram.aipos_deg, telegram.aspos_deg, counts)
         keep = []
-        with self._lock:
-            samplers = self._samplers
-            for n, bucket, fut in samplers:
-                if fut.done():
-                    continue
-                bucket.append(sample)
-                if len(bucket) >= n:
-                    self._to_owner(_resolve, fut, bucket)
-                else:
-                    keep.append((n, bucket, fut))
-            self._samplers = keep
+        for n, bucket, fut in self._samplers:
+            if fut.done():
+                continue
+            bucket.append(sample)
+            if len(bucket) >= n:
+                fut.set_result(bucket)
+            else:
+                keep.append((n, bucket, fut))
+        self._samplers = keep
 
     # ------------------------------------------------------------------------------ commands
 
     def arm(self, target_id: str, commanded_deg: Sequence[float], loop_target_deg: Sequence[float]) -> None:
-        with self._lock:
-            self.core = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
+        self.core = arm(self.core, target_id, commanded_deg, loop_target_deg, self.now_s())
 
     def release(self) -> None:
-        with self._lock:
-            self.core = release(self.core)
+        self.core = release(self.core)
 
     def reset(self) -> None:
         """Operator acknowledgement of a fault."""
-        with self._lock:
-            self.core = reset(self.core)
+        self.core = reset(self.core)
 
     def fault(self, kind: FaultKind, detail: str) -> None:
-        with self._lock:
-            result = fault(self.core, kind, detail, self.now_s())
-            self.core = result.core
+        result = fault(self.core, kind, detail, self.now_s())
+        self.core = result.core
         for event in result.events:
             self._event(event)
         if result.core.fault is not None and not result.events:
@@ -364,20 +327,16 @@ class LoopRuntime(LoopView):
 
     def shutdown(self) -> None:
         """Zero steps and ``Stop = 1`` from the next telegram on; the active target is reported."""
-        with self._lock:
-            result = shutdown(self.core, self.now_s())
-            self.core = result.core
+        result = shutdown(self.core, self.now_s())
+        self.core = result.core
         for event in result.events:
             self._event(event)
 
     def tick(self) -> None:
         """Timer check between telegrams (called a few times per second)."""
-        with self._lock:
-            result = on_tick(self.safety, self.core, self.now_s())
-            changed = result.core is not self.core
-            if changed:
-                self.core = result.core
-        if changed:
+        result = on_tick(self.safety, self.core, self.now_s())
+        if result.core is not self.core:
+            self.core = result.core
             for event in result.events:
                 self._event(event)
 
@@ -390,8 +349,7 @@ class LoopRuntime(LoopView):
         Raises TimeoutError when they do not arrive within ``timeout_s``.
         """
         fut: asyncio.Future[list[CycleSample]] = asyncio.get_running_loop().create_future()
-        with self._lock:
-            self._samplers = [*self._samplers, (n, [], fut)]
+        self._samplers.append((n, [], fut))
         try:
             async with asyncio.timeout(timeout_s):
                 return await fut

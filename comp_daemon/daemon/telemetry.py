@@ -1,0 +1,129 @@
+"""The daemon's telemetry: loop statistics, Prometheus metrics and the dashboard's live events.
+
+Every ``telemetry_s`` the daemon's supervisor calls :meth:`Telemetry.update`. It computes the loop
+statistics from the RSI counters and latency rings that the real-time process reports (percentiles
+in a worker thread, over a copy of the rings), adds what is new since the last update to the
+metrics (:mod:`comp_daemon.service.metrics`: every reply's latency into the histogram, late
+replies, rejected telegrams, grating faults, per-joint errors and corrections), and publishes the
+``loop`` and ``joints`` events on the bus the dashboard's event stream reads.
+"""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import Mapping
+from dataclasses import asdict
+from typing import Any
+
+import numpy as np
+
+from comp_daemon.daemon.rt_process import ReaderMirror
+from comp_daemon.rt.loop import LoopView
+from comp_daemon.rt.rsi_server import RsiServerStats
+from comp_daemon.service import metrics
+from comp_daemon.service.daemon_view import LoopStats
+from comp_daemon.service.events import EventBus
+
+__all__ = ["Telemetry"]
+
+_ENCODER_METRIC_KIND = {
+    "crc": "crc",
+    "error_bit": "error_bit",
+    "silent": "timeout",
+    "gone": "gone",
+    "garbled": "garbled",
+}
+
+
+def _percentiles(lat: np.ndarray, jit: np.ndarray) -> tuple[float | None, float | None, float | None]:
+    """Latency p50 and p99 and |jitter| p99, in ms (None without samples)."""
+    p50 = p99 = j99 = None
+    if lat.size:
+        p50, p99 = (float(v) / 1e6 for v in np.percentile(lat, [50.0, 99.0]))
+    if jit.size:
+        j99 = float(np.percentile(np.abs(jit), 99.0)) / 1e6
+    return p50, p99, j99
+
+
+class Telemetry:
+    """Loop statistics, metrics and events; see the module docstring."""
+
+    def __init__(self, bus: EventBus, cycle_ms: float) -> None:
+        self.bus = bus
+        self.cycle_ms = cycle_ms
+        self.loop_stats = LoopStats(running=False)
+        self._marks: dict[str, int] = {}
+
+    async def update(
+        self,
+        runtime: LoopView,
+        stats: RsiServerStats,
+        readers: Mapping[int, ReaderMirror],
+        *,
+        realtime: str,
+        state: str,
+    ) -> LoopStats:
+        """New loop statistics (also kept as :attr:`loop_stats`), metrics and events."""
+        lat = stats.latency.recent()  # copies: the reports append to the rings
+        jit = stats.jitter.recent()
+        p50, p99, j99 = await asyncio.to_thread(_percentiles, lat, jit)
+        self.loop_stats = LoopStats(
+            running=runtime.rsi_alive(),
+            cycle_ms=self.cycle_ms,
+            cycles=stats.answered,
+            late_replies=stats.late,
+            rejected=stats.foreign + stats.garbled,
+            latency_p50_ms=p50,
+            latency_p99_ms=p99,
+            latency_max_ms=None if stats.latency.max is None else stats.latency.max / 1e6,
+            jitter_p99_ms=j99,
+            last_ipoc=runtime.last_ipoc,
+            realtime=realtime,
+        )
+        rows = runtime.joint_rows()
+        self._update_metrics(runtime, stats, lat, readers, rows)
+        self.bus.publish("loop", asdict(self.loop_stats) | {"state": state})
+        self.bus.publish("joints", {"joints": rows, "state": str(runtime.core.state)})
+        return self.loop_stats
+
+    def _delta(self, key: str, value: int) -> int:
+        before = self._marks.get(key, 0)
+        self._marks[key] = value
+        return max(0, value - before)
+
+    def _update_metrics(
+        self,
+        runtime: LoopView,
+        stats: RsiServerStats,
+        latencies_ns: np.ndarray,
+        readers: Mapping[int, ReaderMirror],
+        rows: list[dict[str, Any]],
+    ) -> None:
+        new = self._delta("answered", stats.answered)
+        if new:
+            metrics.RSI_TELEGRAMS.inc(new)
+            for v in latencies_ns[-min(new, latencies_ns.size) :]:
+                metrics.LOOP_REPLY_LATENCY.observe(float(v) / 1e9)
+        late = self._delta("late", stats.late) + self._delta("superseded", stats.superseded)
+        if late:
+            metrics.RSI_LATE_REPLIES.inc(late)
+        for reason, value in (("garbled", stats.garbled), ("foreign_address", stats.foreign)):
+            d = self._delta(f"rejected.{reason}", value)
+            if d:
+                metrics.RSI_REJECTED.labels(reason=reason).inc(d)
+        metrics.LOOP_RUNNING.set(1.0 if runtime.rsi_alive() else 0.0)
+        for joint, reader in readers.items():
+            for kind, count in reader.fault_counts.items():
+                name = _ENCODER_METRIC_KIND.get(str(kind))
+                d = self._delta(f"enc.{joint}.{kind}", count)
+                if name is not None and d:
+                    metrics.encoder_fault_counter(joint, name).inc(d)
+            d = self._delta(f"enc.{joint}.warnings", reader.warnings)
+            if d:
+                metrics.encoder_fault_counter(joint, "warning_bit").inc(d)
+        for row in rows:
+            j = str(row["joint"])
+            metrics.ENCODER_STALE.labels(joint=j).set(0.0 if row["encoder"] == "ok" else 1.0)
+            if row["error_deg"] is not None:
+                metrics.JOINT_ERROR_DEG.labels(joint=j).set(row["error_deg"])
+            metrics.JOINT_CORRECTION_DEG.labels(joint=j).set(row["correction_deg"])
