@@ -33,7 +33,6 @@ import asyncio
 import contextlib
 import gc
 import signal
-import socket
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict
@@ -235,51 +234,24 @@ class Daemon:
         )
 
     async def _start_http(self) -> None:
-        import uvicorn
-
         from comp_daemon.service.api import create_app
+        from comp_daemon.service.http_server import build_http_server
 
         assert self.store is not None
         app = create_app(self.settings, self.store, self.view, bus=self.bus)
-
-        class _Server(uvicorn.Server):
-            @contextlib.contextmanager
-            def capture_signals(self) -> Any:  # the daemon owns the signals
-                yield
-
-        http = self.settings.http
-        sock = socket.socket(socket.AF_INET6 if ":" in http.host else socket.AF_INET, socket.SOCK_STREAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind((http.host, http.port))
-        sock.set_inheritable(True)
-        self.http_port = int(sock.getsockname()[1])
-        config = uvicorn.Config(
-            app,
-            log_config=None,
-            access_log=False,
-            lifespan="on",
-            timeout_graceful_shutdown=3,
-            server_header=False,
-        )
-        server = _Server(config)
-        self._uvicorn = server
-
-        async def serve() -> None:
-            try:
-                await server.serve(sockets=[sock])
-            except SystemExit as exc:  # uvicorn exits on a failed startup
-                raise RuntimeError(f"the HTTP service failed to start ({exc})") from None
-            finally:
-                sock.close()
-
-        task = self._tasks["http"] = asyncio.create_task(serve(), name="http")
+        # the guarded server: connection cap, header/body time limits, TCP_NODELAY, rate-limited
+        # accept errors (service/http_server.py); binding here raises OSError if the port is taken
+        http = build_http_server(app, self.settings.http)
+        self.http_port = http.port
+        self._uvicorn = http.server
+        task = self._tasks["http"] = asyncio.create_task(http.serve(), name="http")
         for _ in range(500):
-            if server.started or task.done():
+            if http.started or task.done():
                 break
             await asyncio.sleep(0.01)
         if task.done():
             task.result()
-        if not server.started:
+        if not http.started:
             raise RuntimeError("the HTTP service did not start")
 
     async def _wait(self) -> None:

@@ -242,6 +242,7 @@ class Cell:
             self.robot,
             [j - 1 for j in runtime.joints],
             current_axes=lambda: runtime.last_actual_deg,
+            limits=self.settings.compensation.limits(),
         )
 
         def target_readiness() -> str | None:
