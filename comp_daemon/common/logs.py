@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import logging
 import sys
-from collections.abc import Iterator
+from collections.abc import Iterator, MutableMapping
 from contextlib import contextmanager
 from typing import IO, Any, Literal
 
@@ -68,8 +68,33 @@ def configure_logging(
         lg.propagate = True
 
 
+def _plain_line(_logger: Any, _name: str, event_dict: MutableMapping[str, Any]) -> str:
+    """The event, then its keys as ``key=value``: the record's message until a renderer is set."""
+    event = str(event_dict.pop("event", ""))
+    keys = " ".join(f"{k}={v}" for k, v in event_dict.items())
+    return f"{event} {keys}" if keys else event
+
+
+def _route_to_stdlib() -> None:
+    """Before :func:`configure_logging` (in tests, in a library use), structlog records still go
+    through the standard library, as one plain line each, so its handlers and levels apply."""
+    if not structlog.is_configured():
+        structlog.configure(
+            processors=[
+                structlog.stdlib.filter_by_level,
+                structlog.contextvars.merge_contextvars,
+                structlog.processors.format_exc_info,
+                _plain_line,
+            ],
+            logger_factory=structlog.stdlib.LoggerFactory(),
+            wrapper_class=structlog.stdlib.BoundLogger,
+            cache_logger_on_first_use=False,
+        )
+
+
 def get_logger(name: str | None = None, **initial: Any) -> Any:
     """A structlog logger (``.info(event, **kv)`` etc.), optionally with keys bound."""
+    _route_to_stdlib()
     logger = structlog.get_logger(name)
     return logger.bind(**initial) if initial else logger
 

@@ -232,7 +232,8 @@ class TargetExecutor:
         await asyncio.to_thread(
             self.queue.advance_target, tid, state, reason=reason, final_joint_errors_deg=errors
         )
-        log.info("target finished", target_id=tid, state=state, reason=reason)
+        words = f"target {tid} {state}" + (f": {reason}" if reason else "")
+        log.info(words, target_id=tid, state=state, reason=reason)
         return TargetOutcome(tid, state, reason, errors)
 
     async def _execute(self, tid: int, request: Mapping[str, Any]) -> TargetOutcome:
