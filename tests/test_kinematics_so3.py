@@ -2,11 +2,8 @@
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 
-from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.kinematics.so3 import left_jacobian, matrix_to_rotvec, rotvec_to_matrix, skew
 
 
@@ -53,18 +50,3 @@ def test_left_jacobian_matches_central_differences() -> None:
         np.testing.assert_allclose(analytic, num, atol=1e-8)
     batch = rng.normal(size=(4, 3))
     np.testing.assert_allclose(left_jacobian(batch)[2], left_jacobian(batch[2]), atol=0)
-
-
-def test_atomic_json_write_replaces_whole_file_and_refuses_nan(tmp_path) -> None:
-    dest = tmp_path / "doc.json"
-    write_json_atomic(dest, {"a": 1})
-    write_json_atomic(dest, {"b": [1.5, 2]})
-    assert json.loads(dest.read_text()) == {"b": [1.5, 2]}
-    try:
-        write_json_atomic(dest, {"c": float("nan")})
-    except ValueError:
-        pass
-    else:
-        raise AssertionError("NaN was written")
-    assert json.loads(dest.read_text()) == {"b": [1.5, 2]}
-    assert [p.name for p in tmp_path.iterdir()] == ["doc.json"]

@@ -16,8 +16,14 @@ from typing import Any
 __all__ = ["write_json_atomic", "write_text_atomic"]
 
 
-def write_text_atomic(path: str | os.PathLike[str], text: str, *, mode: int | None = None) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically; the folder must exist. Returns the path."""
+def write_text_atomic(
+    path: str | os.PathLike[str], text: str, *, mode: int | None = None, exclusive: bool = False
+) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically; the folder must exist. Returns the path.
+
+    ``exclusive``: never replace an existing file — :class:`FileExistsError` if ``path`` exists,
+    also when another writer creates it meanwhile (the finished file is hard-linked into place).
+    """
     dest = Path(path)
     folder = dest.parent if str(dest.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{dest.name}.", suffix=".tmp")
@@ -28,7 +34,11 @@ def write_text_atomic(path: str | os.PathLike[str], text: str, *, mode: int | No
             os.fsync(fh.fileno())
         if mode is not None:
             os.chmod(tmp, mode)
-        os.replace(tmp, dest)
+        if exclusive:
+            os.link(tmp, dest)
+            os.unlink(tmp)
+        else:
+            os.replace(tmp, dest)
     except BaseException:
         with _suppress_oserror():
             os.unlink(tmp)

@@ -23,17 +23,16 @@ import dataclasses
 import hashlib
 import os
 import re
-import tempfile
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
-from pathlib import Path
 from types import MappingProxyType
 from typing import Any, TextIO
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.columns import (
     AXIS_COLUMNS,
     DIR_COLUMNS,
@@ -465,14 +464,6 @@ def write_dataset(dataset: Dataset, dest: str | os.PathLike[str] | TextIO) -> No
     """Write ``dataset`` as CSV to a path (atomically: a temporary file renamed) or an open text file."""
     text = dataset_to_csv(dataset)
     if isinstance(dest, str | os.PathLike):
-        path = Path(dest)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-        try:
-            with os.fdopen(fd, "w", encoding="utf-8", newline="") as handle:
-                handle.write(text)
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        write_text_atomic(dest, text)
         return
     dest.write(text)

@@ -23,7 +23,6 @@ import json
 import math
 import os
 import re
-import tempfile
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from comp_daemon import __version__
+from comp_daemon.common.atomic import write_text_atomic
 
 __all__ = [
     "ARTIFACT_KIND",
@@ -239,18 +239,10 @@ def save_calibration(directory: str | os.PathLike[str], calibration: GratingCali
     folder = Path(directory)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / f"grating-cal-v{calibration.version:04d}.json"
-    if path.exists():
-        raise GratingCalibrationError(f"{path} exists: calibration versions are never overwritten")
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=".grating-cal-", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as fh:
-            fh.write(calibration.to_json())
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.link(tmp, path)  # fails if another writer created the version meanwhile
-    finally:
-        os.unlink(tmp)
-    return path
+    try:  # exclusive: fails also if another writer created the version meanwhile
+        return write_text_atomic(path, calibration.to_json(), exclusive=True)
+    except FileExistsError:
+        raise GratingCalibrationError(f"{path} exists: calibration versions are never overwritten") from None
 
 
 def load_calibration(path: str | os.PathLike[str]) -> GratingCalibration:
