@@ -16,7 +16,7 @@ from typing import IO, Any, Literal
 
 import structlog
 
-__all__ = ["bound", "configure_logging", "get_logger"]
+__all__ = ["bound", "configure_logging", "get_logger", "plain_line"]
 
 _HANDLER_MARK = "_comp_daemon_handler"
 
@@ -68,11 +68,14 @@ def configure_logging(
         lg.propagate = True
 
 
-def _plain_line(_logger: Any, _name: str, event_dict: MutableMapping[str, Any]) -> str:
-    """The event, then its keys as ``key=value``: the record's message until a renderer is set."""
+def plain_line(_logger: Any, _name: str, event_dict: MutableMapping[str, Any]) -> str:
+    """A structlog processor: the event, then its keys as ``key=value``, then any traceback, as one
+    text (the record's message before :func:`configure_logging`, and in the real-time child)."""
+    exception = event_dict.pop("exception", None)
     event = str(event_dict.pop("event", ""))
     keys = " ".join(f"{k}={v}" for k, v in event_dict.items())
-    return f"{event} {keys}" if keys else event
+    text = f"{event} {keys}" if keys else event
+    return f"{text}\n{exception}" if exception else text
 
 
 def _route_to_stdlib() -> None:
@@ -84,7 +87,7 @@ def _route_to_stdlib() -> None:
                 structlog.stdlib.filter_by_level,
                 structlog.contextvars.merge_contextvars,
                 structlog.processors.format_exc_info,
-                _plain_line,
+                plain_line,
             ],
             logger_factory=structlog.stdlib.LoggerFactory(),
             wrapper_class=structlog.stdlib.BoundLogger,

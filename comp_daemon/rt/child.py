@@ -39,13 +39,13 @@ import signal
 import socket
 import sys
 import time
-from collections.abc import MutableMapping, Sequence
+from collections.abc import Sequence
 from dataclasses import replace
 from typing import Any, BinaryIO
 
 import structlog
 
-from comp_daemon.common.logs import get_logger
+from comp_daemon.common.logs import get_logger, plain_line
 from comp_daemon.rt.encoder_reader import EncoderReader
 from comp_daemon.rt.link import (
     COMMANDS,
@@ -71,15 +71,6 @@ _ZERO = (0.0,) * 6
 _BACKLOG_BYTES = 4 * 1024 * 1024
 
 
-def _event_text(_logger: Any, _method: str, event_dict: MutableMapping[str, Any]) -> str:
-    """A structlog record as one line of text for the link: the event, its keys, any traceback."""
-    exception = event_dict.pop("exception", None)
-    event = str(event_dict.pop("event", ""))
-    keys = " ".join(f"{k}={v!r}" for k, v in event_dict.items())
-    text = f"{event} {keys}" if keys else event
-    return f"{text}\n{exception}" if exception else text
-
-
 def _configure_logging(link: LinkProtocol, level: int) -> None:
     """Every record (structlog or standard library) of this process goes to the daemon as text."""
     structlog.configure(
@@ -88,7 +79,7 @@ def _configure_logging(link: LinkProtocol, level: int) -> None:
             structlog.contextvars.merge_contextvars,
             structlog.stdlib.PositionalArgumentsFormatter(),
             structlog.processors.format_exc_info,
-            _event_text,
+            plain_line,
         ],
         logger_factory=structlog.stdlib.LoggerFactory(),
         wrapper_class=structlog.stdlib.BoundLogger,

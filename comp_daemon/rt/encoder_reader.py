@@ -31,7 +31,6 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import enum
-import logging
 import math
 import os
 import time
@@ -41,6 +40,7 @@ from typing import Protocol
 
 import serial_asyncio_fast
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.rt.biss import (
     REQ_FRAME,
     REQ_IDENT,
@@ -66,7 +66,7 @@ __all__ = [
     "LinearGratingCalibration",
 ]
 
-log = logging.getLogger(__name__)
+log = get_logger(__name__)
 
 Clock = Callable[[], int]
 
@@ -290,9 +290,9 @@ class EncoderReader:
         self.connected = True
         self.connects += 1
         log.info(
-            "encoder j%d: %s connected (firmware %s, serial %s, B%d)",
-            cfg.joint, cfg.port, self.firmware, self.serial_number, cfg.bits,
-        )  # fmt: skip
+            f"encoder j{cfg.joint}: {cfg.port} connected "
+            f"(firmware {self.firmware}, serial {self.serial_number}, B{cfg.bits})"
+        )
 
     async def _poll_forever(self, loop: asyncio.AbstractEventLoop) -> None:
         cfg = self.config
@@ -387,7 +387,7 @@ class EncoderReader:
 
     def _mark_gone(self, why: str) -> None:
         if self.connected:
-            log.warning("encoder j%d: %s", self.config.joint, why)
+            log.warning(f"encoder j{self.config.joint}: {why}")
             self.fault_counts[FaultKind.GONE] += 1
         self.connected = False
         self.last_error = why

@@ -32,7 +32,6 @@ from __future__ import annotations
 
 import asyncio
 import bisect
-import logging
 import socket
 import time
 from array import array
@@ -42,6 +41,7 @@ from typing import Any, cast
 
 import numpy as np
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.rt.rsi_codec import RobTelegram, RsiProtocolError, SenReply, build_sen, parse_rob
 
 __all__ = [
@@ -54,7 +54,7 @@ __all__ = [
     "start_rsi_server",
 ]
 
-log = logging.getLogger(__name__)
+log = get_logger(__name__)
 
 RsiHandler = Callable[[RobTelegram], SenReply]
 Clock = Callable[[], int]
@@ -231,7 +231,7 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
     def error_received(self, exc: Exception) -> None:
         self.stats.send_errors += 1
         if self.stats.send_errors == 1 or self.stats.send_errors % self.config.log_every == 0:
-            log.warning("rsi: socket error %r (%d so far)", exc, self.stats.send_errors)
+            log.warning(f"rsi: socket error {exc!r} ({self.stats.send_errors} so far)")
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         t_rx = self.clock()
@@ -254,7 +254,9 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
         if key not in self._foreign_seen or stats.foreign % cfg.log_every == 0:
             if len(self._foreign_seen) < 1024:
                 self._foreign_seen.add(key)
-            log.warning("rsi: ignored datagram from foreign address %s:%s (%d so far)", *key, stats.foreign)
+            log.warning(
+                f"rsi: ignored datagram from foreign address {key[0]}:{key[1]} ({stats.foreign} so far)"
+            )
         return False
 
     def _take(self, data: bytes, addr: tuple[str | Any, int], newest: _Valid | None) -> _Valid | None:
@@ -267,7 +269,7 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
             stats = self.stats
             stats.garbled += 1
             if stats.garbled == 1 or stats.garbled % self.config.log_every == 0:
-                log.warning("rsi: garbled telegram from %s:%s: %s (%d so far)", *addr[:2], exc, stats.garbled)
+                log.warning(f"rsi: garbled telegram from {addr[0]}:{addr[1]}: {exc} ({stats.garbled} so far)")
             return newest
         if newest is not None:
             self.stats.superseded += 1
@@ -299,7 +301,7 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
         except Exception:
             stats.handler_errors += 1
             if stats.handler_errors == 1 or stats.handler_errors % self.config.log_every == 0:
-                log.exception("rsi: controller step failed on IPOC %d; zero correction sent", telegram.ipoc)
+                log.exception(f"rsi: controller step failed on IPOC {telegram.ipoc}; zero correction sent")
             datagram = build_sen(
                 SenReply(telegram.ipoc, _ZERO_AK, self.config.stop_on_handler_error, self.config.sen_type)
             )
