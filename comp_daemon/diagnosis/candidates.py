@@ -55,6 +55,7 @@ class Candidate:
     effect: str
     joint: int | None
     names: tuple[str, ...]
+    searched: int = 1  # positions tried for a setting chosen on the fit rows (the step's moment)
 
     @property
     def label(self) -> str:
@@ -89,6 +90,7 @@ def data_reasons(
         temp_c=obs_fit.temp_c,
         tau_nm=gravity_torques_nm(params, q, mass.link_mass_kg, mass.link_com_mm, obs_fit.payload_kg),
         moves_tcp=jac_theta_norm > 1e-6 * max(float(jac_theta_norm.max(initial=0.0)), 1e-300),
+        clock=obs_fit.clock,
     )
     reasons: dict[Candidate, str] = {}
     for c in cands:

@@ -3,7 +3,9 @@
 Every choice is made on the fit rows (:class:`Context`): in each round the candidate with the lowest
 k-fold cross-validated error (folds of pose groups) is tested with a cluster-robust Wald test
 (:mod:`comp_daemon.diagnosis.stats`); it is significant when its p-value is below ``alpha / m``
-(Bonferroni over the m candidates of the round) and it lowers the CV error. A runner-up with fewer
+(Bonferroni over the m candidates of the round; a candidate whose setting was searched on the fit
+rows, the step's moment, has its p-value multiplied by the number of positions tried) and it lowers
+the CV error. A runner-up with fewer
 parameters that the best does not add to significantly is preferred; after each acceptance every
 accepted candidate is offered for replacement by a rejected one. The method is described in full
 in :mod:`comp_daemon.diagnosis.ladder`.
@@ -50,6 +52,8 @@ class Context:
     ) -> None:
         self.mass = mass
         self.obs = obs
+        self.fit_rows = fit_rows
+        self.check_rows = check_rows
         self.obs_fit = obs.take(fit_rows)
         self.obs_check = obs.take(check_rows)
         self.geo_free = geo_free
@@ -112,7 +116,8 @@ def select(
         for cv, i in scored[:5]:
             c = avail[i]
             wald = lp.wald(base_cols + col_of[c], col_of[c])
-            ranked.append({"candidate": c.label, "cv_rms_mm": rounded(cv), "p_value": wald.p_value})
+            p_value = min(1.0, wald.p_value * c.searched)
+            ranked.append({"candidate": c.label, "cv_rms_mm": rounded(cv), "p_value": p_value})
         best_cv, best_i = scored[0]
         best = avail[best_i]
         best_p = float(ranked[0]["p_value"])
@@ -204,7 +209,7 @@ def _replace_pass(
             new = avail[i]
             if cv_new >= cv_old:
                 continue
-            p_value = lp.wald(base_cols + col_of[new], col_of[new]).p_value
+            p_value = min(1.0, lp.wald(base_cols + col_of[new], col_of[new]).p_value * new.searched)
             if p_value >= options.alpha / len(pool):
                 continue
             if len(new.names) > len(old.names):
