@@ -72,11 +72,17 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="the tracker's uncertainty (σ per axis, mm): the noise floor (√3·S, 3-D) when the data "
         "have no repeated poses; without either, no noise floor is claimed",
     )
+    p.add_argument(
+        "--effects",
+        metavar="E1,E2",
+        help=f"try only these effects (comma-separated, of {', '.join(EFFECTS)}; default: all)",
+    )
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    effects = None if args.effects is None else tuple(e.strip() for e in args.effects.split(",") if e.strip())
     options = DiagnoseOptions(
         frame=args.frame,
         harmonics=args.harmonics,
@@ -84,6 +90,7 @@ def _run(args: argparse.Namespace) -> int:
         alpha=args.alpha,
         seed=args.seed,
         tracker_sigma_mm=args.tracker_sigma_mm,
+        effects=effects,
     )
     path = Path(args.data)
     reader = read_dataset_json if path.suffix.lower() == ".json" else read_dataset

@@ -62,7 +62,7 @@ from comp_daemon.diagnosis.candidates import (
 )
 from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize, predict_mm
 from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
-from comp_daemon.diagnosis.selection import Context, select
+from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
 from comp_daemon.diagnosis.where import Baseline, locate
@@ -189,10 +189,13 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     cands = [
         dataclasses.replace(c, searched=searched) if c.effect == "step" else c
         for c in all_candidates(options.harmonics)
+        if options.effects is None or c.effect in options.effects
     ]
     theta_norm = np.linalg.norm(jac0[:, :, 0:30:5], axis=(0, 1))
     reasons = data_reasons(cands, ctx.obs_fit, mass, start_params, theta_norm)
     avail = _identifiable(ctx, geo_fit, [c for c in cands if c not in reasons], reasons)
+    if not any(c.effect in TIME_EFFECTS for c in avail) and _follows_time(ctx, geo_fit):
+        ctx.nuisance = time_nuisance(np.asarray(ctx.obs_fit.clock))
     accepted, rejected, selection, _ = select(ctx, geo_fit, avail, options)
 
     # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
@@ -233,6 +236,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         where=where,
         residual_structure=structure,
         remainder_rows="check rows, and fit rows out of fold",
+        time_nuisance=ctx.nuisance is not None,
     )
 
 
@@ -388,6 +392,25 @@ def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
     return best_at, len(positions)
 
 
+#: the effects of the catalogue that are functions of the campaign clock
+TIME_EFFECTS = ("drift", "step")
+
+
+def _follows_time(ctx: Context, geo_fit: FitResult) -> bool:
+    """Whether the geometric step's remainder on the fit rows (out of fold) follows the clock."""
+    if ctx.obs_fit.clock is None:
+        return False
+    resid = ctx.problem(geo_fit, []).oof_residuals(list(range(len(ctx.geo_idx))))
+    found = residual_structure(
+        resid,
+        {ctx.obs.clock_name: ctx.obs_fit.clock},
+        ctx.obs_fit.pose_group,
+        folds=ctx.options.folds,
+        seed=ctx.options.seed,
+    )
+    return any(r.significant for r in found)
+
+
 def _with_step_at(fit: FitResult, step_at: float) -> FitResult:
     effects = dataclasses.replace(fit.effects, step_at=step_at)
     return dataclasses.replace(fit, effects=effects)
@@ -400,7 +423,7 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     lp = ctx.problem(final.fit, names)
     resid = np.empty_like(ctx.obs.xyz_mm)
     fit_rows, check_rows = ctx.fit_rows, ctx.check_rows
-    resid[fit_rows] = lp.oof_residuals(list(range(len(ctx.geo_idx) + len(names))))
+    resid[fit_rows] = lp.oof_residuals(ctx.own_cols(len(names)))
     resid[check_rows] = ctx.obs_check.xyz_mm - predict_mm(
         ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
     )
@@ -454,8 +477,8 @@ def _effect_step(
     fit = ctx.fit(prev, names)
     rms, mx = ctx.check_stats(fit)
     lp = ctx.problem(fit, names)
-    cols = list(range(len(ctx.geo_idx) + len(names)))
-    tested = cols[len(ctx.geo_idx) + len(names_before) :]
+    cols = list(range(ctx.n_base + len(names)))
+    tested = cols[ctx.n_base + len(names_before) :]
     return Step(
         effect=effect,
         joints=joints,
@@ -465,9 +488,9 @@ def _effect_step(
         shrink_pct=_shrink(before, rms),
         params=effect_params_json(effect, joints, fit.effects),
         fit_rms_mm=fit.rms_mm,
-        cv_rms_mm=lp.cv_rms_mm(cols),
+        cv_rms_mm=lp.cv_rms_mm(ctx.own_cols(len(names))),
         p_value=lp.wald(cols, tested, ctx.values(fit, start, names)).p_value,
-        n_params=len(cols),
+        n_params=len(ctx.geo_idx) + len(names),
         fit=fit,
         names=tuple(new),
     )

@@ -17,6 +17,7 @@ from numpy.typing import NDArray
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
 from comp_daemon.diagnosis.fitting import FitResult, Observations
 from comp_daemon.diagnosis.structure import StructureResult
+from comp_daemon.models.effects import EFFECTS
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -54,6 +55,7 @@ class DiagnoseOptions:
     t_ref_c: float = 20.0  # reference temperature of the thermal effect
     max_effects: int = 12  # at most this many (effect, joint) candidates are accepted
     tracker_sigma_mm: float | None = None  # declared tracker uncertainty (σ per axis), if known
+    effects: tuple[str, ...] | None = None  # the effects to try (None: the whole catalogue)
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -66,6 +68,10 @@ class DiagnoseOptions:
             raise ValueError(f"alpha must be in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.check_fraction < 1.0:
             raise ValueError(f"check_fraction must be in (0, 1), got {self.check_fraction}")
+        if self.effects is not None:
+            unknown = [e for e in self.effects if e not in EFFECTS]
+            if unknown:
+                raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
         if self.tracker_sigma_mm is not None and not (
             math.isfinite(self.tracker_sigma_mm) and self.tracker_sigma_mm > 0.0
         ):
@@ -151,6 +157,7 @@ class Diagnosis:
     where: dict[str, Any]
     residual_structure: list[StructureResult] = field(default_factory=list)
     remainder_rows: str = ""  # which rows' remainder residual_structure tested
+    time_nuisance: bool = False  # the effects were tested with a time nuisance in their base
 
     @property
     def significant_steps(self) -> list[Step]:
@@ -208,6 +215,8 @@ class Diagnosis:
                 "folds": self.options.folds,
                 "cyclic_harmonics": self.options.harmonics,
                 "t_ref_c": self.options.t_ref_c,
+                "effects_tried": list(self.options.effects or EFFECTS),
+                "time_nuisance": self.time_nuisance,
                 "noise_floor": "repeated poses, else the declared tracker uncertainty; not the fit residual",
                 "residual_structure": "binned means out of fold, permutation test, Holm over the variables",
             },

@@ -26,7 +26,10 @@ from comp_daemon.diagnosis.stats import LinearProblem, make_folds
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.effects import MassModel
 
-__all__ = ["Context", "distance_stats", "names_of", "select"]
+__all__ = ["TIME_NUISANCE_BINS", "Context", "distance_stats", "names_of", "select", "time_nuisance"]
+
+#: the time nuisance translates the TCP by one value per axis in each of this many clock bins
+TIME_NUISANCE_BINS = 8
 
 FloatArray = NDArray[np.float64]
 
@@ -39,7 +42,12 @@ def distance_stats(resid: FloatArray) -> tuple[float, float]:
 
 
 class Context:
-    """What every step of one diagnosis shares."""
+    """What every step of one diagnosis shares.
+
+    ``nuisance`` (n_fit, 3, q), when set, holds columns that every linear problem carries right after
+    the free geometric ones and that no candidate's test may take credit for (the time nuisance of
+    :func:`time_nuisance`); :attr:`n_base` counts both blocks.
+    """
 
     def __init__(
         self,
@@ -60,24 +68,59 @@ class Context:
         self.geo_idx = np.flatnonzero(geo_free)
         self.options = options
         self.fold = make_folds(self.obs_fit.pose_group, options.folds, options.seed)
+        self.nuisance: FloatArray | None = None
+
+    @property
+    def n_nuisance(self) -> int:
+        return 0 if self.nuisance is None else int(self.nuisance.shape[2])
+
+    @property
+    def n_base(self) -> int:
+        """Columns before the effect parameters: the free geometric ones and the nuisance."""
+        return len(self.geo_idx) + self.n_nuisance
+
+    def own_cols(self, n_names: int) -> list[int]:
+        """The columns of the model itself (geometric and ``n_names`` effect parameters), no nuisance."""
+        return list(range(len(self.geo_idx))) + list(range(self.n_base, self.n_base + n_names))
 
     def fit(self, start: FitResult, names: Sequence[str]) -> FitResult:
         return fit_twin(self.mass, self.obs_fit, start.params, start.effects, self.geo_free, names)
 
     def problem(self, fit: FitResult, names: Sequence[str]) -> LinearProblem:
-        """Linear problem with columns [free geometric | names] at ``fit``."""
+        """Linear problem with columns [free geometric | nuisance | names] at ``fit``."""
         resid, jac = linearize(self.mass, fit.params, fit.effects, names, self.obs_fit)
-        cols = np.concatenate([self.geo_idx, N_PARAMS + np.arange(len(names))])
-        return LinearProblem(resid, jac[:, :, cols], self.obs_fit.pose_group, self.fold)
+        geo = jac[:, :, self.geo_idx]
+        eff = jac[:, :, N_PARAMS + np.arange(len(names))]
+        blocks = [geo, eff] if self.nuisance is None else [geo, self.nuisance, eff]
+        return LinearProblem(resid, np.concatenate(blocks, axis=2), self.obs_fit.pose_group, self.fold)
 
     def values(self, fit: FitResult, start: KinematicParams, names: Sequence[str]) -> FloatArray:
-        """Values of the columns [free geometric | names] at ``fit``, measured from ``start``."""
+        """Values of the columns [free geometric | nuisance | names] at ``fit``, measured from ``start``."""
         geo = fit.params.difference(start)[self.geo_idx]
-        return np.concatenate([geo, fit.effects.get(list(names)) if names else np.zeros(0)])
+        eff = fit.effects.get(list(names)) if names else np.zeros(0)
+        return np.concatenate([geo, np.zeros(self.n_nuisance), eff])
 
     def check_stats(self, fit: FitResult) -> tuple[float, float]:
         resid = self.obs_check.xyz_mm - predict_mm(self.mass, fit.params, fit.effects, self.obs_check)
         return distance_stats(resid)
+
+
+def time_nuisance(clock: FloatArray) -> FloatArray:
+    """(n, 3, 3·(B − 1)) columns of a translation that is constant in each of B quantile bins of ``clock``.
+
+    The first bin is left out (the base frame's translation carries the constant). With them in the
+    base of every test, an effect cannot take credit for a change over time that correlates with its
+    own variable along the campaign's route (a ratio error of A4 standing in for a drift).
+    """
+    edges = np.unique(np.quantile(clock, np.linspace(0.0, 1.0, TIME_NUISANCE_BINS + 1)[1:-1]))
+    bins = np.searchsorted(edges, clock, side="right")
+    n_bins = int(bins.max()) + 1
+    out = np.zeros((len(clock), 3, 3 * max(n_bins - 1, 0)))
+    for b in range(1, n_bins):
+        on = (bins == b).astype(float)
+        for axis in range(3):
+            out[:, axis, 3 * (b - 1) + axis] = on
+    return out
 
 
 def _cols_of(cands: Sequence[Candidate], first: int) -> dict[Candidate, list[int]]:
@@ -107,7 +150,7 @@ def select(
     rejected: Candidate | None = None
     while avail and len(accepted) < options.max_effects:
         lp = ctx.problem(current, names_of(accepted) + names_of(avail))
-        base_cols = list(range(len(ctx.geo_idx) + len(names_of(accepted))))
+        base_cols = list(range(ctx.n_base + len(names_of(accepted))))
         col_of = _cols_of(avail, len(base_cols))
         cv_base = lp.cv_rms_mm(base_cols)
         scored = sorted((lp.cv_rms_mm(base_cols + col_of[c]), i) for i, c in enumerate(avail))
@@ -202,7 +245,7 @@ def _replace_pass(
             )
             pool = [old, *avail]
             lp = ctx.problem(point, names_of(others) + names_of(pool))
-            base_cols = list(range(len(ctx.geo_idx) + len(names_of(others))))
+            base_cols = list(range(ctx.n_base + len(names_of(others))))
             col_of = _cols_of(pool, len(base_cols))
             cv_old = lp.cv_rms_mm(base_cols + col_of[old])
             cv_new, i = min((lp.cv_rms_mm(base_cols + col_of[c]), i) for i, c in enumerate(avail))

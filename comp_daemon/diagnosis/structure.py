@@ -125,8 +125,8 @@ def _test(
         shares = _oof_shares(resid, bins[perms], fold)
         exceed += int(np.sum(shares >= observed))
         done = total
-        if (exceed + 1) / (done + 1) > threshold:
-            break  # cannot become significant: more permutations only sharpen a large p-value
+        if (exceed + 1) / (N_PERMUTATIONS + 1) >= threshold:
+            break  # cannot become significant even after every permutation
     return observed, (exceed + 1) / (done + 1), done
 
 
