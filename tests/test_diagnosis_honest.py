@@ -20,6 +20,7 @@ import pytest
 from diagnosis_campaigns import PLANT_NOISE_FLOOR_MM
 
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
+from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.sim.campaign import run_campaign
 from comp_daemon.sim.scenario import Scenario, load_scenario
@@ -78,8 +79,11 @@ def test_withheld_drift_shows_as_time_structure_without_a_noise_floor_then_is_na
     assert "follows time" in spec["where"]["summary"]
     # no joint effect stands in for the drift
     assert not any(s["joints"] for s in spec["steps"][1:] if s["significant"]), spec["steps"]
-    full = diagnose(ds, sc.robot, DiagnoseOptions(tracker_sigma_mm=sc.noise.tracker_sigma_mm)).to_json()
+    diag = diagnose(ds, sc.robot, DiagnoseOptions(tracker_sigma_mm=sc.noise.tracker_sigma_mm))
+    full = diag.to_json()
     assert full["unmodelled"] == ["drift"], full["steps"]
+    page = render_report_html(diag)
+    assert "drift contribution" in page and "campaign clock" in page
     assert full["noise_floor_source"] == "declared"
     # the remainder falls to the plant's noise (tracker and joint repeatability, measured from
     # repeats) and shows no time structure
@@ -96,9 +100,11 @@ def test_withheld_step_shows_as_time_structure_then_is_named_on_its_joint() -> N
     assert spec["noise_floor_mm"] is None
     assert _time_structure(spec), spec["residual_structure"]
     assert not any(s["joints"] for s in spec["steps"][1:] if s["significant"]), spec["steps"]
-    full = diagnose(ds, sc.robot).to_json()
+    diag = diagnose(ds, sc.robot)
+    full = diag.to_json()
     named = {s["effect"]: s["joints"] for s in full["steps"][1:] if s["significant"]}
     assert named == {"step": [2]}, full["steps"]
+    assert "step contribution" in render_report_html(diag)
     step = next(s for s in full["steps"] if s["effect"] == "step")
     assert step["params"]["step_deg"]["2"] == pytest.approx(0.004, rel=0.2)
     # the moment found lies within one search position of the truth
