@@ -183,5 +183,6 @@ def effect_params_json(effect: str, joints: Sequence[int], eff: EffectParams) ->
         else:
             out[arr.json_key] = {str(j): [rounded(float(v)) for v in value[j - 1]] for j in joints}
     for setting in entry.settings:
-        out[setting] = getattr(eff, setting)
+        value = getattr(eff, setting)
+        out[setting] = None if isinstance(value, float) and not math.isfinite(value) else value
     return out

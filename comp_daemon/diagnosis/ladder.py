@@ -93,9 +93,8 @@ def observations_from_dataset(dataset: Dataset) -> Observations:
     else:
         _, group = np.unique(dataset.a_deg, axis=0, return_inverse=True)
     n = len(dataset.a_deg)
-    t_s = getattr(dataset, "t_s", None)
-    if t_s is not None and np.all(np.isfinite(np.asarray(t_s, dtype=float))):
-        t = np.asarray(t_s, dtype=float)
+    if dataset.t_s is not None and np.all(np.isfinite(np.asarray(dataset.t_s, dtype=float))):
+        t = np.asarray(dataset.t_s, dtype=float)
         clock, clock_name = (t - t.min()) / 3600.0, "t_s"
     else:
         clock, clock_name = np.arange(n, dtype=float), "pose_order"

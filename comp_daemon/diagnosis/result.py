@@ -190,6 +190,10 @@ class Diagnosis:
                 "measured_in": self.frame,
                 "world_T_base": [[rounded(v, 9) for v in row] for row in self.world_T_base],
             },
+            "clock": {
+                "from": self.obs.clock_name,
+                "unit": "h since the first t_s" if self.obs.clock_name == "t_s" else "row",
+            },
             "baseline": {
                 "effect": "nominal",
                 "check_rms_mm": rounded(self.baseline_check_rms_mm),
