@@ -17,8 +17,13 @@ Method (all choices on fit rows; check rows only report):
    Gauss–Newton to convergence.
 3. Effects. Candidates are the entries of the effect catalogue
    (:data:`~comp_daemon.models.effects.EFFECT_CATALOGUE`): (effect, joint) pairs of the per-joint
-   effects (backlash, ratio, cyclic with K harmonics, 2K parameters per joint, and compliance),
-   plus the whole-robot ones (thermal, one κ) (:mod:`comp_daemon.diagnosis.candidates`). A
+   effects (backlash, ratio, cyclic with K harmonics, 2K parameters per joint, compliance, and
+   step), plus the whole-robot ones (thermal, one κ; drift, six rates)
+   (:mod:`comp_daemon.diagnosis.candidates`), or those of ``options.effects``. The step's moment
+   is searched first (:func:`_search_step`) and its candidates' p-values carry the number of
+   moments tried. When no time effect is tried and the geometric remainder follows the campaign
+   clock, every candidate is tested against a time nuisance
+   (:func:`~comp_daemon.diagnosis.selection.time_nuisance`). A
    candidate whose data is absent (no ``dir``, no ``temp_c`` or no spread in it, a joint that does
    not move or carries no gravity torque, a joint that does not move the TCP: each entry's
    ``unfit_reason``) or whose TCP signature is a combination of the parameters already in the model
@@ -39,6 +44,11 @@ Method (all choices on fit rows; check rows only report):
    effect (on all its selected joints) to everything before it, refitted on the fit rows; each step
    reports its check error. The best rejected candidate is appended as a step with
    ``significant: false``, so the report shows what the next effect would have bought.
+5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else a
+   declared tracker uncertainty, else none (``None``). Never the fit residual.
+6. Remainder structure. The final model's remainder (check rows; fit rows out of fold) against
+   time or row order, axis values, payload, temperature and directions
+   (:mod:`comp_daemon.diagnosis.structure`).
 """
 
 from __future__ import annotations
