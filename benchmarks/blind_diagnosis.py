@@ -10,6 +10,11 @@ Sizes are the 3-D RMS of the effect's TCP signature that geometry cannot absorb,
 noise floor (the tracker's 3-D noise, 0.0173 mm): ``near`` = 1×, ``large`` = 10×; ``--limit`` adds
 a sweep of smaller sizes that shows where detection ends (not counted in the hit rate).
 
+``--time`` adds plant campaigns with a withheld drift or step of a joint's zero (constant temperature,
+one payload, no column naming them), sized like the others: a hit names exactly the withheld effect
+with the full catalogue; with the vocabulary of diagnose.md alone the case is *honest* when the
+remainder follows time, no joint effect is named and no noise floor is claimed (no repeats).
+
 Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.blind_diagnosis [--jobs 2]``
 """
 
@@ -33,7 +38,7 @@ from diagnosis_campaigns import (
     plant_campaign,
 )
 
-from comp_daemon.diagnosis import diagnose
+from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 
 SIZES = {"near": 1.0, "large": 10.0}
 LIMIT_SIZES = {"0.25x": 0.25, "0.5x": 0.5}
@@ -127,6 +132,66 @@ def plant_cases(seeds: int, nulls: int) -> list[dict[str, Any]]:
     return out
 
 
+#: time effects withheld from plant campaigns (constant temperature, one payload): no column names them
+TIME_SINGLE = [("drift", None), ("step", 2), ("step", 3), ("step", 5)]
+#: the vocabulary of shared/spec/diagnose.md, without the catalogue's time effects
+SPEC_VOCABULARY = ("backlash", "ratio", "cyclic", "compliance", "thermal")
+
+
+def time_cases(seeds: int) -> list[dict[str, Any]]:
+    """Plant campaigns with a withheld drift or step, diagnosed with and without the time effects."""
+    out: list[dict[str, Any]] = []
+    for effect, joint in TIME_SINGLE:
+        for size_name, size in SIZES.items():
+            for seed in range(seeds):
+                out.append(
+                    {
+                        "kind": "time",
+                        "robot": "kr210",
+                        "tracker": seed % 2 == 1,
+                        "size": size_name,
+                        "box": "wide",
+                        "seed": 6000 + seed,
+                        "withheld": [(effect, joint, size * PLANT_NOISE_FLOOR_MM)],
+                    }
+                )
+    return out
+
+
+def run_time_case(case: dict[str, Any]) -> dict[str, Any]:
+    """Full catalogue: a hit names exactly the withheld effect. Spec vocabulary: ``honest`` when the
+    remainder follows time, no joint effect is named and no noise floor is claimed."""
+    camp = plant_campaign(
+        case["withheld"],
+        case["seed"],
+        wide=True,
+        tracker=case["tracker"],
+        temp_drift_k_per_h=0.0,
+        payloads=(0.0,),
+    )
+    t0 = time.perf_counter()
+    doc = diagnose(camp.dataset, camp.robot).to_json()
+    elapsed = time.perf_counter() - t0
+    spec = diagnose(camp.dataset, camp.robot, DiagnoseOptions(effects=SPEC_VOCABULARY)).to_json()
+    want = {e: sorted([] if j is None else [j]) for e, j, _ in case["withheld"]}
+    got = {s["effect"]: s["joints"] for s in doc["steps"][1:] if s["significant"]}
+    follows_time = any(
+        r["significant"] and r["against"] in ("t_s", "pose_order") for r in spec["residual_structure"]
+    )
+    wrong = [s["effect"] for s in spec["steps"][1:] if s["significant"] and s["joints"]]
+    return {
+        **case,
+        "withheld": [[e, j] for e, j, _ in case["withheld"]],
+        "hit": got == want,
+        "named": got,
+        "honest": follows_time and not wrong and spec["noise_floor_mm"] is None,
+        "spec_named": wrong,
+        "seconds": round(elapsed, 3),
+        "unexplained_rms_mm": doc["unexplained_rms_mm"],
+        "noise_floor_mm": doc["noise_floor_mm"],
+    }
+
+
 def cases(seeds: int, nulls: int, limit: bool) -> list[dict[str, Any]]:
     out: list[dict[str, Any]] = []
     variants = [("kr210", False), ("kr210", True), ("irb120", False)]
@@ -176,6 +241,8 @@ def cases(seeds: int, nulls: int, limit: bool) -> list[dict[str, Any]]:
 
 
 def run_case(case: dict[str, Any]) -> dict[str, Any]:
+    if case["kind"] == "time":
+        return run_time_case(case)
     if case["kind"].startswith("plant"):
         camp = plant_campaign(
             case["withheld"], case["seed"], wide=case["box"] == "wide", tracker=case["tracker"]
@@ -225,11 +292,18 @@ def main() -> None:
     parser.add_argument(
         "--plant-nulls", type=int, default=60, help="geometric-only plant campaigns (default 60)"
     )
+    parser.add_argument(
+        "--time",
+        action="store_true",
+        help="also withhold the time effects (drift, step) from plant campaigns with no column naming them",
+    )
     parser.add_argument("--json", type=Path, help="write every case's result here")
     args = parser.parse_args()
     todo = cases(args.seeds, args.nulls, args.limit)
     if args.plant:
         todo += plant_cases(args.seeds, args.plant_nulls)
+    if args.time:
+        todo += time_cases(args.seeds)
     t0 = time.perf_counter()
     if args.jobs > 1:
         with ProcessPoolExecutor(args.jobs) as pool:
@@ -245,7 +319,7 @@ def main() -> None:
         label = "false alarms" if kind.endswith("null") else "hits"
         value = len(hits) - sum(hits) if kind.endswith("null") else sum(hits)
         print(f"  {kind:10s} {box:8s} {size:6s} {label}: {value}/{len(hits)}")
-    for source, kinds in (("generator", ("single", "pair")), ("plant", ("plant",))):
+    for source, kinds in (("generator", ("single", "pair")), ("plant", ("plant",)), ("time", ("time",))):
         counted = [r["hit"] for r in results if r["kind"] in kinds and r["size"] in SIZES]
         nulls = [
             not r["hit"] for r in results if r["kind"] == ("null" if source == "generator" else "plant-null")
@@ -260,6 +334,13 @@ def main() -> None:
                 f"{source}: false-alarm rate (geometric only): {sum(nulls)}/{len(nulls)} = "
                 f"{100.0 * sum(nulls) / len(nulls):.1f} %"
             )
+    timed = [r for r in results if r["kind"] == "time"]
+    if timed:
+        honest = sum(r["honest"] for r in timed)
+        print(
+            f"time, spec vocabulary: remainder follows time, no joint effect named, no floor claimed: "
+            f"{honest}/{len(timed)}"
+        )
     misses = [r for r in results if not r["hit"] and (r["kind"].endswith("null") or r["size"] in SIZES)]
     for r in misses:
         print(
@@ -267,6 +348,12 @@ def main() -> None:
             f"{r['size']} "
             f"seed {r['seed']} withheld {r['withheld']} named {r['named']}"
         )
+    for r in timed:
+        if not r["honest"]:
+            print(
+                f"  not honest (spec vocabulary): {r['size']} seed {r['seed']} {r['withheld']} "
+                f"named {r['spec_named']}"
+            )
     secs = sorted(r["seconds"] for r in results)
     print(f"diagnosis time per campaign: median {secs[len(secs) // 2]:.2f} s, max {secs[-1]:.2f} s")
     if args.json:

@@ -105,7 +105,9 @@ def tracker_transform(rng: np.random.Generator) -> np.ndarray:
 def unit_effect(effect: str, joint: int | None, rng: np.random.Generator) -> tuple[list[str], np.ndarray]:
     """Names and a unit direction of one effect on one joint (cyclic: random harmonic mix)."""
     names = effect_param_names(effect, () if joint is None else (joint,), TRUE_HARMONICS)
-    if effect == "cyclic":
+    if effect == "drift":
+        names = names[:3]  # the rates: a linear drift in a random direction
+    if effect in ("cyclic", "drift"):
         v = rng.normal(size=len(names))
     else:
         v = np.ones(len(names))
@@ -120,10 +122,16 @@ def sized_effects(
     temp: np.ndarray,
     withheld: list[tuple[str, int | None, float]],
     rng: np.random.Generator,
+    *,
+    clock: np.ndarray | None = None,
+    step_at: float = float("inf"),
 ) -> EffectParams:
-    """Effects whose TCP signature beyond geometry has the asked 3-D RMS (mm) each."""
+    """Effects whose TCP signature beyond geometry has the asked 3-D RMS (mm) each.
+
+    ``clock`` (h) and ``step_at`` are the campaign clock and the step's moment of the time effects.
+    """
     params = KinematicParams.from_robot(robot)
-    zero = EffectParams.zeros(TRUE_HARMONICS)
+    zero = EffectParams.zeros(TRUE_HARMONICS, step_at=step_at)
     # a compliance of 1e-300 moves nothing but makes the effect model compute the gravity torques
     with_tau = zero.with_values(["C1"], [1e-300])
     geo = identification_jacobian(params, axes_deg_to_q_rad(a_deg, params.sign)).reshape(-1, N_PARAMS)
@@ -134,7 +142,7 @@ def sized_effects(
     effects = zero
     for effect, joint, size_mm in withheld:
         names, v = unit_effect(effect, joint, rng)
-        jac = effect_jacobian(robot, params, with_tau, names, a_deg, direction, payload, temp)
+        jac = effect_jacobian(robot, params, with_tau, names, a_deg, direction, payload, temp, clock=clock)
         sig = (jac @ v).reshape(-1)
         rest = sig - qmat @ (qmat.T @ sig)
         rms = np.sqrt(np.sum(rest**2) / len(a_deg))
@@ -240,21 +248,30 @@ def plant_campaign(
     wide: bool = True,
     tracker: bool = False,
     temp_drift_k_per_h: float = 40.0,
+    payloads: tuple[float, ...] | None = None,
+    step_fraction: float = 0.5,
 ) -> Campaign:
     """A campaign of the simulated plant with the ``withheld`` effects, sized like :func:`make_campaign`.
 
-    The plant runs twice with the same seed: without effects (poses, directions, loads and
-    temperatures do not depend on them) to size the effects on those poses, then with them.
+    The plant runs twice with the same seed: without effects (poses, directions, loads, times and
+    temperatures do not depend on them) to size the effects on those poses, then with them. A
+    withheld ``step`` happens at ``step_fraction`` of the campaign's time; ``payloads`` replaces the
+    scenario's.
     """
     from comp_daemon.sim.campaign import run_campaign
 
     sc = plant_scenario(
         scenario, EffectParams.zeros(TRUE_HARMONICS), wide=wide, temp_drift_k_per_h=temp_drift_k_per_h
     )
+    if payloads is not None:
+        import dataclasses
+
+        sc = dataclasses.replace(sc, campaign=dataclasses.replace(sc.campaign, payload_kg=payloads))
     effects = EffectParams.zeros(TRUE_HARMONICS)
     if withheld:
         ds0 = run_campaign(sc, n_poses, seed=seed, repeats=repeats)
-        assert ds0.dir is not None and ds0.temp_c is not None
+        assert ds0.dir is not None and ds0.temp_c is not None and ds0.t_s is not None
+        clock = np.asarray(ds0.t_s) / 3600.0
         effects = sized_effects(
             sc.robot,
             np.asarray(ds0.a_deg),
@@ -263,6 +280,8 @@ def plant_campaign(
             np.asarray(ds0.temp_c),
             withheld,
             np.random.default_rng(seed + 99),
+            clock=clock,
+            step_at=float(clock.min() + step_fraction * np.ptp(clock)),
         )
     import dataclasses
 

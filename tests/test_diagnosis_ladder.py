@@ -145,15 +145,20 @@ def test_compliance_is_tested_with_zero_payload_and_joint6_skipped_on_a_tool_on_
     assert ("backlash", (6,)) in skipped and ("cyclic", (6,)) in skipped
 
 
-def test_noise_floor_from_repeats_else_from_the_fit_residual() -> None:
+def test_noise_floor_from_repeats_else_declared_else_none_never_the_fit_residual() -> None:
     with_repeats = make_campaign("kr210", 56, [], repeat_fraction=0.5)
     doc = diagnose(with_repeats.dataset, with_repeats.robot).to_json()
     assert doc["noise_floor_source"] == "repeats"
     assert doc["noise_floor_mm"] == pytest.approx(NOISE_FLOOR_MM, rel=0.15)
     without = make_campaign("kr210", 56, [], repeat_fraction=0.0)
-    doc = diagnose(without.dataset, without.robot).to_json()
-    assert doc["noise_floor_source"] == "fit_residual"
-    assert doc["noise_floor_mm"] == pytest.approx(NOISE_FLOOR_MM, rel=0.15)
+    diag = diagnose(without.dataset, without.robot)
+    doc = diag.to_json()
+    assert doc["noise_floor_source"] is None and doc["noise_floor_mm"] is None
+    assert "could not be compared with noise" in doc["where"]["summary"]
+    declared = diagnose(without.dataset, without.robot, DiagnoseOptions(tracker_sigma_mm=0.01)).to_json()
+    assert declared["noise_floor_source"] == "declared"
+    assert declared["noise_floor_mm"] == pytest.approx(0.01 * np.sqrt(3.0))
+    assert "could not be compared" not in declared["where"]["summary"]
 
 
 def test_without_split_column_check_rows_are_drawn_reproducibly() -> None:

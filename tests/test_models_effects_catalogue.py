@@ -36,7 +36,7 @@ ROBOT = load_robot("kr210")
 PARAMS = KinematicParams.from_robot(ROBOT)
 K = 2
 #: the per-pose data columns the twin and the diagnosis know
-DATA_COLUMNS = {"dir", "payload_kg", "temp_c"}
+DATA_COLUMNS = {"dir", "payload_kg", "temp_c", "clock"}
 IDS = [e.name for e in EFFECT_CATALOGUE]
 
 
@@ -49,6 +49,14 @@ def _poses(rng: np.random.Generator, n: int = 9):
     return a, d, rng.uniform(0.0, 200.0, n), rng.uniform(15.0, 32.0, n)
 
 
+def _clock(a: np.ndarray) -> np.ndarray:
+    """A campaign clock (h) over the poses; the step of :func:`_random` acts on its second half."""
+    return np.linspace(0.0, 8.0, len(a))
+
+
+STEP_AT_H = 4.0
+
+
 def _random(rng: np.random.Generator) -> EffectParams:
     """Every parameter of every catalogue entry non-zero."""
     arrays = {}
@@ -57,7 +65,7 @@ def _random(rng: np.random.Generator) -> EffectParams:
             shape = {"joint": (6,), "harmonic": (6, K), "scalar": ()}[arr.layout]
             value = arr.typical * rng.uniform(0.5, 1.5, shape) * rng.choice([-1.0, 1.0], shape)
             arrays[arr.attr] = float(value) if arr.layout == "scalar" else value
-    return EffectParams(**arrays)
+    return EffectParams(step_at=STEP_AT_H, **arrays)
 
 
 def effect_param_names_of(arr, n_harmonics: int) -> list[str]:
@@ -112,13 +120,17 @@ def test_jacobian_agrees_with_central_differences_of_the_twin(effect: Effect) ->
     a, d, payload, temp = _poses(rng)
     eff = _random(rng)
     names = effect.names([1, 2, 3, 4, 5, 6], K)
-    jac = effect_jacobian(ROBOT, PARAMS, eff, names, a, d, payload, temp)
+    jac = effect_jacobian(ROBOT, PARAMS, eff, names, a, d, payload, temp, clock=_clock(a))
     values = eff.get(names)
     moving = 0
     for col, name in enumerate(names):
         h = 0.1 * next(arr.typical for arr in effect.arrays if name in effect_param_names_of(arr, K))
-        plus = twin_tcp_mm(ROBOT, PARAMS, eff.with_values([name], [values[col] + h]), a, d, payload, temp)
-        minus = twin_tcp_mm(ROBOT, PARAMS, eff.with_values([name], [values[col] - h]), a, d, payload, temp)
+        plus = twin_tcp_mm(
+            ROBOT, PARAMS, eff.with_values([name], [values[col] + h]), a, d, payload, temp, clock=_clock(a)
+        )
+        minus = twin_tcp_mm(
+            ROBOT, PARAMS, eff.with_values([name], [values[col] - h]), a, d, payload, temp, clock=_clock(a)
+        )
         num = (plus - minus) / (2 * h)
         scale = np.abs(num).max()
         moving += bool(scale > 0)  # C1 of a robot with a vertical A1 carries no gravity torque
@@ -130,13 +142,13 @@ def test_jacobian_agrees_with_central_differences_of_the_twin(effect: Effect) ->
 def test_zero_entry_is_no_effect_and_each_entry_acts_alone(effect: Effect) -> None:
     rng = np.random.default_rng(7)
     a, d, payload, temp = _poses(rng)
-    zero = EffectParams.zeros(K)
-    base = twin_tcp_mm(ROBOT, PARAMS, zero, a, d, payload, temp)
+    zero = EffectParams.zeros(K, step_at=STEP_AT_H)
+    base = twin_tcp_mm(ROBOT, PARAMS, zero, a, d, payload, temp, clock=_clock(a))
     names = effect.names([1, 2, 3, 4, 5, 6], K)
     alone = zero.with_values(names, _random(rng).get(names))
     assert not alone.is_zero(effect)
     assert all(alone.is_zero(other) for other in EFFECT_CATALOGUE if other is not effect)
-    moved = twin_tcp_mm(ROBOT, PARAMS, alone, a, d, payload, temp)
+    moved = twin_tcp_mm(ROBOT, PARAMS, alone, a, d, payload, temp, clock=_clock(a))
     assert np.abs(moved - base).max() > 1e-3
 
 
@@ -157,7 +169,7 @@ def test_entry_has_diagnosis_candidates_json_and_a_driver(effect: Effect) -> Non
     for setting in effect.settings:
         assert doc[setting] == getattr(eff, setting)
     a, d, payload, temp = _poses(rng)
-    inputs = twin_inputs(MassModel.from_robot(ROBOT), PARAMS, a, d, payload, temp)
+    inputs = twin_inputs(MassModel.from_robot(ROBOT), PARAMS, a, d, payload, temp, clock=_clock(a))
     x, label = effect.driver(inputs, joints[0] if joints else None)
     assert x.shape == (a.shape[0],) and np.all(np.isfinite(x)) and label
 
@@ -168,7 +180,13 @@ def test_data_check_names_missing_and_constant_columns(effect: Effect) -> None:
     a, d, payload, temp = _poses(rng)
     st = twin_state(ROBOT, PARAMS, EffectParams.zeros(K), a, d, payload, temp, with_torques=True)
     full = EffectData(
-        a_deg=a, dir=d, payload_kg=payload, temp_c=temp, tau_nm=st.tau_nm, moves_tcp=np.ones(6, dtype=bool)
+        a_deg=a,
+        dir=d,
+        payload_kg=payload,
+        temp_c=temp,
+        tau_nm=st.tau_nm,
+        moves_tcp=np.ones(6, dtype=bool),
+        clock=_clock(a),
     )
     joint = 2 if effect.per_joint else None
     assert effect.unfit_reason(full, joint) is None
@@ -185,5 +203,6 @@ def test_data_check_names_missing_and_constant_columns(effect: Effect) -> None:
         temp_c=np.full(len(a), temp[0]),
         tau_nm=np.repeat(st.tau_nm[:1], len(a), axis=0),
         moves_tcp=np.ones(6, dtype=bool),
+        clock=np.zeros(len(a)),
     )
     assert effect.unfit_reason(frozen, joint)

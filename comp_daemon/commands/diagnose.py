@@ -65,13 +65,32 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=DiagnoseOptions().seed,
         help="seed of the folds and of drawn check rows (default %(default)s)",
     )
+    p.add_argument(
+        "--tracker-sigma-mm",
+        type=float,
+        metavar="S",
+        help="the tracker's uncertainty (σ per axis, mm): the noise floor (√3·S, 3-D) when the data "
+        "have no repeated poses; without either, no noise floor is claimed",
+    )
+    p.add_argument(
+        "--effects",
+        metavar="E1,E2",
+        help=f"try only these effects (comma-separated, of {', '.join(EFFECTS)}; default: all)",
+    )
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    effects = None if args.effects is None else tuple(e.strip() for e in args.effects.split(",") if e.strip())
     options = DiagnoseOptions(
-        frame=args.frame, harmonics=args.harmonics, folds=args.folds, alpha=args.alpha, seed=args.seed
+        frame=args.frame,
+        harmonics=args.harmonics,
+        folds=args.folds,
+        alpha=args.alpha,
+        seed=args.seed,
+        tracker_sigma_mm=args.tracker_sigma_mm,
+        effects=effects,
     )
     path = Path(args.data)
     reader = read_dataset_json if path.suffix.lower() == ".json" else read_dataset
@@ -103,10 +122,20 @@ def _run(args: argparse.Namespace) -> int:
                 f"(shrink {s.shrink_pct:5.1f} %)  {flag}",
                 file=out,
             )
+        floor = (
+            "no noise floor (no repeats, no --tracker-sigma-mm): not compared with noise"
+            if diag.noise_floor_mm is None
+            else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
+        )
         print(
             f"unmodelled: {', '.join(diag.unmodelled) or 'none'}; "
-            f"unexplained {diag.unexplained_rms_mm:.4f} mm, "
-            f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})",
+            f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
             file=out,
         )
+        found = [r for r in diag.residual_structure if r.significant]
+        if found:
+            print(
+                "remainder follows: " + ", ".join(f"{r.against} ({r.share_pct:.0f} %)" for r in found),
+                file=out,
+            )
     return 0

@@ -55,6 +55,7 @@ class Candidate:
     effect: str
     joint: int | None
     names: tuple[str, ...]
+    searched: int = 1  # positions tried for a setting chosen on the fit rows (the step's moment)
 
     @property
     def label(self) -> str:
@@ -89,6 +90,7 @@ def data_reasons(
         temp_c=obs_fit.temp_c,
         tau_nm=gravity_torques_nm(params, q, mass.link_mass_kg, mass.link_com_mm, obs_fit.payload_kg),
         moves_tcp=jac_theta_norm > 1e-6 * max(float(jac_theta_norm.max(initial=0.0)), 1e-300),
+        clock=obs_fit.clock,
     )
     reasons: dict[Candidate, str] = {}
     for c in cands:
@@ -181,5 +183,6 @@ def effect_params_json(effect: str, joints: Sequence[int], eff: EffectParams) ->
         else:
             out[arr.json_key] = {str(j): [rounded(float(v)) for v in value[j - 1]] for j in joints}
     for setting in entry.settings:
-        out[setting] = getattr(eff, setting)
+        value = getattr(eff, setting)
+        out[setting] = None if isinstance(value, float) and not math.isfinite(value) else value
     return out

@@ -40,7 +40,9 @@ class Observations:
     ``dir`` (n, 6) holds −1/+1, or is ``None`` when the data has no approach directions;
     ``temp_c`` is ``None`` without temperatures. ``pose_group`` (n,) numbers the distinct commanded
     poses (repeats of a pose share a number); it is the unit of cross-validation folds and of the
-    cluster-robust covariance.
+    cluster-robust covariance. ``clock`` (n,) is the campaign clock of the time effects: hours
+    since the first ``t_s``, or the row number when the data has no times (``clock_name`` says
+    which: ``t_s`` or ``pose_order``).
     """
 
     a_deg: FloatArray
@@ -49,6 +51,8 @@ class Observations:
     payload_kg: FloatArray
     temp_c: FloatArray | None
     pose_group: NDArray[np.int64]
+    clock: FloatArray | None = None
+    clock_name: str = "pose_order"
 
     def __len__(self) -> int:
         return int(self.a_deg.shape[0])
@@ -61,6 +65,8 @@ class Observations:
             payload_kg=self.payload_kg[idx],
             temp_c=None if self.temp_c is None else self.temp_c[idx],
             pose_group=self.pose_group[idx],
+            clock=None if self.clock is None else self.clock[idx],
+            clock_name=self.clock_name,
         )
 
 
@@ -68,7 +74,7 @@ def predict_mm(
     mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
 ) -> FloatArray:
     """(n, 3) TCP of the twin at the observed poses (mm, world frame)."""
-    return twin_tcp_mm(mass, params, effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c)
+    return twin_tcp_mm(mass, params, effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock)
 
 
 def linearize(
@@ -80,7 +86,7 @@ def linearize(
 ) -> tuple[FloatArray, FloatArray]:
     """Residual (n, 3) and Jacobian (n, 3, 39 + len(names)) of the twin at the observed poses."""
     tcp, jac = twin_jacobian(
-        mass, params, effects, list(names), obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c
+        mass, params, effects, list(names), obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock
     )
     return obs.xyz_mm - tcp, jac
 

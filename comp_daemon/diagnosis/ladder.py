@@ -17,8 +17,13 @@ Method (all choices on fit rows; check rows only report):
    Gauss–Newton to convergence.
 3. Effects. Candidates are the entries of the effect catalogue
    (:data:`~comp_daemon.models.effects.EFFECT_CATALOGUE`): (effect, joint) pairs of the per-joint
-   effects (backlash, ratio, cyclic with K harmonics, 2K parameters per joint, and compliance),
-   plus the whole-robot ones (thermal, one κ) (:mod:`comp_daemon.diagnosis.candidates`). A
+   effects (backlash, ratio, cyclic with K harmonics, 2K parameters per joint, compliance, and
+   step), plus the whole-robot ones (thermal, one κ; drift, six rates)
+   (:mod:`comp_daemon.diagnosis.candidates`), or those of ``options.effects``. The step's moment
+   is searched first (:func:`_search_step`) and its candidates' p-values carry the number of
+   moments tried. When no time effect is tried and the geometric remainder follows the campaign
+   clock, every candidate is tested against a time nuisance
+   (:func:`~comp_daemon.diagnosis.selection.time_nuisance`). A
    candidate whose data is absent (no ``dir``, no ``temp_c`` or no spread in it, a joint that does
    not move or carries no gravity torque, a joint that does not move the TCP: each entry's
    ``unfit_reason``) or whose TCP signature is a combination of the parameters already in the model
@@ -39,10 +44,16 @@ Method (all choices on fit rows; check rows only report):
    effect (on all its selected joints) to everything before it, refitted on the fit rows; each step
    reports its check error. The best rejected candidate is appended as a step with
    ``significant: false``, so the report shows what the next effect would have bought.
+5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else a
+   declared tracker uncertainty, else none (``None``). Never the fit residual.
+6. Remainder structure. The final model's remainder (check rows; fit rows out of fold) against
+   time or row order, axis values, payload, temperature and directions
+   (:mod:`comp_daemon.diagnosis.structure`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -60,9 +71,10 @@ from comp_daemon.diagnosis.candidates import (
     unidentifiable_candidates,
 )
 from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize, predict_mm
-from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step
-from comp_daemon.diagnosis.selection import Context, select
+from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
+from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
+from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
 from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
@@ -90,6 +102,12 @@ def observations_from_dataset(dataset: Dataset) -> Observations:
         _, group = np.unique(np.asarray(dataset.pose_id, dtype=str), return_inverse=True)
     else:
         _, group = np.unique(dataset.a_deg, axis=0, return_inverse=True)
+    n = len(dataset.a_deg)
+    if dataset.t_s is not None and np.all(np.isfinite(np.asarray(dataset.t_s, dtype=float))):
+        t = np.asarray(dataset.t_s, dtype=float)
+        clock, clock_name = (t - t.min()) / 3600.0, "t_s"
+    else:
+        clock, clock_name = np.arange(n, dtype=float), "pose_order"
     return Observations(
         a_deg=np.array(dataset.a_deg, dtype=float),
         xyz_mm=np.array(dataset.xyz_mm, dtype=float),
@@ -97,6 +115,8 @@ def observations_from_dataset(dataset: Dataset) -> Observations:
         payload_kg=np.array(dataset.payload_kg, dtype=float),
         temp_c=None if dataset.temp_c is None else np.array(dataset.temp_c, dtype=float),
         pose_group=np.asarray(group, dtype=np.int64).reshape(-1),
+        clock=clock,
+        clock_name=clock_name,
     )
 
 
@@ -105,8 +125,13 @@ def _shrink(before: float, after: float) -> float:
 
 
 def _noise_floor_from_repeats(obs: Observations) -> float | None:
-    """3-D RMS scatter of repeated measurements of one pose (same axes, direction, load)."""
-    keys = [obs.a_deg, obs.payload_kg[:, None]]
+    """3-D RMS scatter of repeated measurements of one pose (same pose, axes, direction, load).
+
+    Per axis, the within-pose variance pooled over every repeated pose (``Σ (x − x̄_pose)²`` over
+    ``rows − poses`` degrees of freedom); the three summed: the expected squared 3-D distance of a
+    measurement from the truth, ``√3·σ`` for a tracker with σ per axis. None without repeats.
+    """
+    keys = [obs.pose_group[:, None].astype(float), obs.a_deg, obs.payload_kg[:, None]]
     if obs.dir is not None:
         keys.append(obs.dir)
     _, group = np.unique(np.concatenate(keys, axis=1), axis=0, return_inverse=True)
@@ -165,20 +190,37 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     start = FitResult(start_params, effects0, rms_nominal, 0, True)
     base_rms, base_max = ctx.check_stats(start)
     geo_fit = ctx.fit(start, [])
+    step_at, searched = _search_step(ctx, geo_fit)
+    start = _with_step_at(start, step_at)
+    geo_fit = _with_step_at(geo_fit, step_at)
 
     # 3. candidates and selection
-    cands = all_candidates(options.harmonics)
+    cands = [
+        dataclasses.replace(c, searched=searched) if c.effect == "step" else c
+        for c in all_candidates(options.harmonics)
+        if options.effects is None or c.effect in options.effects
+    ]
     theta_norm = np.linalg.norm(jac0[:, :, 0:30:5], axis=(0, 1))
     reasons = data_reasons(cands, ctx.obs_fit, mass, start_params, theta_norm)
     avail = _identifiable(ctx, geo_fit, [c for c in cands if c not in reasons], reasons)
+    if not any(c.effect in TIME_EFFECTS for c in avail) and _follows_time(ctx, geo_fit):
+        ctx.nuisance = time_nuisance(np.asarray(ctx.obs_fit.clock))
     accepted, rejected, selection, _ = select(ctx, geo_fit, avail, options)
 
-    # 4. the ladder, 5. the noise floor, 6. where the gap lies
+    # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
     steps = _ladder(ctx, start, geo_fit, accepted, rejected, base_rms)
-    floor, floor_source = _noise_floor(obs, steps, len(fit_rows))
+    floor, floor_source = _noise_floor(obs, options.tracker_sigma_mm)
+    structure = _structure(ctx, dataset, steps)
     skipped = group_skips(reasons)
     by_joint = {j: [n for c in cands if c.joint == j and c not in reasons for n in c.names] for j in JOINTS}
-    baseline = Baseline(check_rms_mm=base_rms, check_max_mm=base_max, noise_floor_mm=floor, skipped=skipped)
+    baseline = Baseline(
+        check_rms_mm=base_rms,
+        check_max_mm=base_max,
+        noise_floor_mm=floor,
+        skipped=skipped,
+        noise_floor_source=floor_source,
+        structure=describe_structure(structure),
+    )
     where = locate(obs, mass, steps, baseline, ctx.problem, by_joint)
     return Diagnosis(
         robot=robot,
@@ -201,6 +243,9 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         noise_floor_mm=floor,
         noise_floor_source=floor_source,
         where=where,
+        residual_structure=structure,
+        remainder_rows="check rows, and fit rows out of fold",
+        time_nuisance=ctx.nuisance is not None,
     )
 
 
@@ -300,14 +345,110 @@ def _ladder(
     return steps
 
 
-def _noise_floor(obs: Observations, steps: list[Step], n_fit: int) -> tuple[float, str]:
-    """The noise floor (mm) and its source: repeated poses, else the last model's fit residual."""
+def _noise_floor(obs: Observations, tracker_sigma_mm: float | None) -> tuple[float | None, str | None]:
+    """The noise floor (mm, 3-D RMS) and its source, from independent evidence only.
+
+    Repeated poses first (they measure the tracker and the robot's repeatability together), else
+    the tracker uncertainty the user declares (σ per axis: ``√3·σ``), else ``(None, None)``. The
+    fit residual is never a noise floor: it is the quantity the diagnosis explains.
+    """
     floor = _noise_floor_from_repeats(obs)
     if floor is not None:
         return floor, "repeats"
-    final = next(s for s in reversed(steps) if s.significant or s.effect == "geometric")
-    dof = max(3 * n_fit - final.n_params, 1)
-    return final.fit_rms_mm * math.sqrt(3 * n_fit / dof), "fit_residual"
+    if tracker_sigma_mm is not None:
+        return math.sqrt(3.0) * tracker_sigma_mm, "declared"
+    return None, None
+
+
+#: the step's moment is searched at this many quantiles of the clock on the fit rows
+STEP_POSITIONS = 19
+
+
+def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
+    """The moment of a joint's step that best explains the geometric fit's residual, and the positions tried.
+
+    Positions are the clock values at :data:`STEP_POSITIONS` quantiles (5 % … 95 %) of the fit
+    rows; at each, the six joints' step columns are projected off the geometric columns and the
+    largest single-joint drop of the residual's sum of squares scores the position. The step
+    candidates' p-values are multiplied by the number of positions tried (Bonferroni).
+    """
+    clock = ctx.obs_fit.clock
+    if clock is None or len(np.unique(clock)) < 2:
+        return math.inf, 1
+    resid, jac = linearize(ctx.mass, geo_fit.params, geo_fit.effects, [], ctx.obs_fit)
+    geo = jac[:, :, ctx.geo_idx].reshape(-1, len(ctx.geo_idx))
+    norms = np.linalg.norm(geo, axis=0)
+    qmat, _ = np.linalg.qr(geo / np.where(norms > 0, norms, 1.0))
+    r = resid.reshape(-1)
+    r = r - qmat @ (qmat.T @ r)
+    j_theta = jac[:, :, 0:30:5]  # (n, 3, 6)
+    positions = np.unique(np.quantile(clock, np.linspace(0.05, 0.95, STEP_POSITIONS), method="higher"))
+    positions = positions[positions > clock.min()]
+    if len(positions) == 0:
+        return math.inf, 1
+    best, best_at = -1.0, math.inf
+    for t0 in positions:
+        cols = (j_theta * (clock >= t0)[:, None, None]).reshape(-1, 6)
+        cols = cols - qmat @ (qmat.T @ cols)
+        power = np.sum(cols * cols, axis=0)
+        drop = np.where(
+            power > 1e-12 * max(float(power.max()), 1e-300),
+            (cols.T @ r) ** 2 / np.maximum(power, 1e-300),
+            0.0,
+        )
+        if float(drop.max()) > best:
+            best, best_at = float(drop.max()), float(t0)
+    return best_at, len(positions)
+
+
+#: the effects of the catalogue that are functions of the campaign clock
+TIME_EFFECTS = ("drift", "step")
+
+
+def _follows_time(ctx: Context, geo_fit: FitResult) -> bool:
+    """Whether the geometric step's remainder on the fit rows (out of fold) follows the clock."""
+    if ctx.obs_fit.clock is None:
+        return False
+    resid = ctx.problem(geo_fit, []).oof_residuals(list(range(len(ctx.geo_idx))))
+    found = residual_structure(
+        resid,
+        {ctx.obs.clock_name: ctx.obs_fit.clock},
+        ctx.obs_fit.pose_group,
+        folds=ctx.options.folds,
+        seed=ctx.options.seed,
+    )
+    return any(r.significant for r in found)
+
+
+def _with_step_at(fit: FitResult, step_at: float) -> FitResult:
+    effects = dataclasses.replace(fit.effects, step_at=step_at)
+    return dataclasses.replace(fit, effects=effects)
+
+
+def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[StructureResult]:
+    """The remainder of the final model (check rows; fit rows out of fold) against each variable."""
+    final = final_step(steps)
+    names = [n for s in steps if s.significant and s.effect != "geometric" for n in s.names]
+    lp = ctx.problem(final.fit, names)
+    resid = np.empty_like(ctx.obs.xyz_mm)
+    fit_rows, check_rows = ctx.fit_rows, ctx.check_rows
+    resid[fit_rows] = lp.oof_residuals(ctx.own_cols(len(names)))
+    resid[check_rows] = ctx.obs_check.xyz_mm - predict_mm(
+        ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
+    )
+    obs = ctx.obs
+    columns: dict[str, FloatArray | None] = {}
+    if obs.clock_name == "t_s":
+        columns["t_s"] = np.asarray(dataset.t_s, dtype=float)
+    else:
+        columns["pose_order"] = np.arange(len(obs), dtype=float)
+    for j in JOINTS:
+        columns[f"a{j}"] = obs.a_deg[:, j - 1]
+    columns["payload_kg"] = obs.payload_kg
+    columns["temp_c"] = obs.temp_c
+    for j in JOINTS:
+        columns[f"dir{j}"] = None if obs.dir is None else obs.dir[:, j - 1]
+    return residual_structure(resid, columns, obs.pose_group, folds=ctx.options.folds, seed=ctx.options.seed)
 
 
 def _geo_pvalue(start: FitResult, ctx: Context, geo_cols: list[int]) -> float:
@@ -345,8 +486,8 @@ def _effect_step(
     fit = ctx.fit(prev, names)
     rms, mx = ctx.check_stats(fit)
     lp = ctx.problem(fit, names)
-    cols = list(range(len(ctx.geo_idx) + len(names)))
-    tested = cols[len(ctx.geo_idx) + len(names_before) :]
+    cols = list(range(ctx.n_base + len(names)))
+    tested = cols[ctx.n_base + len(names_before) :]
     return Step(
         effect=effect,
         joints=joints,
@@ -356,9 +497,9 @@ def _effect_step(
         shrink_pct=_shrink(before, rms),
         params=effect_params_json(effect, joints, fit.effects),
         fit_rms_mm=fit.rms_mm,
-        cv_rms_mm=lp.cv_rms_mm(cols),
+        cv_rms_mm=lp.cv_rms_mm(ctx.own_cols(len(names))),
         p_value=lp.wald(cols, tested, ctx.values(fit, start, names)).p_value,
-        n_params=len(cols),
+        n_params=len(ctx.geo_idx) + len(names),
         fit=fit,
         names=tuple(new),
     )

@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.diagnosis.fitting import linearize, predict_mm
 from comp_daemon.diagnosis.result import Diagnosis, Step
+from comp_daemon.diagnosis.structure import describe_structure
 from comp_daemon.diagnosis.svg import Series, bar_chart, histograms, panel
 from comp_daemon.diagnosis.where import equivalent_joint_error_deg
 from comp_daemon.models.effects import MassModel, effect_by_name, twin_inputs
@@ -63,6 +64,8 @@ def _driver(diag: Diagnosis, step: Step) -> tuple[FloatArray, str]:
         obs.payload_kg,
         obs.temp_c,
         t_ref_c=diag.options.t_ref_c,
+        clock=obs.clock,
+        step_at=diag.baseline_fit.effects.step_at,
     )
     return effect_by_name(step.effect).driver(inputs, step.joints[0] if step.joints else None)
 
@@ -93,15 +96,46 @@ def _ladder_table(diag: Diagnosis) -> str:
     return "<table>" + "".join(rows) + "</table>"
 
 
+def _floor_html(diag: Diagnosis) -> str:
+    if diag.noise_floor_mm is None:
+        return (
+            "no noise floor: the data have no repeated poses and no tracker uncertainty was declared, "
+            "so the remainder could not be compared with noise."
+        )
+    return f"noise floor {diag.noise_floor_mm:.4g} mm ({_e(diag.noise_floor_source)})."
+
+
+def _structure_table(diag: Diagnosis) -> str:
+    """The remainder tested against each variable (out of fold, against permutations)."""
+    if not diag.residual_structure:
+        return "<p>No variable to test the remainder against.</p>"
+    rows = [
+        "<tr><th>against</th><th>share of the remainder (out of fold)</th><th>p</th><th>significant</th></tr>"
+    ]
+    for r in diag.residual_structure:
+        mark = "<b>yes</b>" if r.significant else "no"
+        rows.append(
+            f"<tr><td>{_e(r.against)}</td><td>{r.share_pct:.1f} %</td>"
+            f"<td>{r.p_value:.3g}</td><td>{mark}</td></tr>"
+        )
+    words = describe_structure(diag.residual_structure)
+    return (
+        f"<p>Remainder of the final model on {_e(diag.remainder_rows)}; {_e(words)}</p>"
+        "<table>" + "".join(rows) + "</table>"
+    )
+
+
 def _ladder_chart(diag: Diagnosis) -> str:
     labels = ["nominal"] + [
         f"{s.effect}{' J' + ','.join(map(str, s.joints)) if s.joints else ''}" for s in diag.steps
     ]
     values = [diag.baseline_check_rms_mm] + [s.check_rms_mm for s in diag.steps]
     colors = [GREY] + [GREEN if s.significant else "#cccccc" for s in diag.steps]
-    title = (
-        f"Check RMS after each step (mm, log scale); light grey: not significant; "
-        f"dashed: noise floor {diag.noise_floor_mm:.4f} mm"
+    floor = diag.noise_floor_mm
+    title = "Check RMS after each step (mm, log scale); light grey: not significant; " + (
+        f"dashed: noise floor {floor:.4f} mm ({diag.noise_floor_source})"
+        if floor is not None
+        else "no noise floor known (no repeats, no declared tracker uncertainty)"
     )
     return bar_chart(
         labels,
@@ -109,7 +143,7 @@ def _ladder_chart(diag: Diagnosis) -> str:
         colors,
         title=title,
         ylabel="check RMS (mm)",
-        hline=diag.noise_floor_mm,
+        hline=floor,
         width=max(560, 120 * len(labels)),
     )
 
@@ -286,8 +320,7 @@ def render_report_html(diag: Diagnosis) -> str:
         f"rows; {_e(diag.split_message)}). Measured in the {_e(diag.frame)} frame. "
         f"Unmodelled effects: <b>{_e(unmodelled)}</b>; implicated joints: "
         f"<b>{_e(', '.join(map(str, doc['joints'])) or 'none')}</b>. "
-        f"Unexplained {doc['unexplained_rms_mm']} mm RMS, "
-        f"noise floor {doc['noise_floor_mm']} mm ({_e(diag.noise_floor_source)}).</p>",
+        f"Unexplained {doc['unexplained_rms_mm']} mm RMS, " + _floor_html(diag) + "</p>",
         f"<p class=summary>{_e(diag.where['summary'])}</p>",
         "<h2>The ladder</h2>",
         _ladder_table(diag),
@@ -303,6 +336,8 @@ def render_report_html(diag: Diagnosis) -> str:
         _histograms(diag, preds, final_index),
         "<h2>Where the gap lies after the geometric step (all rows)</h2>",
         _where_tables(diag.where),
+        "<h2>Structure in the remainder</h2>",
+        _structure_table(diag),
         "<h2>Not tested</h2><ul>",
         skipped,
         "</ul>",

@@ -16,6 +16,8 @@ from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
 from comp_daemon.diagnosis.fitting import FitResult, Observations
+from comp_daemon.diagnosis.structure import StructureResult
+from comp_daemon.models.effects import EFFECTS
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -52,6 +54,8 @@ class DiagnoseOptions:
     check_fraction: float = 0.3  # held out when the data has no split column
     t_ref_c: float = 20.0  # reference temperature of the thermal effect
     max_effects: int = 12  # at most this many (effect, joint) candidates are accepted
+    tracker_sigma_mm: float | None = None  # declared tracker uncertainty (σ per axis), if known
+    effects: tuple[str, ...] | None = None  # the effects to try (None: the whole catalogue)
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -64,6 +68,14 @@ class DiagnoseOptions:
             raise ValueError(f"alpha must be in (0, 0.5), got {self.alpha}")
         if not 0.0 < self.check_fraction < 1.0:
             raise ValueError(f"check_fraction must be in (0, 1), got {self.check_fraction}")
+        if self.effects is not None:
+            unknown = [e for e in self.effects if e not in EFFECTS]
+            if unknown:
+                raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
+        if self.tracker_sigma_mm is not None and not (
+            math.isfinite(self.tracker_sigma_mm) and self.tracker_sigma_mm > 0.0
+        ):
+            raise ValueError(f"tracker_sigma_mm must be a number > 0, got {self.tracker_sigma_mm}")
 
 
 @dataclass(frozen=True)
@@ -140,9 +152,12 @@ class Diagnosis:
     skipped: list[dict[str, Any]]
     selection: list[dict[str, Any]]
     unidentifiable: list[str]
-    noise_floor_mm: float
-    noise_floor_source: str
+    noise_floor_mm: float | None  # None: no independent evidence of the noise
+    noise_floor_source: str | None  # repeats, targets, declared (None with no floor)
     where: dict[str, Any]
+    residual_structure: list[StructureResult] = field(default_factory=list)
+    remainder_rows: str = ""  # which rows' remainder residual_structure tested
+    time_nuisance: bool = False  # the effects were tested with a time nuisance in their base
 
     @property
     def significant_steps(self) -> list[Step]:
@@ -175,6 +190,10 @@ class Diagnosis:
                 "measured_in": self.frame,
                 "world_T_base": [[rounded(v, 9) for v in row] for row in self.world_T_base],
             },
+            "clock": {
+                "from": self.obs.clock_name,
+                "unit": "h since the first t_s" if self.obs.clock_name == "t_s" else "row",
+            },
             "baseline": {
                 "effect": "nominal",
                 "check_rms_mm": rounded(self.baseline_check_rms_mm),
@@ -185,8 +204,10 @@ class Diagnosis:
             "joints": self.implicated_joints,
             "where": self.where,
             "unexplained_rms_mm": rounded(self.unexplained_rms_mm),
-            "noise_floor_mm": rounded(self.noise_floor_mm),
+            "noise_floor_mm": None if self.noise_floor_mm is None else rounded(self.noise_floor_mm),
             "noise_floor_source": self.noise_floor_source,
+            "residual_structure": [r.to_json() for r in self.residual_structure],
+            "remainder_rows": self.remainder_rows,
             "unidentifiable": self.unidentifiable,
             "skipped": self.skipped,
             "selection": self.selection,
@@ -198,5 +219,9 @@ class Diagnosis:
                 "folds": self.options.folds,
                 "cyclic_harmonics": self.options.harmonics,
                 "t_ref_c": self.options.t_ref_c,
+                "effects_tried": list(self.options.effects or EFFECTS),
+                "time_nuisance": self.time_nuisance,
+                "noise_floor": "repeated poses, else the declared tracker uncertainty; not the fit residual",
+                "residual_structure": "binned means out of fold, permutation test, Holm over the variables",
             },
         }

@@ -3,7 +3,9 @@
 Every choice is made on the fit rows (:class:`Context`): in each round the candidate with the lowest
 k-fold cross-validated error (folds of pose groups) is tested with a cluster-robust Wald test
 (:mod:`comp_daemon.diagnosis.stats`); it is significant when its p-value is below ``alpha / m``
-(Bonferroni over the m candidates of the round) and it lowers the CV error. A runner-up with fewer
+(Bonferroni over the m candidates of the round; a candidate whose setting was searched on the fit
+rows, the step's moment, has its p-value multiplied by the number of positions tried) and it lowers
+the CV error. A runner-up with fewer
 parameters that the best does not add to significantly is preferred; after each acceptance every
 accepted candidate is offered for replacement by a rejected one. The method is described in full
 in :mod:`comp_daemon.diagnosis.ladder`.
@@ -24,7 +26,10 @@ from comp_daemon.diagnosis.stats import LinearProblem, make_folds
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.effects import MassModel
 
-__all__ = ["Context", "distance_stats", "names_of", "select"]
+__all__ = ["TIME_NUISANCE_BINS", "Context", "distance_stats", "names_of", "select", "time_nuisance"]
+
+#: the time nuisance translates the TCP by one value per axis in each of this many clock bins
+TIME_NUISANCE_BINS = 8
 
 FloatArray = NDArray[np.float64]
 
@@ -37,7 +42,12 @@ def distance_stats(resid: FloatArray) -> tuple[float, float]:
 
 
 class Context:
-    """What every step of one diagnosis shares."""
+    """What every step of one diagnosis shares.
+
+    ``nuisance`` (n_fit, 3, q), when set, holds columns that every linear problem carries right after
+    the free geometric ones and that no candidate's test may take credit for (the time nuisance of
+    :func:`time_nuisance`); :attr:`n_base` counts both blocks.
+    """
 
     def __init__(
         self,
@@ -50,30 +60,67 @@ class Context:
     ) -> None:
         self.mass = mass
         self.obs = obs
+        self.fit_rows = fit_rows
+        self.check_rows = check_rows
         self.obs_fit = obs.take(fit_rows)
         self.obs_check = obs.take(check_rows)
         self.geo_free = geo_free
         self.geo_idx = np.flatnonzero(geo_free)
         self.options = options
         self.fold = make_folds(self.obs_fit.pose_group, options.folds, options.seed)
+        self.nuisance: FloatArray | None = None
+
+    @property
+    def n_nuisance(self) -> int:
+        return 0 if self.nuisance is None else int(self.nuisance.shape[2])
+
+    @property
+    def n_base(self) -> int:
+        """Columns before the effect parameters: the free geometric ones and the nuisance."""
+        return len(self.geo_idx) + self.n_nuisance
+
+    def own_cols(self, n_names: int) -> list[int]:
+        """The columns of the model itself (geometric and ``n_names`` effect parameters), no nuisance."""
+        return list(range(len(self.geo_idx))) + list(range(self.n_base, self.n_base + n_names))
 
     def fit(self, start: FitResult, names: Sequence[str]) -> FitResult:
         return fit_twin(self.mass, self.obs_fit, start.params, start.effects, self.geo_free, names)
 
     def problem(self, fit: FitResult, names: Sequence[str]) -> LinearProblem:
-        """Linear problem with columns [free geometric | names] at ``fit``."""
+        """Linear problem with columns [free geometric | nuisance | names] at ``fit``."""
         resid, jac = linearize(self.mass, fit.params, fit.effects, names, self.obs_fit)
-        cols = np.concatenate([self.geo_idx, N_PARAMS + np.arange(len(names))])
-        return LinearProblem(resid, jac[:, :, cols], self.obs_fit.pose_group, self.fold)
+        geo = jac[:, :, self.geo_idx]
+        eff = jac[:, :, N_PARAMS + np.arange(len(names))]
+        blocks = [geo, eff] if self.nuisance is None else [geo, self.nuisance, eff]
+        return LinearProblem(resid, np.concatenate(blocks, axis=2), self.obs_fit.pose_group, self.fold)
 
     def values(self, fit: FitResult, start: KinematicParams, names: Sequence[str]) -> FloatArray:
-        """Values of the columns [free geometric | names] at ``fit``, measured from ``start``."""
+        """Values of the columns [free geometric | nuisance | names] at ``fit``, measured from ``start``."""
         geo = fit.params.difference(start)[self.geo_idx]
-        return np.concatenate([geo, fit.effects.get(list(names)) if names else np.zeros(0)])
+        eff = fit.effects.get(list(names)) if names else np.zeros(0)
+        return np.concatenate([geo, np.zeros(self.n_nuisance), eff])
 
     def check_stats(self, fit: FitResult) -> tuple[float, float]:
         resid = self.obs_check.xyz_mm - predict_mm(self.mass, fit.params, fit.effects, self.obs_check)
         return distance_stats(resid)
+
+
+def time_nuisance(clock: FloatArray) -> FloatArray:
+    """(n, 3, 3·(B − 1)) columns of a translation that is constant in each of B quantile bins of ``clock``.
+
+    The first bin is left out (the base frame's translation carries the constant). With them in the
+    base of every test, an effect cannot take credit for a change over time that correlates with its
+    own variable along the campaign's route (a ratio error of A4 standing in for a drift).
+    """
+    edges = np.unique(np.quantile(clock, np.linspace(0.0, 1.0, TIME_NUISANCE_BINS + 1)[1:-1]))
+    bins = np.searchsorted(edges, clock, side="right")
+    n_bins = int(bins.max()) + 1
+    out = np.zeros((len(clock), 3, 3 * max(n_bins - 1, 0)))
+    for b in range(1, n_bins):
+        on = (bins == b).astype(float)
+        for axis in range(3):
+            out[:, axis, 3 * (b - 1) + axis] = on
+    return out
 
 
 def _cols_of(cands: Sequence[Candidate], first: int) -> dict[Candidate, list[int]]:
@@ -103,7 +150,7 @@ def select(
     rejected: Candidate | None = None
     while avail and len(accepted) < options.max_effects:
         lp = ctx.problem(current, names_of(accepted) + names_of(avail))
-        base_cols = list(range(len(ctx.geo_idx) + len(names_of(accepted))))
+        base_cols = list(range(ctx.n_base + len(names_of(accepted))))
         col_of = _cols_of(avail, len(base_cols))
         cv_base = lp.cv_rms_mm(base_cols)
         scored = sorted((lp.cv_rms_mm(base_cols + col_of[c]), i) for i, c in enumerate(avail))
@@ -112,7 +159,8 @@ def select(
         for cv, i in scored[:5]:
             c = avail[i]
             wald = lp.wald(base_cols + col_of[c], col_of[c])
-            ranked.append({"candidate": c.label, "cv_rms_mm": rounded(cv), "p_value": wald.p_value})
+            p_value = min(1.0, wald.p_value * c.searched)
+            ranked.append({"candidate": c.label, "cv_rms_mm": rounded(cv), "p_value": p_value})
         best_cv, best_i = scored[0]
         best = avail[best_i]
         best_p = float(ranked[0]["p_value"])
@@ -197,14 +245,14 @@ def _replace_pass(
             )
             pool = [old, *avail]
             lp = ctx.problem(point, names_of(others) + names_of(pool))
-            base_cols = list(range(len(ctx.geo_idx) + len(names_of(others))))
+            base_cols = list(range(ctx.n_base + len(names_of(others))))
             col_of = _cols_of(pool, len(base_cols))
             cv_old = lp.cv_rms_mm(base_cols + col_of[old])
             cv_new, i = min((lp.cv_rms_mm(base_cols + col_of[c]), i) for i, c in enumerate(avail))
             new = avail[i]
             if cv_new >= cv_old:
                 continue
-            p_value = lp.wald(base_cols + col_of[new], col_of[new]).p_value
+            p_value = min(1.0, lp.wald(base_cols + col_of[new], col_of[new]).p_value * new.searched)
             if p_value >= options.alpha / len(pool):
                 continue
             if len(new.names) > len(old.names):

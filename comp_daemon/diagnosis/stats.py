@@ -134,6 +134,20 @@ class LinearProblem:
             total += self.fold_rtr[f] - 2.0 * step @ self.fold_jtr[f][idx] + step @ g_test @ step
         return float(total)
 
+    def oof_residuals(self, cols: Sequence[int]) -> FloatArray:
+        """(n, 3) residuals of every fit row under the model ``cols`` fitted without its fold (mm)."""
+        idx = np.asarray(cols, dtype=np.int64)
+        out = self.r.copy()
+        if len(idx) == 0:
+            return out
+        for f in range(self.k):
+            g_train = self.gram[np.ix_(idx, idx)] - self.fold_gram[f][np.ix_(idx, idx)]
+            b_train = self.jtr[idx] - self.fold_jtr[f][idx]
+            step = self._solve(g_train, b_train)
+            rows = self.fold == f
+            out[rows] = self.r[rows] - self.jac[rows][:, :, idx] @ step
+        return out
+
     def cv_rms_mm(self, cols: Sequence[int]) -> float:
         """RMS 3-D distance over held-out poses of the model ``cols`` (mm)."""
         return float(np.sqrt(max(self.cv_sse(cols), 0.0) / max(self.n, 1)))

@@ -42,8 +42,10 @@ class Baseline:
 
     check_rms_mm: float  # the nominal (registered) twin on the check rows
     check_max_mm: float
-    noise_floor_mm: float
+    noise_floor_mm: float | None  # None: no independent evidence of the noise
     skipped: list[dict[str, Any]]  # the diagnosis's skip list
+    noise_floor_source: str | None = None  # repeats, targets, declared
+    structure: str = ""  # the remainder's structure in words (comp_daemon.diagnosis.structure)
 
 
 def _r(value: float, digits: int = 4) -> float:
@@ -195,6 +197,39 @@ def _fmt(mm: float) -> str:
     return f"{mm:.3f} mm"
 
 
+def _floor_words(floor: float | None, source: str | None) -> str:
+    if floor is None:
+        return (
+            ", and no noise floor is known (no repeated poses, no declared tracker uncertainty): "
+            "the remainder could not be compared with noise."
+        )
+    return f", against a noise floor of {_fmt(floor)} ({source})."
+
+
+def _left_words(left: float, floor: float | None, structured: bool, any_effect: bool) -> str:
+    """What the remainder is: at the noise, above it, or not comparable with it."""
+    further = "no further effect of the vocabulary" if any_effect else "no effect of the vocabulary"
+    if floor is None:
+        if structured:
+            return f"{further.capitalize()} is significant; what is left is {_fmt(left)}."
+        return (
+            f"{further.capitalize()} is significant; what is left ({_fmt(left)}) could not be compared "
+            "with noise: measure some poses several times or declare the tracker's uncertainty."
+        )
+    if left <= 1.25 * floor:
+        if any_effect:
+            return f"What is left ({_fmt(left)}) is at the noise floor."
+        return (
+            "No non-geometric effect is significant and the remaining error is at the noise floor: "
+            "a kinematic calibration is all this robot needs for these data."
+        )
+    return (
+        f"What is left ({_fmt(left)}) is above the noise floor, but {further} is significant: "
+        "look for an effect outside it (fixture, tracker set-up, dynamics)"
+        + ("." if any_effect else " or measure more poses, directions, payloads or temperatures.")
+    )
+
+
 def _summary(steps: Sequence[Step], baseline: Baseline, where: dict[str, Any]) -> str:
     geo = steps[0]
     floor = baseline.noise_floor_mm
@@ -202,7 +237,7 @@ def _summary(steps: Sequence[Step], baseline: Baseline, where: dict[str, Any]) -
         f"The nominal twin misses the check points by {_fmt(baseline.check_rms_mm)} RMS "
         f"(max {_fmt(baseline.check_max_mm)}); geometric calibration "
         f"({geo.n_params} identifiable parameters) brings that to {_fmt(geo.check_rms_mm)} "
-        f"(max {_fmt(geo.check_max_mm)}), against a noise floor of {_fmt(floor)}."
+        f"(max {_fmt(geo.check_max_mm)})" + _floor_words(floor, baseline.noise_floor_source)
     ]
     axis = where["axis_rms_mm"]
     worst_axis = max(axis, key=lambda k: axis[k])
@@ -218,29 +253,14 @@ def _summary(steps: Sequence[Step], baseline: Baseline, where: dict[str, Any]) -
             on = f" on {_axes(s.joints)}" if s.joints else ""
             described.append(f"{s.effect}{on} (check error −{s.shrink_pct:.0f} % to {_fmt(s.check_rms_mm)})")
         parts.append("It is explained by " + "; then ".join(described) + ".")
-        left = final_step(steps).check_rms_mm
-        if left <= 1.25 * floor:
-            parts.append(f"What is left ({_fmt(left)}) is at the noise floor.")
-        else:
-            parts.append(
-                f"What is left ({_fmt(left)}) is above the noise floor, but no further effect of the "
-                "vocabulary is significant: look for an effect outside it "
-                "(fixture, tracker set-up, dynamics)."
-            )
+    left = final_step(steps).check_rms_mm
+    structured = "follows" in baseline.structure
+    parts.append(_left_words(left, floor, structured, bool(effect_steps)))
+    if baseline.structure:
+        parts.append(baseline.structure)
+    if effect_steps:
         actions = [effect_by_name(s.effect).action.format(axes=_axes(s.joints)) for s in effect_steps]
         parts.append("To act: " + "; ".join(actions) + ".")
-    else:
-        if geo.check_rms_mm <= 1.25 * floor:
-            parts.append(
-                "No non-geometric effect is significant and the remaining error is at the noise floor: "
-                "a kinematic calibration is all this robot needs for these data."
-            )
-        else:
-            parts.append(
-                f"No effect of the vocabulary is significant, yet {_fmt(geo.check_rms_mm)} remains above the "
-                "noise floor: look for an effect outside it (fixture, tracker set-up, dynamics) or measure "
-                "more poses, directions, payloads or temperatures."
-            )
     skipped = [s for s in baseline.skipped if "combination" not in s["reason"]]
     if skipped:
         notes = "; ".join(f"{s['effect']}: {s['reason']}" for s in skipped[:3])

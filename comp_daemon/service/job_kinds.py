@@ -171,14 +171,27 @@ def fit_done(job: JobRecord, result: Mapping[str, Any]) -> ModelDraft:
 # -------------------------------------------------------------------------------------- diagnosis
 
 
-def diagnosis_job_args(csv_text: str, robot: str, dataset_id: int) -> tuple[Any, ...]:
-    return (csv_text, robot, dataset_id)
+def diagnosis_job_args(
+    csv_text: str, robot: str, dataset_id: int, tracker_sigma_mm: float | None = None
+) -> tuple[Any, ...]:
+    return (csv_text, robot, dataset_id, tracker_sigma_mm)
 
 
-def run_diagnosis(csv_text: str, robot_name: str, dataset_id: int, *, progress: Progress) -> dict[str, Any]:
-    """The diagnosis of ``shared/spec/diagnose.md`` on the data set: JSON report and HTML report."""
+def run_diagnosis(
+    csv_text: str,
+    robot_name: str,
+    dataset_id: int,
+    tracker_sigma_mm: float | None = None,
+    *,
+    progress: Progress,
+) -> dict[str, Any]:
+    """The diagnosis of ``shared/spec/diagnose.md`` on the data set: JSON report and HTML report.
+
+    ``tracker_sigma_mm`` is the tracker uncertainty the engineer declares (σ per axis, mm): the
+    noise floor when the data have no repeated poses.
+    """
     from comp_daemon.data.dataset import parse_dataset
-    from comp_daemon.diagnosis import diagnose
+    from comp_daemon.diagnosis import DiagnoseOptions, diagnose
     from comp_daemon.diagnosis.report import render_report_html
     from comp_daemon.robot.description import load_robot
 
@@ -186,7 +199,7 @@ def run_diagnosis(csv_text: str, robot_name: str, dataset_id: int, *, progress: 
     progress(0.02, "reading the data set")
     ds = parse_dataset(csv_text, source=f"dataset {dataset_id}", limits_deg=robot.axis_limits_deg, min_rows=1)
     progress(0.05, "diagnosing")
-    diagnosis = diagnose(ds, robot)
+    diagnosis = diagnose(ds, robot, DiagnoseOptions(tracker_sigma_mm=tracker_sigma_mm))
     progress(0.9, "writing the report")
     return {"report": diagnosis.to_json(), "html": render_report_html(diagnosis)}
 

@@ -221,8 +221,15 @@ class FitIn(BaseModel):
 
 
 class DiagnosisIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
     dataset_id: int = Field(ge=1, le=2**62)
+    tracker_sigma_mm: float | None = Field(
+        None,
+        gt=0.0,
+        le=10.0,
+        description="the tracker's declared uncertainty (σ per axis, mm): the noise floor when the data "
+        "have no repeated poses; omitted with no repeats, the diagnosis reports no noise floor",
+    )
 
 
 _AXES = ("a1", "a2", "a3", "a4", "a5", "a6")

@@ -25,6 +25,9 @@ physics). Axis values are in the controller's convention (deg, KUKA A1..A6). Per
   and gravity deflection (payload included) — see :func:`~comp_daemon.models.effects.twin_state`.
 * **TCP** (:meth:`tcp_true_mm`): the hidden kinematics (nominal + geometric errors, in the robot
   base frame) at the output angles, with thermal growth at the cell's temperature at this time.
+* **Time effects**: a drift of the TCP (``v·t + w·t²``, t the plant time in h) and a step of a
+  joint's zero from a moment on (re-mastering, a collision), the catalogue's ``drift`` and
+  ``step`` evaluated at :attr:`clock_h`. Nothing the plant reports names them.
 
 :class:`RobotPlant` is the ``JointStateSource`` of :mod:`comp_daemon.sim.rsi_controller`
 (``advance``, ``axis_setpoint_deg``, ``axis_actual_deg``, ``apply_correction``, ``start_move``,
@@ -295,6 +298,11 @@ class RobotPlant:
             self.step(dt_s)
         return self._time_s - t0
 
+    @property
+    def clock_h(self) -> float:
+        """Plant time in hours: the clock of the time effects (drift, step)."""
+        return self._time_s / 3600.0
+
     def temperature_c(self) -> float:
         return float(self.cell.temperature_c(self._time_s))
 
@@ -326,6 +334,7 @@ class RobotPlant:
                 frac[None, :],
                 self._payload_kg,
                 np.array([self.temperature_c()]),
+                clock=np.array([self.clock_h]),
             )
         return self._state
 

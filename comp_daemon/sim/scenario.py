@@ -11,7 +11,11 @@ sampled and the noise. Units are in the field names (mm, deg, kg, °C, s, N m). 
                  base_deg, tool_mm;  [geometric.values] sets any PARAM_NAMES entry exactly
                  (rad / mm, as in comp_daemon.kinematics.params)
     [effects]    backlash_deg (6), ratio (6), cyclic_sin_deg / cyclic_cos_deg (6 × K),
-                 compliance_rad_per_nm (6), thermal_per_k, t_ref_c   (diagnose.md definitions)
+                 compliance_rad_per_nm (6), thermal_per_k, t_ref_c   (diagnose.md definitions);
+                 drift_mm_per_h (3), drift_mm_per_h2 (3): the TCP drifts by v·t + w·t² (t: plant
+                 time in h, robot base frame), step_deg (6), step_at_s: each joint's zero changes
+                 by step_deg from plant time step_at_s on (the catalogue's drift and step; no data
+                 column names them)
     [noise]      joint_repeatability_deg (6, σ of a fresh joint offset per motion),
                  tracker_sigma_mm (σ per axis)
     [motion]     v_max_deg_s (6), a_max_deg_s2 (6), servo_time_constant_s, settle_tol_deg, dwell_s
@@ -310,8 +314,23 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         "compliance_rad_per_nm",
         "thermal_per_k",
         "t_ref_c",
+        "drift_mm_per_h",
+        "drift_mm_per_h2",
+        "step_deg",
+        "step_at_s",
     }
     eff_t = _table(doc, "effects", source, eff_fields)
+    drift_v = _arr(eff_t, "drift_mm_per_h", w, (3,), [0.0] * 3)
+    drift_w = _arr(eff_t, "drift_mm_per_h2", w, (3,), [0.0] * 3)
+    drift = {
+        f"drift_{axis}_mm_per_h{power}": float(values[i])
+        for power, values in ((1, drift_v), (2, drift_w))
+        for i, axis in enumerate("xyz")
+    }
+    step_deg = _arr(eff_t, "step_deg", w, (6,), [0.0] * 6)
+    if np.any(step_deg != 0.0) and "step_at_s" not in eff_t:
+        raise ScenarioError(f"{w}: step_deg needs step_at_s (the plant time of the change, s)")
+    step_at_s = _num(eff_t, "step_at_s", w, math.inf, lo=0.0)
     sin_raw = eff_t.get("cyclic_sin_deg", [[]] * 6)
     n_harm = len(sin_raw[0]) if isinstance(sin_raw, list) and sin_raw and isinstance(sin_raw[0], list) else 0
     zeros_k = np.zeros((6, n_harm)).tolist()
@@ -323,6 +342,9 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         compliance_rad_per_nm=_arr(eff_t, "compliance_rad_per_nm", w, (6,), [0.0] * 6, lo=0.0),
         thermal_per_k=_num(eff_t, "thermal_per_k", w, 0.0),
         t_ref_c=_num(eff_t, "t_ref_c", w, 20.0),
+        step_deg=step_deg,
+        step_at=step_at_s / 3600.0,
+        arrays=drift,
     )
 
     w = f"{source} [noise]"

@@ -103,6 +103,8 @@ class TwinInputs:
     temp_c: FloatArray | None  # (n,) or None without temperatures
     delta_t_k: FloatArray  # (n,) temp_c − t_ref_c (0 without temperatures)
     tau_nm: FloatArray | None  # (n, 6) gravity torques at the commanded configuration, if computed
+    clock: FloatArray | None = None  # (n,) campaign clock (h; row number without times), or None
+    step_at: float = float("inf")  # clock value from which the step effect acts
 
 
 @dataclass(frozen=True, slots=True)
@@ -115,6 +117,7 @@ class EffectData:
     temp_c: FloatArray | None  # (n,) or None without a temp_c column
     tau_nm: FloatArray  # (n, 6) gravity torques of the nominal twin at the commanded poses
     moves_tcp: NDArray[np.bool_]  # (6,) whether each joint moves the TCP in these poses
+    clock: FloatArray | None = None  # (n,) campaign clock of the fit rows (h, or row number)
 
     @property
     def tau_scale_nm(self) -> float:

@@ -8,15 +8,23 @@ none of them names an effect. The order of the catalogue is the order of the voc
 ``shared/spec/diagnose.md`` (and of the diagnosis's candidates and skip list).
 
 The effects, for pose r and joint i (1..6), with the controller's axis value ``A_i`` (deg), the
-approach direction ``dir_i`` (−1 / +1, 0 = unknown), the payload (kg) and the temperature
-``temp_c`` (°C), composed by stage (:mod:`comp_daemon.models.effects.twin`)::
+approach direction ``dir_i`` (−1 / +1, 0 = unknown), the payload (kg), the temperature
+``temp_c`` (°C) and the campaign clock ``t`` (h from ``t_s`` = 0; the row number where a campaign
+has no times), composed by stage (:mod:`comp_daemon.models.effects.twin`)::
 
-    A_eff_i = A_i·(1 + eps_i) + h_i·dir_i + Σ_k (c_ik·sin(k·a_i) + s_ik·cos(k·a_i))     [deg]
+    A_eff_i = A_i·(1 + eps_i) + h_i·dir_i + Σ_k (c_ik·sin(k·a_i) + s_ik·cos(k·a_i))
+              + sz_i·[t >= step_at]                                                       [deg]
               with a_i = A_i in rad (the commanded axis value converted to radians), k = 1..K
     q_i     = sign_i · A_eff_i in rad                                                     [rad]
     theta_i = q_i + offset_i + C_i·tau_i                                                  [rad]
     a_i, d_i  ← a_i·(1 + kappa·(temp_c − t_ref_c)),  d_i·(1 + kappa·(temp_c − t_ref_c))
     TCP     = forward kinematics of theta with the grown a, d (base frame and tool unchanged)
+              + (vx, vy, vz)·t + (wx, wy, wz)·t²                   (drift, measurement frame)
+
+``drift`` and ``step`` extend the vocabulary of ``shared/spec/diagnose.md``: effects that real
+campaigns show and that no column names (thermal growth without a temperature sensor, a base or
+tracker settling; a joint re-mastered or knocked mid-campaign). ``step_at`` (a setting, in clock
+units) is the moment of the step; the diagnosis searches it on the fit rows.
 
 =============  ==========================  ==========================================
 name           parameter                   unit
@@ -27,6 +35,13 @@ name           parameter                   unit
 ``s{i}_{k}``   cosine coefficient s_ik     deg (joint i, harmonic k)
 ``C{i}``       compliance                  rad / (N m)
 ``kappa``      thermal expansion           1 / K
+``vx``         drift rate along x          mm / h (mm per row without t_s)
+``vy``         drift rate along y          mm / h (mm per row without t_s)
+``vz``         drift rate along z          mm / h (mm per row without t_s)
+``wx``         drift curvature along x     mm / h² (mm per row² without t_s)
+``wy``         drift curvature along y     mm / h² (mm per row² without t_s)
+``wz``         drift curvature along z     mm / h² (mm per row² without t_s)
+``sz{i}``      step of joint i's zero      deg (from step_at on)
 =============  ==========================  ==========================================
 
 The entries below are the definition; this table is their summary (a test keeps them in step).
@@ -49,7 +64,7 @@ from comp_daemon.models.effects.base import (
     Values,
 )
 
-__all__ = ["EFFECTS", "EFFECT_CATALOGUE", "MIN_TEMP_SPREAD_K", "effect_by_name"]
+__all__ = ["EFFECTS", "EFFECT_CATALOGUE", "MIN_CLOCK_VALUES", "MIN_TEMP_SPREAD_K", "effect_by_name"]
 
 
 # ------------------------------------------------------------------------------------- backlash
@@ -300,8 +315,139 @@ THERMAL = Effect(
 )
 
 
+# ---------------------------------------------------------------------------------------- drift
+_DRIFT_AXES = ("x", "y", "z")
+
+
+def _drift_mm(values: Values, x: TwinInputs) -> FloatArray:
+    """(n, 3) translation of the drift at each pose's clock (zero without a clock)."""
+    n = x.a_deg.shape[0]
+    if x.clock is None:
+        return np.zeros((n, 3))
+    v = np.asarray(values[:3], dtype=float)
+    w = np.asarray(values[3:], dtype=float)
+    t = x.clock[:, None]
+    out: FloatArray = t * v + t * t * w
+    return out
+
+
+def _drift_apply(values: Values, x: TwinInputs, params: KinematicParams, ch: Chain) -> Chain:
+    """The chain translated as a whole by the drift (every frame origin and the TCP)."""
+    shift = _drift_mm(values, x)
+    if not np.any(shift):
+        return ch
+    frames = ch.world_T_frame.copy()
+    frames[:, :, :3, 3] += shift[:, None, :]
+    return Chain(world_T_frame=frames, x_prime=ch.x_prime, y_beta=ch.y_beta, tcp_mm=ch.tcp_mm + shift)
+
+
+def _drift_geometric(values: Values, x: TwinInputs, geo: FloatArray) -> None:
+    return None  # a translation of the whole chain does not change the geometric columns
+
+
+def _drift_column(
+    values: Values, x: TwinInputs, params: KinematicParams, geo: FloatArray, ref: ParamRef
+) -> FloatArray:
+    n = x.a_deg.shape[0]
+    out: FloatArray = np.zeros((n, 3))
+    if x.clock is not None:
+        power = 1 if ref.array < 3 else 2
+        out[:, ref.array % 3] = x.clock**power
+    return out
+
+
+def _clock_driver(x: TwinInputs, joint: int | None) -> tuple[FloatArray, str]:
+    if x.clock is not None:
+        return x.clock, "campaign clock (h, or row number without t_s)"
+    return np.arange(x.a_deg.shape[0], dtype=float), "row"
+
+
+#: the time effects need at least this many distinct clock values on the fit rows
+MIN_CLOCK_VALUES = 8
+
+
+#: the words when a campaign has no clock
+_NO_CLOCK = "no campaign clock (neither t_s nor a row order)"
+
+
+def _clock_data(data: EffectData, joint: int | None) -> str | None:
+    assert data.clock is not None  # required column, checked first
+    if len(np.unique(data.clock)) < MIN_CLOCK_VALUES:
+        return f"fewer than {MIN_CLOCK_VALUES} distinct times on the fit rows"
+    return None
+
+
+def _drift_array(power: int, axis: str) -> ParamArray:
+    unit = "mm / h" if power == 1 else "mm / h²"
+    return ParamArray(
+        attr=f"drift_{axis}_mm_per_h{power}",
+        symbol=f"{'v' if power == 1 else 'w'}{axis}",
+        unit=unit,
+        layout="scalar",
+        json_key=f"{'v' if power == 1 else 'w'}{axis}_{'mm_per_h' if power == 1 else 'mm_per_h2'}",
+        meaning=f"{'rate' if power == 1 else 'curvature'} of the drift along {axis} (per row without t_s)",
+        typical=0.01 if power == 1 else 0.002,
+    )
+
+
+DRIFT = Effect(
+    name="drift",
+    meaning="a smooth drift over time: the measured TCP translates by a quadratic in the campaign "
+    "clock (thermal growth without a temperature sensor, a settling base or tracker)",
+    formula="TCP += v·t + w·t²  (t: campaign clock, h from t_s = 0, or the row number; v, w per x, y, z "
+    "of the measurement frame)",
+    arrays=tuple(_drift_array(p, a) for p in (1, 2) for a in _DRIFT_AXES),
+    stage="chain",
+    chain=ChainStage(apply=_drift_apply, geometric=_drift_geometric, column=_drift_column),
+    per_joint=False,
+    columns=("clock",),
+    required={"clock": _NO_CLOCK},
+    data_reason=_clock_data,
+    driver=_clock_driver,
+    smooth_driver=True,
+    action="re-measure the reference (or the base) periodically during the campaign and the job, "
+    "add a temperature sensor where the drift is thermal, or let the structure settle before measuring",
+)
+
+
+# ----------------------------------------------------------------------------------------- step
+def _step_basis(x: TwinInputs, n_harmonics: int) -> tuple[FloatArray, ...]:
+    n = x.a_deg.shape[0]
+    if x.clock is None:
+        return (np.zeros((n, 6, 1)),)
+    on = (x.clock >= x.step_at).astype(float)
+    return (np.broadcast_to(on[:, None, None], (n, 6, 1)).copy(),)
+
+
+STEP = Effect(
+    name="step",
+    meaning="a joint's zero changes at one moment of the campaign (re-mastering, a collision)",
+    formula="A_eff_i += s_i·[t >= step_at]  (t: campaign clock, step_at: the moment of the change)",
+    arrays=(
+        ParamArray(
+            attr="step_deg",
+            symbol="sz",
+            unit="deg",
+            layout="joint",
+            json_key="step_deg",
+            meaning="change of the joint's zero from step_at on",
+            typical=0.01,
+        ),
+    ),
+    stage="axis",
+    basis=_step_basis,
+    columns=("clock",),
+    required={"clock": _NO_CLOCK},
+    data_reason=_clock_data,
+    driver=_clock_driver,
+    action="re-master {axes} and check the campaign log for a collision or a mastering at that moment; "
+    "calibrate again from the data after the change",
+    settings=("step_at",),
+)
+
+
 # ------------------------------------------------------------------------------------ catalogue
-EFFECT_CATALOGUE: tuple[Effect, ...] = (BACKLASH, RATIO, CYCLIC, COMPLIANCE, THERMAL)
+EFFECT_CATALOGUE: tuple[Effect, ...] = (BACKLASH, RATIO, CYCLIC, COMPLIANCE, THERMAL, DRIFT, STEP)
 #: the effect names (the vocabulary of diagnose.md), in catalogue order
 EFFECTS: tuple[str, ...] = tuple(e.name for e in EFFECT_CATALOGUE)
 _BY_NAME = {e.name: e for e in EFFECT_CATALOGUE}

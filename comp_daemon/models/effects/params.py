@@ -5,7 +5,8 @@
 (``backlash_deg``, ``ratio``, ``cyclic_sin_deg`` …; index 0 = joint 1), readable as an attribute
 and settable as a keyword of the constructor (or of :func:`dataclasses.replace`). Per-joint arrays
 have shape (6,), harmonic arrays (6, K) with one K shared by all of them (0 allowed), scalars are
-floats. Zeros are no effect. ``t_ref_c`` is the reference temperature of the thermal growth.
+floats. Zeros are no effect. ``t_ref_c`` is the reference temperature of the thermal growth;
+``step_at`` the campaign clock value from which the step effect acts (infinite: never).
 """
 
 from __future__ import annotations
@@ -109,8 +110,16 @@ class EffectParams:
 
     arrays: Mapping[str, Any]
     t_ref_c: float
+    step_at: float
 
-    def __init__(self, *, t_ref_c: float = 20.0, arrays: Mapping[str, Any] | None = None, **given: Any):
+    def __init__(
+        self,
+        *,
+        t_ref_c: float = 20.0,
+        step_at: float = float("inf"),
+        arrays: Mapping[str, Any] | None = None,
+        **given: Any,
+    ):
         known = _arrays()
         bad = [k for k in given if k not in known]
         if bad:
@@ -139,7 +148,11 @@ class EffectParams:
         if not np.isfinite(t_ref):
             raise ValueError(f"EffectParams.t_ref_c: must be finite, got {t_ref}")
         object.__setattr__(self, "arrays", store)
+        step = float(step_at)
+        if np.isnan(step):
+            raise ValueError("EffectParams.step_at: must be a number (inf: no step), got nan")
         object.__setattr__(self, "t_ref_c", t_ref)
+        object.__setattr__(self, "step_at", step)
 
     def __getattr__(self, name: str) -> Any:
         try:
@@ -151,12 +164,16 @@ class EffectParams:
         raise AttributeError(f"'EffectParams' object has no attribute '{name}'")
 
     @classmethod
-    def zeros(cls, n_harmonics: int = 0, t_ref_c: float = 20.0) -> EffectParams:
+    def zeros(
+        cls, n_harmonics: int = 0, t_ref_c: float = 20.0, step_at: float = float("inf")
+    ) -> EffectParams:
         """No effect at all, with room for ``n_harmonics`` harmonics in every harmonic array."""
         if n_harmonics < 0:
             raise ValueError(f"n_harmonics must be >= 0, got {n_harmonics}")
         return cls(
-            t_ref_c=t_ref_c, arrays={a: _zeros(arr, n_harmonics) for a, (_, _, arr) in _arrays().items()}
+            t_ref_c=t_ref_c,
+            step_at=step_at,
+            arrays={a: _zeros(arr, n_harmonics) for a, (_, _, arr) in _arrays().items()},
         )
 
     @property
@@ -209,7 +226,7 @@ class EffectParams:
                 store[attr][ref.joint] = value
             else:
                 store[attr][ref.joint, ref.harmonic] = value
-        return EffectParams(t_ref_c=self.t_ref_c, arrays=store)
+        return EffectParams(t_ref_c=self.t_ref_c, step_at=self.step_at, arrays=store)
 
     def add(self, names: Sequence[str], delta: NDArray[np.float64] | Sequence[float]) -> EffectParams:
         """A copy with ``delta`` added to the named parameters (an identification step)."""

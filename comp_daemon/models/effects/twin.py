@@ -8,7 +8,10 @@ the joint-stage effects to the joint angle, the chain-stage effects change the f
     q_i     = sign_i · A_eff_i in rad + Σ_joint-effects Σ_p value_p·basis_p(inputs)_i     [rad]
     theta_i = q_i + offset_i
     chain   = each chain-stage effect applied in catalogue order to the MDH chain of theta
-    TCP     = the chain's TCP (base frame and tool unchanged)
+    TCP     = the chain's TCP (base frame and tool unchanged, the drift's translation added)
+
+The time effects (drift, step) read the campaign clock ``clock`` (h, or the row number where a
+campaign has no times); without a clock they contribute nothing.
 
 The gravity torques ``tau`` (N m, DH sign, links and payload at the TCP, masses from the robot
 file), when an effect needs them, are :func:`comp_daemon.kinematics.forward.gravity_torques_nm` of
@@ -95,7 +98,8 @@ def _check_inputs(
     dir: FloatArray | None,
     payload_kg: FloatArray | float,
     temp_c: FloatArray | None,
-) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None]:
+    clock: FloatArray | None = None,
+) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
     a = np.asarray(a_deg, dtype=float)
     if a.ndim == 1:
         a = a[None, :]
@@ -114,10 +118,17 @@ def _check_inputs(
     temp = None
     if temp_c is not None:
         temp = np.broadcast_to(np.asarray(temp_c, dtype=float), (n,))
-    for name, arr in (("a_deg", a), ("dir", d), ("payload_kg", payload), ("temp_c", temp)):
+    clk = None
+    if clock is not None:
+        clk = np.asarray(clock, dtype=float)
+        if clk.ndim > 1 or (clk.ndim == 1 and clk.shape[0] != n):
+            raise ValueError(f"clock: expected a number or shape ({n},), got {clk.shape}")
+        clk = np.broadcast_to(clk, (n,))
+    checks = (("a_deg", a), ("dir", d), ("payload_kg", payload), ("temp_c", temp), ("clock", clk))
+    for name, arr in checks:
         if arr is not None and not np.all(np.isfinite(arr)):
             raise ValueError(f"{name}: values must be finite")
-    return a, d, payload, temp
+    return a, d, payload, temp, clk
 
 
 def twin_inputs(
@@ -130,16 +141,27 @@ def twin_inputs(
     *,
     t_ref_c: float = 20.0,
     with_torques: bool = True,
+    clock: FloatArray | None = None,
+    step_at: float = float("inf"),
 ) -> TwinInputs:
     """The checked per-pose inputs of the effects (gravity torques of ``params`` if asked)."""
-    a, d, payload, temp = _check_inputs(a_deg, dir, payload_kg, temp_c)
+    a, d, payload, temp, clk = _check_inputs(a_deg, dir, payload_kg, temp_c, clock)
     tau = None
     if with_torques:
         mass = _mass_model(robot_or_arrays)
         q_cmd = params.sign * np.deg2rad(a)
         tau = gravity_torques_nm(params, q_cmd, mass.link_mass_kg, mass.link_com_mm, payload)
     delta_t = np.zeros(a.shape[0]) if temp is None else temp - t_ref_c
-    return TwinInputs(a_deg=a, dir=d, payload_kg=payload, temp_c=temp, delta_t_k=delta_t, tau_nm=tau)
+    return TwinInputs(
+        a_deg=a,
+        dir=d,
+        payload_kg=payload,
+        temp_c=temp,
+        delta_t_k=delta_t,
+        tau_nm=tau,
+        clock=clk,
+        step_at=float(step_at),
+    )
 
 
 def _stage_delta(effect: Effect, values: tuple[Any, ...], basis: tuple[FloatArray, ...]) -> FloatArray:
@@ -162,6 +184,7 @@ def twin_state(
     temp_c: FloatArray | None = None,
     *,
     with_torques: bool = False,
+    clock: FloatArray | None = None,
 ) -> TwinState:
     """The twin of n poses with every intermediate kept; see the module docstring for the model.
 
@@ -172,7 +195,16 @@ def twin_state(
     active = [e for e in EFFECT_CATALOGUE if not effects.is_zero(e)]
     torques = with_torques or any(e.needs_torques for e in active)
     x = twin_inputs(
-        robot_or_arrays, params, a_deg, dir, payload_kg, temp_c, t_ref_c=effects.t_ref_c, with_torques=torques
+        robot_or_arrays,
+        params,
+        a_deg,
+        dir,
+        payload_kg,
+        temp_c,
+        t_ref_c=effects.t_ref_c,
+        with_torques=torques,
+        clock=clock,
+        step_at=effects.step_at,
     )
     n = x.a_deg.shape[0]
     a_eff = x.a_deg
@@ -211,13 +243,16 @@ def twin_tcp_mm(
     dir: FloatArray | None = None,
     payload_kg: FloatArray | float = 0.0,
     temp_c: FloatArray | None = None,
+    *,
+    clock: FloatArray | None = None,
 ) -> FloatArray:
     """(n, 3) TCP (mm, world frame of ``params``) of the twin with ``effects`` at axis values ``a_deg``.
 
     ``dir`` (n, 6) of −1/+1 (0 or None: unknown, no backlash); ``payload_kg`` a number or (n,);
-    ``temp_c`` (n,) or None (no thermal growth).
+    ``temp_c`` (n,) or None (no thermal growth); ``clock`` (n,) the campaign clock (h) of the time
+    effects (drift, step), or None (no time effect).
     """
-    return twin_state(robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c).tcp_mm
+    return twin_state(robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, clock=clock).tcp_mm
 
 
 def joint_output_axes_deg(
@@ -293,10 +328,13 @@ def _jacobian_parts(
     dir: FloatArray | None,
     payload_kg: FloatArray | float,
     temp_c: FloatArray | None,
+    clock: FloatArray | None,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """TCP (n, 3), geometric columns (n, 3, 39) and the named effect columns (n, 3, len(names))."""
     torques = _needs_torques(effects, names)
-    st = twin_state(robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, with_torques=torques)
+    st = twin_state(
+        robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, with_torques=torques, clock=clock
+    )
     geo = _geometric(params, effects, st)
     return st.tcp_mm, geo, _effect_columns(params, effects, st, names, geo)
 
@@ -310,12 +348,14 @@ def effect_jacobian(
     dir: FloatArray | None = None,
     payload_kg: FloatArray | float = 0.0,
     temp_c: FloatArray | None = None,
+    *,
+    clock: FloatArray | None = None,
 ) -> FloatArray:
     """(n, 3, len(names)) derivative of :func:`twin_tcp_mm` w.r.t. the named effect parameters.
 
     Columns are in mm per the parameter's unit (the catalogue's units); exact for every name.
     """
-    return _jacobian_parts(robot_or_arrays, params, effects, names, a_deg, dir, payload_kg, temp_c)[2]
+    return _jacobian_parts(robot_or_arrays, params, effects, names, a_deg, dir, payload_kg, temp_c, clock)[2]
 
 
 def twin_jacobian(
@@ -327,11 +367,15 @@ def twin_jacobian(
     dir: FloatArray | None = None,
     payload_kg: FloatArray | float = 0.0,
     temp_c: FloatArray | None = None,
+    *,
+    clock: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray]:
     """TCP (n, 3) and the stacked Jacobian (n, 3, 39 + len(names)): [geometric 39 | named effects].
 
     The geometric block is the derivative w.r.t. :meth:`KinematicParams.apply`'s vector at the
     twin's effective configuration (the gravity torque held fixed, see the module docstring).
     """
-    tcp, geo, eff = _jacobian_parts(robot_or_arrays, params, effects, names, a_deg, dir, payload_kg, temp_c)
+    tcp, geo, eff = _jacobian_parts(
+        robot_or_arrays, params, effects, names, a_deg, dir, payload_kg, temp_c, clock
+    )
     return tcp, np.concatenate([geo, eff], axis=2)
