@@ -107,6 +107,9 @@ def test_model_modules_import_neither_the_registry_nor_the_artifact_loader(modul
         ("compliance:2", "takes no order"),
         ("chebyshev:x", "0..8 or 'cv'"),
         ("kinematic+ratio+ratio", "named twice"),
+        ("kinematic+drift", "drift belongs to one campaign's clock"),
+        ("kriging+step", "step belongs to one campaign's clock"),
+        ("kinematic+wobble", r"known: backlash, ratio, cyclic, compliance, thermal\)"),
         ("", "empty model name"),
     ],
 )

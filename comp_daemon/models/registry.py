@@ -271,10 +271,18 @@ def parse_model_name(name: str) -> ModelSpec:
         if not kind.takes_effects:
             takers = ", ".join(k.name for k in KINDS.values() if k.takes_effects)
             raise UnknownModelError(f"model '{name}': joint effects are offered by the {takers} models only")
+        known = [e for e in EFFECTS if effect_by_name(e).of_the_robot]
         bad = [e or "(empty)" for e in effects if e not in EFFECTS]
         if bad:
             raise UnknownModelError(
-                f"model '{name}': unknown effect(s) {', '.join(bad)} (known: {', '.join(EFFECTS)})"
+                f"model '{name}': unknown effect(s) {', '.join(bad)} (known: {', '.join(known)})"
+            )
+        of_a_campaign = [e for e in effects if not effect_by_name(e).of_the_robot]
+        if of_a_campaign:
+            raise UnknownModelError(
+                f"model '{name}': {', '.join(of_a_campaign)} belongs to one campaign's clock, not to the "
+                f"robot, so a model cannot carry it to new targets (diagnose names it; model effects: "
+                f"{', '.join(known)})"
             )
         if len(set(effects)) != len(effects):
             raise UnknownModelError(f"model '{name}': an effect is named twice")

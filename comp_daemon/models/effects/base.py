@@ -174,6 +174,9 @@ class Effect:
     smooth_driver: bool = False  # its contribution is a smooth function of the driver (drawn as a line)
     action: str = ""  # what to do about it; ``{axes}`` stands for the joints, e.g. "A2 and A3"
     settings: tuple[str, ...] = ()  # EffectParams settings reported with the fitted values
+    # False: the effect belongs to one campaign (its clock), not to the robot, so a compensation model
+    # cannot carry it to new targets; the diagnosis may name it, the model kinds refuse it
+    of_the_robot: bool = True
 
     def __post_init__(self) -> None:
         if self.stage in ("axis", "joint") and self.basis is None:

@@ -407,6 +407,7 @@ DRIFT = Effect(
     smooth_driver=True,
     action="re-measure the reference (or the base) periodically during the campaign and the job, "
     "add a temperature sensor where the drift is thermal, or let the structure settle before measuring",
+    of_the_robot=False,
 )
 
 
@@ -443,6 +444,7 @@ STEP = Effect(
     action="re-master {axes} and check the campaign log for a collision or a mastering at that moment; "
     "calibrate again from the data after the change",
     settings=("step_at",),
+    of_the_robot=False,
 )
 
 
