@@ -181,7 +181,7 @@ def test_first_step_of_the_seed000_mapping_is_the_papers_feed_forward() -> None:
 def test_the_limits_apply_to_the_seed000_mapping() -> None:
     model = _models()[1]
     a_nominal = _well_conditioned(model, _axes(20, 14))
-    wanted, rot = nominal_targets(model, a_nominal)
+    wanted, _ = nominal_targets(model, a_nominal)
     wide = CompensationLimits(max_axis_change_deg=2.0)
     free = compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", limits=wide)
     worst = float(np.abs(free.da_deg).max())
