@@ -45,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--payload-kg", type=float, default=0.0, help="payload at the TCP throughout (default 0)")
     p.add_argument(
-        "--quick", action="store_true", help="the reduced trial of the test suite (one and a half minutes)"
+        "--quick", action="store_true", help="the reduced trial of the test suite (about two minutes)"
     )
     p.add_argument("--order", type=int, default=None, help="Chebyshev order (default 3; 0 with --quick)")
     p.add_argument("--json", metavar="OUT.json", help="write the full result (every measurement) as JSON")
