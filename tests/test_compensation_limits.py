@@ -402,8 +402,9 @@ async def test_the_executor_fails_a_target_near_the_wrist_singularity(tmp_path: 
         )
         a = SINGULAR.copy()
         a[4] = a5
-        store.submit_batch("k", "k", [_axes(a)])
+        store.submit_batch("k", "k", [_axes(a.tolist())])
         target = store.claim_next_target()
+        assert target is not None
         outcome = await executor.execute(target)
         assert outcome.state == "failed"
         assert outcome.reason is not None
@@ -432,3 +433,47 @@ def test_a_rotation_the_tracker_cannot_see_does_not_turn_the_wrist() -> None:
     np.testing.assert_allclose(model.predict_tcp_mm(a_nominal), wanted, atol=1e-9)
     res = compensate(model, wanted, rot, a_seed_deg=a_nominal)
     assert np.abs(res.da_deg).max() < 1e-6
+
+
+def test_compensate_maps_onto_joints_1_to_3_with_the_seed000_option(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model_path = _save("kinematic", tmp_path / "model.json")
+    program = _program(8, 12)
+    write_dataset(Dataset(a_deg=program), tmp_path / "program.csv")
+    args = ["compensate", str(model_path), str(tmp_path / "program.csv")]
+    assert main([*args, "--out", str(tmp_path / "six.csv")]) == 0
+    assert "(six-axis mapping)" in capsys.readouterr().out
+    assert main([*args, "--out", str(tmp_path / "seed000.csv"), "--mapping", "seed000"]) == 0
+    assert "(seed000 mapping)" in capsys.readouterr().out
+    six, seed000 = (read_dataset(tmp_path / f"{k}.csv", kind="targets") for k in ("six", "seed000"))
+    assert six.a_deg is not None and seed000.a_deg is not None
+    np.testing.assert_allclose(seed000.a_deg[:, 3:], program[:, 3:], atol=1e-9)  # the wrist stays
+    assert np.abs(seed000.a_deg[:, :3] - program[:, :3]).max() > 1e-3
+    assert np.abs(six.a_deg[:, 3:] - program[:, 3:]).max() > 1e-4
+    model = MODELS["kinematic"]  # both put the model's predicted TCP on the nominal one
+    wanted = model.predict_tcp_mm(six.a_deg)
+    np.testing.assert_allclose(model.predict_tcp_mm(seed000.a_deg), wanted, atol=1e-5)
+    # the limits hold for the mapped result too
+    tight = [
+        *args,
+        "--out",
+        str(tmp_path / "x.csv"),
+        "--mapping",
+        "seed000",
+        "--max-axis-change-deg",
+        "0.001",
+    ]
+    assert main(tight) == 2
+    assert "would change by" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        main([*args, "--out", str(tmp_path / "x.csv"), "--mapping", "paper"])
+
+
+def test_the_mapping_is_a_compensation_setting() -> None:
+    assert Settings().compensation.mapping == "six-axis"
+    assert load_settings(None, compensation={"mapping": "seed000"}).compensation.mapping == "seed000"
+    with pytest.raises(ValueError, match="mapping"):
+        load_settings(None, compensation={"mapping": "paper"})
+    example = Path(__file__).resolve().parents[1] / "config.example.toml"
+    assert 'mapping = "six-axis"' in example.read_text(encoding="utf-8")

@@ -16,8 +16,10 @@ from comp_daemon.models.artifact import model_document
 from comp_daemon.models.base import NominalModel
 from comp_daemon.models.compensation import CompensationLimits
 from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import load_robot
 from comp_daemon.rt.executor import CompensationError, ModelMissingError
+from comp_daemon.service.schemas import TARGET_COMPENSATED
 from comp_daemon.service.store import ModelDraft, Store
 
 HOME = [5.0, -85.0, 120.0, 3.0, -40.0, 10.0]
@@ -113,3 +115,68 @@ def test_unusable_models_and_requests_are_refused_by_name(store: Store) -> None:
         comp({"a1": 1.0, "tx": 2.0})
     with pytest.raises(CompensationError, match="unreachable within joint limits"):
         comp({"tx": 9000.0, "ty": 0.0, "tz": 500.0})
+
+
+def _fitted_kinematic(robot: Any) -> tuple[Any, dict[str, Any]]:
+    """A kinematic model fitted on noisy poses of a perturbed robot: it has a parameter covariance."""
+    rng = np.random.default_rng(6)
+    truth = KinematicParams.from_robot(robot).apply(rng.normal(size=N_PARAMS) * 3e-4)
+    lim = robot.axis_limits_deg
+    a = lim.mean(axis=1) + rng.uniform(-0.4, 0.4, (80, 6)) * np.minimum((lim[:, 1] - lim[:, 0]) / 2, 90.0)
+    measured = tcp_position_mm(truth, axes_deg_to_q_rad(a, truth.sign)) + rng.normal(size=(80, 3)) * 0.02
+    model = fit_model("kinematic", robot, a, measured, frame="base").model
+    return model, model_document(model, data_sha256="d" * 64, frame="base")
+
+
+def test_the_compensation_records_its_model_mapping_and_uncertainty_with_the_target(store: Store) -> None:
+    robot = load_robot("kr210")
+    model, doc = _fitted_kinematic(robot)
+    model_id = activate(store, doc)
+    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    _, targets, _ = store.submit_batch("k1", "0" * 64, [request])
+    claimed = store.claim_next_target()
+    assert claimed is not None and claimed.id == targets[0].id and claimed.state == "compensating"
+    comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
+    out = comp(claimed.request)
+    assert out.info is not None and out.info["mapping"] == "six-axis"
+    direction = np.zeros((1, 6))  # the seed is the current pose: no motion, and no direction
+    sigma = model.predict_std_mm(np.array([out.commanded_deg]), direction)
+    assert sigma is not None
+    assert out.info["predicted_sigma_mm"] == pytest.approx(float(np.linalg.norm(sigma[0])), rel=1e-12)
+    assert 1e-4 < out.info["predicted_sigma_mm"] < 0.1
+    events = [e for e in store.list_events(target_id=claimed.id) if e.kind == TARGET_COMPENSATED]
+    assert len(events) == 1
+    assert events[0].message["model_id"] == model_id
+    assert events[0].message["predicted_sigma_mm"] == out.info["predicted_sigma_mm"]
+    # a request compensated outside the executor (no target compensating) records nothing
+    store.advance_target(claimed.id, "moving", commanded_axes_deg=list(out.commanded_deg))
+    comp(request)
+    assert len([e for e in store.list_events() if e.kind == TARGET_COMPENSATED]) == 1
+
+
+def test_the_nominal_model_has_no_uncertainty_to_report(store: Store) -> None:
+    robot = load_robot("kr210")
+    activate(store, model_document(NominalModel(robot), data_sha256="e" * 64, frame="base"), "nominal")
+    out = ActiveModelCompensator(store, robot, [0, 1, 2])({f"a{i + 1}": v for i, v in enumerate(HOME)})
+    assert out.info is not None and "predicted_sigma_mm" not in out.info
+
+
+def test_the_seed000_mapping_keeps_the_wrist_of_the_nominal_solution(store: Store) -> None:
+    robot = load_robot("kr210")
+    model, doc = _fitted_kinematic(robot)
+    activate(store, doc)
+    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    six = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))(request)
+    seed000 = ActiveModelCompensator(
+        store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME), mapping="seed000"
+    )(request)
+    assert seed000.info is not None and seed000.info["mapping"] == "seed000"
+    np.testing.assert_allclose(seed000.commanded_deg[3:], HOME[3:], atol=1e-9)
+    assert np.abs(np.subtract(six.commanded_deg[3:], HOME[3:])).max() > 1e-4
+    for out in (six, seed000):  # both put the model's predicted TCP on the nominal one
+        wanted = tcp_position_mm(
+            KinematicParams.from_robot(robot), axes_deg_to_q_rad(np.array([HOME]), robot.sign)
+        )
+        np.testing.assert_allclose(model.predict_tcp_mm(np.array([out.commanded_deg])), wanted, atol=1e-5)
+    with pytest.raises(ValueError, match="mapping must be one of six-axis, seed000"):
+        ActiveModelCompensator(store, robot, [0, 1, 2], mapping="paper")  # type: ignore[arg-type]

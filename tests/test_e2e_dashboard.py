@@ -3,7 +3,8 @@
 
 The page loads with a token from the link's fragment, goes live over server-sent events, shows the
 loop's numbers changing without a reload (faster than its 5 s status poll could change them), the
-joints, the queue, the fitted model with Table 2, and logs no console error. A screenshot is saved
+joints, the queue with each compensated target's model uncertainty (σ), the fitted model with
+Table 2, and logs no console error. A screenshot is saved
 in the test's folder, and also at ``$DASHBOARD_SCREENSHOT`` when set (the repository keeps one
 as ``docs/dashboard.png``).
 
@@ -131,6 +132,13 @@ def test_dashboard_goes_live_in_chromium(daemon: DaemonProcess, tmp_path: Path) 
                     return states.count("done") >= 3 and any(s in ("moving", "settling") for s in states)
 
                 wait_until(some_done_one_running, 60, "three targets done and one under way", every_s=0.1)
+                done = [t for t in (mes.get(f"/api/targets/{i}").json() for i in ids) if t["state"] == "done"]
+            # each compensated target shows the kinematic model's 1-σ uncertainty at its commanded axes
+            assert done and all(0.0 < t["predicted_sigma_mm"] < 1.0 for t in done), done
+            page.locator("#show-finished").check()
+            for t in done:
+                row = page.locator("#targets tbody tr", has_text=t["request"]["pose_id"])
+                expect(row.locator("td.sigma")).to_have_text(f"{t['predicted_sigma_mm']:.4f}", timeout=10_000)
             expect(page.locator("#current-target")).not_to_have_text("no target", timeout=10_000)
             expect(page.locator("#targets tbody tr").first).to_be_visible()
             expect(page.locator("#table2 tbody tr").first).to_be_visible()

@@ -11,7 +11,14 @@ from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to
 from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import fit_chebyshev
-from comp_daemon.models.compensation import compensate, feed_forward, joint_mapping, nominal_targets
+from comp_daemon.models.compensation import (
+    CompensationLimits,
+    CompensationRefused,
+    compensate,
+    feed_forward,
+    joint_mapping,
+    nominal_targets,
+)
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import KinematicModel, calibrate_kinematic
 from comp_daemon.robot.description import load_robot
@@ -129,3 +136,68 @@ def test_calibrated_model_compensates_the_true_robot_to_the_noise_level() -> Non
     before = twin_tcp_mm(KR, truth, EffectParams.zeros(), a_nominal)
     assert np.linalg.norm(before - wanted, axis=1).max() > 0.5
     assert np.linalg.norm(reached - wanted, axis=1).max() < 0.03
+
+
+def _well_conditioned(model: ErrorModel, a: np.ndarray) -> np.ndarray:
+    """The rows of ``a`` away from the singularities of the position Jacobian of joints 1–3 and of
+    the wrist."""
+    params = model.ik_params()
+    jac = position_jacobian_mm(params, axes_deg_to_q_rad(a, params.sign))[:, :, :3]
+    return a[(np.linalg.cond(jac) < 50.0) & (np.abs(a[:, 4]) > 10.0)]
+
+
+@pytest.mark.parametrize("index", [0, 1, 2])
+def test_seed000_mapping_moves_only_joints_1_to_3_onto_the_target(index: int) -> None:
+    model = _models()[index]
+    a_nominal = _well_conditioned(model, _axes(40, 12))
+    assert len(a_nominal) > 10
+    wanted, rot = nominal_targets(model, a_nominal)
+    wide = CompensationLimits(max_axis_change_deg=2.0)  # the test models' errors reach 3.4 mm
+    result = compensate(model, wanted, rot, a_seed_deg=a_nominal, mapping="seed000", limits=wide)
+    assert result.converged and result.residual_mm.max() < 1e-6
+    wanted_world = wanted @ model.registration[:3, :3].T + model.registration[:3, 3]
+    assert np.linalg.norm(model.predict_tcp_mm(result.a_deg) - wanted_world, axis=1).max() < 1e-6
+    np.testing.assert_array_equal(result.a_deg[:, 3:], result.a_uncompensated_deg[:, 3:])  # the wrist
+    if index < 2:
+        assert np.abs(result.da_deg[:, :3]).max() > 1e-3
+        # the six-axis mapping reaches the same predicted TCP with other axis values
+        six = compensate(model, wanted, rot, a_seed_deg=a_nominal, limits=wide)
+        np.testing.assert_allclose(six.predicted_mm, result.predicted_mm, atol=1e-6)
+        assert np.abs(six.a_deg - result.a_deg).max() > 1e-4
+
+
+def test_first_step_of_the_seed000_mapping_is_the_papers_feed_forward() -> None:
+    model = _models()[1]
+    a_nominal = _well_conditioned(model, _axes(40, 12))
+    wanted, _ = nominal_targets(model, a_nominal)
+    wide = CompensationLimits(max_axis_change_deg=2.0)
+    one = compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", max_iter=1, limits=wide)
+    np.testing.assert_allclose(one.a_deg, feed_forward(model, a_nominal).a_deg, atol=1e-12)
+    assert not one.converged  # one step leaves the second-order remainder
+    full = compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", limits=wide)
+    assert full.residual_mm.max() < 1e-6 < one.residual_mm.max()
+
+
+def test_the_limits_apply_to_the_seed000_mapping() -> None:
+    model = _models()[1]
+    a_nominal = _well_conditioned(model, _axes(20, 14))
+    wanted, _ = nominal_targets(model, a_nominal)
+    wide = CompensationLimits(max_axis_change_deg=2.0)
+    free = compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", limits=wide)
+    worst = float(np.abs(free.da_deg).max())
+    tight = CompensationLimits(max_axis_change_deg=0.5 * worst)
+    with pytest.raises(CompensationRefused, match="would change by") as caught:
+        compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", limits=tight)
+    assert all(r.axis in (1, 2, 3) for r in caught.value.refusals)
+    # the validity region of the Chebyshev model: a target beyond its sampled A1 range is refused
+    beyond = a_nominal[:1].copy()
+    beyond[0, 0] = model.range_deg[0][1] + 30.0  # type: ignore[attr-defined]
+    p, r = nominal_targets(model, beyond)
+    with pytest.raises(CompensationRefused, match="validity region"):
+        compensate(model, p, r, a_seed_deg=beyond, mapping="seed000")
+
+
+def test_an_unknown_mapping_is_an_error() -> None:
+    model = NominalModel(KR)
+    with pytest.raises(ValueError, match="six-axis, seed000"):
+        compensate(model, np.array([[1800.0, 0.0, 1200.0]]), mapping="paper")  # type: ignore[arg-type]

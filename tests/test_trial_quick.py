@@ -35,11 +35,20 @@ async def test_quick_trial_orders_the_methods_like_seed_000(tmp_path: Path) -> N
     v = verdict(result)
     assert v["ordering"]["mean"] and v["ordering"]["max"], render_text(result)
     t2 = result.table2()
-    assert set(t2) == {"uncompensated", "kinematic", "chebyshev+feedback"}
+    assert set(t2) == {"uncompensated", "kinematic", "chebyshev+feedback", "chebyshev-seed000+feedback"}
     assert all(st["n"] == QUICK.n_targets for st in t2.values())
-    loop_run = result.runs["chebyshev+feedback"]
-    assert loop_run.feedback and loop_run.failures() == [] and set(loop_run.state) == {"done"}
-    assert np.all(np.isfinite(loop_run.grating_deg))
+    for key in ("chebyshev+feedback", "chebyshev-seed000+feedback"):
+        loop_run = result.runs[key]
+        assert loop_run.feedback and loop_run.failures() == [] and set(loop_run.state) == {"done"}
+        assert np.all(np.isfinite(loop_run.grating_deg))
+    # seed 000's mapping moves joints 1-3 only: the wrist is commanded at its nominal axis values,
+    # where the six-axis mapping turns it
+    seed000 = result.runs["chebyshev-seed000+feedback"].commanded_deg
+    six = result.runs["chebyshev+feedback"].commanded_deg
+    nominal = result.runs["uncompensated"].commanded_deg
+    np.testing.assert_allclose(seed000[:, 3:], nominal[:, 3:], atol=1e-6)
+    assert np.abs(seed000[:, :3] - nominal[:, :3]).max() > 1e-3
+    assert np.abs(six[:, 3:] - nominal[:, 3:]).max() > 1e-3
 
     # ISO 9283: the joint loop removes the joint 1-3 share of the direction-dependent error
     iso = result.iso["runs"]
@@ -64,7 +73,7 @@ async def test_quick_trial_orders_the_methods_like_seed_000(tmp_path: Path) -> N
     assert result.loop["daemon_exit_code"] == 0
     assert result.loop["controller"]["state"] == "running"  # RSI never stopped during the trial
     iso_targets = len(QUICK.iso_fractions) * 3 * (QUICK.iso_cycles + QUICK.iso_warmup_cycles)
-    assert result.loop["targets"]["done"] == iso_targets + QUICK.n_targets
+    assert result.loop["targets"]["done"] == iso_targets + 2 * QUICK.n_targets
 
     # progress was reported for every phase, the result survives JSON, the reports render
     assert {e.phase for e in events if e.finished} >= {"grating calibration", "seed 001 model comparison"}

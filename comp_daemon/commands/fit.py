@@ -40,6 +40,7 @@ from comp_daemon.models.artifact import ModelArtifactError, load_model, save_mod
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import (
     DEFAULT_LIMITS,
+    MAPPINGS,
     CompensationLimits,
     CompensationRefused,
     compensate,
@@ -141,6 +142,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default=DEFAULT_LIMITS.hull_margin_deg,
         help="refuse a target this far beyond the model's sampled axis ranges "
         f"(default {DEFAULT_LIMITS.hull_margin_deg:g})",
+    )
+    comp.add_argument(
+        "--mapping",
+        choices=MAPPINGS,
+        default="six-axis",
+        help="six-axis: inverse kinematics of every axis (default); seed000: seed 000's mapping of the "
+        "predicted error onto joints 1-3, the wrist from the nominal solution",
     )
     comp.set_defaults(func=_compensate)
 
@@ -411,6 +419,7 @@ def _compensate(args: argparse.Namespace) -> int:
             temp_c=targets.temp_c,
             tol_mm=args.tol_mm,
             limits=limits,
+            mapping=args.mapping,
         )
     except UnreachableTargetError as exc:
         raise UserError(f"{targets.source}: {exc}") from None
@@ -457,7 +466,8 @@ def _compensate(args: argparse.Namespace) -> int:
         else f"the {model.kind} model has no sampled region to keep to"
     )
     print(
-        f"{n} targets compensated with the {model.kind} model in {result.iterations} iterations "
+        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
+        f"in {result.iterations} iterations "
         f"(max predicted error {result.residual_mm.max():.2e} mm, "
         f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
         f"{outside} -> {args.out}"

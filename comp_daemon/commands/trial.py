@@ -1,10 +1,11 @@
 """``comp-daemon trial``: seed 000's experiment end to end through the running daemon.
 
 Brings up the simulated cell and the daemon, runs grating calibration, ISO 9283 with and without
-joint feedback, sampling, fits over HTTP and the target points three (to five) ways, and prints
-Table 2 beside seed 000's figures (:mod:`comp_daemon.trial`). ``--quick`` is the reduced trial of
-the test suite (one and a half minutes); the full trial takes about half an hour. ``--from-json`` renders
-the report of an earlier run again without running anything.
+joint feedback, sampling, fits over HTTP and the target points four (to six) ways — the Chebyshev
+model with the joint loop both with the daemon's six-axis inverse kinematics and with seed 000's
+mapping onto joints 1–3 — and prints Table 2 beside seed 000's figures (:mod:`comp_daemon.trial`).
+``--quick`` is the reduced trial of the test suite (about two minutes); the full trial takes about
+half an hour. ``--from-json`` renders the report of an earlier run again without running anything.
 
 Exit codes: 0 the trial ran (whatever its numbers); 1 it stopped part way (the partial result is
 still written); 2 bad arguments.
@@ -31,7 +32,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         description="Seed 000's experiment end to end: the simulated cell and the daemon are brought up, "
         "the gratings calibrated, ISO 9283 run with and without joint feedback, sampling points measured "
         "and models fitted over HTTP, and the target points run uncompensated, with kinematic calibration "
-        "and with the Chebyshev model and the joint loop. Prints Table 2 beside seed 000's figures.",
+        "and with the Chebyshev model and the joint loop (six-axis inverse kinematics and seed 000's mapping "
+        "onto joints 1-3). Prints Table 2 beside seed 000's figures.",
     )
     p.add_argument(
         "--scenario",
@@ -43,7 +45,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--payload-kg", type=float, default=0.0, help="payload at the TCP throughout (default 0)")
     p.add_argument(
-        "--quick", action="store_true", help="the reduced trial of the test suite (one and a half minutes)"
+        "--quick", action="store_true", help="the reduced trial of the test suite (about two minutes)"
     )
     p.add_argument("--order", type=int, default=None, help="Chebyshev order (default 3; 0 with --quick)")
     p.add_argument("--json", metavar="OUT.json", help="write the full result (every measurement) as JSON")

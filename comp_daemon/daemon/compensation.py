@@ -13,6 +13,15 @@ drives the grating angles there, taking out backlash and whatever else the joint
 from its motor (seed 000, step 5). Approach directions passed to the model are those the motion
 will have on the joints without gratings; on grating joints the direction is left unknown (0),
 since the loop removes the direction-dependent part there.
+
+``mapping`` (``[compensation] mapping``) chooses how the compensated target becomes axis values:
+the six-axis inverse kinematics (default) or seed 000's mapping onto joints 1–3 with the wrist of
+the nominal solution (:mod:`comp_daemon.models.compensation`). The target's outcome ``info`` holds
+the nominal solution, the predicted residual, the iterations, the mapping and, for a model with an
+uncertainty, ``predicted_sigma_mm``: the 3-D 1-σ uncertainty of the model's TCP prediction at the
+commanded axes (``|σ|`` of the x, y, z standard deviations; none for the nominal model). The
+store keeps it, with the model id, as the target's ``target.compensated`` event, which the API's
+target output reads.
 """
 
 from __future__ import annotations
@@ -23,15 +32,26 @@ from typing import Any
 
 import numpy as np
 
+from comp_daemon.common.logs import get_logger
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models import artifact as artifacts
 from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits, compensate, nominal_targets
+from comp_daemon.models.compensation import (
+    DEFAULT_LIMITS,
+    MAPPINGS,
+    CompensationLimits,
+    JointMapping,
+    compensate,
+    nominal_targets,
+)
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.rt.executor import CompensatedTarget, CompensationError, ModelMissingError
+from comp_daemon.service.schemas import TARGET_COMPENSATED
 from comp_daemon.service.store import Store
 
 __all__ = ["ActiveModelCompensator", "model_from_artifact"]
+
+log = get_logger(__name__)
 
 _AXES = ("a1", "a2", "a3", "a4", "a5", "a6")
 _TCP = ("tx", "ty", "tz")
@@ -58,9 +78,13 @@ class ActiveModelCompensator:
         *,
         current_axes: Callable[[], Sequence[float] | None] | None = None,
         limits: CompensationLimits = DEFAULT_LIMITS,
+        mapping: JointMapping = "six-axis",
     ) -> None:
+        if mapping not in MAPPINGS:
+            raise ValueError(f"mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
         self.store = store
         self.limits = limits  # the [compensation] settings: axis change, wrist, sampled region
+        self.mapping: JointMapping = mapping  # [compensation] mapping: six-axis IK or seed 000's
         self.robot = robot
         self.joints = tuple(joints)  # 0-based indices of the joints with gratings
         self.current_axes = current_axes
@@ -112,6 +136,7 @@ class ActiveModelCompensator:
                 dir=direction,
                 payload_kg=None if payload is None else float(payload),
                 limits=self.limits,
+                mapping=self.mapping,
             )
         except UnreachableTargetError as exc:
             raise CompensationError(str(exc)) from None
@@ -125,9 +150,26 @@ class ActiveModelCompensator:
         for j, v in enumerate(commanded):
             if not limits[j, 0] <= v <= limits[j, 1]:
                 raise CompensationError(f"the compensated A{j + 1} = {v:.4f} deg is outside the axis limits")
-        info = {
+        info: dict[str, Any] = {
             "uncompensated_deg": [float(v) for v in res.a_uncompensated_deg[0]],
             "predicted_residual_mm": float(res.residual_mm[0]),
             "iterations": res.iterations,
+            "mapping": self.mapping,
         }
+        sigma = model.predict_std_mm(res.a_deg, direction, None if payload is None else float(payload))
+        if sigma is not None:  # 3-D 1-σ uncertainty of the model's TCP at the commanded axes
+            info["predicted_sigma_mm"] = float(np.linalg.norm(sigma[0]))
+        self._record(request, model_id, info)
         return CompensatedTarget(commanded, tuple(commanded[j] for j in self.joints), model_id, info)
+
+    def _record(self, request: Mapping[str, Any], model_id: int, info: Mapping[str, Any]) -> None:
+        """The compensation as a :data:`TARGET_COMPENSATED` event of the target being compensated:
+        the store's target in state ``compensating`` with this request (the executor claims one
+        target at a time). A request compensated outside the executor records nothing."""
+        claimed = [
+            t for t in self.store.list_targets(states=["compensating"], limit=2) if t.request == dict(request)
+        ]
+        if len(claimed) != 1:
+            log.debug("compensation not recorded: no single compensating target", found=len(claimed))
+            return
+        self.store.add_event(TARGET_COMPENSATED, {"model_id": model_id, **info}, target_id=claimed[0].id)

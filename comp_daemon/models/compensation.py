@@ -24,6 +24,20 @@ the daemon's executor alike: :func:`compensate`.
 3. The axis changes are measured against the nominal solution
    (:attr:`CompensationResult.da_deg`).
 
+Two joint mappings (``mapping``; the daemon's ``[compensation] mapping``):
+
+- ``"six-axis"`` (default): step 2 above, every axis from the inverse kinematics on the model's
+  chain.
+- ``"seed000"``: seed 000's closed loop (§2.2) — the wrist (joints 4–6) stays at the nominal
+  solution and only joints 1–3 move: starting from the nominal solution, the model's predicted
+  error ``ΔP`` (predicted − wanted) is mapped to joints 1–3 by :func:`joint_mapping` and the joint
+  targets become ``θ − Δθ``, repeated from the new command until the predicted TCP is within
+  ``tol_mm`` of the wanted one. The first step is the paper's feed-forward (:func:`feed_forward`);
+  the further steps take out its second-order remainder (micrometres for a calibrated robot),
+  so both mappings put the predicted TCP on the target and differ only in how the axes get there.
+  The tool's orientation is not held: it turns with joints 1–3 by the correction (hundredths of a
+  degree).
+
 Limits (:class:`CompensationLimits`; the daemon's ``[compensation]`` settings). A target is refused
 with :class:`CompensationRefused`, whose message names the target, the axis, the size and the
 reason, rather than compensated when
@@ -38,6 +52,8 @@ reason, rather than compensated when
 - an axis would change by more than ``max_axis_change_deg`` from the nominal solution (default
   0.5°: a calibrated robot's compensation is hundredths to tenths of a degree, and 0.5° is also the
   joint loop's default correction budget, ``controller.max_total_deg``);
+- a compensated axis value leaves the axis limits (the six-axis inverse kinematics keeps inside
+  them; seed 000's mapping does not look);
 - the compensated axis values leave the nominal configuration: the arm's branch (shoulder, elbow)
   or the wrist's (flip) (:func:`configuration`);
 - the model records the axis ranges of the poses it was fitted on (Chebyshev of order 1 or more:
@@ -61,6 +77,7 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Literal, get_args
 
 import numpy as np
 from numpy.typing import NDArray
@@ -76,10 +93,12 @@ from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "DEFAULT_LIMITS",
+    "MAPPINGS",
     "CompensationLimits",
     "CompensationRefused",
     "CompensationResult",
     "FeedForward",
+    "JointMapping",
     "Refusal",
     "axis_limits_q_rad",
     "base_refusals",
@@ -96,6 +115,10 @@ __all__ = [
 ]
 
 MAPPED_JOINTS = (1, 2, 3)
+
+#: How a compensated target becomes axis values (module docstring, *joint mappings*).
+JointMapping = Literal["six-axis", "seed000"]
+MAPPINGS: tuple[str, ...] = get_args(JointMapping)
 
 
 def axis_limits_q_rad(robot: RobotDescription) -> NDArray[np.float64]:
@@ -328,10 +351,24 @@ def _change_refusals(
     worst = np.argmax(np.abs(da), axis=1)
     params = KinematicParams.from_robot(robot)
     changed = np.any(configuration(params, a_nominal_deg) != configuration(params, a_deg), axis=1)
+    lo, hi = robot.axis_limits_deg[:, 0], robot.axis_limits_deg[:, 1]
+    outside = (a_deg < lo) | (a_deg > hi)
     out = []
     for i in range(a_deg.shape[0]):
         j = int(worst[i])
         size = float(da[i, j])
+        if outside[i].any():
+            k = int(np.argmax(outside[i]))
+            out.append(
+                Refusal(
+                    i,
+                    k + 1,
+                    float(a_deg[i, k]),
+                    f"the compensated A{k + 1} = {a_deg[i, k]:.4f}° is outside the axis limits "
+                    f"[{lo[k]:g}°, {hi[k]:g}°]",
+                )
+            )
+            continue
         if changed[i]:
             reason = (
                 f"the compensated axis values leave the nominal arm or wrist configuration "
@@ -363,18 +400,22 @@ def compensate(
     tol_mm: float = 1e-8,
     max_iter: int = 30,
     limits: CompensationLimits = DEFAULT_LIMITS,
+    mapping: JointMapping = "six-axis",
 ) -> CompensationResult:
     """Commands (deg) whose predicted TCP equals the wanted ``target_p_base_mm`` (n, 3), base frame.
 
     ``a_seed_deg`` (n, 6) or (6,): where the nominal inverse kinematics starts (the nominal
     program's axis values, or the robot's current ones); default the middle of every axis range.
-    The compensated commands start from the nominal solution and are checked against ``limits``.
+    The compensated commands start from the nominal solution, are found by ``mapping`` (module
+    docstring: ``"six-axis"`` or ``"seed000"``) and are checked against ``limits``.
     Raises :class:`UnreachableTargetError` naming unreachable targets and
     :class:`CompensationRefused` naming refused ones (every refused target of the call).
     """
     target = np.atleast_2d(np.asarray(target_p_base_mm, dtype=float))
     if target.ndim != 2 or target.shape[1] != 3:
         raise ValueError(f"target positions must have shape (n, 3), got {np.shape(target_p_base_mm)}")
+    if mapping not in MAPPINGS:
+        raise ValueError(f"mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
     n = target.shape[0]
     robot = model.robot
     rot_base = None if target_R_base is None else np.asarray(target_R_base, dtype=float).reshape(n, 3, 3)
@@ -392,11 +433,54 @@ def compensate(
     reg = model.registration
     wanted = transform_points(reg, target)
     params: KinematicParams = model.ik_params()
+    if mapping == "seed000":
+        a_final, predicted, iterations, converged = _joint_mapping_iteration(
+            model, params, a_nominal, wanted, dir, payload_kg, temp_c, tol_mm, max_iter
+        )
+    else:
+        a_final, predicted, iterations, converged = _six_axis_iteration(
+            model, params, a_nominal, wanted, rot_base is not None, dir, payload_kg, temp_c, tol_mm, max_iter
+        )
+    refused = _change_refusals(robot, a_nominal, a_final, limits)
+    if region is not None:
+        refused += region_refusals(region, a_final, limits.hull_margin_deg)
+    if refused:
+        raise CompensationRefused(_first_per_target(refused), n)
+    residual = np.linalg.norm(predicted - wanted, axis=1)
+    return CompensationResult(
+        a_deg=a_final,
+        a_uncompensated_deg=a_nominal,
+        wanted_mm=wanted,
+        predicted_mm=predicted,
+        residual_mm=residual,
+        iterations=iterations,
+        converged=converged or bool(np.all(residual <= tol_mm)),
+        region_deg=region,
+    )
+
+
+_Iteration = tuple[NDArray[np.float64], NDArray[np.float64], int, bool]
+
+
+def _six_axis_iteration(
+    model: ErrorModel,
+    params: KinematicParams,
+    a_nominal: NDArray[np.float64],
+    wanted: NDArray[np.float64],
+    hold_orientation: bool,
+    dir: NDArray[np.float64] | None,
+    payload_kg: NDArray[np.float64] | float | None,
+    temp_c: NDArray[np.float64] | None,
+    tol_mm: float,
+    max_iter: int,
+) -> _Iteration:
+    """Model + six-axis inverse kinematics, iterated (module docstring, step 2): the commands, the
+    predicted TCP there, the iterations and whether they converged."""
     q_nominal = axes_deg_to_q_rad(a_nominal, params.sign)
     rot = None  # the orientation the nominal solution has on the model's chain, held
-    if rot_base is not None:
+    if hold_orientation:
         rot = chain(params, q_nominal).world_T_frame[:, 6, :3, :3]
-    limits_q = axis_limits_q_rad(robot)
+    limits_q = axis_limits_q_rad(model.robot)
     ik_tol = min(tol_mm, 1e-9) / 10.0
 
     def solve(p_ik: NDArray[np.float64], seed: NDArray[np.float64], what: str) -> NDArray[np.float64]:
@@ -416,23 +500,34 @@ def compensate(
         p_ik = p_ik + err
         q = solve(p_ik, q, "compensated target")
         predicted = model.predict_tcp_mm(q_rad_to_axes_deg(q, params.sign), dir, payload_kg, temp_c)
-    a_final = q_rad_to_axes_deg(q, params.sign)
-    refused = _change_refusals(robot, a_nominal, a_final, limits)
-    if region is not None:
-        refused += region_refusals(region, a_final, limits.hull_margin_deg)
-    if refused:
-        raise CompensationRefused(_first_per_target(refused), n)
-    residual = np.linalg.norm(predicted - wanted, axis=1)
-    return CompensationResult(
-        a_deg=a_final,
-        a_uncompensated_deg=a_nominal,
-        wanted_mm=wanted,
-        predicted_mm=predicted,
-        residual_mm=residual,
-        iterations=iterations,
-        converged=converged or bool(np.all(residual <= tol_mm)),
-        region_deg=region,
-    )
+    return q_rad_to_axes_deg(q, params.sign), predicted, iterations, converged
+
+
+def _joint_mapping_iteration(
+    model: ErrorModel,
+    params: KinematicParams,
+    a_nominal: NDArray[np.float64],
+    wanted: NDArray[np.float64],
+    dir: NDArray[np.float64] | None,
+    payload_kg: NDArray[np.float64] | float | None,
+    temp_c: NDArray[np.float64] | None,
+    tol_mm: float,
+    max_iter: int,
+) -> _Iteration:
+    """Seed 000's mapping (module docstring): joints 1–3 corrected by :func:`joint_mapping` from the
+    nominal solution, repeated on the predicted error; joints 4–6 stay at the nominal solution."""
+    a = a_nominal.copy()
+    predicted = model.predict_tcp_mm(a, dir, payload_kg, temp_c)
+    converged = False
+    iterations = 0
+    for iterations in range(1, max_iter + 1):  # noqa: B007
+        err = predicted - wanted
+        if float(np.max(np.linalg.norm(err, axis=1), initial=0.0)) <= tol_mm:
+            converged = True
+            break
+        a = a + joint_mapping(params, a, err)
+        predicted = model.predict_tcp_mm(a, dir, payload_kg, temp_c)
+    return a, predicted, iterations, converged
 
 
 def _first_per_target(refusals: list[Refusal]) -> list[Refusal]:

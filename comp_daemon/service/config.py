@@ -30,7 +30,7 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits
+from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits, JointMapping
 
 __all__ = [
     "REMOVED_REALTIME_KEYS",
@@ -322,12 +322,16 @@ class CompensationSettings(_Section):
 
     ``max_axis_change_deg``: largest change of any axis from the nominal solution;
     ``wrist_singularity_deg``: targets whose axes 4 and 6 are nearer than this to in line (|A5|) are
-    refused; ``hull_margin_deg``: how far beyond the sampled axis ranges of the model a target may lie.
+    refused; ``hull_margin_deg``: how far beyond the sampled axis ranges of the model a target may lie;
+    ``mapping``: how a compensated target becomes axis values, ``"six-axis"`` (inverse kinematics of
+    every axis) or ``"seed000"`` (seed 000's mapping onto joints 1–3, the wrist from the nominal
+    solution); the limits apply to both.
     """
 
     max_axis_change_deg: float = Field(default=DEFAULT_LIMITS.max_axis_change_deg, gt=0, le=10.0)
     wrist_singularity_deg: float = Field(default=DEFAULT_LIMITS.wrist_singularity_deg, ge=0, lt=90.0)
     hull_margin_deg: float = Field(default=DEFAULT_LIMITS.hull_margin_deg, ge=0, le=360.0)
+    mapping: JointMapping = "six-axis"
 
     def limits(self) -> CompensationLimits:
         return CompensationLimits(self.max_axis_change_deg, self.wrist_singularity_deg, self.hull_margin_deg)

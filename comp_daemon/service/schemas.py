@@ -9,7 +9,7 @@ value in a JSON upload).
 from __future__ import annotations
 
 import datetime as dt
-from collections.abc import Iterable
+from collections.abc import Iterable, Mapping
 from typing import Annotated, Any, Literal
 
 from fastapi.responses import Response
@@ -293,6 +293,12 @@ class BatchIn(BaseModel):
     targets: list[TargetIn] = Field(min_length=1)
 
 
+#: Store event of a target's compensation (the daemon's compensator; ``target_id`` set): the model,
+#: the mapping, the nominal solution, the predicted residual and, for a model with an uncertainty,
+#: ``predicted_sigma_mm``.
+TARGET_COMPENSATED = "target.compensated"
+
+
 class TargetOut(_Out):
     id: int
     batch_id: int
@@ -308,10 +314,23 @@ class TargetOut(_Out):
     updated_at: str | None
     started_at: str | None
     finished_at: str | None
+    model_id: int | None = Field(None, description="the model that compensated the commanded axes")
+    predicted_sigma_mm: float | None = Field(
+        None,
+        description="3-D 1-σ uncertainty (mm) of the model's predicted TCP at the commanded axes "
+        "(the norm of its x, y, z standard deviations); null without a compensation or for a model "
+        "without an uncertainty (nominal)",
+    )
 
     @classmethod
-    def of(cls, r: TargetRecord) -> TargetOut:
+    def of(cls, r: TargetRecord, compensation: Mapping[str, Any] | None = None) -> TargetOut:
+        """``compensation``: the message of the target's latest :data:`TARGET_COMPENSATED` event."""
+        comp = compensation or {}
+        sigma = comp.get("predicted_sigma_mm")
+        model_id = comp.get("model_id")
         return cls(
+            model_id=None if model_id is None else int(model_id),
+            predicted_sigma_mm=None if sigma is None else float(sigma),
             id=r.id,
             batch_id=r.batch_id,
             seq=r.seq,
@@ -336,14 +355,19 @@ class BatchOut(_Out):
     targets: list[TargetOut]
 
     @classmethod
-    def of(cls, b: BatchRecord, targets: list[TargetRecord]) -> BatchOut:
+    def of(
+        cls,
+        b: BatchRecord,
+        targets: list[TargetRecord],
+        compensations: Mapping[int, Mapping[str, Any]] | None = None,
+    ) -> BatchOut:
         return cls(
             id=b.id,
             idempotency_key=b.idempotency_key,
             size=b.size,
             source=b.source,
             created_at=iso(b.created_at),
-            targets=[TargetOut.of(t) for t in targets],
+            targets=[TargetOut.of(t, (compensations or {}).get(t.id)) for t in targets],
         )
 
 

@@ -46,6 +46,7 @@ class TrialSizes:
     dwell_s: float = 0.5  # open-loop standstill before the tracker reads (the campaigns' dwell)
     loop_sampling: bool = True  # sample (and fit the Chebyshev model) with the joint loop closed
     kinematic_with_loop: bool = True  # also run the targets with the kinematic model + the loop
+    seed000_mapping: bool = True  # also run the Chebyshev targets with seed 000's joint mapping
     calibration_poses: int = 6  # grating calibration poses (each approached from both sides)
 
     def __post_init__(self) -> None:

@@ -32,6 +32,7 @@ COLORS = {
     "feedback": "#8e44ad",
     "kinematic+feedback": "#2980b9",
     "chebyshev+feedback": "#27ae60",
+    "chebyshev-seed000+feedback": "#16a085",
 }
 FONT = "font-family:sans-serif;font-size:11px"
 

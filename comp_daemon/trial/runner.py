@@ -26,7 +26,12 @@ Phases (seed 000 §3; the numbers are those of the full trial, :data:`comp_daemo
 9. **Targets, Chebyshev + feedback** (seed 000's method): the Chebyshev model is activated and the
    target points are posted as the nominal program's axis values; the daemon compensates, moves,
    closes the loop; tracker.
-10. **Targets, kinematic + feedback** (full trial): the same with the closed-loop kinematic model.
+10. **Targets, Chebyshev (seed 000 mapping) + feedback**: the same model, its compensation mapped
+    onto joints 1–3 as seed 000 §2.2 does (the wrist from the nominal inverse kinematics) instead of
+    the daemon's six-axis inverse kinematics; the trial compensates the targets with the model's
+    artifact and posts the commands under the nominal model (:meth:`_Trial.seed000_run`), so the
+    two rows differ only in the mapping. ``TrialSizes.seed000_mapping`` turns the row off.
+11. **Targets, kinematic + feedback** (full trial): the same as 9 with the closed-loop kinematic model.
 
 Every run over the target points starts from the scenario's home pose, so the routes (and the
 approach directions) are the same. All runs by the robot program alone come before the first target
@@ -48,7 +53,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.models.compensation import compensate
+from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.compensation import CompensationRefused, JointMapping, compensate
 from comp_daemon.rt.grating_cal import default_calibration_poses
 from comp_daemon.sim.scenario import load_scenario
 from comp_daemon.trial.cell import CellError, CellSettings, TrialCell, environment
@@ -79,11 +85,16 @@ class _Trial(TrialSession):
         run.duration_s = time.monotonic() - t0
         return run
 
-    async def loop_run(self, run: PointRun, pts: PlannedPoints) -> PointRun:
-        """The points as targets of the daemon (nominal program's axis values), the tracker at each."""
+    async def loop_run(
+        self, run: PointRun, pts: PlannedPoints, commands: NDArray[np.float64] | None = None
+    ) -> PointRun:
+        """The points as targets of the daemon, the tracker at each: the nominal program's axis
+        values, or ``commands`` (n, 6) where given (a row that is nan is not run: it failed already)."""
         t0 = time.monotonic()
         await self.cell.move(self.points.home_deg)
-        for i, a in enumerate(pts.a_nominal_deg):
+        for i, a in enumerate(pts.a_nominal_deg if commands is None else commands):
+            if not np.all(np.isfinite(a)):
+                continue
             doc, retried = await self.target(a, f"{pts.name[0]}{i + 1:03d}")
             run.retried += [{"index": i, "reason": why} for why in retried]
             run.state[i] = doc["state"]
@@ -299,6 +310,11 @@ class _Trial(TrialSession):
         )
         self.end(self.running_note(r.runs["chebyshev+feedback"]))
 
+        if s.seed000_mapping:
+            self.begin(f"target points, Chebyshev m={order} (seed 000 mapping) + joint feedback")
+            r.runs["chebyshev-seed000+feedback"] = await self.seed000_run(cheb["id"], nominal["id"])
+            self.end(self.running_note(r.runs["chebyshev-seed000+feedback"]))
+
         if s.loop_sampling and s.kinematic_with_loop:
             kin_loop = r.models["kinematic (closed-loop data)"]
             self.begin("target points, kinematic + joint feedback")
@@ -327,6 +343,36 @@ class _Trial(TrialSession):
             },
             "targets": status.get("targets"),
         }
+
+    async def seed000_run(self, model_id: int, nominal_id: int) -> PointRun:
+        """The Chebyshev targets with seed 000's joint mapping (:mod:`comp_daemon.models.compensation`,
+        ``mapping="seed000"``): the model's artifact, fetched over HTTP, compensates the targets as the
+        daemon would (seeded from the nominal axis values, the approach directions of the joints
+        without gratings, the default limits), and the compensated commands go to the daemon as
+        targets under the nominal model, which gives axis values back unchanged: the joint loop holds
+        joints 1–3 at the mapped angles. A target the limits refuse is a failed target of the run."""
+        tg = self.points.targets
+        model = await self.fetch_model(model_id)
+        direction = tg.dir.copy()
+        direction[:, [j - 1 for j in self.scenario.cell.grating_joints]] = 0.0
+        commands, reasons = await asyncio.to_thread(
+            compensate_each, model, tg, direction, self.plan.payload_kg, "seed000"
+        )
+        order = self.sizes.chebyshev_order
+        run = PointRun.empty(
+            "chebyshev-seed000+feedback",
+            f"Chebyshev m={order} (seed 000 mapping) + joint feedback",
+            "targets",
+            tg.wanted_mm,
+            feedback=True,
+            model=f"chebyshev m={order}, seed 000 mapping",
+            model_id=model_id,
+        )
+        for i, why in reasons.items():
+            run.state[i] = "failed"
+            run.reason[i] = f"compensation: {why}"
+        await self.activate(nominal_id)
+        return await self.loop_run(run, tg, commands)
 
     def _iso_note(self, key: str) -> str:
         stats = self.result.iso.get("runs", {}).get(key, {}).get("stats")
@@ -412,6 +458,43 @@ async def run_trial(
     finally:
         result.duration_s = time.monotonic() - t0
     return result
+
+
+def compensate_each(
+    model: ErrorModel,
+    pts: PlannedPoints,
+    direction: NDArray[np.float64],
+    payload_kg: float,
+    mapping: JointMapping,
+) -> tuple[NDArray[np.float64], dict[int, str]]:
+    """Compensated commands (n, 6) of the points by ``model`` with ``mapping`` and the default
+    limits; the rows the limits refuse are nan, with their reasons by index."""
+    reasons: dict[int, str] = {}
+    keep = np.arange(pts.n)
+    while True:
+        try:
+            comp = compensate(
+                model,
+                pts.wanted_mm[keep],
+                pts.wanted_R[keep],
+                a_seed_deg=pts.a_nominal_deg[keep],
+                dir=direction[keep],
+                payload_kg=payload_kg,
+                tol_mm=1e-6,
+                mapping=mapping,
+            )
+        except CompensationRefused as exc:
+            for refusal in exc.refusals:
+                reasons[int(keep[refusal.index])] = refusal.reason
+            keep = np.array([i for i in keep if int(i) not in reasons], dtype=int)
+            if keep.size:
+                continue
+            return np.full((pts.n, 6), np.nan), reasons
+        if not comp.converged:
+            raise TrialError(f"the {mapping} compensation of the target points did not converge")
+        commands = np.full((pts.n, 6), np.nan)
+        commands[keep] = comp.a_deg
+        return commands, reasons
 
 
 def with_sizes(plan: TrialPlan, **changes: Any) -> TrialPlan:

@@ -77,6 +77,8 @@ def phase_names(plan: TrialPlan) -> list[str]:
             "fits on the closed-loop data (HTTP)",
         ]
     names.append(f"target points, Chebyshev m={s.chebyshev_order} + joint feedback")
+    if s.seed000_mapping:
+        names.append(f"target points, Chebyshev m={s.chebyshev_order} (seed 000 mapping) + joint feedback")
     if s.loop_sampling and s.kinematic_with_loop:
         names.append("target points, kinematic + joint feedback")
     names.append("seed 001 model comparison")

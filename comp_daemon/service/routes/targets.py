@@ -12,7 +12,10 @@ the robot's base and needs a nominal inverse-kinematics solution inside the axis
 target whose orientation is held may not lie near the wrist singularity
 (``[compensation] wrist_singularity_deg``). A refused batch (422) names the target (1-based), the
 field and the reason, and nothing of it is queued. The compensation itself (and its limits on the
-axis changes and the model's region) runs when the target executes.
+axis changes and the model's region) runs when the target executes; from then on the target's
+output names the model that compensated it (``model_id``) and, for a model with an uncertainty,
+``predicted_sigma_mm``: the 3-D 1-σ uncertainty of the model's predicted TCP at the commanded
+axes (from the target's ``target.compensated`` event in the store).
 """
 
 from __future__ import annotations
@@ -37,8 +40,16 @@ from comp_daemon.models.compensation import (
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
-from comp_daemon.service.schemas import BatchIn, BatchOut, ErrorOut, TargetOut, json_array
+from comp_daemon.service.schemas import (
+    TARGET_COMPENSATED,
+    BatchIn,
+    BatchOut,
+    ErrorOut,
+    TargetOut,
+    json_array,
+)
 from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.store import Store, TargetRecord
 
 router = APIRouter(tags=["targets"])
 _log = get_logger("comp_daemon.api.targets")
@@ -138,6 +149,25 @@ def _check_records(records: Sequence[dict[str, Any]], limits_deg: Any) -> None:
         raise first
 
 
+def compensations(store: Store, targets: Sequence[TargetRecord]) -> dict[int, dict[str, Any]]:
+    """The latest :data:`TARGET_COMPENSATED` event of each target with commanded axes, by target id
+    (a requeued target is compensated again; its earlier compensation no longer counts)."""
+    out: dict[int, dict[str, Any]] = {}
+    for t in targets:
+        if t.commanded_axes_deg is None:
+            continue
+        for event in store.list_events(target_id=t.id, newest_first=True, limit=50):
+            if event.kind == TARGET_COMPENSATED:
+                out[t.id] = event.message
+                break
+    return out
+
+
+def _out(store: Store, targets: Sequence[TargetRecord]) -> list[TargetOut]:
+    found = compensations(store, targets)
+    return [TargetOut.of(t, found.get(t.id)) for t in targets]
+
+
 def request_sha256(records: Sequence[dict[str, Any]]) -> str:
     canonical = json.dumps(list(records), sort_keys=True, separators=(",", ":"), allow_nan=False)
     return hashlib.sha256(canonical.encode()).hexdigest()
@@ -187,7 +217,7 @@ async def post_batch(
         _log.info("batch queued", batch_id=batch.id, size=batch.size, by=who.name)
     else:
         response.status_code = 200
-    return BatchOut.of(batch, targets)
+    return BatchOut.of(batch, targets, await svc.run(compensations, svc.store, targets))
 
 
 @router.get(
@@ -198,7 +228,7 @@ async def post_batch(
 )
 async def get_batch(batch_id: BatchId, svc: State, who: Viewer) -> BatchOut:
     batch, targets = await svc.run(svc.store.get_batch, batch_id)
-    return BatchOut.of(batch, targets)
+    return BatchOut.of(batch, targets, await svc.run(compensations, svc.store, targets))
 
 
 @router.post(
@@ -210,7 +240,7 @@ async def get_batch(batch_id: BatchId, svc: State, who: Viewer) -> BatchOut:
 async def cancel_batch(batch_id: BatchId, svc: State, who: Operator) -> list[TargetOut]:
     cancelled = await svc.run(svc.store.cancel_batch, batch_id, by=who.name)
     _log.info("batch cancelled", batch_id=batch_id, cancelled=len(cancelled), by=who.name)
-    return [TargetOut.of(t) for t in cancelled]
+    return await svc.run(_out, svc.store, cancelled)
 
 
 @router.get("/targets", response_model=list[TargetOut], summary="Targets in queue order (or newest first)")
@@ -231,12 +261,13 @@ async def list_targets(
         offset=offset,
         newest_first=newest_first,
     )
-    return json_array(TargetOut.of(t) for t in rows)
+    return json_array(await svc.run(_out, svc.store, rows))
 
 
 @router.get("/targets/{target_id}", response_model=TargetOut, summary="One target", responses=_CHANGE_ERRORS)
 async def get_target(target_id: TargetId, svc: State, who: Viewer) -> TargetOut:
-    return TargetOut.of(await svc.run(svc.store.get_target, target_id))
+    target = await svc.run(svc.store.get_target, target_id)
+    return (await svc.run(_out, svc.store, [target]))[0]
 
 
 @router.post(

@@ -477,6 +477,7 @@
         el("td", {}, pill(t.state)),
         el("td", { class: "reason", title: t.reason || "" }, t.reason || ""),
         el("td", { class: "num" }, finalError(t)),
+        el("td", { class: "num sigma", title: t.model_id ? `model ${t.model_id}` : "" }, fmt(t.predicted_sigma_mm, 4)),
         el("td", {}, ...buttons),
       );
     });
