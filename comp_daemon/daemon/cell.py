@@ -243,6 +243,7 @@ class Cell:
             [j - 1 for j in runtime.joints],
             current_axes=lambda: runtime.last_actual_deg,
             limits=self.settings.compensation.limits(),
+            mapping=self.settings.compensation.mapping,
         )
 
         def target_readiness() -> str | None:

@@ -20,8 +20,8 @@ the nominal solution (:mod:`comp_daemon.models.compensation`). The target's outc
 the nominal solution, the predicted residual, the iterations, the mapping and, for a model with an
 uncertainty, ``predicted_sigma_mm``: the 3-D 1-σ uncertainty of the model's TCP prediction at the
 commanded axes (``|σ|`` of the x, y, z standard deviations; none for the nominal model). The
-store keeps it, with the model id, as the target's ``target.compensated`` event, which the API's
-target output reads.
+executor hands it, with the model id, to the store with the target's move to ``moving``; the API's
+target output reads it from that event.
 """
 
 from __future__ import annotations
@@ -46,7 +46,6 @@ from comp_daemon.models.compensation import (
 )
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.rt.executor import CompensatedTarget, CompensationError, ModelMissingError
-from comp_daemon.service.schemas import TARGET_COMPENSATED
 from comp_daemon.service.store import Store
 
 __all__ = ["ActiveModelCompensator", "model_from_artifact"]
@@ -159,17 +158,4 @@ class ActiveModelCompensator:
         sigma = model.predict_std_mm(res.a_deg, direction, None if payload is None else float(payload))
         if sigma is not None:  # 3-D 1-σ uncertainty of the model's TCP at the commanded axes
             info["predicted_sigma_mm"] = float(np.linalg.norm(sigma[0]))
-        self._record(request, model_id, info)
         return CompensatedTarget(commanded, tuple(commanded[j] for j in self.joints), model_id, info)
-
-    def _record(self, request: Mapping[str, Any], model_id: int, info: Mapping[str, Any]) -> None:
-        """The compensation as a :data:`TARGET_COMPENSATED` event of the target being compensated:
-        the store's target in state ``compensating`` with this request (the executor claims one
-        target at a time). A request compensated outside the executor records nothing."""
-        claimed = [
-            t for t in self.store.list_targets(states=["compensating"], limit=2) if t.request == dict(request)
-        ]
-        if len(claimed) != 1:
-            log.debug("compensation not recorded: no single compensating target", found=len(claimed))
-            return
-        self.store.add_event(TARGET_COMPENSATED, {"model_id": model_id, **info}, target_id=claimed[0].id)

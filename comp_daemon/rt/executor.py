@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import math
 from collections import deque
 from collections.abc import Callable, Mapping, Sequence
@@ -123,6 +124,7 @@ class TargetQueue(Protocol):
         reason: str | None = None,
         commanded_axes_deg: Sequence[float] | None = None,
         final_joint_errors_deg: Mapping[str, float | None] | None = None,
+        compensation: Mapping[str, Any] | None = None,
     ) -> Any: ...
 
 
@@ -253,7 +255,13 @@ class TargetExecutor:
 
         self.phase = "moving"
         await asyncio.to_thread(
-            self.queue.advance_target, tid, "moving", commanded_axes_deg=list(comp.commanded_deg)
+            functools.partial(
+                self.queue.advance_target,
+                tid,
+                "moving",
+                commanded_axes_deg=list(comp.commanded_deg),
+                compensation={"model_id": comp.model_id, **(comp.info or {})},
+            )
         )
         key = str(tid)
         try:

@@ -293,10 +293,10 @@ class BatchIn(BaseModel):
     targets: list[TargetIn] = Field(min_length=1)
 
 
-#: Store event of a target's compensation (the daemon's compensator; ``target_id`` set): the model,
-#: the mapping, the nominal solution, the predicted residual and, for a model with an uncertainty,
-#: ``predicted_sigma_mm``.
-TARGET_COMPENSATED = "target.compensated"
+#: Store event of a target's move to ``moving``; its ``compensation`` holds the model, the mapping,
+#: the nominal solution, the predicted residual and, for a model with an uncertainty,
+#: ``predicted_sigma_mm`` (the executor's record of how the commanded axes came about).
+TARGET_MOVING = "target.moving"
 
 
 class TargetOut(_Out):
@@ -324,7 +324,7 @@ class TargetOut(_Out):
 
     @classmethod
     def of(cls, r: TargetRecord, compensation: Mapping[str, Any] | None = None) -> TargetOut:
-        """``compensation``: the message of the target's latest :data:`TARGET_COMPENSATED` event."""
+        """``compensation``: the ``compensation`` of the target's latest :data:`TARGET_MOVING` event."""
         comp = compensation or {}
         sigma = comp.get("predicted_sigma_mm")
         model_id = comp.get("model_id")

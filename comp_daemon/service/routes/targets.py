@@ -15,7 +15,7 @@ field and the reason, and nothing of it is queued. The compensation itself (and 
 axis changes and the model's region) runs when the target executes; from then on the target's
 output names the model that compensated it (``model_id``) and, for a model with an uncertainty,
 ``predicted_sigma_mm``: the 3-D 1-σ uncertainty of the model's predicted TCP at the commanded
-axes (from the target's ``target.compensated`` event in the store).
+axes (from the target's ``target.moving`` event in the store).
 """
 
 from __future__ import annotations
@@ -41,7 +41,7 @@ from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.schemas import (
-    TARGET_COMPENSATED,
+    TARGET_MOVING,
     BatchIn,
     BatchOut,
     ErrorOut,
@@ -150,15 +150,15 @@ def _check_records(records: Sequence[dict[str, Any]], limits_deg: Any) -> None:
 
 
 def compensations(store: Store, targets: Sequence[TargetRecord]) -> dict[int, dict[str, Any]]:
-    """The latest :data:`TARGET_COMPENSATED` event of each target with commanded axes, by target id
+    """The compensation in the latest :data:`TARGET_MOVING` event of each target with commanded axes
     (a requeued target is compensated again; its earlier compensation no longer counts)."""
     out: dict[int, dict[str, Any]] = {}
     for t in targets:
         if t.commanded_axes_deg is None:
             continue
         for event in store.list_events(target_id=t.id, newest_first=True, limit=50):
-            if event.kind == TARGET_COMPENSATED:
-                out[t.id] = event.message
+            if event.kind == TARGET_MOVING and isinstance(event.message.get("compensation"), dict):
+                out[t.id] = event.message["compensation"]
                 break
     return out
 

@@ -219,8 +219,12 @@ class TargetStore(StoreBase):
         reason: str | None = None,
         commanded_axes_deg: Sequence[float] | None = None,
         final_joint_errors_deg: Mapping[str, float | None] | None = None,
+        compensation: Mapping[str, Any] | None = None,
     ) -> TargetRecord:
-        """Move a target along its lifecycle (the daemon's call); refused for moves not in the diagram."""
+        """Move a target along its lifecycle (the daemon's call); refused for moves not in the diagram.
+
+        ``compensation``: how the commanded axes came about (model id, mapping, nominal solution,
+        predicted residual and σ), kept in the move's event (``target.moving``) for the API."""
         if state not in TARGET_STATES:
             raise ValueError(f"unknown target state {state!r}")
         set_sql, set_args, extra = "", list[Any](), dict[str, Any]()
@@ -236,6 +240,8 @@ class TargetStore(StoreBase):
             set_sql += ", final_joint_errors = ?"
             set_args.append(dumps(errors))
             extra["final_joint_errors_deg"] = errors
+        if compensation is not None:
+            extra["compensation"] = json.loads(dumps(dict(compensation)))
         with self._tx() as conn:
             target = self._target_row(conn, target_id)
             return self._move_target(
