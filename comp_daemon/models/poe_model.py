@@ -36,7 +36,13 @@ from numpy.typing import NDArray
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.covariance import ParameterCovariance
-from comp_daemon.models.poe import BASE_NAMES, PoeFit, fit_poe_positions, poe_world_jacobian, poe_world_position_mm
+from comp_daemon.models.poe import (
+    BASE_NAMES,
+    PoeFit,
+    fit_poe_positions,
+    poe_world_jacobian,
+    poe_world_position_mm,
+)
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["POE_MODEL_NAMES", "PoeErrorFit", "PoeErrorModel", "fit_poe"]
@@ -121,7 +127,9 @@ class PoeErrorModel(ErrorModel):
         x = np.array(payload["x"], dtype=float)
         frame = np.array(payload["world_T_base"], dtype=float)
         if x.shape != (N_POE_PARAMS,) or frame.shape != (4, 4):
-            raise ValueError(f"model fields 'x' (12,) and 'world_T_base' (4, 4): got {x.shape}, {frame.shape}")
+            raise ValueError(
+                f"model fields 'x' (12,) and 'world_T_base' (4, 4): got {x.shape}, {frame.shape}"
+            )
         if not (np.all(np.isfinite(x)) and np.all(np.isfinite(frame))):
             raise ValueError("model fields 'x' and 'world_T_base' must be finite")
         return cls(robot, x, frame, registration)

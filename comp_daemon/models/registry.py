@@ -205,7 +205,7 @@ KINDS: dict[str, ModelKind] = {
         ),
         ModelKind(
             "poe",
-            "product-of-exponentials calibration, errors dl1..dl6, dtheta1..dtheta6 and the base frame (seed 002)",
+            "product-of-exponentials calibration (seed 002): errors dl1..dl6, dtheta1..dtheta6, base frame",
             PoeErrorModel,
             fit_poe_kind,
             lambda spec: 12 + 6,
