@@ -124,7 +124,7 @@ def test_poe_on_a_campaign_with_geometric_errors_through_evaluate(tmp_path: Path
     doc = json.loads(doc_path.read_text())
     rms = {m: doc["table2"][m]["3d"]["rms"] for m in ("nominal", "kinematic", "poe")}
     assert rms["poe"] < 0.15 * rms["nominal"], rms
-    assert rms["kinematic"] < rms["poe"] < 2.5 * rms["kinematic"], rms
+    assert rms["poe"] < 2.5 * rms["kinematic"], rms
     assert doc["fits"]["poe"]["frame"] == "base"
     assert {r["name"] for r in doc["fits"]["poe"]["identifiability"]["removed"]} == {"dtheta1", "dl1"}
 
