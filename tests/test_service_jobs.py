@@ -289,7 +289,7 @@ async def test_every_kind_fits_over_http_and_compensates_once_active(service: An
     client, store = service
     kinds = (await client.get("/api/fits/kinds", headers=auth("viewer"))).json()
     names = [k["name"] for k in kinds]
-    assert names == ["nominal", "kinematic", "chebyshev", "kriging", "kriging-backlash", "compliance"]
+    assert names == ["nominal", "kinematic", "chebyshev", "kriging", "kriging-backlash", "compliance", "poe"]
     assert next(k for k in kinds if k["name"] == "kriging-backlash")["needs"] == ["dir"]
     up = await client.post(
         "/api/datasets?name=effects",

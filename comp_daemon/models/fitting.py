@@ -24,7 +24,10 @@ table; the doors call them through it.
   neighbourhoods of N samples instead of one dense system; dense is the default up to 2 000
   samples) and ``aniso`` (per-joint ranges instead of the isotropic joint-space distance);
 - ``compliance``: seed 004's zero offsets and joint compliance C2, C3 under the gravity torques of
-  the links and the payload of each row (``payload_kg``).
+  the links and the payload of each row (``payload_kg``);
+- ``poe``: seed 002's product-of-exponentials calibration, the errors ``dl1..dl6``, ``dtheta1..dtheta6``
+  and the base frame (:func:`comp_daemon.models.poe_model.fit_poe`), the dependent ones removed by
+  name and the directions the data do not see listed.
 """
 
 from __future__ import annotations
@@ -48,6 +51,7 @@ from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
+from comp_daemon.models.poe_model import fit_poe
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
@@ -63,6 +67,7 @@ __all__ = [
     "fit_kriging_backlash_kind",
     "fit_kriging_kind",
     "fit_nominal_kind",
+    "fit_poe_kind",
     "infer_fit_directions",
 ]
 
@@ -414,3 +419,29 @@ def fit_compliance_kind(
         "identified": _identified(cf.identified, cf.values, cf.std),
     }
     return FittedModel(cf.model, cf.frame, info)
+
+
+def fit_poe_kind(robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions) -> FittedModel:
+    """Seed 002: the POE errors Δl, Δθ and the base frame from the measured positions."""
+    nominal = KinematicParams.from_robot(robot)
+    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
+    chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
+    reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
+    pf = fit_poe(robot, rows.a_deg, rows.xyz_mm, reg)
+    fit = pf.fit
+    keep = fit.report.identifiable_index
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        "rms_mm": pf.rms_mm,
+        "solver": {
+            "method": "improved Levenberg-Marquardt (seed 000), columns scaled",
+            "iterations": fit.iterations,
+            "stop": fit.reason,
+        },
+        "identifiability": report_info(fit.report),
+        "not_identifiable": [d.describe() for d in fit.null_space],
+        # the base parameters are increments of the rigid start frame; removed parameters stay 0
+        "identified": _identified([fit.names[i] for i in keep], fit.theta[keep], fit.std[keep]),
+    }
+    return FittedModel(pf.model, chosen, info)

@@ -12,7 +12,8 @@ Model names (:func:`parse_model_name`)::
 
     kind[:order|:option…][+effect…]   nominal, kinematic, kinematic+ratio+backlash, chebyshev,
                                       chebyshev:3, chebyshev:cv, kriging, kriging:k=64:aniso,
-                                      kriging-backlash, kriging-backlash+compliance, compliance
+                                      kriging-backlash, kriging-backlash+compliance, compliance,
+                                      poe
 
 ``:order`` is the Chebyshev order (0..8; ``cv``: chosen by cross-validation; default 3, seed 000's);
 the kriging kinds take the options ``:k=N`` (local neighbourhoods of N nearest samples, N ≥ 4) and
@@ -52,9 +53,11 @@ from comp_daemon.models.fitting import (
     fit_kriging_backlash_kind,
     fit_kriging_kind,
     fit_nominal_kind,
+    fit_poe_kind,
 )
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
+from comp_daemon.models.poe_model import PoeErrorModel
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -200,6 +203,13 @@ KINDS: dict[str, ModelKind] = {
             lambda spec: 6 + 6 + len(COMPLIANCE_JOINTS),
             uses=("payload_kg",),
         ),
+        ModelKind(
+            "poe",
+            "product-of-exponentials calibration (seed 002): errors dl1..dl6, dtheta1..dtheta6, base frame",
+            PoeErrorModel,
+            fit_poe_kind,
+            lambda spec: 12 + 6,
+        ),
     )
 }
 
@@ -218,6 +228,7 @@ ALL_MODELS: tuple[str, ...] = (
     "kriging-backlash",
     "kriging-backlash+compliance",
     "compliance",
+    "poe",
 )
 
 

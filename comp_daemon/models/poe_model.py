@@ -1,0 +1,168 @@
+"""The POE calibration (seed 002) as an error model: ``poe`` in the model registry.
+
+:class:`PoeErrorModel` predicts the TCP with the product-of-exponentials chain of
+:mod:`comp_daemon.kinematics.poe` built from the robot description (equal to the MDH model at
+nominal), carrying the 12 fitted errors ``dl1..dl6`` (mm) and ``dtheta1..dtheta6`` (rad), in its
+fitted base frame ``world_T_base``::
+
+    TCP_world = world_T_base · p_POE(A; x)
+
+:func:`fit_poe` identifies them from measured positions with
+:func:`comp_daemon.models.poe.fit_poe_positions` (the base frame always fitted: on tracker data it
+starts from the rigid registration, on base-frame data it takes up the POE errors' dependent
+directions ``dtheta1``, ``dl2``; the dependent parameters are removed by name and stay zero).
+
+Compensation. The POE chain has no MDH parameters of its own: :meth:`ik_params` is the robot's
+nominal MDH chain in the model's fitted base frame (the base class's), which seeds the inverse
+kinematics; the compensation's fixed-point iteration then moves the IK target by the model's own
+prediction error (:func:`comp_daemon.models.compensation.compensate`), so the result is the POE
+model's, not the nominal chain's.
+
+Uncertainty. The fit's parameter covariance (:class:`comp_daemon.models.covariance.ParameterCovariance`)
+is taken at the solution over the identified parameters, the base parameters as local increments
+about the fitted frame (value 0; translation mm, rotation vector rad on the left), so the stored
+``values`` are the POE errors and zeros; :meth:`predict_std_mm` propagates it through the same
+Jacobian (:func:`comp_daemon.models.poe.poe_world_jacobian`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
+from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.covariance import ParameterCovariance
+from comp_daemon.models.poe import (
+    BASE_NAMES,
+    PoeFit,
+    fit_poe_positions,
+    poe_world_jacobian,
+    poe_world_position_mm,
+)
+from comp_daemon.robot.description import RobotDescription
+
+__all__ = ["POE_MODEL_NAMES", "PoeErrorFit", "PoeErrorModel", "fit_poe"]
+
+POE_MODEL_NAMES: tuple[str, ...] = POE_PARAM_NAMES + BASE_NAMES
+
+
+class PoeErrorModel(ErrorModel):
+    """POE chain with the seed-002 errors ``x`` (12,) in the frame ``world_T_base`` (module docstring)."""
+
+    kind: ClassVar[str] = "poe"
+
+    def __init__(
+        self,
+        robot: RobotDescription,
+        x: NDArray[np.float64],
+        world_T_base: NDArray[np.float64],
+        registration: NDArray[np.float64] | None = None,
+    ) -> None:
+        self.robot = robot
+        self.x = np.array(x, dtype=float)
+        if self.x.shape != (N_POE_PARAMS,):
+            raise ValueError(f"POE errors must have shape ({N_POE_PARAMS},), got {self.x.shape}")
+        self.world_T_base = np.array(world_T_base, dtype=float)
+        self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
+        self.twists = PoeModel.from_robot(robot)
+
+    def predict_tcp_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        return poe_world_position_mm(self.twists, as_axes(a_deg), self.x, self.world_T_base)
+
+    def parameter_jacobian(self, a_deg: NDArray[np.float64], names: tuple[str, ...]) -> NDArray[np.float64]:
+        """(n, 3, p) derivative of the TCP w.r.t. ``names`` (of :data:`POE_MODEL_NAMES`; base
+        parameters as increments about the fitted frame)."""
+        theta = np.concatenate([self.x, np.zeros(len(BASE_NAMES))])
+        _, jac = poe_world_jacobian(self.twists, as_axes(a_deg), theta, self.world_T_base)
+        try:
+            cols = [POE_MODEL_NAMES.index(n) for n in names]
+        except ValueError:
+            raise ValueError(f"uncertainty: POE parameters are {', '.join(POE_MODEL_NAMES)}") from None
+        return jac[:, :, cols]
+
+    def predict_std_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64] | None:
+        cov = self.uncertainty
+        if cov is None:
+            return None
+        if not isinstance(cov, ParameterCovariance):
+            return cov.std_mm(self, as_axes(a_deg), dir, payload_kg, temp_c)
+        g = self.parameter_jacobian(a_deg, cov.names)
+        var = np.einsum("nip,pq,niq->ni", g, cov.covariance, g)
+        return np.sqrt(np.maximum(var, 0.0))
+
+    def to_payload(self) -> dict[str, Any]:
+        return {
+            "names": list(POE_PARAM_NAMES),
+            "x": self.x.tolist(),
+            "world_T_base": self.world_T_base.tolist(),
+        }
+
+    @classmethod
+    def from_payload(
+        cls,
+        robot: RobotDescription,
+        payload: dict[str, Any],
+        order: int | None,
+        registration: NDArray[np.float64],
+    ) -> PoeErrorModel:
+        names = [str(n) for n in payload["names"]]
+        if names != list(POE_PARAM_NAMES):
+            raise ValueError(f"model field 'names': expected {list(POE_PARAM_NAMES)}, got {names}")
+        x = np.array(payload["x"], dtype=float)
+        frame = np.array(payload["world_T_base"], dtype=float)
+        if x.shape != (N_POE_PARAMS,) or frame.shape != (4, 4):
+            raise ValueError(
+                f"model fields 'x' (12,) and 'world_T_base' (4, 4): got {x.shape}, {frame.shape}"
+            )
+        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(frame))):
+            raise ValueError("model fields 'x' and 'world_T_base' must be finite")
+        return cls(robot, x, frame, registration)
+
+
+@dataclass(frozen=True, slots=True)
+class PoeErrorFit:
+    """The fitted model, the calibration behind it and the residual RMS (mm) of the model."""
+
+    model: PoeErrorModel
+    fit: PoeFit
+    rms_mm: float
+
+
+def fit_poe(
+    robot: RobotDescription,
+    a_deg: NDArray[np.float64],
+    p_mm: NDArray[np.float64],
+    registration: NDArray[np.float64],
+) -> PoeErrorFit:
+    """The POE errors and the base frame from measured TCPs ``p_mm`` (n, 3) at ``a_deg`` (n, 6);
+    ``registration`` is the frame the model reports as its measurement frame (identity on base-frame
+    data). The model carries the fit's parameter covariance when there are residual degrees of freedom."""
+    a = as_axes(a_deg)
+    p = np.asarray(p_mm, dtype=float)
+    fit = fit_poe_positions(PoeModel.from_robot(robot), a, p, fit_base=True)
+    assert fit.world_T_base is not None  # fit_base
+    model = PoeErrorModel(robot, fit.x, fit.world_T_base, registration)
+    residual = (model.predict_tcp_mm(a) - p).reshape(-1)
+    kept = tuple(fit.names[i] for i in fit.report.identifiable_index)
+    jac = model.parameter_jacobian(a, kept).reshape(-1, len(kept))
+    if jac.shape[0] > jac.shape[1]:
+        values = np.array([model.x[POE_PARAM_NAMES.index(n)] if n in POE_PARAM_NAMES else 0.0 for n in kept])
+        model.uncertainty = ParameterCovariance.of_fit(kept, values, jac, residual)
+    rms = float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 3) ** 2, axis=1))))
+    return PoeErrorFit(model, fit, rms)
