@@ -19,7 +19,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +39,11 @@ def free_port(kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
         return int(sock.getsockname()[1])
 
 
-def config_text(data_dir: Path, http_port: int, rsi_port: int, extra: str = "") -> str:
-    """A configuration for the simulated cell: tokens for the three roles, a loaded-machine margin."""
+def config_text(data_dir: Path, http_port: int, rsi_port: int, extra: str = "", http_extra: str = "") -> str:
+    """A configuration for the simulated cell: tokens for the three roles, a loaded-machine margin.
+
+    ``extra`` is appended as tables of its own; ``http_extra`` goes into the ``[http]`` table.
+    """
     tokens = "".join(
         f'[[auth.tokens]]\nname = "{name}"\nrole = "{role}"\ntoken = "{TOKENS[role]}"\n'
         for name, role in (("screen", "viewer"), ("mes", "operator"), ("calibration", "engineer"))
@@ -50,6 +53,7 @@ def config_text(data_dir: Path, http_port: int, rsi_port: int, extra: str = "") 
 host = "127.0.0.1"
 port = {http_port}
 sse_keepalive_s = 1.0
+{http_extra}
 [store]
 data_dir = "{data_dir}"
 synchronous = "normal"
@@ -129,14 +133,17 @@ def wait_until(
 class DaemonProcess:
     """One daemon process on a data folder that outlives it (a restart uses the same folder)."""
 
-    def __init__(self, root: Path, *, sim: bool = True, extra_config: str = "") -> None:
+    def __init__(
+        self, root: Path, *, sim: bool = True, extra_config: str = "", http_config: str = ""
+    ) -> None:
         self.root = root
         self.data_dir = root / "data"
         self.http_port = free_port(socket.SOCK_STREAM)
         self.rsi_port = free_port(socket.SOCK_DGRAM)
         self.config_path = root / "config.toml"
         self.config_path.write_text(
-            config_text(self.data_dir, self.http_port, self.rsi_port, extra_config), encoding="utf-8"
+            config_text(self.data_dir, self.http_port, self.rsi_port, extra_config, http_config),
+            encoding="utf-8",
         )
         self.sim = sim
         self.proc: subprocess.Popen[bytes] | None = None
@@ -147,16 +154,25 @@ class DaemonProcess:
 
     # ------------------------------------------------------------------------------ process
 
-    def start(self, *args: str) -> None:
+    def start(
+        self,
+        *args: str,
+        env: Mapping[str, str] | None = None,
+        preexec_fn: Callable[[], None] | None = None,
+    ) -> None:
+        """Start the daemon; ``env`` adds variables, ``preexec_fn`` runs in the child before exec."""
         assert self.proc is None or self.proc.poll() is not None, "already running"
         self.runs += 1
         self.log_path = self.root / f"daemon-{self.runs}.log"
         argv = [sys.executable, "-m", "comp_daemon", "run", "--config", str(self.config_path)]
         if self.sim:
             argv.append("--sim")
-        env = {k: v for k, v in os.environ.items() if not k.startswith("COMP_DAEMON_")}
+        environ = {k: v for k, v in os.environ.items() if not k.startswith("COMP_DAEMON_")}
+        environ.update(env or {})
         with self.log_path.open("wb") as log:
-            self.proc = subprocess.Popen(argv + list(args), stdout=log, stderr=subprocess.STDOUT, env=env)
+            self.proc = subprocess.Popen(
+                argv + list(args), stdout=log, stderr=subprocess.STDOUT, env=environ, preexec_fn=preexec_fn
+            )
 
     @property
     def pid(self) -> int:

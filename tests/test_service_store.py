@@ -59,6 +59,20 @@ def test_open_applies_migrations_once(tmp_path: Path) -> None:
     conn.close()
 
 
+def test_a_new_data_folder_and_database_are_private_under_umask_022(tmp_path: Path) -> None:
+    data = tmp_path / "data"
+    old = os.umask(0o022)
+    try:
+        with Store(data / "store.sqlite3") as s:
+            s.submit_batch("k", _sha(_targets(2)), _targets(2))  # a write: the -wal and -shm files exist
+            modes = {p.name: p.stat().st_mode & 0o777 for p in data.iterdir()}
+            folder = data.stat().st_mode & 0o777
+    finally:
+        os.umask(old)
+    assert folder == 0o700
+    assert modes == {"store.sqlite3": 0o600, "store.sqlite3-wal": 0o600, "store.sqlite3-shm": 0o600}
+
+
 def test_a_newer_schema_is_refused(tmp_path: Path) -> None:
     path = tmp_path / "s.sqlite3"
     Store(path).close()

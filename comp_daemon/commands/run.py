@@ -102,6 +102,10 @@ def _run(args: argparse.Namespace) -> int:
         raise ValueError("--config FILE is required (only the simulated cell, --sim, has a quick start)")
     if args.sim:
         check_scenario(args.scenario)
+    # everything the daemon and its children create (data folder, database with its -wal/-shm,
+    # model artifacts, grating calibrations, spooled uploads) is private to its user, whatever the
+    # umask it was started with; the umask only takes bits away, so a stricter one is kept
+    os.umask(os.umask(0o077) | 0o077)
     try:
         settings = load_settings(args.config) if args.config else _quick_start_settings(Path("var/sim"))
     except ValidationError as exc:

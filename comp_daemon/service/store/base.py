@@ -6,6 +6,7 @@ The tables' operations are in the modules beside this one, each a subclass of :c
 
 from __future__ import annotations
 
+import os
 import sqlite3
 import threading
 import time
@@ -32,6 +33,25 @@ _TABLES: dict[str, str] = {
 }
 
 
+def _create_private(path: Path) -> None:
+    """Make the database's folder ``0700`` and the database file ``0600`` if they are new, whatever the umask.
+
+    ``mkdir``'s and SQLite's own create modes are masked by the process's umask (the file would be
+    ``0644`` under the usual ``022``); SQLite gives the ``-wal`` and ``-shm`` files the database
+    file's mode, so creating that one ``0600`` covers all three. A folder or a database that exists
+    keeps its mode (under systemd the unit's ``StateDirectoryMode=`` sets the folder's).
+    """
+    folder = path.parent
+    if not folder.exists():
+        folder.mkdir(parents=True, exist_ok=True, mode=0o700)
+        os.chmod(folder, 0o700)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL | os.O_CLOEXEC, 0o600)
+    except FileExistsError:
+        return
+    os.close(fd)
+
+
 class StoreBase:
     """The SQLite connection. Open with ``Store(path)``; close with :meth:`close` (or use ``with``)."""
 
@@ -45,7 +65,7 @@ class StoreBase:
     ) -> None:
         self.path = Path(path)
         if str(path) != ":memory:":
-            self.path.parent.mkdir(parents=True, exist_ok=True, mode=0o700)
+            _create_private(self.path)
         self._clock = clock
         self._lock = threading.RLock()
         self._listeners: list[EventListener] = []
