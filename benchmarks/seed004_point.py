@@ -36,14 +36,13 @@ from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import gravity_torques_nm
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, joint_param_index
-from comp_daemon.models.base import as_axes
+from comp_daemon.models.base import as_axes, finite_array
 from comp_daemon.models.compliance import (
     ALL_JOINTS,
     COMPLIANCE_JOINTS,
     N_JOINTS,
     ComplianceFit,
     ComplianceModel,
-    finite_array,
     joint_numbers,
     standard_errors,
 )

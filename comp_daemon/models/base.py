@@ -33,7 +33,7 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["ErrorModel", "NominalModel", "PredictionUncertainty", "as_axes"]
+__all__ = ["ErrorModel", "NominalModel", "PredictionUncertainty", "as_axes", "finite_array"]
 
 
 def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -44,6 +44,16 @@ def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
     if a.ndim != 2 or a.shape[1] != 6:
         raise ValueError(f"axis values must have shape (n, 6), got {np.shape(a_deg)}")
     return a
+
+
+def finite_array(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
+    """``value`` as a finite float array of ``shape`` (ValueError naming ``name``)."""
+    out = np.array(value, dtype=float)
+    if out.shape != shape:
+        raise ValueError(f"{name}: expected shape {shape}, got {out.shape}")
+    if not np.all(np.isfinite(out)):
+        raise ValueError(f"{name}: values must be finite")
+    return out
 
 
 class PredictionUncertainty(Protocol):

@@ -49,7 +49,7 @@ from comp_daemon.kinematics.params import (
     joint_param_index,
 )
 from comp_daemon.kinematics.so3 import left_jacobian, skew
-from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
 from comp_daemon.models.lm import LMResult, improved_lm
@@ -64,7 +64,6 @@ __all__ = [
     "ComplianceModel",
     "calibrate_compliance",
     "compliance_jacobian",
-    "finite_array",
     "joint_numbers",
     "standard_errors",
 ]
@@ -83,16 +82,6 @@ def joint_numbers(joints: Sequence[int], what: str) -> tuple[int, ...]:
             raise ValueError(f"{what}: joints are numbered 1..6, got {j}")
     if len(set(out)) != len(out):
         raise ValueError(f"{what}: joint listed twice in {out}")
-    return out
-
-
-def finite_array(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
-    """``value`` as a finite float array of ``shape`` (ValueError naming ``name``)."""
-    out = np.array(value, dtype=float)
-    if out.shape != shape:
-        raise ValueError(f"{name}: expected shape {shape}, got {out.shape}")
-    if not np.all(np.isfinite(out)):
-        raise ValueError(f"{name}: values must be finite")
     return out
 
 

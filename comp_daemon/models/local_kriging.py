@@ -27,6 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
+from comp_daemon.models.ordinary_kriging import kriging_samples
 from comp_daemon.models.variogram import VariogramModel
 
 __all__ = ["LocalKriging"]
@@ -49,20 +50,7 @@ class LocalKriging:
         variograms: Sequence[VariogramModel],
         neighbours: int,
     ) -> None:
-        x = np.asarray(coords, dtype=float)
-        z = np.asarray(values, dtype=float)
-        if z.ndim == 1:
-            z = z[:, None]
-        if x.ndim != 2 or z.ndim != 2 or x.shape[0] != z.shape[0]:
-            raise ValueError(
-                f"coords (n, d) and values (n, k) must have the same n, got {x.shape}, {z.shape}"
-            )
-        if x.shape[0] < 2:
-            raise ValueError(f"kriging needs at least 2 samples, got {x.shape[0]}")
-        if len(variograms) != z.shape[1]:
-            raise ValueError(f"{z.shape[1]} components but {len(variograms)} variograms")
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(z))):
-            raise ValueError("kriging samples must be finite")
+        x, z = kriging_samples(coords, values, variograms)
         if int(neighbours) < 2:
             raise ValueError(f"a kriging neighbourhood needs at least 2 samples, got {neighbours}")
         self.coords = x

@@ -17,9 +17,28 @@ from numpy.typing import NDArray
 
 from comp_daemon.models.variogram import VariogramModel, pairwise_distances
 
-__all__ = ["OrdinaryKriging"]
+__all__ = ["OrdinaryKriging", "kriging_samples"]
 
 AXES = ("x", "y", "z")
+
+
+def kriging_samples(
+    coords: NDArray[np.float64], values: NDArray[np.float64], variograms: Sequence[VariogramModel]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Sample coordinates (n, d) and values (n, k) checked for kriging (ValueError naming the fault)."""
+    x = np.asarray(coords, dtype=float)
+    z = np.asarray(values, dtype=float)
+    if z.ndim == 1:
+        z = z[:, None]
+    if x.ndim != 2 or z.ndim != 2 or x.shape[0] != z.shape[0]:
+        raise ValueError(f"coords (n, d) and values (n, k) must have the same n, got {x.shape}, {z.shape}")
+    if x.shape[0] < 2:
+        raise ValueError(f"kriging needs at least 2 samples, got {x.shape[0]}")
+    if len(variograms) != z.shape[1]:
+        raise ValueError(f"{z.shape[1]} components but {len(variograms)} variograms")
+    if not (np.all(np.isfinite(x)) and np.all(np.isfinite(z))):
+        raise ValueError("kriging samples must be finite")
+    return x, z
 
 
 class OrdinaryKriging:
@@ -40,20 +59,7 @@ class OrdinaryKriging:
         beta: NDArray[np.float64] | None = None,
         distances: NDArray[np.float64] | None = None,
     ) -> None:
-        x = np.asarray(coords, dtype=float)
-        z = np.asarray(values, dtype=float)
-        if z.ndim == 1:
-            z = z[:, None]
-        if x.ndim != 2 or z.ndim != 2 or x.shape[0] != z.shape[0]:
-            raise ValueError(
-                f"coords (n, d) and values (n, k) must have the same n, got {x.shape}, {z.shape}"
-            )
-        if x.shape[0] < 2:
-            raise ValueError(f"kriging needs at least 2 samples, got {x.shape[0]}")
-        if len(variograms) != z.shape[1]:
-            raise ValueError(f"{z.shape[1]} components but {len(variograms)} variograms")
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(z))):
-            raise ValueError("kriging samples must be finite")
+        x, z = kriging_samples(coords, values, variograms)
         self.coords = x
         self.values = z
         self.variograms = tuple(variograms)

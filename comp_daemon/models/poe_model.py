@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
-from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.models.poe import (
     BASE_NAMES,
@@ -63,10 +63,8 @@ class PoeErrorModel(ErrorModel):
         registration: NDArray[np.float64] | None = None,
     ) -> None:
         self.robot = robot
-        self.x = np.array(x, dtype=float)
-        if self.x.shape != (N_POE_PARAMS,):
-            raise ValueError(f"POE errors must have shape ({N_POE_PARAMS},), got {self.x.shape}")
-        self.world_T_base = np.array(world_T_base, dtype=float)
+        self.x = finite_array(x, (N_POE_PARAMS,), "POE errors x")
+        self.world_T_base = finite_array(world_T_base, (4, 4), "world_T_base")
         self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
         self.twists = PoeModel.from_robot(robot)
 
@@ -124,14 +122,8 @@ class PoeErrorModel(ErrorModel):
         names = [str(n) for n in payload["names"]]
         if names != list(POE_PARAM_NAMES):
             raise ValueError(f"model field 'names': expected {list(POE_PARAM_NAMES)}, got {names}")
-        x = np.array(payload["x"], dtype=float)
-        frame = np.array(payload["world_T_base"], dtype=float)
-        if x.shape != (N_POE_PARAMS,) or frame.shape != (4, 4):
-            raise ValueError(
-                f"model fields 'x' (12,) and 'world_T_base' (4, 4): got {x.shape}, {frame.shape}"
-            )
-        if not (np.all(np.isfinite(x)) and np.all(np.isfinite(frame))):
-            raise ValueError("model fields 'x' and 'world_T_base' must be finite")
+        x = finite_array(payload["x"], (N_POE_PARAMS,), "model field 'x'")
+        frame = finite_array(payload["world_T_base"], (4, 4), "model field 'world_T_base'")
         return cls(robot, x, frame, registration)
 
 
