@@ -135,3 +135,15 @@ def test_backlash_errors_are_not_similar_in_joint_space_but_are_with_direction()
     assert small_lag_ratio(e_geo, blind) < 0.15  # similar: γ small at small joint distance
     assert small_lag_ratio(e_bl, blind) > 0.85  # no similarity: γ at the sill already
     assert small_lag_ratio(e_bl, aware) < 0.3  # similar again once the direction is in the distance
+
+
+@pytest.mark.parametrize("kind", ["spherical", "exponential", "gaussian"])
+def test_range_derivative_of_the_correlation_is_exact(kind: str) -> None:
+    """The fit's analytic Jacobian rests on ∂ρ/∂a; against central differences."""
+    from comp_daemon.models.variogram import _correlation, _correlation_da
+
+    h = np.linspace(0.0, 30.0, 61)
+    a, eps = 17.0, 1e-6
+    rho = _correlation(kind, h, a)
+    numeric = (_correlation(kind, h, a + eps) - _correlation(kind, h, a - eps)) / (2 * eps)
+    np.testing.assert_allclose(_correlation_da(kind, h, a, rho), numeric, atol=1e-8)

@@ -33,7 +33,7 @@ from comp_daemon.models.variogram import VariogramModel
 __all__ = ["LocalKriging"]
 
 BATCH = 512  # queries per stacked solve at most
-BATCH_ELEMENTS = 4_000_000  # and at most this many elements in the (batch, k+1, k+1) work arrays
+BATCH_ELEMENTS = 4_000_000  # and at most this many elements in one component's (batch, k+1, k+1) array
 
 
 class LocalKriging:
@@ -67,35 +67,39 @@ class LocalKriging:
     def _solve(
         self, q: NDArray[np.float64], idx: NDArray[np.intp], return_std: bool
     ) -> tuple[NDArray[np.float64], NDArray[np.float64] | None]:
-        """Predictions (m, k) (and kriging std) at ``q`` (m, d) from the samples ``idx`` (m, kn)."""
+        """Predictions (m, k) (and kriging std) at ``q`` (m, d) from the samples ``idx`` (m, kn).
+
+        The systems of every component are stacked and solved in one batched call."""
         m, kn = idx.shape
         pts = self.coords[idx]  # (m, kn, d)
         centred = pts - pts.mean(axis=1, keepdims=True)  # Gram form, centred to keep the digits
         sq = np.einsum("mid,mid->mi", centred, centred)
         gram = np.matmul(centred, np.ascontiguousarray(centred.transpose(0, 2, 1)))
-        d2 = sq[:, :, None] + sq[:, None, :] - 2.0 * gram
-        d_ss = np.sqrt(np.maximum(d2, 0.0, out=d2), out=d2)
-        d_ss[:, np.arange(kn), np.arange(kn)] = 0.0
+        d_ss = np.multiply(gram, -2.0, out=gram)
+        d_ss += sq[:, :, None]
+        d_ss += sq[:, None, :]
+        np.sqrt(np.maximum(d_ss, 0.0, out=d_ss), out=d_ss)
         d_qs = np.linalg.norm(pts - q[:, None, :], axis=2)  # (m, kn)
         n_comp = self.values.shape[1]
-        out = np.empty((m, n_comp))
-        std = np.empty((m, n_comp)) if return_std else None
-        a = np.zeros((m, kn + 1, kn + 1))
-        a[:, :kn, kn] = 1.0
-        a[:, kn, :kn] = 1.0
-        rhs = np.ones((m, kn + 1, 1))
+        a = np.empty((n_comp, m, kn + 1, kn + 1))
+        a[:, :, :kn, kn] = 1.0
+        a[:, :, kn, :kn] = 1.0
+        a[:, :, kn, kn] = 0.0
+        rhs = np.ones((n_comp, m, kn + 1, 1))
         diag = np.arange(kn)
         for c, vg in enumerate(self.variograms):
-            a[:, :kn, :kn] = vg.correlation(d_ss)
-            a[:, diag, diag] = 1.0 + vg.nugget / vg.psill
-            r = vg.correlation(d_qs)
-            rhs[:, :kn, 0] = r
-            sol = np.linalg.solve(a, rhs)[:, :, 0]
-            lam = sol[:, :kn]
-            out[:, c] = np.einsum("mk,mk->m", lam, self.values[idx, c])
-            if std is not None:
-                mse = 1.0 - np.einsum("mk,mk->m", lam, r) - sol[:, kn]
-                std[:, c] = np.sqrt(np.maximum(vg.psill * mse, 0.0))
+            a[c, :, :kn, :kn] = vg.correlation(d_ss)
+            a[c, :, diag, diag] = 1.0 + vg.nugget / vg.psill
+            rhs[c, :, :kn, 0] = vg.correlation(d_qs)
+        sol = np.linalg.solve(a.reshape(-1, kn + 1, kn + 1), rhs.reshape(-1, kn + 1, 1))
+        sol = sol.reshape(n_comp, m, kn + 1)
+        lam = sol[:, :, :kn]  # (k, m, kn)
+        out = np.einsum("cmk,mkc->mc", lam, self.values[idx])
+        std = None
+        if return_std:
+            mse = 1.0 - np.einsum("cmk,cmk->cm", lam, rhs[:, :, :kn, 0]) - sol[:, :, kn]  # (k, m)
+            psill = np.array([vg.psill for vg in self.variograms])
+            std = np.sqrt(np.maximum(psill[:, None] * mse, 0.0)).T
         return out, std
 
     def predict(

@@ -44,6 +44,7 @@ __all__ = [
     "VARIOGRAM_MODELS",
     "EmpiricalVariogram",
     "VariogramModel",
+    "binned_semivariogram",
     "empirical_semivariogram",
     "fit_variogram",
     "pairwise_distances",
@@ -138,6 +139,18 @@ def _correlation(kind: str, h: NDArray[np.float64], a: float) -> NDArray[np.floa
     return np.exp(-3.0 * r * r)
 
 
+def _correlation_da(
+    kind: str, h: NDArray[np.float64], a: float, rho: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """∂ρ/∂a of :func:`_correlation` at ``h`` (``rho`` its value there)."""
+    r = np.abs(h) / a
+    if kind == "spherical":
+        return np.where(r < 1.0, 1.5 * (1.0 - r * r) * r / a, 0.0)
+    if kind == "exponential":
+        return rho * 3.0 * r / a
+    return rho * 6.0 * r * r / a
+
+
 @dataclass(frozen=True, slots=True)
 class EmpiricalVariogram:
     """Binned semivariance: per bin the mean lag, γ̂ per component (k columns) and the pair count."""
@@ -195,18 +208,41 @@ def empirical_semivariogram(
     if dist.shape != (n, n):
         raise ValueError(f"distances must be ({n}, {n}) for {n} values, got {dist.shape}")
     iu, ju = np.triu_indices(n, k=1)
-    h = dist[iu, ju]
-    top = 0.5 * float(h.max()) if max_lag is None else min(float(max_lag), float(h.max()))
+    return binned_semivariogram(dist[iu, ju], 0.5 * (z[iu] - z[ju]) ** 2, n_bins=n_bins, max_lag=max_lag)
+
+
+def binned_semivariogram(
+    h: NDArray[np.float64],
+    half_sq: NDArray[np.float64],
+    *,
+    n_bins: int = 12,
+    max_lag: float | None = None,
+) -> EmpiricalVariogram:
+    """Seed 001 eq. 12 from the pairs themselves: their distances ``h`` (p,) and half squared
+    increments ``½(z_i − z_j)²`` (p, k); ``max_lag`` as :func:`empirical_semivariogram`.
+
+    A caller that tries several metrics on the same samples computes the increments once.
+    """
+    h = np.asarray(h, dtype=float)
+    sq = np.asarray(half_sq, dtype=float)
+    if sq.ndim == 1:
+        sq = sq[:, None]
+    if h.ndim != 1 or sq.shape[0] != h.shape[0] or h.size == 0:
+        raise ValueError(f"pair distances (p,) and increments (p, k) must match, got {h.shape}, {sq.shape}")
+    if n_bins < 1:
+        raise ValueError(f"n_bins must be >= 1, got {n_bins}")
+    hmax = float(h.max())
+    top = 0.5 * hmax if max_lag is None else min(float(max_lag), hmax)
     if not top > 0.0:
         raise ValueError("max_lag must be > 0 (are all points identical?)")
     edges = np.linspace(0.0, top, n_bins + 1)
     keep = h <= top
-    h, iu, ju = h[keep], iu[keep], ju[keep]
+    if not keep.all():
+        h, sq = h[keep], sq[keep]
     b = np.minimum(np.searchsorted(edges, h, side="right") - 1, n_bins - 1)
     b = np.maximum(b, 0)
     count = np.bincount(b, minlength=n_bins).astype(np.int64)
-    sq = 0.5 * (z[iu] - z[ju]) ** 2  # (pairs, k)
-    sums = np.stack([np.bincount(b, weights=sq[:, c], minlength=n_bins) for c in range(z.shape[1])], axis=1)
+    sums = np.stack([np.bincount(b, weights=sq[:, c], minlength=n_bins) for c in range(sq.shape[1])], axis=1)
     hsum = np.bincount(b, weights=h, minlength=n_bins)
     filled = count > 0
     gamma = np.full(sums.shape, np.nan)
@@ -232,12 +268,26 @@ def _fit_one(
     def split(p: NDArray[np.float64]) -> tuple[float, float, float]:
         return (float(p[0]), float(p[1]), float(p[2])) if nugget else (0.0, float(p[0]), float(p[1]))
 
+    sqrt_cnt = np.sqrt(cnt)
+
     def resid(p: NDArray[np.float64]) -> NDArray[np.float64]:
         c0, c, a = split(p)
         g = c0 + c * (1.0 - _correlation(kind, lag, a))
         if weighting == "cressie":
-            return np.sqrt(cnt) * (gam / np.maximum(g, floor) - 1.0)
-        return np.sqrt(cnt) * (g - gam) / gmax
+            return sqrt_cnt * (gam / np.maximum(g, floor) - 1.0)
+        return sqrt_cnt * (g - gam) / gmax
+
+    def jac(p: NDArray[np.float64]) -> NDArray[np.float64]:
+        c0, c, a = split(p)
+        rho = _correlation(kind, lag, a)
+        dg = np.stack([np.ones_like(lag), 1.0 - rho, -c * _correlation_da(kind, lag, a, rho)], axis=1)
+        if not nugget:
+            dg = dg[:, 1:]
+        if weighting == "cressie":
+            g = c0 + c * (1.0 - rho)
+            scale = np.where(g > floor, -sqrt_cnt * gam / np.maximum(g, floor) ** 2, 0.0)
+            return scale[:, None] * dg
+        return (sqrt_cnt / gmax)[:, None] * dg
 
     lo = np.array([0.0, 1e-9 * gmax, 1e-3 * hmax])
     hi = np.array([gmax, 4.0 * gmax, 4.0 * hmax])
@@ -249,7 +299,7 @@ def _fit_one(
         start = [c0_start, max(gmax - c0_start, 2.0 * lo[-2]), frac * hmax]
         p0 = np.array(start if nugget else start[1:])
         p0 = np.clip(p0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
-        res = scipy.optimize.least_squares(resid, p0, bounds=(lo, hi), method="trf", x_scale="jac")
+        res = scipy.optimize.least_squares(resid, p0, jac=jac, bounds=(lo, hi), method="trf", x_scale="jac")
         if best is None or float(res.cost) < best[0]:
             best = (float(res.cost), res.x)
     assert best is not None
