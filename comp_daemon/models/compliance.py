@@ -51,7 +51,7 @@ from comp_daemon.kinematics.params import (
 from comp_daemon.kinematics.so3 import left_jacobian, skew
 from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
-from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
+from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability, mdh_priority
 from comp_daemon.models.lm import LMResult, improved_lm
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
@@ -86,7 +86,8 @@ def joint_numbers(joints: Sequence[int], what: str) -> tuple[int, ...]:
 
 
 class ComplianceModel(ErrorModel):
-    """Nominal geometry with calibrated zero offsets and joint compliance (seed 004)."""
+    """Joint compliance (seed 004) on calibrated zero offsets (the paper's form, nominal geometry
+    otherwise) or on a whole calibrated MDH geometry (``geometry``)."""
 
     kind: ClassVar[str] = "compliance"
 
@@ -98,6 +99,7 @@ class ComplianceModel(ErrorModel):
         world_T_base: NDArray[np.float64] | None = None,
         tool_xyz_mm: NDArray[np.float64] | Sequence[float] | None = None,
         registration: NDArray[np.float64] | None = None,
+        geometry: KinematicParams | None = None,
     ) -> None:
         self.robot = robot
         self.zero_offset_rad = finite_array(zero_offset_rad, (N_JOINTS,), "zero_offset_rad")
@@ -110,10 +112,16 @@ class ComplianceModel(ErrorModel):
         )
         nominal = KinematicParams.from_robot(robot)
         tool = nominal.tool_xyz_mm if tool_xyz_mm is None else finite_array(tool_xyz_mm, (3,), "tool_xyz_mm")
-        dx = np.zeros(N_PARAMS)
-        dx[0:30:5] = self.zero_offset_rad
-        dx[36:39] = tool - nominal.tool_xyz_mm
-        self.params: KinematicParams = nominal.apply(dx).with_base(self.world_T_base)
+        self.geometric = geometry is not None
+        if geometry is not None:
+            self.params: KinematicParams = geometry
+            self.world_T_base = geometry.world_T_base
+            self.zero_offset_rad = geometry.theta_offset_rad - nominal.theta_offset_rad
+        else:
+            dx = np.zeros(N_PARAMS)
+            dx[0:30:5] = self.zero_offset_rad
+            dx[36:39] = tool - nominal.tool_xyz_mm
+            self.params = nominal.apply(dx).with_base(self.world_T_base)
         self.effects = EffectParams(compliance_rad_per_nm=self.compliance_rad_per_nm)
         self.mass = MassModel.from_robot(robot)
 
@@ -138,12 +146,22 @@ class ComplianceModel(ErrorModel):
         return self.params
 
     def to_payload(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "zero_offset_rad": self.zero_offset_rad.tolist(),
             "compliance_rad_per_nm": self.compliance_rad_per_nm.tolist(),
             "world_T_base": self.world_T_base.tolist(),
             "tool_xyz_mm": self.params.tool_xyz_mm.tolist(),
         }
+        if self.geometric:
+            p = self.params
+            out["mdh"] = {
+                "theta_offset_rad": p.theta_offset_rad.tolist(),
+                "d_mm": p.d_mm.tolist(),
+                "a_mm": p.a_mm.tolist(),
+                "alpha_rad": p.alpha_rad.tolist(),
+                "beta_rad": p.beta_rad.tolist(),
+            }
+        return out
 
     @classmethod
     def from_payload(
@@ -154,6 +172,20 @@ class ComplianceModel(ErrorModel):
         registration: NDArray[np.float64],
     ) -> ComplianceModel:
         try:
+            geometry = None
+            mdh = payload.get("mdh")
+            if mdh is not None:
+                nominal = KinematicParams.from_robot(robot)
+                geometry = KinematicParams(
+                    theta_offset_rad=finite_array(mdh["theta_offset_rad"], (6,), "mdh.theta_offset_rad"),
+                    d_mm=finite_array(mdh["d_mm"], (6,), "mdh.d_mm"),
+                    a_mm=finite_array(mdh["a_mm"], (6,), "mdh.a_mm"),
+                    alpha_rad=finite_array(mdh["alpha_rad"], (6,), "mdh.alpha_rad"),
+                    beta_rad=finite_array(mdh["beta_rad"], (6,), "mdh.beta_rad"),
+                    sign=nominal.sign,
+                    tool_xyz_mm=finite_array(payload["tool_xyz_mm"], (3,), "tool_xyz_mm"),
+                    world_T_base=finite_array(payload["world_T_base"], (4, 4), "world_T_base"),
+                )
             return cls(
                 robot,
                 payload["zero_offset_rad"],
@@ -161,6 +193,7 @@ class ComplianceModel(ErrorModel):
                 np.array(payload["world_T_base"], dtype=float),
                 payload["tool_xyz_mm"],
                 registration,
+                geometry,
             )
         except KeyError as exc:
             raise ValueError(f"compliance model: missing field {exc.args[0]!r}") from None
@@ -265,6 +298,7 @@ def calibrate_compliance(
     offset_joints: Sequence[int] = ALL_JOINTS,
     frame: FrameChoice = "auto",
     fit_tool: bool = False,
+    geometry: bool = False,
     rtol: float = 1e-8,
     max_iter: int = 100,
 ) -> ComplianceFit:
@@ -272,7 +306,10 @@ def calibrate_compliance(
 
     ``a_deg`` (n, 6) commanded axis values, ``p_measured_mm`` (n, 3) measured TCP positions in the
     robot base frame or the tracker's (``frame``: detected by default; a tracker frame is registered
-    and its six parameters refined too). ``fit_tool`` adds the tool xyz to the unknowns.
+    and its six parameters refined too). ``fit_tool`` adds the tool xyz to the unknowns;
+    ``geometry`` makes every MDH parameter, the base frame and the tool unknowns (the kinematic
+    calibration of seed 000 with the compliance beside it; dependent parameters removed by name in
+    the MDH priority), instead of the zero offsets alone.
     """
     a = as_axes(a_deg)
     n = a.shape[0]
@@ -295,6 +332,8 @@ def calibrate_compliance(
         geo_names = [*PARAM_NAMES[30:36], *geo_names]
     if fit_tool:
         geo_names += list(PARAM_NAMES[36:39])
+    if geometry:
+        geo_names = list(PARAM_NAMES)
     geo_idx = np.array([PARAM_NAMES.index(nm) for nm in geo_names], dtype=np.intp)
     c_names = [f"C{j}" for j in cj]
     all_names = [*geo_names, *c_names]
@@ -309,7 +348,8 @@ def calibrate_compliance(
 
     x0 = np.zeros(len(all_names))
     _, jac0 = tcp_and_jac(x0)
-    report = analyze_identifiability(jac0, all_names, rtol=rtol)
+    priority = mdh_priority(start, extra=c_names) if geometry else None
+    report = analyze_identifiability(jac0, all_names, priority=priority, rtol=rtol)
     keep = report.identifiable_index
     x_full = np.zeros(len(all_names))
 
@@ -329,7 +369,15 @@ def calibrate_compliance(
     result = improved_lm(residual, jacobian, np.zeros(keep.size), x_scale="jac", max_iter=max_iter)
     params, comp, _ = unpack(expand(result.x))
     offsets = params.theta_offset_rad - nominal.theta_offset_rad
-    model = ComplianceModel(robot, offsets, comp, params.world_T_base, params.tool_xyz_mm, registration)
+    model = ComplianceModel(
+        robot,
+        offsets,
+        comp,
+        params.world_T_base,
+        params.tool_xyz_mm,
+        registration,
+        params if geometry else None,
+    )
     rms = float(np.sqrt(np.mean(np.sum(result.residual.reshape(n, 3) ** 2, axis=1))))
     return ComplianceFit(
         model=model,

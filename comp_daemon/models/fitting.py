@@ -32,7 +32,7 @@ table; the doors call them through it.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
@@ -45,7 +45,7 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
-from comp_daemon.models.compliance import calibrate_compliance
+from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceFit, calibrate_compliance
 from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
@@ -53,6 +53,7 @@ from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
 from comp_daemon.models.poe_model import fit_poe
 from comp_daemon.models.registration import detect_frame, rigid_registration
+from comp_daemon.models.selection import Decision, Selection, judge, keep_all, select_kinematic_effects
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -110,6 +111,16 @@ class ModelSpec:
         """The ``aniso`` option: kriging with per-joint ranges."""
         return "aniso" in self.options
 
+    @property
+    def keep_all(self) -> bool:
+        """The ``all`` option: every effect kept as named, no selection (the papers' forms)."""
+        return "all" in self.options
+
+    @property
+    def paper(self) -> bool:
+        """The ``paper`` option: the paper's own form of the kind (``compliance:paper``, seed 004)."""
+        return "paper" in self.options
+
 
 @dataclass(frozen=True, slots=True)
 class FitOptions:
@@ -139,6 +150,21 @@ class FitRows:
         object.__setattr__(self, "a_deg", a)
         object.__setattr__(self, "xyz_mm", p)
         object.__setattr__(self, "n", a.shape[0])
+
+    def take(self, rows: NDArray[np.intp]) -> FitRows:
+        """These rows only (every column)."""
+        payload = self.payload_kg if np.ndim(self.payload_kg) == 0 else np.asarray(self.payload_kg)[rows]
+        return FitRows(
+            self.a_deg[rows],
+            self.xyz_mm[rows],
+            None if self.dir is None else self.dir[rows],
+            payload,
+            None if self.temp_c is None else self.temp_c[rows],
+        )
+
+    def errors(self, model: ErrorModel) -> NDArray[np.float64]:
+        """(n, 3) measured − predicted of ``model`` on these rows (mm)."""
+        return self.xyz_mm - model.predict_tcp_mm(self.a_deg, self.dir, self.payload_kg, self.temp_c)
 
     @classmethod
     def of(
@@ -282,15 +308,64 @@ def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
     }
 
 
+def _data_frame(robot: RobotDescription, rows: FitRows, options: FitOptions) -> Literal["base", "tracker"]:
+    """The frame of the measured positions: ``options.frame``, or detected on every row."""
+    if options.frame != "auto":
+        return options.frame
+    nominal = KinematicParams.from_robot(robot)
+    return detect_frame(tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign)), rows.xyz_mm)
+
+
+def select_effects(
+    robot: RobotDescription,
+    rows: FitRows,
+    spec: ModelSpec,
+    options: FitOptions,
+    effects: Sequence[str],
+    fit_on: Callable[[Sequence[str], FitRows, FitOptions], ErrorModel] | None = None,
+) -> tuple[tuple[str, ...], Selection]:
+    """The ``effects`` that earn their place on the fit rows (:mod:`comp_daemon.models.selection`),
+    every one of them with the spec's ``all`` option. ``fit_on(effects, rows, options)`` fits the
+    model with those effects (default: the kinematic calibration)."""
+    if not effects:
+        return (), Selection((), (), ())
+    if spec.keep_all:
+        return tuple(effects), keep_all(effects)
+    fold_options = FitOptions(_data_frame(robot, rows, options), options.cv_folds, options.seed)
+
+    def kinematic_on(effs: Sequence[str], sub: FitRows, fo: FitOptions) -> ErrorModel:
+        return _kinematic(robot, sub, effs, fo).model
+
+    fit = fit_on or kinematic_on
+    try:
+        return select_kinematic_effects(
+            effects,
+            rows.n,
+            lambda effs, idx: fit(effs, rows.take(idx), fold_options),
+            lambda model, idx: rows.take(idx).errors(model),
+            folds=options.cv_folds,
+            seed=options.seed,
+        )
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        note = f"no selection: a cross-validation fit failed ({exc}); every effect kept"
+        return tuple(effects), Selection(tuple(effects), (), (), note)
+
+
 def fit_kinematic_kind(
     robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
-    """MDH calibration with the spec's joint effects."""
-    kf = _kinematic(robot, rows, spec.effects, options)
+    """MDH calibration with those of the spec's joint effects that earn their place (all of them
+    with ``:all``)."""
+    effects, selection = select_effects(robot, rows, spec, options, spec.effects)
+    kf = _kinematic(robot, rows, effects, options)
     attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
-    return FittedModel(
-        kf.model, kf.frame, {"kind": spec.kind, "rows": rows.n, **_kinematic_info(kf, spec.effects)}
-    )
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        **_kinematic_info(kf, effects),
+        "selection": selection.to_info(),
+    }
+    return FittedModel(kf.model, kf.frame, info)
 
 
 def fit_chebyshev_kind(
@@ -364,6 +439,7 @@ def _fit_kriging(
     effects: Sequence[str],
     direction: Literal["aware", "blind"],
 ) -> FittedModel:
+    effects, selection = select_effects(robot, rows, spec, options, effects)
     kf = _kinematic(robot, rows, effects, options)
     kg = fit_kriging(
         kf.model,
@@ -375,14 +451,48 @@ def _fit_kriging(
         direction=direction,
         neighbours="auto" if spec.neighbours is None else spec.neighbours,
         anisotropic=spec.anisotropic,
+        select_anisotropic=not spec.keep_all,
     )
+    if kg.anisotropic_decision is not None:
+        selection = selection + _decided(kg.anisotropic_decision)
+    base_info = {"kind": "kinematic", **_kinematic_info(kf, effects)}
+    if not spec.keep_all:
+        use = np.ones(kg.loo_rows.size, dtype=bool)
+        if kg.unbiased_rows is not None:  # per-joint ranges: only the samples they were not chosen on
+            use = np.isin(kg.loo_rows, kg.unbiased_rows)
+        rows_loo = kg.loo_rows[use]
+        decision = judge(
+            "kriging",
+            np.sum(kg.loo_residual_mm[use] ** 2, axis=1),
+            np.sum(kg.model.residual_mm[rows_loo] ** 2, axis=1),
+            f"leave-one-out on {rows_loo.size} of the {rows.n} fit rows against the base model's residual",
+        )
+        selection = selection + _decided(decision)
+        if not decision.kept:
+            attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
+            info = {
+                "kind": spec.kind,
+                "rows": rows.n,
+                "model_kind": "kinematic",
+                **_kinematic_info(kf, effects),
+                "kriging": _kriging_info(kg, rows),
+                "selection": selection.to_info(),
+            }
+            return FittedModel(kf.model, kf.frame, info)
     info = {
         "kind": spec.kind,
         "rows": rows.n,
         **_kriging_info(kg, rows),
-        "base": {"kind": "kinematic", **_kinematic_info(kf, effects)},
+        "base": base_info,
+        "selection": selection.to_info(),
     }
     return FittedModel(kg.model, kf.frame, info)
+
+
+def _decided(decision: Decision) -> Selection:
+    kept = (decision.part,) if decision.kept else ()
+    dropped = () if decision.kept else (decision.part,)
+    return Selection(kept, dropped, (decision,))
 
 
 def fit_kriging_kind(
@@ -405,18 +515,42 @@ def fit_kriging_backlash_kind(
 def fit_compliance_kind(
     robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
-    """Seed 004: zero offsets and the compliance of joints 2 and 3 under the rows' payloads."""
-    cf = calibrate_compliance(robot, rows.a_deg, rows.xyz_mm, payload_kg=rows.payload_kg, frame=options.frame)
+    """Seed 004's compliance of joints 2 and 3 under the rows' payloads, on the whole kinematic
+    geometry (``compliance``; the compliance kept only if it earns its place, every time with
+    ``:all``) or on the zero offsets alone (``compliance:paper``, the paper's form)."""
+    geometry = not spec.paper
+
+    def calibrate(effs: Sequence[str], sub: FitRows, fo: FitOptions) -> ComplianceFit:
+        return calibrate_compliance(
+            robot,
+            sub.a_deg,
+            sub.xyz_mm,
+            payload_kg=sub.payload_kg,
+            compliance_joints=COMPLIANCE_JOINTS if "compliance" in effs else (),
+            frame=fo.frame,
+            geometry=geometry,
+        )
+
+    kept: tuple[str, ...] = ("compliance",)
+    if spec.paper:
+        selection = keep_all(kept)
+    else:
+        kept, selection = select_effects(
+            robot, rows, spec, options, ("compliance",), lambda e, sub, fo: calibrate(e, sub, fo).model
+        )
+    cf = calibrate(kept, rows, options)
     attach_covariance(cf.model, cf.identified, cf.values, cf.lm.jacobian, cf.lm.residual)
     info = {
         "kind": spec.kind,
         "rows": rows.n,
+        "form": "zero offsets and C2, C3 (seed 004)" if spec.paper else "kinematic geometry and C2, C3",
         "rms_mm": cf.rms_mm,
         "compliance_rad_per_nm": cf.model.compliance_rad_per_nm.tolist(),
         "zero_offset_rad": cf.model.zero_offset_rad.tolist(),
         "solver": lm_info(cf.lm),
         "identifiability": report_info(cf.report),
         "identified": _identified(cf.identified, cf.values, cf.std),
+        "selection": selection.to_info(),
     }
     return FittedModel(cf.model, cf.frame, info)
 

@@ -63,6 +63,7 @@ from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.local_kriging import LocalKriging
 from comp_daemon.models.ordinary_kriging import OrdinaryKriging
+from comp_daemon.models.selection import Decision, judge
 from comp_daemon.models.variogram import (
     EmpiricalVariogram,
     VariogramModel,
@@ -348,6 +349,11 @@ class KrigingFit:
     base_rms_mm: float  # 3-D RMS of the base model's residual on the sampling points
     loo_samples: int = 0  # sampling points the LOO RMS was taken on
     weight_candidates: tuple[tuple[tuple[float, ...], float], ...] = ()  # anisotropic search: (w, LOO)
+    # the points the LOO RMS was taken on, and their leave-one-out residuals (len(loo_rows), 3)
+    loo_rows: NDArray[np.intp] = field(default_factory=lambda: np.zeros(0, dtype=np.intp))
+    loo_residual_mm: NDArray[np.float64] = field(default_factory=lambda: np.zeros((0, 3)))
+    anisotropic_decision: Decision | None = None  # per-joint ranges against the isotropic distance
+    unbiased_rows: NDArray[np.intp] | None = None  # the samples not used to choose the metric, if any
 
 
 def _subset(n: int, most: int, seed: int) -> NDArray[np.intp]:
@@ -402,7 +408,7 @@ def _fit_for_metric(
     nugget: bool,
     neighbours: int | None,
     pairs: _VariogramPairs | None = None,
-) -> tuple[KrigingModel, EmpiricalVariogram, float, int]:
+) -> _MetricFit:
     """The model under ``metric``, its empirical variogram and its LOO 3-D RMS (and on how many points).
 
     Local models (``neighbours``) take their empirical variogram from ``pairs`` (built here if None).
@@ -420,10 +426,23 @@ def _fit_for_metric(
     variograms = [fit_variogram(emp, c, kind=kind, dim=dim, nugget=nugget) for c in range(3)]
     model = KrigingModel(base, metric, a, d, residual, variograms, distances=dist, neighbours=neighbours)
     if isinstance(model.kriging, OrdinaryKriging):
+        rows = np.arange(n)
         loo = model.kriging.loo_residuals()
     else:
-        loo = model.kriging.loo_residuals(_subset(n, LOO_MAX_SAMPLES, 2))
-    return model, emp, float(np.sqrt(np.mean(np.sum(loo**2, axis=1)))), loo.shape[0]
+        rows = _subset(n, LOO_MAX_SAMPLES, 2)
+        loo = model.kriging.loo_residuals(rows)
+    return _MetricFit(model, emp, float(np.sqrt(np.mean(np.sum(loo**2, axis=1)))), rows, loo)
+
+
+@dataclass(frozen=True, slots=True)
+class _MetricFit:
+    """The kriging model under one metric, its empirical variogram and its leave-one-out residuals."""
+
+    model: KrigingModel
+    empirical: EmpiricalVariogram
+    loo_rms_mm: float
+    loo_rows: NDArray[np.intp]
+    loo_residual_mm: NDArray[np.float64]
 
 
 def fit_kriging(
@@ -443,6 +462,7 @@ def fit_kriging(
     dir_grid_deg: Sequence[float] = DEFAULT_DIR_GRID_DEG,
     neighbours: int | Literal["auto"] | None = "auto",
     anisotropic: bool = False,
+    select_anisotropic: bool = True,
 ) -> KrigingFit:
     """Fit the error-similarity model of seed 001 on sampling points, on top of ``base``.
 
@@ -461,7 +481,11 @@ def fit_kriging(
     ``anisotropic``: after the direction separation, the six joint weights (the inverse per-joint
     ranges) are chosen by a coordinate search on the LOO RMS (each weight times
     :data:`ANISO_FACTORS`, two sweeps, on at most :data:`ANISO_MAX_SAMPLES` samples) instead of the
-    paper's isotropic distance (``joint_weights``, default 1, is the starting point).
+    paper's isotropic distance (``joint_weights``, default 1, is the starting point). With
+    ``select_anisotropic`` the weights are searched on one random half of the samples and kept only
+    if, on the other half, their leave-one-out errors beat the isotropic distance's by the rule of
+    :mod:`comp_daemon.models.selection`; the decision is in :attr:`KrigingFit.anisotropic_decision`
+    and the half they were not chosen on in :attr:`KrigingFit.unbiased_rows`.
     """
     a = as_axes(a_deg)
     n = a.shape[0]
@@ -485,9 +509,7 @@ def fit_kriging(
 
     pairs = None if neighbours is None else _VariogramPairs(a, d, residual)
 
-    def evaluate(
-        sep: NDArray[np.float64], w: NDArray[np.float64] = weights
-    ) -> tuple[KrigingModel, EmpiricalVariogram, float, int]:
+    def evaluate(sep: NDArray[np.float64], w: NDArray[np.float64] = weights) -> _MetricFit:
         metric = JointStateMetric(w, sep if d is not None else np.zeros(N_JOINTS))
         return _fit_for_metric(
             base, metric, a, d, residual, variogram, n_bins, max_lag, nugget, neighbours, pairs
@@ -498,12 +520,12 @@ def fit_kriging(
         if direction not in ("aware", "blind"):
             raise ValueError(f"direction must be 'aware', 'blind' or 6 separations (deg), got {direction!r}")
         grid = [0.0] if direction == "blind" or d is None else [float(g) for g in dir_grid_deg]
-        best: tuple[KrigingModel, EmpiricalVariogram, float, int] | None = None
+        best: _MetricFit | None = None
         for g in grid:
             sep = np.full(N_JOINTS, g)
             result = evaluate(sep)
-            candidates.append((tuple(sep.tolist()), result[2]))
-            if best is None or result[2] < best[2]:
+            candidates.append((tuple(sep.tolist()), result.loo_rms_mm))
+            if best is None or result.loo_rms_mm < best.loo_rms_mm:
                 best = result
         assert best is not None
     else:
@@ -511,24 +533,56 @@ def fit_kriging(
         if sep.shape != (N_JOINTS,):
             raise ValueError(f"direction separations: expected 6 values (deg), got shape {sep.shape}")
         best = evaluate(sep)
-        candidates.append((tuple(sep.tolist()), best[2]))
+        candidates.append((tuple(sep.tolist()), best.loo_rms_mm))
     weight_candidates: tuple[tuple[tuple[float, ...], float], ...] = ()
+    decision: Decision | None = None
+    unbiased: NDArray[np.intp] | None = None
     if anisotropic:
-        chosen_sep = best[0].metric.dir_separation_deg
+        chosen_sep = best.model.metric.dir_separation_deg
+        if select_anisotropic:
+            # the weights are searched on one half of the samples and judged on the other
+            half = np.random.default_rng(4).permutation(n)
+            search, held = np.sort(half[: n // 2]), np.sort(half[n // 2 :])
+        else:
+            search, held = np.arange(n), np.zeros(0, dtype=np.intp)
         w_best, weight_candidates = _search_weights(
-            base, a, d, residual, chosen_sep, weights, variogram, n_bins, max_lag, nugget
+            base, a, d, residual, chosen_sep, weights, variogram, n_bins, max_lag, nugget, search
         )
-        if not np.array_equal(w_best, weights):
+        if not np.array_equal(w_best, weights) and held.size >= 4:
+            judged = held[_subset(held.size, ANISO_MAX_SAMPLES, 5)]
+
+            def held_out_loo(w: NDArray[np.float64]) -> NDArray[np.float64]:
+                metric = JointStateMetric(w, chosen_sep)
+                d_h = None if d is None else d[judged]
+                f = _fit_for_metric(
+                    base, metric, a[judged], d_h, residual[judged], variogram, n_bins, max_lag, nugget, None
+                )
+                return np.sum(f.loo_residual_mm**2, axis=1)
+
+            decision = judge(
+                "anisotropic ranges",
+                held_out_loo(w_best),
+                held_out_loo(weights),
+                f"leave-one-out on {judged.size} samples not used to choose the weights, "
+                "against the isotropic distance",
+            )
+            if decision.kept:
+                best = evaluate(chosen_sep, w_best)
+                unbiased = held
+        elif not np.array_equal(w_best, weights):
             best = evaluate(chosen_sep, w_best)
-    model, emp, loo, n_loo = best
     return KrigingFit(
-        model=model,
-        empirical=emp,
-        loo_rms_mm=loo,
+        model=best.model,
+        empirical=best.empirical,
+        loo_rms_mm=best.loo_rms_mm,
         candidates=tuple(candidates),
         base_rms_mm=base_rms,
-        loo_samples=n_loo,
+        loo_samples=int(best.loo_rows.size),
         weight_candidates=weight_candidates,
+        loo_rows=best.loo_rows,
+        loo_residual_mm=best.loo_residual_mm,
+        anisotropic_decision=decision,
+        unbiased_rows=unbiased,
     )
 
 
@@ -543,15 +597,18 @@ def _search_weights(
     n_bins: int,
     max_lag: float | None,
     nugget: bool,
+    rows: NDArray[np.intp],
 ) -> tuple[NDArray[np.float64], tuple[tuple[tuple[float, ...], float], ...]]:
-    """Per-joint weights by coordinate search on the dense LOO RMS of a subset (see fit_kriging)."""
-    sub = _subset(a.shape[0], ANISO_MAX_SAMPLES, 3)
+    """Per-joint weights by coordinate search on the dense LOO RMS of a subset of ``rows``
+    (see fit_kriging)."""
+    sub = rows[_subset(rows.size, ANISO_MAX_SAMPLES, 3)]
     a_s, d_s, r_s = a[sub], None if d is None else d[sub], residual[sub]
 
     def loo(w: NDArray[np.float64]) -> float:
         metric = JointStateMetric(w, sep)
         try:
-            return _fit_for_metric(base, metric, a_s, d_s, r_s, kind, n_bins, max_lag, nugget, None)[2]
+            fitted = _fit_for_metric(base, metric, a_s, d_s, r_s, kind, n_bins, max_lag, nugget, None)
+            return fitted.loo_rms_mm
         except ValueError:  # a degenerate metric (e.g. a singular system): not a candidate
             return float("inf")
 

@@ -82,6 +82,8 @@ __all__ = [
 ]
 
 MAX_ORDER = 8
+KRIGING_OPTIONS = ("k=N", "aniso", "all")
+OPTION_ORDER = ("aniso", "all", "paper")  # canonical order of the option words after k=N
 KINEMATIC_PARAMETERS = 39  # 30 MDH + 6 base + 3 tool
 
 FitFunction = Callable[[RobotDescription, FitRows, ModelSpec, FitOptions], FittedModel]
@@ -107,10 +109,14 @@ class ModelKind:
     parameters: Callable[[ModelSpec], int]  # before identifiability analysis
     takes_effects: bool = False  # "+ratio+backlash"
     takes_order: bool = False  # ":3", ":cv"
-    takes_options: bool = False  # kriging: ":k=64", ":aniso"
+    option_words: tuple[str, ...] = ()  # the ":option" words it takes: "k=N", "aniso", "all", "paper"
     needs: tuple[str, ...] = ()  # data columns without which the fit is refused
     uses: tuple[str, ...] = ()  # optional columns the fit takes when the data have them
     load: Loader | None = None  # rebuilds an artifact's model; default: model_class.from_payload
+
+    @property
+    def takes_options(self) -> bool:
+        return bool(self.option_words)
 
     def needed_columns(self, spec: ModelSpec) -> tuple[str, ...]:
         """The columns this spec cannot be fitted without (the kind's, and its effects')."""
@@ -138,6 +144,12 @@ def _kriging_backlash_parameters(spec: ModelSpec) -> int:
     return _kinematic_parameters(ModelSpec("kinematic", effects))
 
 
+def _compliance_parameters(spec: ModelSpec) -> int:
+    if spec.paper:
+        return 6 + 6 + len(COMPLIANCE_JOINTS)  # base frame, zero offsets, C2, C3
+    return KINEMATIC_PARAMETERS + len(COMPLIANCE_JOINTS)
+
+
 def _chebyshev_parameters(spec: ModelSpec) -> int:
     if spec.order_by_cv:
         return n_coefficients(0)  # the smallest candidate order
@@ -161,6 +173,7 @@ KINDS: dict[str, ModelKind] = {
             fit_kinematic_kind,
             _kinematic_parameters,
             takes_effects=True,
+            option_words=("all",),
             uses=("dir", "payload_kg", "temp_c"),
         ),
         ModelKind(
@@ -179,7 +192,7 @@ KINDS: dict[str, ModelKind] = {
             fit_kriging_kind,
             _kriging_parameters,
             takes_effects=True,
-            takes_options=True,
+            option_words=KRIGING_OPTIONS,
             uses=("payload_kg", "temp_c"),
             load=_kriging_loader,
         ),
@@ -190,17 +203,19 @@ KINDS: dict[str, ModelKind] = {
             fit_kriging_backlash_kind,
             _kriging_backlash_parameters,
             takes_effects=True,
-            takes_options=True,
+            option_words=KRIGING_OPTIONS,
             needs=("dir",),
             uses=("payload_kg", "temp_c"),
             load=_kriging_loader,
         ),
         ModelKind(
             "compliance",
-            "zero offsets and joint compliance C2, C3 under the payload_kg of each row (seed 004)",
+            "the kinematic geometry and joint compliance C2, C3 under the payload_kg of each row (seed 004);"
+            " compliance:paper the paper's zero offsets and C2, C3 alone",
             ComplianceModel,
             fit_compliance_kind,
-            lambda spec: 6 + 6 + len(COMPLIANCE_JOINTS),
+            _compliance_parameters,
+            option_words=("all", "paper"),
             uses=("payload_kg",),
         ),
         ModelKind(
@@ -308,25 +323,35 @@ def _neighbours_ok(text: str) -> bool:
 
 
 def _parse_options(name: str, kind: ModelKind, text: str) -> tuple[str, ...]:
-    """The ``:k=N`` / ``:aniso`` options of a kriging kind, canonical (k first, each once)."""
+    """The ``:option`` words of a kind (``k=N``, ``aniso``, ``all``, ``paper``), canonical (k first,
+    each once)."""
     k: int | None = None
-    aniso = False
+    words: set[str] = set()
     for part in (p.strip() for p in text.split(":")):
-        if part == "aniso" and not aniso:
-            aniso = True
-        elif (
-            part.startswith("k=")
-            and k is None
-            and part[2:].isdigit()
-            and 4 <= int(part[2:]) <= MAX_NEIGHBOURS
-        ):
+        if part in kind.option_words and part not in words and part != "k=N":
+            words.add(part)
+        elif "k=N" in kind.option_words and part.startswith("k=") and k is None and _neighbours_ok(part[2:]):
             k = int(part[2:])
         else:
-            raise UnknownModelError(
-                f"model '{name}': the {kind.name} model takes the options k=N (N 4..{MAX_NEIGHBOURS}, "
-                f"local neighbourhoods) and aniso (per-joint ranges), each once; got {part!r}"
+            offered = ", ".join(
+                f"k=N (N 4..{MAX_NEIGHBOURS}, local neighbourhoods)"
+                if w == "k=N"
+                else f"{w} ({OPTION_MEANING[w]})"
+                for w in kind.option_words
             )
-    return (*(() if k is None else (f"k={k}",)), *(("aniso",) if aniso else ()))
+            no_order = "takes no order; it " if part == "cv" or part.isdigit() else ""
+            raise UnknownModelError(
+                f"model '{name}': the {kind.name} model {no_order}takes the options {offered}, each once; "
+                f"got {part!r}"
+            )
+    return (*(() if k is None else (f"k={k}",)), *(w for w in OPTION_ORDER if w in words))
+
+
+OPTION_MEANING = {
+    "aniso": "per-joint ranges",
+    "all": "every effect kept, no selection",
+    "paper": "the paper's own form",
+}
 
 
 def with_order(spec: ModelSpec, order: int | Literal["cv"] | None) -> ModelSpec:
