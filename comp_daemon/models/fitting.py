@@ -556,17 +556,21 @@ def fit_compliance_kind(
 
 
 def fit_poe_kind(robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions) -> FittedModel:
-    """Seed 002: the POE errors Δl, Δθ and the base frame from the measured positions."""
+    """The POE calibration: a twist error per joint, the tool offset and the base frame
+    (``poe``), or seed 002's errors Δl, Δθ and the base frame (``poe:paper``)."""
     nominal = KinematicParams.from_robot(robot)
     p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
     chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
     reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
-    pf = fit_poe(robot, rows.a_deg, rows.xyz_mm, reg)
+    pf = fit_poe(robot, rows.a_deg, rows.xyz_mm, reg, "paper" if spec.paper else "twist")
     fit = pf.fit
     keep = fit.report.identifiable_index
     info = {
         "kind": spec.kind,
         "rows": rows.n,
+        "form": "dl1..dl6, dtheta1..dtheta6 (seed 002)"
+        if spec.paper
+        else "a twist error per joint (dtheta, dwu, dwn, dpu, dpn, dlax) and the tool offset",
         "rms_mm": pf.rms_mm,
         "solver": {
             "method": "improved Levenberg-Marquardt (seed 000), columns scaled",

@@ -54,6 +54,7 @@ __all__ = [
     "poe_identifiability",
     "poe_world_jacobian",
     "poe_world_position_mm",
+    "start_frame",
 ]
 
 _log = get_logger(__name__)
@@ -158,7 +159,8 @@ def poe_world_position_mm(
     return p @ world_T_base[:3, :3].T + world_T_base[:3, 3]
 
 
-def _frame(start: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+def start_frame(start: NDArray[np.float64], b: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The frame ``Rot(b_r)·start`` shifted by ``b_t`` (``b`` the six base parameters)."""
     out = np.eye(4)
     rot = rotvec_to_matrix(b[3:])
     out[:3, :3] = rot @ start[:3, :3]
@@ -181,7 +183,7 @@ def poe_world_jacobian(
     jac_x = poe_error_jacobian(model, a_deg, ch=ch)
     if start_T_base is None:
         return ch.tcp_mm, jac_x
-    world = _frame(start_T_base, theta[N_POE_PARAMS:])
+    world = start_frame(start_T_base, theta[N_POE_PARAMS:])
     p = ch.tcp_mm @ world[:3, :3].T + world[:3, 3]
     n = p.shape[0]
     jac = np.empty((n, 3, N_POE_PARAMS + 6))
@@ -305,7 +307,7 @@ def fit_poe_positions(
         theta=theta,
         std=std,
         cov=cov,
-        world_T_base=None if start is None else _frame(start, theta[N_POE_PARAMS:]),
+        world_T_base=None if start is None else start_frame(start, theta[N_POE_PARAMS:]),
         report=report,
         null_space=null,
         rms_before_mm=rms0,

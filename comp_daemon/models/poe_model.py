@@ -2,8 +2,10 @@
 
 :class:`PoeErrorModel` predicts the TCP with the product-of-exponentials chain of
 :mod:`comp_daemon.kinematics.poe` built from the robot description (equal to the MDH model at
-nominal), carrying the 12 fitted errors ``dl1..dl6`` (mm) and ``dtheta1..dtheta6`` (rad), in its
-fitted base frame ``world_T_base``::
+nominal), in its fitted base frame ``world_T_base``, carrying either the paper's 12 errors
+``dl1..dl6`` (mm) and ``dtheta1..dtheta6`` (rad) (``poe:paper``) or a full twist error per joint and
+a tool offset error (``poe``, :mod:`comp_daemon.models.poe_twist`: 39 errors, the dependent ones
+removed by name)::
 
     TCP_world = world_T_base · p_POE(A; x)
 
@@ -28,7 +30,7 @@ Jacobian (:func:`comp_daemon.models.poe.poe_world_jacobian`).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -42,6 +44,14 @@ from comp_daemon.models.poe import (
     fit_poe_positions,
     poe_world_jacobian,
     poe_world_position_mm,
+)
+from comp_daemon.models.poe_twist import (
+    N_TWIST_PARAMS,
+    TWIST_PARAM_NAMES,
+    PoeTwistFit,
+    fit_poe_twists,
+    twist_chain,
+    twist_world_jacobian,
 )
 from comp_daemon.robot.description import RobotDescription
 
@@ -61,9 +71,13 @@ class PoeErrorModel(ErrorModel):
         x: NDArray[np.float64],
         world_T_base: NDArray[np.float64],
         registration: NDArray[np.float64] | None = None,
+        twist: NDArray[np.float64] | None = None,
     ) -> None:
         self.robot = robot
         self.x = finite_array(x, (N_POE_PARAMS,), "POE errors x")
+        self.twist = None if twist is None else finite_array(twist, (N_TWIST_PARAMS,), "POE twist errors")
+        if self.twist is not None and np.any(self.x != 0.0):
+            raise ValueError("a POE model carries the 12 paper errors or the twist errors, not both")
         self.world_T_base = finite_array(world_T_base, (4, 4), "world_T_base")
         self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
         self.twists = PoeModel.from_robot(robot)
@@ -75,17 +89,30 @@ class PoeErrorModel(ErrorModel):
         payload_kg: NDArray[np.float64] | float | None = None,
         temp_c: NDArray[np.float64] | None = None,
     ) -> NDArray[np.float64]:
+        if self.twist is not None:
+            p, _ = twist_chain(self.twists, as_axes(a_deg), self.twist)
+            return p @ self.world_T_base[:3, :3].T + self.world_T_base[:3, 3]
         return poe_world_position_mm(self.twists, as_axes(a_deg), self.x, self.world_T_base)
+
+    @property
+    def parameter_names(self) -> tuple[str, ...]:
+        """The names :meth:`parameter_jacobian` takes: the model's errors, then the base frame."""
+        return (TWIST_PARAM_NAMES if self.twist is not None else POE_PARAM_NAMES) + BASE_NAMES
 
     def parameter_jacobian(self, a_deg: NDArray[np.float64], names: tuple[str, ...]) -> NDArray[np.float64]:
         """(n, 3, p) derivative of the TCP w.r.t. ``names`` (of :data:`POE_MODEL_NAMES`; base
         parameters as increments about the fitted frame)."""
-        theta = np.concatenate([self.x, np.zeros(len(BASE_NAMES))])
-        _, jac = poe_world_jacobian(self.twists, as_axes(a_deg), theta, self.world_T_base)
+        if self.twist is not None:
+            theta = np.concatenate([self.twist, np.zeros(len(BASE_NAMES))])
+            _, jac = twist_world_jacobian(self.twists, as_axes(a_deg), theta, self.world_T_base)
+        else:
+            theta = np.concatenate([self.x, np.zeros(len(BASE_NAMES))])
+            _, jac = poe_world_jacobian(self.twists, as_axes(a_deg), theta, self.world_T_base)
+        known = self.parameter_names
         try:
-            cols = [POE_MODEL_NAMES.index(n) for n in names]
+            cols = [known.index(n) for n in names]
         except ValueError:
-            raise ValueError(f"uncertainty: POE parameters are {', '.join(POE_MODEL_NAMES)}") from None
+            raise ValueError(f"uncertainty: POE parameters are {', '.join(known)}") from None
         return jac[:, :, cols]
 
     def predict_std_mm(
@@ -105,11 +132,15 @@ class PoeErrorModel(ErrorModel):
         return np.sqrt(np.maximum(var, 0.0))
 
     def to_payload(self) -> dict[str, Any]:
-        return {
+        out: dict[str, Any] = {
             "names": list(POE_PARAM_NAMES),
             "x": self.x.tolist(),
             "world_T_base": self.world_T_base.tolist(),
         }
+        if self.twist is not None:
+            out["twist_names"] = list(TWIST_PARAM_NAMES)
+            out["twist"] = self.twist.tolist()
+        return out
 
     @classmethod
     def from_payload(
@@ -124,7 +155,13 @@ class PoeErrorModel(ErrorModel):
             raise ValueError(f"model field 'names': expected {list(POE_PARAM_NAMES)}, got {names}")
         x = finite_array(payload["x"], (N_POE_PARAMS,), "model field 'x'")
         frame = finite_array(payload["world_T_base"], (4, 4), "model field 'world_T_base'")
-        return cls(robot, x, frame, registration)
+        twist = None
+        if payload.get("twist") is not None:
+            twist_names = [str(n) for n in payload.get("twist_names", ())]
+            if twist_names != list(TWIST_PARAM_NAMES):
+                raise ValueError(f"model field 'twist_names': expected {list(TWIST_PARAM_NAMES)}")
+            twist = finite_array(payload["twist"], (N_TWIST_PARAMS,), "model field 'twist'")
+        return cls(robot, x, frame, registration, twist)
 
 
 @dataclass(frozen=True, slots=True)
@@ -132,7 +169,7 @@ class PoeErrorFit:
     """The fitted model, the calibration behind it and the residual RMS (mm) of the model."""
 
     model: PoeErrorModel
-    fit: PoeFit
+    fit: PoeFit | PoeTwistFit
     rms_mm: float
 
 
@@ -141,20 +178,29 @@ def fit_poe(
     a_deg: NDArray[np.float64],
     p_mm: NDArray[np.float64],
     registration: NDArray[np.float64],
+    form: Literal["twist", "paper"] = "twist",
 ) -> PoeErrorFit:
-    """The POE errors and the base frame from measured TCPs ``p_mm`` (n, 3) at ``a_deg`` (n, 6);
+    """The POE errors and the base frame from measured TCPs ``p_mm`` (n, 3) at ``a_deg`` (n, 6):
+    the twist errors and the tool offset error (``form="twist"``) or the paper's 12 (``"paper"``);
     ``registration`` is the frame the model reports as its measurement frame (identity on base-frame
     data). The model carries the fit's parameter covariance when there are residual degrees of freedom."""
     a = as_axes(a_deg)
     p = np.asarray(p_mm, dtype=float)
-    fit = fit_poe_positions(PoeModel.from_robot(robot), a, p, fit_base=True)
-    assert fit.world_T_base is not None  # fit_base
-    model = PoeErrorModel(robot, fit.x, fit.world_T_base, registration)
+    poe = PoeModel.from_robot(robot)
+    fit: PoeFit | PoeTwistFit
+    if form == "twist":
+        fit = fit_poe_twists(poe, a, p)
+        model = PoeErrorModel(robot, np.zeros(N_POE_PARAMS), fit.world_T_base, registration, fit.errors)
+    else:
+        fit = fit_poe_positions(poe, a, p, fit_base=True)
+        assert fit.world_T_base is not None  # fit_base
+        model = PoeErrorModel(robot, fit.x, fit.world_T_base, registration)
     residual = (model.predict_tcp_mm(a) - p).reshape(-1)
     kept = tuple(fit.names[i] for i in fit.report.identifiable_index)
     jac = model.parameter_jacobian(a, kept).reshape(-1, len(kept))
     if jac.shape[0] > jac.shape[1]:
-        values = np.array([model.x[POE_PARAM_NAMES.index(n)] if n in POE_PARAM_NAMES else 0.0 for n in kept])
+        # the base parameters are increments about the fitted frame: value 0
+        values = np.array([fit.theta[fit.names.index(n)] if n not in BASE_NAMES else 0.0 for n in kept])
         model.uncertainty = ParameterCovariance.of_fit(kept, values, jac, residual)
     rms = float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 3) ** 2, axis=1))))
     return PoeErrorFit(model, fit, rms)

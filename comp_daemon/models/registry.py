@@ -58,6 +58,7 @@ from comp_daemon.models.fitting import (
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.poe_model import PoeErrorModel
+from comp_daemon.models.poe_twist import N_TWIST_PARAMS
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -220,10 +221,12 @@ KINDS: dict[str, ModelKind] = {
         ),
         ModelKind(
             "poe",
-            "product-of-exponentials calibration (seed 002): errors dl1..dl6, dtheta1..dtheta6, base frame",
+            "product-of-exponentials calibration: a twist error per joint, tool offset, base frame;"
+            " poe:paper seed 002's dl1..dl6, dtheta1..dtheta6 and base frame",
             PoeErrorModel,
             fit_poe_kind,
-            lambda spec: 12 + 6,
+            lambda spec: 12 + 6 if spec.paper else N_TWIST_PARAMS + 6,
+            option_words=("paper",),
         ),
     )
 }
@@ -243,7 +246,9 @@ ALL_MODELS: tuple[str, ...] = (
     "kriging-backlash",
     "kriging-backlash+compliance",
     "compliance",
+    "compliance:paper",
     "poe",
+    "poe:paper",
 )
 
 
