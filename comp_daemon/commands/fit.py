@@ -62,6 +62,7 @@ from comp_daemon.models.registry import (
     uses_directions,
     with_order,
 )
+from comp_daemon.models.selection import selection_line
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, RobotDescription, load_robot
 
 __all__ = ["register"]
@@ -254,6 +255,9 @@ def _fit(args: argparse.Namespace) -> int:
         f"{args.model}{order}: {len(rows)} rows ({fitted.frame} frame), "
         f"fit RMS {fitted.info['rms_mm']:.4f} mm{extra} -> {args.out}"
     )
+    line = selection_line(fitted.info)
+    if line:
+        print(f"{args.model}: {line} (out of fold on the fit rows)")
     return 0
 
 
@@ -328,6 +332,12 @@ def _evaluate(args: argparse.Namespace) -> int:
         "error = measured - model (mm); sorted by the check rows' 3-D RMS"
     )
     print(format_table2(table, timing))
+    chosen = {name: selection_line(fits[name]) for name in ranking}
+    if any(chosen.values()):
+        print("kept and dropped out of fold on the fit rows (the check rows unseen):")
+        for name, line in chosen.items():
+            if line:
+                print(f"  {name}: {line}")
     ref = "; ".join(
         f"{k} " + "/".join(f"{s} {v:.2f}" for s, v in row.items()) for k, row in SEED000_TABLE2_MM.items()
     )

@@ -27,6 +27,11 @@ Levenberg–Marquardt method of seed 000 (:func:`comp_daemon.models.lm.improved_
 the identifiability analysis keeps; if the data are in the tracker's frame the base frame is
 registered first and refined with them (``Δθ1`` then goes, dependent on the base rotation).
 
+With ``geometry=True`` every MDH parameter, the base frame and the tool are unknowns beside the
+``C`` (the kinematic calibration of seed 000 with the compliance; dependent parameters removed by
+name in the MDH priority): the registry's ``compliance`` kind. The paper's form, zero offsets and
+``C`` on the nominal geometry, is ``compliance:paper``.
+
 The paper's own experiment (laser lines through a PSD, seed 004 §3) is reproduced by
 ``python -m benchmarks.seed004_compliance``. Units: mm, rad, N m, kg; axis values in deg.
 """

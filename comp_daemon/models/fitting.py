@@ -23,11 +23,22 @@ table; the doors call them through it.
   the kriging on kinematic + ratio + backlash + compliance) and the options ``k=N`` (local
   neighbourhoods of N samples instead of one dense system; dense is the default up to 2 000
   samples) and ``aniso`` (per-joint ranges instead of the isotropic joint-space distance);
-- ``compliance``: seed 004's zero offsets and joint compliance C2, C3 under the gravity torques of
-  the links and the payload of each row (``payload_kg``);
-- ``poe``: seed 002's product-of-exponentials calibration, the errors ``dl1..dl6``, ``dtheta1..dtheta6``
-  and the base frame (:func:`comp_daemon.models.poe_model.fit_poe`), the dependent ones removed by
-  name and the directions the data do not see listed.
+- ``compliance``: the kinematic calibration with seed 004's joint compliance C2, C3 under the
+  gravity torques of the links and the payload of each row (``payload_kg``);
+  ``compliance:paper`` the paper's own form, zero offsets and C2, C3 on the nominal geometry;
+- ``poe``: a product-of-exponentials calibration with a full twist error per joint and the tool
+  offset (:mod:`comp_daemon.models.poe_twist`); ``poe:paper`` seed 002's errors ``dl1..dl6``,
+  ``dtheta1..dtheta6``; both with the base frame (:func:`comp_daemon.models.poe_model.fit_poe`), the
+  dependent parameters removed by name and the directions the data do not see listed.
+
+What earns its place. The joint effects of the kinematic, kriging and compliance kinds, a kriging
+stage on its base and per-joint kriging ranges are kept only if they lower the error of held-out
+predictions on the fit rows (:mod:`comp_daemon.models.selection`: K-fold cross-validation with
+``options.cv_folds`` folds, or leave-one-out for the kriging); the rest is dropped and the kind falls
+back to what is left (a kriging kind whose kriging is dropped is its kinematic base). The summary's
+``selection`` says what was kept and dropped and on what numbers. The ``all`` option
+(``kinematic:all+ratio+backlash``, ``kriging-backlash:all``, ``compliance:all``) keeps every part, as
+the papers do.
 """
 
 from __future__ import annotations

@@ -10,14 +10,17 @@ adding a model kind is one module with its model class and fit function, and one
 
 Model names (:func:`parse_model_name`)::
 
-    kind[:order|:option…][+effect…]   nominal, kinematic, kinematic+ratio+backlash, chebyshev,
-                                      chebyshev:3, chebyshev:cv, kriging, kriging:k=64:aniso,
-                                      kriging-backlash, kriging-backlash+compliance, compliance,
-                                      poe
+    kind[:order|:option…][+effect…]   nominal, kinematic, kinematic+ratio+backlash,
+                                      kinematic:all+ratio+backlash, chebyshev, chebyshev:3,
+                                      chebyshev:cv, kriging, kriging:k=64:aniso, kriging-backlash,
+                                      kriging-backlash+compliance, compliance, compliance:paper,
+                                      poe, poe:paper
 
 ``:order`` is the Chebyshev order (0..8; ``cv``: chosen by cross-validation; default 3, seed 000's);
 the kriging kinds take the options ``:k=N`` (local neighbourhoods of N nearest samples, N ≥ 4) and
-``:aniso`` (per-joint ranges); ``+effect`` adds a joint effect of
+``:aniso`` (per-joint ranges); the kinematic, kriging and compliance kinds ``:all`` (every effect
+kept, no out-of-fold selection: :mod:`comp_daemon.models.fitting`); ``compliance:paper`` and
+``poe:paper`` are seed 004's and seed 002's own forms; ``+effect`` adds a joint effect of
 :data:`comp_daemon.models.effects.EFFECTS` to the kinematic model, or to a kriging model's
 kinematic base (a stack: ``kriging-backlash+compliance`` krigs the residual of
 kinematic + ratio + backlash + compliance).

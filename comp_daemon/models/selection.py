@@ -41,6 +41,7 @@ __all__ = [
     "judge",
     "keep_all",
     "select_kinematic_effects",
+    "selection_line",
 ]
 
 log = get_logger(__name__)
@@ -220,3 +221,19 @@ def select_kinematic_effects(
 def keep_all(parts: Sequence[str]) -> Selection:
     """Every part kept because the model name asks for it (``:all``, the papers' forms)."""
     return Selection(tuple(parts), (), (), "every effect kept, no selection (the paper's form)")
+
+
+def selection_line(info: dict[str, Any]) -> str | None:
+    """One line for a fit summary's ``selection`` entry: what was kept and dropped, each dropped
+    part with its held-out RMS without and with it; None when there was nothing to select."""
+    sel = info.get("selection")
+    if not sel or (not sel["kept"] and not sel["dropped"]):
+        return None
+    if sel.get("note"):
+        return str(sel["note"])
+    dropped = [
+        f"{d['part']} ({d['rms_without_mm']:.4f} mm held out without, {d['rms_with_mm']:.4f} with)"
+        for d in sel["decisions"]
+        if not d["kept"]
+    ]
+    return f"kept {', '.join(sel['kept']) or 'no effect'}; dropped {', '.join(dropped) or 'none'}"
