@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import datetime as dt
 import json
+import os
 import time
 from dataclasses import dataclass
 from typing import Any, Literal
@@ -207,7 +208,7 @@ def timing(
     a = lo + rng.random((n_samples + n_queries, 6)) * (hi - lo)
     d = rng.choice([-1.0, 1.0], a.shape)
     p = twin_tcp_mm(robot, plant.params, plant.effects, a, d, PAYLOAD_KG)
-    t0 = time.perf_counter()
+    t0, c0 = time.perf_counter(), time.process_time()
     model = fit_kriging(
         NominalModel(robot),
         a[:n_samples],
@@ -216,14 +217,15 @@ def timing(
         direction=[20.0] * 6 if direction is None else direction,
         neighbours=neighbours,
     ).model
-    fit_s = time.perf_counter() - t0
+    fit_s, fit_cpu_s = time.perf_counter() - t0, time.process_time() - c0
     q, qd = a[n_samples:], d[n_samples:]
     model.predict_residual_mm(q[:10], qd[:10])  # warm-up
-    times = []
+    times, cpu = [], []
     for _ in range(repeats):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         model.predict_residual_mm(q, qd)
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     return {
         "benchmark": "kriging_prediction",
         "samples": n_samples,
@@ -232,6 +234,9 @@ def timing(
         "best_ms": round(min(times) * 1e3, 2),
         "median_ms": round(float(np.median(times)) * 1e3, 2),
         "fit_s": round(fit_s, 3),
+        "fit_cpu_s": round(fit_cpu_s, 3),  # the process's CPU time: less sensitive to a shared machine
+        "best_cpu_ms": round(min(cpu) * 1e3, 2),
+        "load_average_1min": round(os.getloadavg()[0], 2),
         "solver": "dense" if model.neighbours is None else f"local, {model.neighbours} neighbours",
         "direction": "20 deg" if direction is None else direction,
         "date": dt.date.today().isoformat(),
@@ -294,8 +299,10 @@ def scale(repeats: int) -> None:
         for direction in ("blind", "aware"):
             r = timing(10_000, 1000, repeats, neighbours=k, direction=direction)
             print(
-                f"10 000 samples, {r['solver']}, direction-{direction}: fit {r['fit_s']} s, "
-                f"1 000 predictions best {r['best_ms']} ms, median {r['median_ms']} ms",
+                f"10 000 samples, {r['solver']}, direction-{direction}: fit {r['fit_s']} s "
+                f"(CPU {r['fit_cpu_s']} s), 1 000 predictions best {r['best_ms']} ms "
+                f"(CPU {r['best_cpu_ms']} ms), median {r['median_ms']} ms; "
+                f"load average {r['load_average_1min']}",
                 flush=True,
             )
     print(json.dumps(local_vs_dense(2000, 500, [16, 32, 64, 128])))

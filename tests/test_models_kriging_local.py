@@ -9,7 +9,7 @@ from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
-from comp_daemon.models.kriging import KrigingModel, fit_kriging
+from comp_daemon.models.kriging import LOO_MAX_SAMPLES, KrigingModel, fit_kriging
 from comp_daemon.models.local_kriging import LocalKriging
 from comp_daemon.robot.description import load_robot
 
@@ -86,7 +86,7 @@ def test_large_sets_default_to_local_neighbourhoods() -> None:
     )
     fit = fit_kriging(NominalModel(KR), a, p, direction="blind")
     assert fit.model.neighbours is not None
-    assert fit.loo_samples == 1000
+    assert fit.loo_samples == LOO_MAX_SAMPLES and fit.loo_rows.size == LOO_MAX_SAMPLES
     assert fit.loo_rms_mm < 0.5 * fit.base_rms_mm
 
 

@@ -77,6 +77,7 @@ from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "DEFAULT_DIR_GRID_DEG",
+    "LOO_MAX_SAMPLES",
     "JointStateMetric",
     "KrigingFit",
     "KrigingModel",
@@ -93,7 +94,7 @@ DirectionChoice = Literal["aware", "blind"]
 DENSE_MAX_SAMPLES = 2000  # above this many sampling points the default is a local neighbourhood
 DEFAULT_NEIGHBOURS = 32  # samples per local neighbourhood (the default above DENSE_MAX_SAMPLES)
 VARIOGRAM_MAX_PAIRS = 200_000  # the empirical variogram of local models is taken on this many pairs
-LOO_MAX_SAMPLES = 1000  # the leave-one-out RMS of local models is taken on a random subset
+LOO_MAX_SAMPLES = 500  # the leave-one-out RMS of local models is taken on a random subset
 ANISO_MAX_SAMPLES = 600  # the per-joint weights are searched on at most this many samples
 ANISO_FACTORS = (0.25, 0.5, 2.0, 4.0)  # multipliers tried on each joint weight per sweep
 

@@ -59,10 +59,27 @@ class LocalKriging:
         self.neighbours = min(int(neighbours), x.shape[0])
         self.tree = cKDTree(x)
         self.batch = max(1, min(BATCH, BATCH_ELEMENTS // (self.neighbours + 2) ** 2))
+        self._a: NDArray[np.float64] | None = None
+        self._rhs: NDArray[np.float64] | None = None
 
     @property
     def n_samples(self) -> int:
         return int(self.coords.shape[0])
+
+    def _work(self, n_comp: int, m: int, kn: int) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """The bordered systems (n_comp, m, kn+1, kn+1) and right-hand sides, reused between
+        batches (allocating them anew each batch costs as much as filling them)."""
+        shape = (n_comp, self.batch, kn + 1, kn + 1)
+        if self._a is None or self._a.shape != shape:
+            self._a = np.empty(shape)
+            self._rhs = np.empty((n_comp, self.batch, kn + 1, 1))
+        assert self._rhs is not None
+        a, rhs = self._a[:, :m], self._rhs[:, :m]
+        a[:, :, :kn, kn] = 1.0
+        a[:, :, kn, :kn] = 1.0
+        a[:, :, kn, kn] = 0.0
+        rhs[:, :, kn, 0] = 1.0
+        return a, rhs
 
     def _solve(
         self, q: NDArray[np.float64], idx: NDArray[np.intp], return_std: bool
@@ -74,23 +91,20 @@ class LocalKriging:
         pts = self.coords[idx]  # (m, kn, d)
         centred = pts - pts.mean(axis=1, keepdims=True)  # Gram form, centred to keep the digits
         sq = np.einsum("mid,mid->mi", centred, centred)
-        gram = np.matmul(centred, np.ascontiguousarray(centred.transpose(0, 2, 1)))
-        d_ss = np.multiply(gram, -2.0, out=gram)
-        d_ss += sq[:, :, None]
-        d_ss += sq[:, None, :]
-        np.sqrt(np.maximum(d_ss, 0.0, out=d_ss), out=d_ss)
-        d_qs = np.linalg.norm(pts - q[:, None, :], axis=2)  # (m, kn)
+        d2 = np.matmul(centred, np.ascontiguousarray(centred.transpose(0, 2, 1)))
+        d2 *= -2.0
+        d2 += sq[:, :, None]
+        d2 += sq[:, None, :]
+        np.maximum(d2, 0.0, out=d2)  # squared sample-sample distances
+        diff = pts - q[:, None, :]
+        d2_q = np.einsum("mkd,mkd->mk", diff, diff)  # squared query-sample distances
         n_comp = self.values.shape[1]
-        a = np.empty((n_comp, m, kn + 1, kn + 1))
-        a[:, :, :kn, kn] = 1.0
-        a[:, :, kn, :kn] = 1.0
-        a[:, :, kn, kn] = 0.0
-        rhs = np.ones((n_comp, m, kn + 1, 1))
+        a, rhs = self._work(n_comp, m, kn)
         diag = np.arange(kn)
         for c, vg in enumerate(self.variograms):
-            a[c, :, :kn, :kn] = vg.correlation(d_ss)
+            vg.correlation_of_squared(d2, out=a[c, :, :kn, :kn])
             a[c, :, diag, diag] = 1.0 + vg.nugget / vg.psill
-            rhs[c, :, :kn, 0] = vg.correlation(d_qs)
+            vg.correlation_of_squared(d2_q, out=rhs[c, :, :kn, 0])
         sol = np.linalg.solve(a.reshape(-1, kn + 1, kn + 1), rhs.reshape(-1, kn + 1, 1))
         sol = sol.reshape(n_comp, m, kn + 1)
         lam = sol[:, :, :kn]  # (k, m, kn)

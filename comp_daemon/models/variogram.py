@@ -113,6 +113,24 @@ class VariogramModel:
         """ρ(h) of the structured part (1 at h = 0, → 0 far away); ``h`` any shape."""
         return _correlation(self.kind, np.asarray(h, dtype=float), self.range)
 
+    def correlation_of_squared(
+        self, h2: NDArray[np.float64], out: NDArray[np.float64] | None = None
+    ) -> NDArray[np.float64]:
+        """ρ at the squared distances ``h2`` (the Gaussian model needs no square root), written
+        into ``out`` when given (any shape matching ``h2``)."""
+        h2 = np.asarray(h2, dtype=float)
+        if out is None:
+            out = np.empty_like(h2)
+        if self.kind == "gaussian":
+            np.multiply(h2, -3.0 / (self.range * self.range), out=out)
+        elif self.kind == "exponential":
+            np.sqrt(h2, out=out)
+            out *= -3.0 / self.range
+        else:
+            out[...] = _correlation(self.kind, np.sqrt(h2), self.range)
+            return out
+        return np.exp(out, out=out)
+
     def gamma(self, h: NDArray[np.float64]) -> NDArray[np.float64]:
         """γ(h) (value unit²); 0 at h = 0, ``nugget + psill·(1 − ρ(h))`` for h > 0."""
         h = np.asarray(h, dtype=float)
