@@ -127,8 +127,11 @@ def fit_times(sizes: list[int], repeat: int) -> None:
 
 
 def kind_times(sizes: list[int], cv_max: int) -> None:
-    print("\n## every model of the registry: fit time (s, once, everything included), 1 000 predictions (ms)")
-    print(f"{'model':<38} " + " ".join(f"{f'{n} fit':>10} {'predict':>8}" for n in sizes))
+    print(
+        "\n## every model of the registry: fit time (s, once, everything included; wall and the "
+        "process's CPU time), 1 000 predictions (ms)"
+    )
+    print(f"{'model':<38} " + " ".join(f"{f'{n} fit':>10} {'cpu':>7} {'predict':>8}" for n in sizes))
     data = {}
     for n in sizes:
         robot, a, p, dirs = campaign(n)
@@ -142,12 +145,12 @@ def kind_times(sizes: list[int], cv_max: int) -> None:
                 cells.append(f"{'-':>10} {'-':>8}")
                 continue
             robot, rows = data[n]
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             model = fit_spec(parse_model_name(name), robot, rows).model
-            t_fit = time.perf_counter() - t0
+            t_fit, c_fit = time.perf_counter() - t0, time.process_time() - c0
             t_pred, _ = best_time(lambda: model.predict_tcp_mm(q_a, q_dirs, 60.0), 3)  # noqa: B023
-            cells.append(f"{t_fit:>10.3f} {1e3 * t_pred:>8.1f}")
-        print(f"{name:<38} " + " ".join(cells), flush=True)
+            cells.append(f"{t_fit:>10.3f} {c_fit:>7.3f} {1e3 * t_pred:>8.1f}")
+        print(f"{name:<38} " + " ".join(cells) + f"  (load average {os.getloadavg()[0]:.1f})", flush=True)
 
 
 def compare_solvers(repeat: int) -> None:

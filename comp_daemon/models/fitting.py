@@ -34,7 +34,8 @@ table; the doors call them through it.
 What earns its place. The joint effects of the kinematic, kriging and compliance kinds, a kriging
 stage on its base and per-joint kriging ranges are kept only if they lower the error of held-out
 predictions on the fit rows (:mod:`comp_daemon.models.selection`: K-fold cross-validation with
-``options.cv_folds`` folds, or leave-one-out for the kriging); the rest is dropped and the kind falls
+``options.cv_folds`` folds on at most :data:`SELECTION_MAX_ROWS` of them, or leave-one-out for the
+kriging); the rest is dropped and the kind falls
 back to what is left (a kriging kind whose kriging is dropped is its kinematic base). The summary's
 ``selection`` says what was kept and dropped and on what numbers. The ``all`` option
 (``kinematic:all+ratio+backlash``, ``kriging-backlash:all``, ``compliance:all``) keeps every part, as
@@ -85,6 +86,7 @@ __all__ = [
 
 DEFAULT_CHEBYSHEV_ORDER = 3  # seed 000 fits m = 3
 SEED001_EFFECTS = ("ratio", "backlash")
+SELECTION_MAX_ROWS = 2000  # effects are selected on at most this many fit rows, drawn at random
 FrameChoice = Literal["auto", "base", "tracker"]
 
 
@@ -348,14 +350,19 @@ def select_effects(
         return _kinematic(robot, sub, effs, fo).model
 
     fit = fit_on or kinematic_on
+    sub = rows
+    if rows.n > SELECTION_MAX_ROWS:  # enough to show any effect worth its parameters
+        pick = np.random.default_rng(options.seed).choice(rows.n, SELECTION_MAX_ROWS, replace=False)
+        sub = rows.take(np.sort(pick))
     try:
         return select_kinematic_effects(
             effects,
-            rows.n,
-            lambda effs, idx: fit(effs, rows.take(idx), fold_options),
-            lambda model, idx: rows.take(idx).errors(model),
+            sub.n,
+            lambda effs, idx: fit(effs, sub.take(idx), fold_options),
+            lambda model, idx: sub.take(idx).errors(model),
             folds=options.cv_folds,
             seed=options.seed,
+            of_rows=rows.n,
         )
     except (ValueError, np.linalg.LinAlgError) as exc:
         note = f"no selection: a cross-validation fit failed ({exc}); every effect kept"

@@ -163,13 +163,15 @@ def select_kinematic_effects(
     folds: int,
     seed: int,
     protected: Sequence[str] = (),
+    of_rows: int | None = None,
 ) -> tuple[tuple[str, ...], Selection]:
     """Backward elimination of ``effects`` by the rule (module docstring).
 
     ``fit_on(effects, rows)`` fits the model with those effects on the fit rows ``rows``;
     ``errors_of(model, rows)`` gives its (len(rows), 3) errors on the held-out ``rows``. Effects in
-    ``protected`` are never dropped. Returns the effects kept (in their given order) and the
-    selection.
+    ``protected`` are never dropped; ``of_rows`` is how many fit rows the ``n_rows`` were drawn
+    from, when they are a subset (it goes into the decisions' method). Returns the effects kept
+    (in their given order) and the selection.
     """
     candidates = [e for e in effects if e not in protected]
     if not candidates:
@@ -183,7 +185,8 @@ def select_kinematic_effects(
         return tuple(effects), Selection(tuple(effects), (), (), note)
     held_out = fold_indices(n_rows, k, seed)
     every = np.arange(n_rows)
-    method = f"{k}-fold cross-validation on the {n_rows} fit rows"
+    of = "the" if of_rows is None or of_rows == n_rows else f"{n_rows} of the"
+    method = f"{k}-fold cross-validation on {of} {of_rows or n_rows} fit rows"
     cache: dict[tuple[str, ...], NDArray[np.float64]] = {}
 
     def cv(subset: Sequence[str]) -> NDArray[np.float64]:
