@@ -113,20 +113,20 @@ def test_per_joint_ranges_find_the_joint_the_error_depends_on() -> None:
 
 def test_shared_variogram_pairs_give_each_metric_its_own_empirical_variogram() -> None:
     """The pairs computed once give, for every metric tried, the semivariogram of the embedded states."""
-    from comp_daemon.models.kriging import JointStateMetric, _VariogramPairs
-    from comp_daemon.models.variogram import empirical_semivariogram
+    from comp_daemon.models.kriging import JointStateMetric
+    from comp_daemon.models.variogram import JointStatePairs, empirical_semivariogram
 
     rng = np.random.default_rng(5)
     a = _axes(120, 6)
     d = rng.choice([-1.0, 0.0, 1.0], (120, 6))
     res = rng.normal(size=(120, 3))
-    pairs = _VariogramPairs(a, d, res)
+    pairs = JointStatePairs(a, d, res)
     for metric in (
         JointStateMetric.blind(),
         JointStateMetric(np.array([1.0, 2.0, 0.5, 1.0, 1.0, 3.0]), np.full(6, 20.0)),
         JointStateMetric(dir_separation_deg=np.array([0.0, 5.0, 10.0, 0.0, 40.0, 80.0])),
     ):
-        got = pairs.semivariogram(metric, 12, None)
+        got = pairs.semivariogram(metric.joint_weights, metric.dir_separation_deg, 12, None)
         want = empirical_semivariogram(metric.embed(a, d), res)
         np.testing.assert_allclose(got.edges, want.edges, rtol=1e-12)
         np.testing.assert_array_equal(got.count, want.count)

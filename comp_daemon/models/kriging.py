@@ -66,8 +66,8 @@ from comp_daemon.models.ordinary_kriging import OrdinaryKriging
 from comp_daemon.models.selection import Decision, judge
 from comp_daemon.models.variogram import (
     EmpiricalVariogram,
+    JointStatePairs,
     VariogramModel,
-    binned_semivariogram,
     empirical_semivariogram,
     fit_variogram,
     pairwise_distances,
@@ -93,7 +93,6 @@ DEFAULT_DIR_GRID_DEG: tuple[float, ...] = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0
 DirectionChoice = Literal["aware", "blind"]
 DENSE_MAX_SAMPLES = 2000  # above this many sampling points the default is a local neighbourhood
 DEFAULT_NEIGHBOURS = 32  # samples per local neighbourhood (the default above DENSE_MAX_SAMPLES)
-VARIOGRAM_MAX_PAIRS = 200_000  # the empirical variogram of local models is taken on this many pairs
 LOO_MAX_SAMPLES = 500  # the leave-one-out RMS of local models is taken on a random subset
 ANISO_MAX_SAMPLES = 600  # the per-joint weights are searched on at most this many samples
 ANISO_FACTORS = (0.25, 0.5, 2.0, 4.0)  # multipliers tried on each joint weight per sweep
@@ -364,39 +363,6 @@ def _subset(n: int, most: int, seed: int) -> NDArray[np.intp]:
     return np.sort(np.random.default_rng(seed).choice(n, most, replace=False))
 
 
-class _VariogramPairs:
-    """The sample pairs of a local model's empirical variogram, shared by every metric tried.
-
-    Every pair of the samples, or :data:`VARIOGRAM_MAX_PAIRS` of them drawn reproducibly from all
-    n samples: per pair the squared axis-value differences (deg², per joint), the squared
-    differences of the approach directions (0, 1 or 4 per joint) and the half squared residual
-    increments. A metric's distance is then ``√(Σ w²ΔA² + Σ ρ²·Δdir²/4)``, the distance of
-    :meth:`JointStateMetric.embed`, without embedding the samples again.
-    """
-
-    def __init__(
-        self, a: NDArray[np.float64], d: NDArray[np.float64] | None, residual: NDArray[np.float64]
-    ) -> None:
-        n = a.shape[0]
-        if n * (n - 1) // 2 <= VARIOGRAM_MAX_PAIRS:
-            i, j = np.triu_indices(n, k=1)
-        else:
-            rng = np.random.default_rng(1)
-            i = rng.integers(0, n, VARIOGRAM_MAX_PAIRS)
-            j = (i + rng.integers(1, n, VARIOGRAM_MAX_PAIRS)) % n  # never i itself
-        self.da2 = (a[i] - a[j]) ** 2  # (p, 6)
-        self.ddir2 = None if d is None else (d[i] - d[j]) ** 2  # (p, 6)
-        self.half_sq = 0.5 * (residual[i] - residual[j]) ** 2  # (p, 3)
-
-    def semivariogram(
-        self, metric: JointStateMetric, n_bins: int, max_lag: float | None
-    ) -> EmpiricalVariogram:
-        h2 = self.da2 @ (metric.joint_weights**2)
-        if self.ddir2 is not None and metric.direction_aware:
-            h2 += self.ddir2 @ (0.25 * metric.dir_separation_deg**2)
-        return binned_semivariogram(np.sqrt(h2), self.half_sq, n_bins=n_bins, max_lag=max_lag)
-
-
 def _fit_for_metric(
     base: ErrorModel,
     metric: JointStateMetric,
@@ -408,7 +374,7 @@ def _fit_for_metric(
     max_lag: float | None,
     nugget: bool,
     neighbours: int | None,
-    pairs: _VariogramPairs | None = None,
+    pairs: JointStatePairs | None = None,
 ) -> _MetricFit:
     """The model under ``metric``, its empirical variogram and its LOO 3-D RMS (and on how many points).
 
@@ -421,8 +387,8 @@ def _fit_for_metric(
         emp = empirical_semivariogram(None, residual, n_bins=n_bins, max_lag=max_lag, distances=dist)
     else:
         if pairs is None:
-            pairs = _VariogramPairs(a, d, residual)
-        emp = pairs.semivariogram(metric, n_bins, max_lag)
+            pairs = JointStatePairs(a, d, residual)
+        emp = pairs.semivariogram(metric.joint_weights, metric.dir_separation_deg, n_bins, max_lag)
     dim = 12 if metric.direction_aware else N_JOINTS
     variograms = [fit_variogram(emp, c, kind=kind, dim=dim, nugget=nugget) for c in range(3)]
     model = KrigingModel(base, metric, a, d, residual, variograms, distances=dist, neighbours=neighbours)
@@ -476,7 +442,8 @@ def fit_kriging(
     ``neighbours``: ``None`` one dense system over every sample; an int, local neighbourhoods of
     that many samples (:mod:`comp_daemon.models.local_kriging`); ``"auto"`` dense up to
     :data:`DENSE_MAX_SAMPLES` samples, :data:`DEFAULT_NEIGHBOURS` beyond. Local models take their
-    empirical variogram on a random subset of the sample pairs (:data:`VARIOGRAM_MAX_PAIRS`) and
+    empirical variogram on a random subset of the sample pairs
+    (:data:`comp_daemon.models.variogram.VARIOGRAM_MAX_PAIRS`) and
     their LOO RMS on a random subset of the samples (:data:`LOO_MAX_SAMPLES`).
 
     ``anisotropic``: after the direction separation, the six joint weights (the inverse per-joint
@@ -508,7 +475,7 @@ def fit_kriging(
     base_rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
     weights = np.ones(N_JOINTS) if joint_weights is None else np.asarray(joint_weights, dtype=float)
 
-    pairs = None if neighbours is None else _VariogramPairs(a, d, residual)
+    pairs = None if neighbours is None else JointStatePairs(a, d, residual)
 
     def evaluate(sep: NDArray[np.float64], w: NDArray[np.float64] = weights) -> _MetricFit:
         metric = JointStateMetric(w, sep if d is not None else np.zeros(N_JOINTS))

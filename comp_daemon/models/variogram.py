@@ -41,8 +41,10 @@ import scipy.optimize
 from numpy.typing import NDArray
 
 __all__ = [
+    "VARIOGRAM_MAX_PAIRS",
     "VARIOGRAM_MODELS",
     "EmpiricalVariogram",
+    "JointStatePairs",
     "VariogramModel",
     "binned_semivariogram",
     "empirical_semivariogram",
@@ -52,6 +54,7 @@ __all__ = [
 ]
 
 VARIOGRAM_MODELS: tuple[str, ...] = ("spherical", "exponential", "gaussian")
+VARIOGRAM_MAX_PAIRS = 200_000  # JointStatePairs: sample pairs drawn when there are more
 Weighting = Literal["cressie", "npairs"]
 
 
@@ -364,3 +367,42 @@ def fit_variogram(
         raise ValueError("the values do not vary: the semivariogram is zero everywhere")
     fits = [_fit_one(k, lag, gam, cnt, weighting, nugget) for k in kinds]
     return min(fits, key=lambda f: f[1])[0]
+
+
+class JointStatePairs:
+    """Sample pairs of joint states for empirical variograms under several metrics.
+
+    Every pair of the n samples, or :data:`VARIOGRAM_MAX_PAIRS` of them drawn reproducibly from all
+    n: per pair the squared axis-value differences (deg², per joint), the squared differences of the
+    approach directions (0, 1 or 4 per joint) and the half squared residual increments. The
+    distance under joint weights ``w`` and direction separations ``ρ`` (the metric of
+    :class:`comp_daemon.models.kriging.JointStateMetric`) is then ``√(Σ w²ΔA² + Σ ρ²·Δdir²/4)``,
+    one product per metric, without embedding the samples again.
+    """
+
+    def __init__(
+        self, a_deg: NDArray[np.float64], dir: NDArray[np.float64] | None, values: NDArray[np.float64]
+    ) -> None:
+        n = a_deg.shape[0]
+        if n * (n - 1) // 2 <= VARIOGRAM_MAX_PAIRS:
+            i, j = np.triu_indices(n, k=1)
+        else:
+            rng = np.random.default_rng(1)
+            i = rng.integers(0, n, VARIOGRAM_MAX_PAIRS)
+            j = (i + rng.integers(1, n, VARIOGRAM_MAX_PAIRS)) % n  # never i itself
+        self.da2 = (a_deg[i] - a_deg[j]) ** 2  # (p, 6)
+        self.ddir2 = None if dir is None else (dir[i] - dir[j]) ** 2  # (p, 6)
+        self.half_sq = 0.5 * (values[i] - values[j]) ** 2  # (p, k)
+
+    def semivariogram(
+        self,
+        joint_weights: NDArray[np.float64],
+        dir_separation_deg: NDArray[np.float64],
+        n_bins: int,
+        max_lag: float | None,
+    ) -> EmpiricalVariogram:
+        h2 = self.da2 @ (np.asarray(joint_weights, dtype=float) ** 2)
+        sep = np.asarray(dir_separation_deg, dtype=float)
+        if self.ddir2 is not None and np.any(sep > 0.0):
+            h2 += self.ddir2 @ (0.25 * sep**2)
+        return binned_semivariogram(np.sqrt(h2), self.half_sq, n_bins=n_bins, max_lag=max_lag)
