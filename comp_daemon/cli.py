@@ -26,6 +26,7 @@ COMMAND_MODULES: dict[str, str] = {
     "diagnose": "comp_daemon.commands.diagnose",
     "fit": "comp_daemon.commands.fit",
     "trial": "comp_daemon.commands.trial",
+    "export": "comp_daemon.commands.export",
 }
 #: commands whose module is imported only to run them, with the help line of the command listing
 ON_DEMAND: dict[str, str] = {"sim": "the simulated drilling cell: measurement campaigns, figures"}

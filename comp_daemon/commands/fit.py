@@ -37,12 +37,14 @@ from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import (
     DEFAULT_LIMITS,
     MAPPINGS,
     CompensationLimits,
     CompensationRefused,
+    CompensationResult,
     compensate,
     nominal_targets,
 )
@@ -119,38 +121,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     comp.add_argument("--out", required=True, metavar="CORRECTED.csv", help="data set of compensated targets")
     comp.add_argument("--robot", default=None, help="refuse the model unless it belongs to this robot")
-    comp.add_argument(
+    compensation_options(comp)
+    comp.set_defaults(func=_compensate)
+
+
+def compensation_options(parser: argparse.ArgumentParser) -> None:
+    """The options of ``compensate`` (tolerance, limits, joint mapping), also taken by ``export targets``."""
+    parser.add_argument(
         "--tol-mm", type=float, default=1e-6, help="predicted-position tolerance (default 1e-6 mm)"
     )
-    comp.add_argument(
+    parser.add_argument(
         "--max-axis-change-deg",
         type=float,
         default=DEFAULT_LIMITS.max_axis_change_deg,
         help="refuse a target whose compensation changes an axis by more than this from the nominal "
         f"solution (default {DEFAULT_LIMITS.max_axis_change_deg:g})",
     )
-    comp.add_argument(
+    parser.add_argument(
         "--wrist-singularity-deg",
         type=float,
         default=DEFAULT_LIMITS.wrist_singularity_deg,
         help="refuse a target whose axes 4 and 6 are nearer than this to in line, |A5| on a KUKA wrist "
         f"(default {DEFAULT_LIMITS.wrist_singularity_deg:g})",
     )
-    comp.add_argument(
+    parser.add_argument(
         "--hull-margin-deg",
         type=float,
         default=DEFAULT_LIMITS.hull_margin_deg,
         help="refuse a target this far beyond the model's sampled axis ranges "
         f"(default {DEFAULT_LIMITS.hull_margin_deg:g})",
     )
-    comp.add_argument(
+    parser.add_argument(
         "--mapping",
         choices=MAPPINGS,
         default="six-axis",
         help="six-axis: inverse kinematics of every axis (default); seed000: seed 000's mapping of the "
         "predicted error onto joints 1-3, the wrist from the nominal solution",
     )
-    comp.set_defaults(func=_compensate)
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -387,6 +394,58 @@ def _compensate(args: argparse.Namespace) -> int:
     model = loaded.model
     targets = _read(args.targets, model.robot, 0, "targets")
     n = len(targets)
+    wanted, result, limits = compensate_targets(model, targets, args)
+    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    extra = dict(targets.extra)
+    for k in range(6):
+        extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
+    extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
+    sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
+    if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
+        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
+    extra["model_kind"] = (model.kind,) * n
+    out = Dataset(
+        a_deg=result.a_deg,
+        dir=targets.dir,
+        payload_kg=targets.payload_kg,
+        temp_c=targets.temp_c,
+        pose_id=targets.pose_id,
+        target_xyz_mm=wanted,
+        target_abc_deg=targets.target_abc_deg,
+        extra=extra,
+        source=args.out,
+    )
+    write_dataset(out, args.out)
+    outside = ""
+    if isinstance(model, ChebyshevModel) and model.order > 0:
+        n_out = int(model.outside_range(result.a_deg).sum())
+        if n_out:
+            outside = f"; {n_out} outside the fitted joint ranges (error held at the range edge)"
+    da = np.abs(result.da_deg)
+    worst_axis = int(np.argmax(da.max(axis=0)))
+    region = (
+        f"within {limits.hull_margin_deg:g} deg of the model's sampled axis ranges"
+        if result.region_deg is not None
+        else f"the {model.kind} model has no sampled region to keep to"
+    )
+    print(
+        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
+        f"in {result.iterations} iterations "
+        f"(max predicted error {result.residual_mm.max():.2e} mm, "
+        f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
+        f"{outside} -> {args.out}"
+    )
+    return 0
+
+
+def compensate_targets(
+    model: ErrorModel, targets: Dataset, args: argparse.Namespace
+) -> tuple[np.ndarray, CompensationResult, CompensationLimits]:
+    """The wanted TCPs (robot base frame), the compensation and its limits of a target file's rows
+    (``a1..a6`` nominal program, or ``tx, ty, tz[, ta, tb, tc]``) by :func:`compensate`, with the
+    options of :func:`compensation_options`; refusals, unreachable and unconverged targets as
+    :class:`UserError` naming the rows."""
+    n = len(targets)
     if n == 0:
         raise UserError(f"{targets.source}: no targets")
     if targets.target_xyz_mm is not None:
@@ -433,43 +492,4 @@ def _compensate(args: argparse.Namespace) -> int:
             f"{targets.source}: compensation did not converge (row {int(targets.row_numbers[worst])}: "
             f"{result.residual_mm[worst]:.3g} mm left after {result.iterations} iterations)"
         )
-    extra = dict(targets.extra)
-    for k in range(6):
-        extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
-    extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
-    sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
-    if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
-        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
-    extra["model_kind"] = (model.kind,) * n
-    out = Dataset(
-        a_deg=result.a_deg,
-        dir=targets.dir,
-        payload_kg=targets.payload_kg,
-        temp_c=targets.temp_c,
-        pose_id=targets.pose_id,
-        target_xyz_mm=wanted,
-        target_abc_deg=targets.target_abc_deg,
-        extra=extra,
-        source=args.out,
-    )
-    write_dataset(out, args.out)
-    outside = ""
-    if isinstance(model, ChebyshevModel) and model.order > 0:
-        n_out = int(model.outside_range(result.a_deg).sum())
-        if n_out:
-            outside = f"; {n_out} outside the fitted joint ranges (error held at the range edge)"
-    da = np.abs(result.da_deg)
-    worst_axis = int(np.argmax(da.max(axis=0)))
-    region = (
-        f"within {limits.hull_margin_deg:g} deg of the model's sampled axis ranges"
-        if result.region_deg is not None
-        else f"the {model.kind} model has no sampled region to keep to"
-    )
-    print(
-        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
-        f"in {result.iterations} iterations "
-        f"(max predicted error {result.residual_mm.max():.2e} mm, "
-        f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
-        f"{outside} -> {args.out}"
-    )
-    return 0
+    return wanted, result, limits

@@ -35,6 +35,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.so3 import skew
+from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.models.effects.params import parse_param_name
 from comp_daemon.models.export.frames import (
@@ -167,7 +168,8 @@ def controller_params(model: KinematicModel, info: ListingInfo) -> ControllerPar
     if model.effects is not None:
         names = model.effects.names()
         values = model.effects.get(names)
-        fitted = set(model.uncertainty.names) if model.uncertainty is not None else set()
+        cov = _covariance(model)
+        fitted = set(cov.names) if cov is not None else set()
         effects = {n: float(v) for n, v in zip(names, values, strict=True) if v != 0.0 or n in fitted}
     return ControllerParams(
         info=info,
@@ -185,10 +187,14 @@ def controller_params(model: KinematicModel, info: ListingInfo) -> ControllerPar
     )
 
 
+def _covariance(model: KinematicModel) -> ParameterCovariance | None:
+    return model.uncertainty if isinstance(model.uncertainty, ParameterCovariance) else None
+
+
 def _sigma(model: KinematicModel, reg: FloatArray) -> dict[str, float]:
     """1-σ per listing row from the model's covariance (angles in deg; the base frame's increments,
     identified in the measurement frame, mapped into the robot base frame to first order)."""
-    cov = model.uncertainty
+    cov = _covariance(model)
     if cov is None:
         return {}
     std = np.sqrt(np.maximum(np.diag(cov.covariance), 0.0))
