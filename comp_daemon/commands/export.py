@@ -161,7 +161,9 @@ def _targets(args: argparse.Namespace) -> int:
         flange_R = abc_deg_to_matrix(np.asarray(targets.target_abc_deg)) @ FLANGE_R_KUKA_TOOL.T
     else:  # the nominal program's orientation, or where only a position was asked for, the nominal solution's
         _, flange_R = nominal_targets(model, result.a_uncompensated_deg)
-    points = TargetList(point_names(targets.pose_id, n), result.a_deg, np.asarray(wanted), flange_R)
+    # KRL and RAPID take identifiers; the CSV keeps the pose ids as they were
+    names = targets.pose_id if args.format == "csv" and targets.pose_id else point_names(targets.pose_id, n)
+    points = TargetList(tuple(names), result.a_deg, np.asarray(wanted), flange_R)
     fit = loaded.document.get("fit", {})
     header = [
         f"comp-daemon compensated targets: {n} points, robot {model.robot.name}",
