@@ -6,7 +6,8 @@
   model on the fit rows and prints seed 000's Table 2 on the check rows (drawn reproducibly when
   the file has no ``split`` column), sorted by the check rows' 3-D RMS, with each model's fit and
   predict time; ``all`` is every kind and the seeds' stacks
-  (:data:`comp_daemon.models.registry.ALL_MODELS`). One progress line per model goes to stderr.
+  (:data:`comp_daemon.models.registry.ALL_MODELS`). On a terminal, stderr shows the progress
+  (:mod:`comp_daemon.commands.progress`) and a line per model fitted.
 
 On a data set without ``dir1..dir6`` columns, ``fit`` and ``evaluate`` of a model that needs the
 approach directions (backlash) derive them from the pose order
@@ -33,6 +34,7 @@ from typing import Any, Literal
 import numpy as np
 
 from comp_daemon.commands.errors import UserError
+from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
@@ -239,7 +241,8 @@ def _fit(args: argparse.Namespace) -> int:
     rows = dataset.fit_rows()
     if len(rows) < 3:
         raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
-    fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
+    with progress(f"fitting {spec.name} on {len(rows)} rows"):
+        fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
     fit_info = dict(fitted.info)
     fit_info["model"] = spec.name
     fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
@@ -306,7 +309,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
-    for i, (token, spec) in enumerate(parsed, 1):
+    for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
+        steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
         t0 = time.perf_counter()
         fitted = _fit_rows(dataset, spec, args, split.fit_rows, unknown_dir)
         t1 = time.perf_counter()
@@ -321,13 +325,10 @@ def _evaluate(args: argparse.Namespace) -> int:
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()
             )
-        if len(parsed) > 1:
-            print(
-                f"[{i}/{len(parsed)}] {token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
-                f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms",
-                file=sys.stderr,
-                flush=True,
-            )
+        steps.log(
+            f"{token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
+            f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms"
+        )
     ranking = sorted(table, key=lambda name: table[name]["3d"]["rms"])
     table = {name: table[name] for name in ranking}
     print(
