@@ -29,17 +29,15 @@ from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import DatasetError, read_dataset, read_dataset_json
 from comp_daemon.models.artifact import LoadedModel, ModelArtifactError, load_model
 from comp_daemon.models.compensation import nominal_targets
-from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, write_targets
+from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, params_text, write_targets
 from comp_daemon.models.export.frames import abc_deg_to_matrix
-from comp_daemon.models.export.params import ListingInfo, controller_params, model_of
+from comp_daemon.models.export.params import listing_of
 from comp_daemon.models.export.targets import TargetList, module_name, point_names
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, load_robot
 
 __all__ = ["register"]
 
-#: the largest TCP difference (mm) a parameter listing read back may make
-ROUND_TRIP_MM = 1e-6
 #: the largest axis difference (deg) a target list read back may have
 ROUND_TRIP_DEG = 1e-9
 
@@ -91,11 +89,6 @@ def _load(args: argparse.Namespace) -> LoadedModel:
         raise UserError(str(exc)) from None
 
 
-def _model_id(loaded: LoadedModel) -> str:
-    """The first 16 hex digits of the artifact's checksum: the model file's identity."""
-    return str(loaded.document["checksum_sha256"])[:16]
-
-
 def _check_rms_mm(loaded: LoadedModel, path: str) -> float:
     model = loaded.model
     reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
@@ -116,29 +109,17 @@ def _check_rms_mm(loaded: LoadedModel, path: str) -> float:
 def _params(args: argparse.Namespace) -> int:
     loaded = _load(args)
     model = loaded.model
-    if not isinstance(model, KinematicModel):
-        raise UserError(
-            f"{args.model}: a {model.kind} model has no kinematic parameters to list "
-            "(export params takes kinematic models; 'export targets' takes every kind)"
-        )
-    fit = loaded.document.get("fit", {})
-    info = ListingInfo(
-        robot=model.robot.name,
-        model=str(fit.get("model", model.kind)),
-        model_id=_model_id(loaded),
-        fit_date=str(loaded.document["created_utc"]),
-        fit_rms_mm=float(fit["rms_mm"]) if isinstance(fit.get("rms_mm"), int | float) else None,
-        check_rms_mm=_check_rms_mm(loaded, args.data) if args.data else None,
-    )
-    listing = controller_params(model, info)
-    write, read = PARAM_FORMATS[args.format]
-    text = write(listing)
-    back = model_of(read(text, args.out), model.robot)
-    corners = model.robot.axis_limits_deg.T  # (2, 6): every axis at its lower, then its upper limit
-    probe = np.concatenate([corners, model.robot.axis_limits_deg.mean(axis=1)[None, :]])
-    diff = float(np.max(np.abs(back.predict_tcp_mm(probe) - model.predict_tcp_mm(probe))))
-    if diff > ROUND_TRIP_MM:
-        raise UserError(f"{args.out}: the listing read back moves the TCP by {diff:.3g} mm; not written")
+    check = _check_rms_mm(loaded, args.data) if args.data else None
+    try:
+        listing = listing_of(model, loaded.document, check)
+    except ValueError as exc:
+        raise UserError(f"{args.model}: {exc}") from None
+    info = listing.info
+    assert isinstance(model, KinematicModel)  # listing_of refused the others
+    try:
+        text, diff = params_text(listing, model, args.format)
+    except ValueError as exc:
+        raise UserError(f"{args.out}: {exc}; not written") from None
     write_text_atomic(args.out, text)
     print(
         f"{info.model} ({model.robot.name}): {len(text.splitlines())} lines, {args.format} listing "
@@ -165,9 +146,10 @@ def _targets(args: argparse.Namespace) -> int:
     names = targets.pose_id if args.format == "csv" and targets.pose_id else point_names(targets.pose_id, n)
     points = TargetList(tuple(names), result.a_deg, np.asarray(wanted), flange_R)
     fit = loaded.document.get("fit", {})
+    model_id = str(loaded.document["checksum_sha256"])[:16]
     header = [
         f"comp-daemon compensated targets: {n} points, robot {model.robot.name}",
-        f"model: {fit.get('model', model.kind)} (id {_model_id(loaded)}), {args.mapping} mapping, "
+        f"model: {fit.get('model', model.kind)} (id {model_id}), {args.mapping} mapping, "
         f"max predicted error {result.residual_mm.max():.2e} mm",
     ]
     text = write_targets(args.format, points, module_name(Path(args.out).stem, "CD_TARGETS"), header)

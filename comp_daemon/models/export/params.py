@@ -29,12 +29,14 @@ import io
 import re
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.so3 import skew
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.models.effects.params import parse_param_name
@@ -59,6 +61,7 @@ __all__ = [
     "effect_unit",
     "format_csv",
     "header_pairs",
+    "listing_of",
     "listing_table",
     "model_of",
     "of_rows",
@@ -185,6 +188,30 @@ def controller_params(model: KinematicModel, info: ListingInfo) -> ControllerPar
         t_ref_c=20.0 if model.effects is None else float(model.effects.t_ref_c),
         sigma=_sigma(model, reg),
     )
+
+
+def listing_of(
+    model: ErrorModel, document: Mapping[str, Any], check_rms_mm: float | None = None
+) -> ControllerParams:
+    """The listing of a model loaded from its artifact ``document`` (the header from the document:
+    the fitted model's name, the first 16 hex digits of its checksum as the id, its date, the fit
+    RMS); ValueError for a model that is not kinematic."""
+    if not isinstance(model, KinematicModel):
+        raise ValueError(
+            f"a {model.kind} model has no kinematic parameters to list "
+            "(parameter listings are of kinematic models; target lists take every kind)"
+        )
+    fit = document.get("fit") or {}
+    rms = fit.get("rms_mm")
+    info = ListingInfo(
+        robot=model.robot.name,
+        model=str(fit.get("model", model.kind)),
+        model_id=str(document.get("checksum_sha256", ""))[:16],
+        fit_date=str(document.get("created_utc", "")),
+        fit_rms_mm=float(rms) if isinstance(rms, int | float) else None,
+        check_rms_mm=check_rms_mm,
+    )
+    return controller_params(model, info)
 
 
 def _covariance(model: KinematicModel) -> ParameterCovariance | None:
