@@ -25,6 +25,7 @@ COMMAND_MODULES: dict[str, str] = {
     "run": "comp_daemon.commands.run",
     "diagnose": "comp_daemon.commands.diagnose",
     "fit": "comp_daemon.commands.fit",
+    "plan": "comp_daemon.commands.plan",
     "trial": "comp_daemon.commands.trial",
 }
 #: commands whose module is imported only to run them, with the help line of the command listing

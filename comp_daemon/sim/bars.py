@@ -45,7 +45,7 @@ __all__ = [
 ]
 
 #: the scenario whose hidden robot a campaign form measures by default
-CAMPAIGN_SCENARIOS: dict[str, str] = {"ballbar": "irb120-cell", "crossbar": "mh6-cell"}
+CAMPAIGN_SCENARIOS: dict[str, str] = {"ballbar": "irb120-geometric", "crossbar": "mh6-cell"}
 BALLBAR_NOISE_MM = 0.0005  # σ of a ballbar reading (spec A.9: 0.5 µm)
 PIVOT_OFFSET_SIGMA_MM = 0.5  # σ per axis of the true pivot from its nominal position
 SEATING_SIGMA_MM = 0.1  # σ per axis of a seated probe from the socket centre (spec B.5)
