@@ -168,6 +168,8 @@ def test_simulated_campaign_calibrates_for_the_tracker(tmp_path: Path) -> None:
     targets = tmp_path / "t.csv"
     targets.write_text("a1,a2,a3,a4,a5,a6\n10,10,-20,5,-60,30\n-15,20,-10,-5,-50,0\n")
     # the MH6 preset errors are millimetres: compensation moves axes by about a degree
-    assert main(["compensate", str(model), str(targets), "--out", str(out), "--max-axis-change-deg", "3"]) == 0
+    assert (
+        main(["compensate", str(model), str(targets), "--out", str(out), "--max-axis-change-deg", "3"]) == 0
+    )
     corrected = read_dataset(out, kind="targets")
     assert max(float(v) for v in corrected.extra["predicted_error_mm"]) < 1e-5

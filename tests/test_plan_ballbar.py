@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from comp_daemon.cli import main
-from comp_daemon.data.bars import read_table
 from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
+from comp_daemon.data.bars import read_table
 from comp_daemon.data.dataset import dataset_to_csv
 from comp_daemon.kinematics.forward import flange_pose, tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
