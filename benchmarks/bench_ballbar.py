@@ -28,6 +28,7 @@ import numpy as np
 from benchmarks.machine import machine_info, machine_line
 from comp_daemon.data.campaigns import campaign_of, read_campaign
 from comp_daemon.data.dataset import write_dataset
+from comp_daemon.models.ballbar_plan import ORIENTATIONS
 from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction
 from comp_daemon.models.registry import fit_model
 from comp_daemon.sim.bars import run_ballbar_campaign, run_crossbar_campaign
@@ -72,7 +73,9 @@ def fit_times(repeats: int) -> list[dict[str, Any]]:
     return out
 
 
-def arc_study(seeds: list[int], arcs: list[int], n_tracker: int) -> dict[str, Any]:
+def arc_study(
+    seeds: list[int], arcs: list[int], n_tracker: int, orientation: Any = "per-arc"
+) -> dict[str, Any]:
     sc = load_scenario("irb120-geometric")
     robot = sc.robot
     rows: dict[str, list[float]] = {}
@@ -86,13 +89,19 @@ def arc_study(seeds: list[int], arcs: list[int], n_tracker: int) -> dict[str, An
             pred = model.predict_tcp_mm(trk.a_deg[check])
             rows.setdefault(f"tracker {name}", []).append(_rms(trk.xyz_mm[check] - pred))
         for k in arcs:
-            campaign = campaign_of(run_ballbar_campaign(sc, arcs=k, seed=seed))
+            campaign = campaign_of(run_ballbar_campaign(sc, arcs=k, seed=seed, orientation=orientation))
             assert campaign is not None
             fitted, _ = fit_campaign(robot, campaign)
             pred, _ = registered_prediction(fitted.model, trk.a_deg[fit], trk.xyz_mm[fit], trk.a_deg[check])
             rows.setdefault(f"ballbar {k} arcs", []).append(_rms(trk.xyz_mm[check] - pred))
             ranks[k] = int(fitted.info["rank"])
-    return {"seeds": seeds, "tracker_poses": n_tracker, "check_rms_mm": rows, "ballbar_rank": ranks}
+    return {
+        "seeds": seeds,
+        "tracker_poses": n_tracker,
+        "orientation": orientation,
+        "check_rms_mm": rows,
+        "ballbar_rank": ranks,
+    }
 
 
 def main() -> None:
@@ -102,6 +111,9 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     ap.add_argument("--arcs", type=int, nargs="+", default=[1, 2, 3, 4, 5, 6])
     ap.add_argument("--tracker-poses", type=int, default=200)
+    ap.add_argument(
+        "--orientation", choices=tuple(ORIENTATIONS), default="per-arc", help="of the study's arcs"
+    )
     args = ap.parse_args()
     doc: dict[str, Any] = {"date": dt.date.today().isoformat(), "machine": machine_info()}
     doc["fit"] = fit_times(args.repeats)
@@ -110,10 +122,10 @@ def main() -> None:
             f"{r['form']}: {r['rows']} rows, rank {r['rank']}, best {r['best_s']} s, median {r['median_s']} s"
         )
     if args.study:
-        study = arc_study(args.seeds, args.arcs, args.tracker_poses)
+        study = arc_study(args.seeds, args.arcs, args.tracker_poses, args.orientation)
         doc["arc_study"] = study
         print(
-            f"check-row 3-D RMS / mm on irb120-geometric, seeds {args.seeds} "
+            f"check-row 3-D RMS / mm on irb120-geometric, {args.orientation} orientation, seeds {args.seeds} "
             f"({args.tracker_poses} tracker poses):"
         )
         for name, values in study["check_rms_mm"].items():
@@ -122,6 +134,7 @@ def main() -> None:
                 + "  ".join(f"{v:.4f}" for v in values)
                 + f"   median {np.median(values):.4f}"
             )
+        print("  ballbar rank by arcs: " + ", ".join(f"{k}: {r}" for k, r in study["ballbar_rank"].items()))
     print(machine_line())
     print(json.dumps(doc))
 
