@@ -216,6 +216,20 @@ async def test_http_upload_and_fit_job_of_a_ballbar_campaign(client: httpx.Async
     headers = {**auth("engineer"), "Content-Type": "text/csv"}
     bad = await client.post("/api/datasets?name=bb", content=_edit(_csv(), 6, "cz", "390"), headers=headers)
     assert bad.status_code == 422 and bad.json()["row"] == 6 and bad.json()["column"] == "cz"
+    records = [
+        dict(zip(_csv().splitlines()[0].split(","), line.split(","), strict=True))
+        for line in _csv().splitlines()[1:]
+    ]
+    for r in records:  # JSON numbers where the form has numbers
+        for k in r:
+            if k != "pose_id":
+                r[k] = float(r[k])
+    records[4]["arc"] = 0
+    bad = await client.post("/api/datasets?name=bb", json=records, headers=auth("engineer"))
+    assert bad.status_code == 422 and bad.json()["row"] == 5 and bad.json()["column"] == "arc", bad.text
+    records[4]["arc"] = 1
+    ok = await client.post("/api/datasets?name=bbj", json=records, headers=auth("engineer"))
+    assert ok.status_code == 201 and ok.json()["summary"]["campaign"] == "ballbar", ok.text
     up = await client.post("/api/datasets?name=bb", content=_csv(), headers=headers)
     assert up.status_code == 201, up.text
     r = await client.post(
