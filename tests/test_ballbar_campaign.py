@@ -241,3 +241,20 @@ async def test_http_upload_and_fit_job_of_a_ballbar_campaign(client: httpx.Async
     stats = job["result"]["stats"]
     assert stats["campaign"] == "ballbar" and stats["kind"] == "poe" and stats["rank"] == 11
     assert any("dtheta1" in line for line in stats["not_identifiable"])
+
+
+def test_a_split_holds_out_whole_arcs_and_judges_the_fit_on_them() -> None:
+    from comp_daemon.data.campaigns import campaign_of
+    from comp_daemon.models.campaign_fit import fit_campaign
+    from comp_daemon.sim.bars import run_ballbar_campaign
+    from comp_daemon.sim.scenario import load_scenario
+
+    table = run_ballbar_campaign(load_scenario("irb120-geometric"), arcs=5, check_arcs=1, seed=4)
+    campaign = campaign_of(table, tcp_mm=nominal_tcp(ROBOT))
+    assert campaign is not None and table.split is not None
+    held = {int(k) for k, s in zip(campaign.arc, table.split, strict=True) if s == "check"}
+    assert len(held) == 1
+    fitted, check = fit_campaign(ROBOT, campaign, model="poe")
+    assert held.isdisjoint(fitted.info["arcs"]) and check["check_rows"] == int((table.split == "check").sum())
+    before, after = check["bar_error_rms_mm"]["before"], check["bar_error_rms_mm"]["after"]
+    assert after < 0.25 * before
