@@ -73,12 +73,7 @@ def fit_ballbar_campaign(
             names=tuple(POE_PARAM_NAMES[i] for i in poe_keep),
             values=fit.theta[poe_keep],
             covariance=fit.cov[np.ix_(poe_keep, poe_keep)],
-            sigma_mm=float(
-                np.sqrt(
-                    np.sum((ballbar_lengths_mm(twists, a, fit.theta, campaign.pivot_mm) - bar) ** 2)
-                    / max(bar.size - keep.size, 1)
-                )
-            ),
+            sigma_mm=fit.h_after_mm * float(np.sqrt(bar.size / (bar.size - keep.size))),  # per length
             rows=int(bar.size),
         )
     info: dict[str, Any] = {
