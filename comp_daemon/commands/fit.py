@@ -33,6 +33,7 @@ from typing import Any, Literal
 
 import numpy as np
 
+from comp_daemon.commands.campaigns import evaluate_calibrated, fit_campaign_file, is_campaign_file
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
@@ -90,7 +91,11 @@ def _order_arg(text: str) -> Order:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     fit = subparsers.add_parser("fit", help="fit an error model on a measurement data set, write MODEL.json")
-    fit.add_argument("data", metavar="DATA", help="measurement data set (CSV, or .json records)")
+    fit.add_argument(
+        "data",
+        metavar="DATA",
+        help="measurement data set, or a ballbar / cross-bar campaign (CSV, or .json records)",
+    )
     fit.add_argument("--robot", required=True, help=ROBOT_HELP)
     fit.add_argument("--model", required=True, help=MODEL_HELP)
     fit.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
@@ -112,6 +117,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
     _common(ev)
     ev.add_argument("--json", default=None, metavar="OUT.json", help="write the statistics and fits as JSON")
+    ev.add_argument(
+        "--calibrated",
+        default=None,
+        metavar="MODEL.json,...",
+        help="also judge these artifacts (e.g. fitted from a ballbar or cross-bar campaign) on the check "
+        "rows; only their base frame is fitted, on the fit rows",
+    )
     ev.set_defaults(func=_evaluate)
 
     comp = subparsers.add_parser("compensate", help="compensated axis values for targets, by a model")
@@ -231,6 +243,8 @@ def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
 
 
 def _fit(args: argparse.Namespace) -> int:
+    if is_campaign_file(args.data):  # ballbar or cross-bar: the campaign's own calibration
+        return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
     dataset = _read(args.data, robot, max_parameters(spec), "measurement")
@@ -329,6 +343,15 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"{token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
             f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms"
         )
+    if args.calibrated:
+        t0 = time.perf_counter()
+        calibrated, calibrated_fits = evaluate_calibrated(
+            args.calibrated, robot, dataset, split.fit_rows, check
+        )
+        for name in calibrated:
+            table[name] = calibrated[name]
+            fits[name] = calibrated_fits[name]
+            timing[name] = {"fit_s": 0.0, "predict_s": time.perf_counter() - t0, "predict_rows": len(check)}
     ranking = sorted(table, key=lambda name: table[name]["3d"]["rms"])
     table = {name: table[name] for name in ranking}
     print(
