@@ -9,13 +9,13 @@ kept and lower the check error.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
 import pytest
 from diagnosis_campaigns import make_campaign
 
-from comp_daemon.data.dataset import Dataset
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.remainder import MIN_GAIN_PCT, fit_hyperparameters, judge_remainder
 from comp_daemon.diagnosis.report import render_report_html
@@ -118,17 +118,7 @@ def test_smooth_deformation_outside_the_vocabulary_is_kept_with_every_effect_tri
     a = ds.a_deg
     bump = np.sin(np.radians(5.0 * a[:, 1])) * np.cos(np.radians(4.0 * a[:, 2]))
     xyz = ds.xyz_mm + 0.08 * bump[:, None] * np.array([0.6, -0.4, 1.0])
-    moved = Dataset(
-        a_deg=a,
-        xyz_mm=xyz,
-        dir=ds.dir,
-        payload_kg=ds.payload_kg,
-        temp_c=ds.temp_c,
-        split=ds.split,
-        repeat=ds.repeat,
-        pose_id=ds.pose_id,
-        source="synthetic:kr210:11+deformation",
-    )
+    moved = dataclasses.replace(ds, xyz_mm=xyz, source="synthetic:kr210:11+deformation")
     doc = diagnose(moved, c.robot).to_json()
     rm = doc["remainder_model"]
     assert rm["kept"], rm
