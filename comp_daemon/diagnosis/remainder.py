@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 import scipy.linalg
+import scipy.linalg.lapack
 import scipy.optimize
 import scipy.stats
 from numpy.typing import NDArray
@@ -111,6 +112,16 @@ def _subset(n: int, most: int, seed: int) -> NDArray[np.intp]:
     return np.sort(np.random.default_rng(seed).choice(n, most, replace=False))
 
 
+def _inverse_from_cholesky(lower: FloatArray) -> FloatArray:
+    """K⁻¹ from the lower Cholesky factor of K (LAPACK potri, then the upper triangle mirrored)."""
+    inv, info = scipy.linalg.lapack.dpotri(lower, lower=1)
+    if info != 0:
+        raise np.linalg.LinAlgError(f"potri failed ({info})")
+    low = np.tril(inv)
+    out: FloatArray = low + np.tril(inv, -1).T
+    return out
+
+
 def fit_hyperparameters(
     a_deg: FloatArray, resid_mm: FloatArray, joints: Sequence[int], *, seed: int = 0
 ) -> GPHyper:
@@ -139,10 +150,10 @@ def fit_hyperparameters(
         kmat = kf + noise * eye
         try:
             c = scipy.linalg.cho_factor(kmat, lower=True, check_finite=False)
+            kinv = _inverse_from_cholesky(c[0])
         except np.linalg.LinAlgError:
             return 1e30, np.zeros_like(theta)
         alpha = scipy.linalg.cho_solve(c, y, check_finite=False)
-        kinv = scipy.linalg.cho_solve(c, eye, check_finite=False)
         logdet = 2.0 * float(np.sum(np.log(np.diag(c[0]))))
         value = 0.5 * float(np.sum(y * alpha)) + 0.5 * k * logdet
         w = alpha @ alpha.T - k * kinv
@@ -157,7 +168,12 @@ def fit_hyperparameters(
     bounds = [(math.log(0.05 * s), math.log(50.0 * s)) for s in spread]
     bounds += [(math.log(1e-6), math.log(10.0)), (math.log(1e-6), math.log(10.0))]
     res = scipy.optimize.minimize(
-        nll, start, jac=True, method="L-BFGS-B", bounds=bounds, options={"maxiter": HYPER_MAX_ITER}
+        nll,
+        start,
+        jac=True,
+        method="L-BFGS-B",
+        bounds=bounds,
+        options={"maxiter": HYPER_MAX_ITER, "ftol": 1e-7, "gtol": 1e-4},
     )
     theta = res.x
     return GPHyper(
