@@ -141,3 +141,9 @@ def test_public_ur5_campaign_has_joint_space_structure_the_remainder_model_takes
     scales = rm["length_scales_deg"]
     assert scales["1"] == min(scales.values()) and scales["1"] < 10.0, scales
     assert any(r["against"] == "a1" and r["significant"] for r in doc["residual_structure"])
+
+
+def test_the_remainder_model_can_be_left_out() -> None:
+    c = make_campaign("kr210", 3, [], n_poses=120)
+    rm = diagnose(c.dataset, c.robot, DiagnoseOptions(remainder_model=False)).to_json()["remainder_model"]
+    assert not rm["tried"] and not rm["kept"] and "not asked for" in rm["reason"]

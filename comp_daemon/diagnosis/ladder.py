@@ -457,6 +457,8 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
 
 def _remainder(ctx: Context, steps: list[Step]) -> RemainderModel:
     """The joint-space remainder model on top of the final step, kept only if it wins out of fold."""
+    if not ctx.options.remainder_model:
+        return RemainderModel(False, False, "not asked for (DiagnoseOptions.remainder_model)")
     final = final_step(steps)
     names = [n for s in steps if s.significant and s.effect != "geometric" for n in s.names]
     lp = ctx.problem(final.fit, names)

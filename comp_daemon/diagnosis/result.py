@@ -57,6 +57,7 @@ class DiagnoseOptions:
     max_effects: int = 12  # at most this many (effect, joint) candidates are accepted
     tracker_sigma_mm: float | None = None  # declared tracker uncertainty (σ per axis), if known
     effects: tuple[str, ...] | None = None  # the effects to try (None: the whole catalogue)
+    remainder_model: bool = True  # try the joint-space remainder model after the ladder
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
