@@ -273,8 +273,8 @@ class RemainderModel:
         if not self.kept:
             return (
                 "A joint-space remainder model (Gaussian process, one length scale per joint) did not "
-                f"win out of fold ({self.reason}): the remainder shows no smooth structure in the axis "
-                "values."
+                f"win out of fold ({self.reason}): no smooth function of the axis values lowers the "
+                "error enough to be kept."
             )
         scales = sorted(self.length_scales_deg.items(), key=lambda kv: kv[1])[:3]
         shortest = ", ".join(f"A{j} {v:.3g}°" for j, v in scales)
@@ -283,8 +283,7 @@ class RemainderModel:
             f"{self.check_rms_mm_after:.3f} mm (cross-validated on the fit rows "
             f"{self.cv_rms_mm_before:.3f} → {self.cv_rms_mm_after:.3f} mm, p = {self.p_value:.2g}): "
             "structure in the axis values that no effect in the vocabulary names "
-            f"(shortest length scales {shortest}). It compensates that structure without naming it; "
-            "a new effect for it would explain it."
+            f"(shortest length scales {shortest}). It compensates that structure without naming it."
         )
 
 
