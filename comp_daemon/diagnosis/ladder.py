@@ -71,6 +71,7 @@ from comp_daemon.diagnosis.candidates import (
     unidentifiable_candidates,
 )
 from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize, predict_mm
+from comp_daemon.diagnosis.remainder import RemainderModel, judge_remainder
 from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
 from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
@@ -222,6 +223,8 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         structure=describe_structure(structure),
     )
     where = locate(obs, mass, steps, baseline, ctx.problem, by_joint)
+    remainder = _remainder(ctx, steps)
+    where["summary"] = f"{where['summary']} {remainder.describe()}"
     return Diagnosis(
         robot=robot,
         dataset=dataset,
@@ -246,6 +249,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         residual_structure=structure,
         remainder_rows="check rows, and fit rows out of fold",
         time_nuisance=ctx.nuisance is not None,
+        remainder_model=remainder,
     )
 
 
@@ -449,6 +453,27 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     for j in JOINTS:
         columns[f"dir{j}"] = None if obs.dir is None else obs.dir[:, j - 1]
     return residual_structure(resid, columns, obs.pose_group, folds=ctx.options.folds, seed=ctx.options.seed)
+
+
+def _remainder(ctx: Context, steps: list[Step]) -> RemainderModel:
+    """The joint-space remainder model on top of the final step, kept only if it wins out of fold."""
+    if not ctx.options.remainder_model:
+        return RemainderModel(False, False, "not asked for (DiagnoseOptions.remainder_model)")
+    final = final_step(steps)
+    names = [n for s in steps if s.significant and s.effect != "geometric" for n in s.names]
+    lp = ctx.problem(final.fit, names)
+    resid_check = ctx.obs_check.xyz_mm - predict_mm(
+        ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
+    )
+    return judge_remainder(
+        lp,
+        ctx.own_cols(len(names)),
+        ctx.obs_fit.a_deg,
+        lp.r,
+        ctx.obs_check.a_deg,
+        resid_check,
+        seed=ctx.options.seed,
+    )
 
 
 def _geo_pvalue(start: FitResult, ctx: Context, geo_cols: list[int]) -> float:

@@ -125,6 +125,33 @@ def _structure_table(diag: Diagnosis) -> str:
     )
 
 
+def _remainder_html(diag: Diagnosis) -> str:
+    """The joint-space remainder model: whether it won out of fold, and what it took on check rows."""
+    model = diag.remainder_model
+    if model is None:
+        return "<p>No joint-space remainder model was tried.</p>"
+    words = f"<p>{_e(model.describe())}</p>"
+    if not model.tried:
+        return words
+    scales = ", ".join(f"A{j} {v:.3g}°" for j, v in model.length_scales_deg.items())
+    rows = [
+        ("kept", "<b>yes</b>" if model.kept else "no"),
+        ("why", _e(model.reason)),
+        (
+            "cross-validated RMS on fit rows, before → after",
+            f"{_num(model.cv_rms_mm_before)} → {_num(model.cv_rms_mm_after)} mm",
+        ),
+        (
+            "check RMS, before → after",
+            f"{_num(model.check_rms_mm_before)} → {_num(model.check_rms_mm_after)} mm",
+        ),
+        ("length scales", _e(scales)),
+        ("smooth part / noise (3-D RMS)", f"{_num(model.signal_rms_mm)} / {_num(model.noise_rms_mm)} mm"),
+    ]
+    table = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
+    return words + "<table>" + table + "</table>"
+
+
 def _ladder_chart(diag: Diagnosis) -> str:
     labels = ["nominal"] + [
         f"{s.effect}{' J' + ','.join(map(str, s.joints)) if s.joints else ''}" for s in diag.steps
@@ -338,6 +365,8 @@ def render_report_html(diag: Diagnosis) -> str:
         _where_tables(diag.where),
         "<h2>Structure in the remainder</h2>",
         _structure_table(diag),
+        "<h2>Joint-space remainder model</h2>",
+        _remainder_html(diag),
         "<h2>Not tested</h2><ul>",
         skipped,
         "</ul>",
