@@ -142,4 +142,6 @@ def _run(args: argparse.Namespace) -> int:
                 "remainder follows: " + ", ".join(f"{r.against} ({r.share_pct:.0f} %)" for r in found),
                 file=out,
             )
+        if diag.remainder_model is not None and diag.remainder_model.tried:
+            print(diag.remainder_model.describe(), file=out)
     return 0
