@@ -42,6 +42,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="report x, y, z in the tracker's own frame (the scenario's [cell] tracker pose)",
     )
     sample.add_argument("--no-gratings", action="store_true", help="leave out the g columns")
+    sample.add_argument(
+        "--targets",
+        type=int,
+        default=None,
+        help="reflectors on the flange measured at every pose (x,y,z, x2,y2,z2 …; default: the scenario's)",
+    )
     sample.set_defaults(func=_sample)
 
     report = sub.add_parser(
@@ -71,6 +77,7 @@ def _positive(value: int | None, flag: str) -> None:
 def _sample(args: argparse.Namespace) -> int:
     _positive(args.n, "--n")
     _positive(args.repeats, "--repeats")
+    _positive(args.targets, "--targets")
     scenario = _scenario(args)
     dataset = run_campaign(
         scenario,
@@ -79,6 +86,7 @@ def _sample(args: argparse.Namespace) -> int:
         repeats=args.repeats,
         in_tracker_frame=args.tracker_frame,
         gratings=not args.no_gratings,
+        targets=args.targets,
     )
     write_dataset(dataset, args.out)
     assert dataset.split is not None
