@@ -198,7 +198,9 @@ class Dataset:
             return
         more = np.array(self.more_xyz_mm, dtype=np.float64, copy=True)
         if more.ndim != 3 or more.shape[0] != n or more.shape[2] != 3:
-            raise ValueError(f"Dataset.more_xyz_mm: expected shape (n, K - 1, 3) with n = {n}, got {more.shape}")
+            raise ValueError(
+                f"Dataset.more_xyz_mm: expected shape (n, K - 1, 3) with n = {n}, got {more.shape}"
+            )
         if more.shape[1] == 0:
             object.__setattr__(self, "more_xyz_mm", None)
             return
