@@ -2,9 +2,9 @@
 
 Column names are case-sensitive and lower case, exactly as the spec writes them; surrounding
 whitespace in a header cell is ignored. Further targets (reflectors) on the flange have the
-numbered columns ``x2, y2, z2`` … ``xK, yK, zK`` (:func:`reflector_columns`). A header cell that differs from a known column only in
-case (``A1``, ``X``) is refused with a hint rather than kept as an unknown column, so that a
-file written for another tool cannot silently lose its axis values.
+numbered columns ``x2, y2, z2`` … ``xK, yK, zK`` (:func:`reflector_columns`). A header cell
+that differs from a known column only in case (``A1``, ``X``) is refused with a hint rather than
+kept as an unknown column, so that a file written for another tool cannot silently lose its axis values.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ KNOWN_COLUMNS: tuple[str, ...] = (
 _REFLECTOR = re.compile(r"([xyz])([1-9][0-9]*)")
 
 
-def reflector_columns(k: int) -> tuple[str, str, str]:
+def reflector_columns(k: int) -> tuple[str, ...]:
     """The columns of target (reflector) ``k`` >= 1: ``x, y, z`` for the first, ``xk, yk, zk`` after."""
     if k < 1:
         raise ValueError(f"targets are numbered from 1, got {k}")

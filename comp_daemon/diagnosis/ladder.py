@@ -77,8 +77,8 @@ from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize, pr
 from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
 from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
-from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets
 from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
+from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets
 from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel

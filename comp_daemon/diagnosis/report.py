@@ -293,7 +293,8 @@ def _where_tables(where: dict[str, Any]) -> str:
     flange = where.get("flange")
     if flange is not None:
         out.append(
-            f"<table><tr><th>flange ({flange['targets']} targets, check rows)</th><th>RMS</th><th>max</th></tr>"
+            f"<table><tr><th>flange ({flange['targets']} targets, check rows)</th>"
+            "<th>RMS</th><th>max</th></tr>"
             f"<tr><td class=l>position (mm)</td><td>{flange['position_rms_mm']}</td>"
             f"<td>{flange['position_max_mm']}</td></tr>"
             f"<tr><td class=l>orientation (deg)</td><td>{flange['orientation_rms_deg']}</td>"
