@@ -19,12 +19,13 @@ from comp_daemon.diagnosis.result import DiagnoseOptions
 from comp_daemon.diagnosis.targets import noise_from_targets
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.effects import EffectParams
-from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.fitting import FitOptions, FitRows
+from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.registry import fit_spec, parse_model_name
 from comp_daemon.sim.campaign import reflector_offsets_mm, run_campaign
-from comp_daemon.sim.scenario import load_scenario
+from comp_daemon.sim.scenario import Scenario, load_scenario
 
 HEADER = "a1,a2,a3,a4,a5,a6,x,y,z,x2,y2,z2,x3,y3,z3,note\n"
 ROW = "0,10,20,0,30,0,1,2,3,4,5,6,7,8,9,hi\n"
@@ -43,7 +44,8 @@ def test_reader_gives_every_target_and_writes_them_back() -> None:
     again = parse_dataset(dataset_to_csv(ds))
     assert again == ds and again.reflectors_mm is not None
     assert np.array_equal(again.reflectors_mm, ds.reflectors_mm)
-    assert ds.subset([1]).reflectors_mm is not None and ds.subset([1]).reflectors_mm.shape == (1, 3, 3)
+    one = ds.subset([1]).reflectors_mm
+    assert one is not None and one.shape == (1, 3, 3)
     assert ds.summary()["reflectors"] == 3
     records = [
         {
@@ -120,7 +122,9 @@ def test_sim_sample_targets_writes_rigid_reflectors(tmp_path: Path) -> None:
         assert 0.3 * sigma < float(d.std()) < 3 * sigma  # each reflector has its own noise
     single = run_campaign(load_scenario("kr210-geometric"), 40)
     assert single.more_xyz_mm is None
-    assert np.array_equal(single.xyz_mm, run_campaign(load_scenario("kr210-geometric"), 40, targets=1).xyz_mm)
+    same = run_campaign(load_scenario("kr210-geometric"), 40, targets=1)
+    assert single.xyz_mm is not None and same.xyz_mm is not None
+    assert np.array_equal(single.xyz_mm, same.xyz_mm)
 
 
 def test_real_like_scenario_has_three_reflectors_and_a_5_um_tracker() -> None:
@@ -131,7 +135,12 @@ def test_real_like_scenario_has_three_reflectors_and_a_5_um_tracker() -> None:
 # ---------------------------------------------------------------------------------------------
 # Identification
 # ---------------------------------------------------------------------------------------------
-def _wrist_campaign(sigma_mm: float, n: int, seed: int) -> tuple[object, Dataset]:
+def _rms(model: ErrorModel, a_deg: np.ndarray, ref_mm: np.ndarray) -> float:
+    e = model.predict_tcp_mm(a_deg) - ref_mm
+    return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
+
+
+def _wrist_campaign(sigma_mm: float, n: int, seed: int) -> tuple[Scenario, Dataset]:
     """The real-like robot (wrist errors) without its non-geometric effects, three reflectors."""
     sc = load_scenario("real-like")
     sc = dataclasses.replace(
@@ -147,23 +156,13 @@ def test_six_dof_identification_beats_position_only_on_check_rows() -> None:
         assert ds.a_deg is not None and ds.xyz_mm is not None and ds.more_xyz_mm is not None
         fit, check = ds.fit_rows()[:45], ds.check_rows()
         a, p = ds.a_deg, ds.xyz_mm
-        position_only = calibrate_kinematic(sc.robot, a[fit], p[fit])  # type: ignore[attr-defined]
-        six_dof = calibrate_kinematic(
-            sc.robot,  # type: ignore[attr-defined]
-            a[fit],
-            p[fit],
-            more_targets_mm=ds.more_xyz_mm[fit],
-        )
+        position_only = calibrate_kinematic(sc.robot, a[fit], p[fit])
+        six_dof = calibrate_kinematic(sc.robot, a[fit], p[fit], more_targets_mm=ds.more_xyz_mm[fit])
         assert six_dof.targets == 3 and position_only.targets == 1
-        truth_params = sc.true_params()  # type: ignore[attr-defined]
+        truth_params = sc.true_params()
         truth = tcp_position_mm(truth_params, axes_deg_to_q_rad(a[check], truth_params.sign))
-
-        def rms(model: object, ref: np.ndarray) -> float:
-            e = model.predict_tcp_mm(a[check]) - ref  # type: ignore[attr-defined]
-            return float(np.sqrt(np.mean(np.sum(e**2, axis=1))))
-
-        measured = (rms(position_only.model, p[check]), rms(six_dof.model, p[check]))
-        model_error = (rms(position_only.model, truth), rms(six_dof.model, truth))
+        measured = (_rms(position_only.model, a[check], p[check]), _rms(six_dof.model, a[check], p[check]))
+        model_error = (_rms(position_only.model, a[check], truth), _rms(six_dof.model, a[check], truth))
         assert measured[1] < measured[0]
         assert model_error[1] < 0.8 * model_error[0]
         wins.append(model_error[1] / model_error[0])
@@ -182,8 +181,10 @@ def test_every_model_kind_fits_a_multi_target_campaign() -> None:
     for name in ("kinematic", "kinematic+ratio+backlash", "chebyshev", "compliance", "poe", "kriging"):
         rows = FitRows.of(ds, fit)
         assert rows.more_xyz_mm is not None and rows.more_xyz_mm.shape == (len(fit), 2, 3)
-        fitted = fit_spec(parse_model_name(name), sc.robot, rows, FitOptions())  # type: ignore[attr-defined]
-        pred = fitted.model.predict_tcp_mm(ds.a_deg[check], None if ds.dir is None else ds.dir[check])
+        fitted = fit_spec(parse_model_name(name), sc.robot, rows, FitOptions())
+        pred = fitted.model.predict_tcp_mm(
+            ds.a_deg[check], None if ds.dir is None else ds.dir[check].astype(np.float64)
+        )
         rms = float(np.sqrt(np.mean(np.sum((pred - ds.xyz_mm[check]) ** 2, axis=1))))
         assert rms < 0.1, name
         if name.startswith("kinematic") or name == "kriging":
