@@ -226,7 +226,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         structure=describe_structure(structure),
     )
     where = locate(obs, mass, steps, baseline, ctx.problem, by_joint)
-    flange = flange_errors(mass, steps[0].fit, obs, dataset.reflectors_mm, fit_rows, check_rows)
+    flange = flange_errors(mass, steps[0].fit, obs, dataset.reflectors_mm, fit_rows, check_rows, robot, frame)
     if flange is not None:
         where["flange"] = flange
         where["summary"] += " " + flange_words(flange)

@@ -24,6 +24,11 @@ rows (each the mean of its measured points seen from the twin's flange; the firs
 twin's tool), and on each check row the rigid motion that best maps the twin's targets onto the
 measured ones (Kabsch) is the flange's pose error: its rotation angle is the orientation error,
 and the displacement of the flange origin the position error.
+
+The diagnosis's geometric step fits the TCP alone, so a wrist error that turns the flange about the
+TCP stays in its orientation error. ``six_dof`` therefore gives the same errors after a geometric
+calibration on every target's position (:func:`~comp_daemon.models.kinematic.calibrate_kinematic`
+with the further targets, fit rows only): what is left there is not geometry.
 """
 
 from __future__ import annotations
@@ -35,7 +40,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.diagnosis.fitting import FitResult, Observations
-from comp_daemon.models.effects import MassModel, twin_state
+from comp_daemon.models.effects import EffectParams, MassModel, twin_state
+from comp_daemon.models.kinematic import calibrate_kinematic
+from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["flange_errors", "noise_from_targets"]
 
@@ -75,6 +82,49 @@ def _r(value: float) -> float:
     return float(f"{value:.4g}") if np.isfinite(value) and value != 0.0 else float(value)
 
 
+def _pose_errors(origin: FloatArray, twin: FloatArray, meas: FloatArray) -> tuple[FloatArray, FloatArray]:
+    """Per row, the flange's position error (mm) and orientation error (deg): the rigid motion that
+    best maps the twin's targets ``twin`` (n, K, 3) onto the measured ``meas``, at the twin's
+    flange origin ``origin`` (n, 3)."""
+    r_err, t_err = _kabsch(twin, meas)
+    moved = np.einsum("nij,nj->ni", r_err, origin) + t_err
+    cos = np.clip((np.trace(r_err, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
+    return np.linalg.norm(moved - origin, axis=1), np.rad2deg(np.arccos(cos))
+
+
+def _summary(position: FloatArray, angle: FloatArray) -> dict[str, float]:
+    return {
+        "position_rms_mm": _r(float(np.sqrt(np.mean(position**2)))),
+        "position_max_mm": _r(float(position.max())),
+        "orientation_rms_deg": _r(float(np.sqrt(np.mean(angle**2)))),
+        "orientation_max_deg": _r(float(angle.max())),
+    }
+
+
+def _six_dof(
+    robot: RobotDescription,
+    obs: Observations,
+    meas: FloatArray,
+    frame: str,
+    fit_rows: NDArray[np.int64],
+    check_rows: NDArray[np.int64],
+) -> dict[str, float]:
+    """The flange's errors on the check rows after a geometric calibration on every target."""
+    kf = calibrate_kinematic(
+        robot,
+        obs.a_deg[fit_rows],
+        meas[fit_rows, 0],
+        payload_kg=obs.payload_kg[fit_rows],
+        frame="tracker" if frame == "tracker" else "base",
+        more_targets_mm=meas[fit_rows, 1:],
+    )
+    a, payload = obs.a_deg[check_rows], obs.payload_kg[check_rows]
+    twin = kf.model.predict_targets_mm(a, payload_kg=payload)
+    st = twin_state(robot, kf.model.params, EffectParams.zeros(), a, None, payload)
+    origin = st.chain.world_T_frame[:, 6, :3, 3]
+    return _summary(*_pose_errors(origin, twin, meas[check_rows]))
+
+
 def flange_errors(
     mass: MassModel,
     fit: FitResult,
@@ -82,9 +132,12 @@ def flange_errors(
     reflectors_mm: FloatArray | None,
     fit_rows: NDArray[np.int64],
     check_rows: NDArray[np.int64],
+    robot: RobotDescription | None = None,
+    frame: str = "base",
 ) -> dict[str, Any] | None:
     """The flange's position and orientation errors on the check rows left by the twin ``fit``
-    (module docstring), or None with fewer than three targets."""
+    and, given the ``robot``, by a 6-DOF geometric calibration (module docstring); None with fewer
+    than three targets."""
     if reflectors_mm is None or np.asarray(reflectors_mm).shape[1] < 3 or len(check_rows) == 0:
         return None
     meas = np.asarray(reflectors_mm, dtype=float)
@@ -96,22 +149,20 @@ def flange_errors(
     seen = np.einsum("nji,nkj->nki", rot[fit_rows], meas[fit_rows, 1:] - origin[fit_rows, None])
     offsets = np.concatenate([fit.params.tool_xyz_mm[None, :], seen.mean(axis=0)], axis=0)  # (K, 3)
     twin = np.einsum("nij,kj->nki", rot, offsets) + origin[:, None]
-    r_err, t_err = _kabsch(twin[check_rows], meas[check_rows])
-    moved = np.einsum("nij,nj->ni", r_err, origin[check_rows]) + t_err
-    position = np.linalg.norm(moved - origin[check_rows], axis=1)
-    cos = np.clip((np.trace(r_err, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)
-    angle = np.rad2deg(np.arccos(cos))
     lever = float(np.mean(np.linalg.norm(offsets - offsets.mean(axis=0), axis=1)))
-    return {
+    out: dict[str, Any] = {
         "rows": "check",
         "after": "geometric",
         "targets": int(meas.shape[1]),
-        "position_rms_mm": _r(float(np.sqrt(np.mean(position**2)))),
-        "position_max_mm": _r(float(position.max())),
-        "orientation_rms_deg": _r(float(np.sqrt(np.mean(angle**2)))),
-        "orientation_max_deg": _r(float(angle.max())),
+        **_summary(*_pose_errors(origin[check_rows], twin[check_rows], meas[check_rows])),
         "target_spread_mm": _r(lever),
     }
+    if robot is not None:
+        out["six_dof"] = {
+            "after": "geometric calibration on every target",
+            **_six_dof(robot, obs, meas, frame, fit_rows, check_rows),
+        }
+    return out
 
 
 def flange_words(flange: dict[str, Any]) -> str:
