@@ -149,13 +149,14 @@ def flange_errors(
     seen = np.einsum("nji,nkj->nki", rot[fit_rows], meas[fit_rows, 1:] - origin[fit_rows, None])
     offsets = np.concatenate([fit.params.tool_xyz_mm[None, :], seen.mean(axis=0)], axis=0)  # (K, 3)
     twin = np.einsum("nij,kj->nki", rot, offsets) + origin[:, None]
-    lever = float(np.mean(np.linalg.norm(offsets - offsets.mean(axis=0), axis=1)))
+    radius = float(np.mean(np.linalg.norm(offsets - offsets.mean(axis=0), axis=1)))
+    # target_radius_mm: the targets' mean distance from their centroid, the lever arm of the orientation
     out: dict[str, Any] = {
         "rows": "check",
         "after": "geometric",
         "targets": int(meas.shape[1]),
         **_summary(*_pose_errors(origin[check_rows], twin[check_rows], meas[check_rows])),
-        "target_spread_mm": _r(lever),
+        "target_radius_mm": _r(radius),
     }
     if robot is not None:
         out["six_dof"] = {
@@ -166,9 +167,16 @@ def flange_errors(
 
 
 def flange_words(flange: dict[str, Any]) -> str:
-    """One sentence on the flange's position and orientation errors."""
-    return (
+    """One or two sentences on the flange's position and orientation errors."""
+    words = (
         f"With {flange['targets']} targets on the flange, the error left after the geometric step is "
         f"{flange['position_rms_mm']:.3f} mm RMS in the flange's position and "
-        f"{1000.0 * flange['orientation_rms_deg']:.2f} mdeg RMS in its orientation (check rows)."
+        f"{1000.0 * flange['orientation_rms_deg']:.1f} mdeg RMS in its orientation (check rows)"
+    )
+    six = flange.get("six_dof")
+    if six is None:
+        return words + "."
+    return words + (
+        f"; a geometric calibration on every target's position leaves {six['position_rms_mm']:.3f} mm "
+        f"and {1000.0 * six['orientation_rms_deg']:.1f} mdeg."
     )

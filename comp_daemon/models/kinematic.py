@@ -32,7 +32,9 @@ choice of weight between millimetres and radians. A parameter that only the orie
 wrist twist the TCP hardly feels) becomes better determined; parameters that move every target
 alike with an offset (``d6``, ``theta6`` against the targets' offsets) drop out as dependent.
 The target positions are computed from the twin's flange frame (payload at the TCP); the
-Jacobian of target k is the twin's with target k as the tool.
+Jacobian of target k is the twin's with target k as the tool, whose compliance columns carry the
+payload at that target (exact without a payload or a compliance effect; otherwise a few per cent
+on those columns, which changes the steps, not the fixed point of an exact residual).
 
 Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`); effect units as in
 :mod:`comp_daemon.models.effects` (the catalogue: deg for backlash, 1 for the ratio error …).
