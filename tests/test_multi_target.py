@@ -15,6 +15,7 @@ from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.dataset import Dataset, dataset_to_csv, read_dataset
 from comp_daemon.data.readers import dataset_from_records, parse_dataset
 from comp_daemon.diagnosis.ladder import diagnose
+from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import DiagnoseOptions
 from comp_daemon.diagnosis.targets import noise_from_targets
 from comp_daemon.kinematics.forward import tcp_position_mm
@@ -229,6 +230,8 @@ def test_diagnosis_noise_floor_from_targets_and_flange_errors(tmp_path: Path) ->
     assert six["orientation_rms_deg"] < 0.7 * flange["orientation_rms_deg"]
     assert six["position_rms_mm"] < 1.2 * flange["position_rms_mm"]
     assert "orientation" in doc["where"]["summary"]
+    page = render_report_html(diag)
+    assert "flange (3 targets, check rows)" in page and "orientation (deg)" in page
     # a declared uncertainty does not override the direct evidence of the targets
     declared = diagnose(ds, sc.robot, DiagnoseOptions(tracker_sigma_mm=0.05))
     assert declared.noise_floor_source == "targets"
