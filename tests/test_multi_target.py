@@ -207,7 +207,13 @@ def test_distance_spread_estimates_sigma() -> None:
     assert found is not None
     assert found[0] == pytest.approx(0.004, rel=0.05)
     assert found[1] == pytest.approx(np.sqrt(3) * found[0])
+    two = noise_from_targets(pts[:, :2])  # one distance is evidence enough
+    assert two is not None and two[0] == pytest.approx(0.004, rel=0.1)
     assert noise_from_targets(pts[:, :1]) is None and noise_from_targets(None) is None
+    # the robot's own repeatability (the whole flange moving) leaves the distances alone
+    shaken = pts + rng.normal(scale=0.05, size=(2000, 1, 3))
+    shaken_found = noise_from_targets(shaken)
+    assert shaken_found is not None and shaken_found[0] == pytest.approx(found[0], rel=1e-9)
 
 
 def test_diagnosis_noise_floor_from_targets_and_flange_errors(tmp_path: Path) -> None:
