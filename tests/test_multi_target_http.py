@@ -2,44 +2,18 @@
 
 from __future__ import annotations
 
-import asyncio
-import time
-from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
 
 import httpx
-import pytest
-from test_service_api import auth, make_settings
+from test_models_fit_http import _done, client  # noqa: F401  (client: a fixture, used by name)
+from test_service_api import auth
 
 from comp_daemon.cli import main
-from comp_daemon.service.api import create_app, open_store
-
-
-@pytest.fixture
-async def client(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
-    settings = make_settings(tmp_path, jobs={"workers": 1})
-    store = open_store(settings)
-    app = create_app(settings, store)
-    async with app.router.lifespan_context(app):
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://cell") as c:
-            yield c
-    store.close()
-
-
-async def _done(client: httpx.AsyncClient, job_id: int) -> dict[str, Any]:
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline:
-        job = (await client.get(f"/api/jobs/{job_id}", headers=auth("viewer"))).json()
-        if job["state"] in ("done", "failed", "cancelled"):
-            return dict(job)
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"job {job_id} did not finish")
 
 
 async def test_three_target_campaign_is_accepted_and_fitted(
-    client: httpx.AsyncClient, tmp_path: Path
+    client: httpx.AsyncClient,  # noqa: F811  (the fixture of test_models_fit_http)
+    tmp_path: Path,
 ) -> None:
     data = tmp_path / "three.csv"
     args = ["sim", "sample", "--scenario", "kr210-geometric", "--n", "80", "--targets", "3"]
