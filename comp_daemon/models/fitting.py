@@ -315,7 +315,9 @@ def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
         assert kf.model.more_targets_mm is not None
         targets = {
             "targets": kf.targets,
-            "identification": "6-DOF (every target's position)" if kf.targets >= 3 else "two targets",
+            "identification": "6-DOF: every target's position"
+            if kf.targets >= 3
+            else "every target's position",
             "targets_rms_mm": kf.targets_rms_mm,
             "more_targets_mm": kf.model.more_targets_mm.tolist(),
         }
