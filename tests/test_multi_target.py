@@ -19,11 +19,11 @@ from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import DiagnoseOptions
 from comp_daemon.diagnosis.targets import noise_from_targets
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import axes_deg_to_q_rad
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.models.fitting import FitOptions, FitRows
-from comp_daemon.models.kinematic import calibrate_kinematic
+from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.registry import fit_spec, parse_model_name
 from comp_daemon.sim.campaign import reflector_offsets_mm, run_campaign
 from comp_daemon.sim.scenario import Scenario, load_scenario
@@ -148,6 +148,38 @@ def _wrist_campaign(sigma_mm: float, n: int, seed: int) -> tuple[Scenario, Datas
         sc, effects=EffectParams.zeros(), noise=dataclasses.replace(sc.noise, tracker_sigma_mm=sigma_mm)
     )
     return sc, run_campaign(sc, n, seed=seed, targets=3)
+
+
+def test_multi_target_jacobian_matches_finite_differences() -> None:
+    robot = load_scenario("real-like").robot
+    rng = np.random.default_rng(2)
+    a = rng.uniform(-40, 40, size=(12, 6))
+    a[:, 4] = rng.uniform(20, 80, size=12)
+    nominal = KinematicParams.from_robot(robot)
+    more_meas = rng.normal(size=(12, 2, 3))  # only the Jacobian matters here
+    problem = KinematicProblem(
+        robot,
+        nominal,
+        EffectParams.zeros(),
+        np.arange(N_PARAMS),
+        [],
+        a,
+        np.zeros((12, 3)),
+        None,
+        0.0,
+        None,
+        more_measured_mm=more_meas,
+        more_start_mm=reflector_offsets_mm(nominal.tool_xyz_mm, 3)[1:],
+    )
+    x = rng.normal(scale=1e-3, size=N_PARAMS + 6)
+    jac = problem.jacobian(x)
+    assert jac.shape == (12 * 3 * 3, N_PARAMS + 6)
+    h = 1e-6
+    numeric = np.stack(
+        [(problem.residual(x + h * e) - problem.residual(x - h * e)) / (2 * h) for e in np.eye(x.size)],
+        axis=1,
+    )
+    assert np.allclose(jac, numeric, atol=1e-5 * np.abs(numeric).max())
 
 
 def test_six_dof_identification_beats_position_only_on_check_rows() -> None:
