@@ -17,9 +17,10 @@ from comp_daemon.data.readers import dataset_from_records, parse_dataset
 from comp_daemon.diagnosis.ladder import diagnose
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import DiagnoseOptions
-from comp_daemon.diagnosis.targets import noise_from_targets
+from comp_daemon.diagnosis.targets import flange_pose_errors, noise_from_targets
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
+from comp_daemon.kinematics.so3 import rotvec_to_matrix
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.models.fitting import FitOptions, FitRows
@@ -246,6 +247,20 @@ def test_distance_spread_estimates_sigma() -> None:
     shaken = pts + rng.normal(scale=0.05, size=(2000, 1, 3))
     shaken_found = noise_from_targets(shaken)
     assert shaken_found is not None and shaken_found[0] == pytest.approx(found[0], rel=1e-9)
+
+
+def test_flange_pose_error_of_a_known_motion() -> None:
+    rng = np.random.default_rng(5)
+    origin = rng.normal(scale=500.0, size=(4, 3))
+    offsets = reflector_offsets_mm(np.array([0.0, 0.0, 180.0]), 3)
+    twin = origin[:, None, :] + offsets[None]
+    angle_deg, shift = 0.02, np.array([0.01, -0.02, 0.005])
+    turn = rotvec_to_matrix(np.deg2rad(angle_deg) * np.array([0.6, 0.0, 0.8]))
+    # the flange turned about its own origin, then shifted
+    measured = origin[:, None, :] + offsets[None] @ turn.T + shift
+    position, angle = flange_pose_errors(origin, twin, measured)
+    assert np.allclose(angle, angle_deg, rtol=1e-6)
+    assert np.allclose(position, np.linalg.norm(shift), rtol=1e-6)
 
 
 def test_diagnosis_noise_floor_from_targets_and_flange_errors(tmp_path: Path) -> None:

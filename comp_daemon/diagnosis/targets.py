@@ -44,7 +44,7 @@ from comp_daemon.models.effects import EffectParams, MassModel, twin_state
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["flange_errors", "noise_from_targets"]
+__all__ = ["flange_errors", "flange_pose_errors", "flange_words", "noise_from_targets"]
 
 FloatArray = NDArray[np.float64]
 
@@ -82,7 +82,9 @@ def _r(value: float) -> float:
     return float(f"{value:.4g}") if np.isfinite(value) and value != 0.0 else float(value)
 
 
-def _pose_errors(origin: FloatArray, twin: FloatArray, meas: FloatArray) -> tuple[FloatArray, FloatArray]:
+def flange_pose_errors(
+    origin: FloatArray, twin: FloatArray, meas: FloatArray
+) -> tuple[FloatArray, FloatArray]:
     """Per row, the flange's position error (mm) and orientation error (deg): the rigid motion that
     best maps the twin's targets ``twin`` (n, K, 3) onto the measured ``meas``, at the twin's
     flange origin ``origin`` (n, 3)."""
@@ -122,7 +124,7 @@ def _six_dof(
     twin = kf.model.predict_targets_mm(a, payload_kg=payload)
     st = twin_state(robot, kf.model.params, EffectParams.zeros(), a, None, payload)
     origin = st.chain.world_T_frame[:, 6, :3, 3]
-    return _summary(*_pose_errors(origin, twin, meas[check_rows]))
+    return _summary(*flange_pose_errors(origin, twin, meas[check_rows]))
 
 
 def flange_errors(
@@ -155,7 +157,7 @@ def flange_errors(
         "rows": "check",
         "after": "geometric",
         "targets": int(meas.shape[1]),
-        **_summary(*_pose_errors(origin[check_rows], twin[check_rows], meas[check_rows])),
+        **_summary(*flange_pose_errors(origin[check_rows], twin[check_rows], meas[check_rows])),
         "target_radius_mm": _r(radius),
     }
     if robot is not None:
