@@ -72,7 +72,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         metavar="S",
         help="the tracker's uncertainty (σ per axis, mm): the noise floor (√3·S, 3-D) when the data "
-        "have no repeated poses; without either, no noise floor is claimed",
+        "have no repeated poses and no second target on the flange; without any, no noise floor is claimed",
     )
     p.add_argument(
         "--effects",
@@ -127,7 +127,7 @@ def _run(args: argparse.Namespace) -> int:
                 file=out,
             )
         floor = (
-            "no noise floor (no repeats, no --tracker-sigma-mm): not compared with noise"
+            "no noise floor (no repeats, no second target, no --tracker-sigma-mm): not compared with noise"
             if diag.noise_floor_mm is None
             else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
         )

@@ -274,6 +274,8 @@ def _fit(args: argparse.Namespace) -> int:
     if "identifiability" in fitted.info:
         ident = fitted.info["identifiability"]
         extra = f", {ident['identifiable']} of {ident['candidates']} parameters identifiable"
+    if "targets" in fitted.info:
+        extra += f", {fitted.info['targets']} targets per pose ({fitted.info['identification']})"
     print(
         f"{args.model}{order}: {len(rows)} rows ({fitted.frame} frame), "
         f"fit RMS {fitted.info['rms_mm']:.4f} mm{extra} -> {args.out}"

@@ -162,7 +162,7 @@ def _ladder_chart(diag: Diagnosis) -> str:
     title = "Check RMS after each step (mm, log scale); light grey: not significant; " + (
         f"dashed: noise floor {floor:.4f} mm ({diag.noise_floor_source})"
         if floor is not None
-        else "no noise floor known (no repeats, no declared tracker uncertainty)"
+        else "no noise floor known (no repeats, no second target, no declared tracker uncertainty)"
     )
     return bar_chart(
         labels,
@@ -317,6 +317,16 @@ def _where_tables(where: dict[str, Any]) -> str:
             f"<td>{r['rms_mm']}</td><td>{r['max_mm']}</td></tr>"
         )
     out.append("</table>")
+    flange = where.get("flange")
+    if flange is not None:
+        out.append(
+            f"<table><tr><th>flange ({flange['targets']} targets, check rows)</th>"
+            "<th>RMS</th><th>max</th></tr>"
+            f"<tr><td class=l>position (mm)</td><td>{flange['position_rms_mm']}</td>"
+            f"<td>{flange['position_max_mm']}</td></tr>"
+            f"<tr><td class=l>orientation (deg)</td><td>{flange['orientation_rms_deg']}</td>"
+            f"<td>{flange['orientation_max_deg']}</td></tr></table>"
+        )
     return "".join(out)
 
 

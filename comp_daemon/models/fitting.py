@@ -28,6 +28,13 @@ table; the doors call them through it.
 - ``poe``: seed 002's product-of-exponentials calibration, the errors ``dl1..dl6``, ``dtheta1..dtheta6``
   and the base frame (:func:`comp_daemon.models.poe_model.fit_poe`), the dependent ones removed by
   name and the directions the data do not see listed.
+
+Several targets per pose (``x2, y2, z2`` … of the data set, :attr:`FitRows.more_xyz_mm`): the
+kinematic calibration, and the kinematic base of both kriging kinds, identify every target's flange
+offset with the rest and fit all targets' positions (6-DOF with three or more targets,
+:mod:`comp_daemon.models.kinematic`); the model predicts, and every kind is judged on, the TCP (the
+first target, ``x, y, z``). The other kinds (``nominal``, ``chebyshev``, ``compliance``, ``poe``)
+and the kriging layer itself fit the TCP alone; the further targets are ignored there.
 """
 
 from __future__ import annotations
@@ -46,7 +53,7 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
 from comp_daemon.models.compliance import calibrate_compliance
-from comp_daemon.models.covariance import attach_covariance
+from comp_daemon.models.covariance import ParameterCovariance, attach_covariance, covariance_from_fit
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
@@ -129,6 +136,7 @@ class FitRows:
     dir: NDArray[np.float64] | None = None
     payload_kg: NDArray[np.float64] | float = 0.0
     temp_c: NDArray[np.float64] | None = None
+    more_xyz_mm: NDArray[np.float64] | None = None  # (n, K − 1, 3) further targets on the flange
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -136,6 +144,13 @@ class FitRows:
         p = np.asarray(self.xyz_mm, dtype=float)
         if p.shape != (a.shape[0], 3):
             raise ValueError(f"measured positions must have shape ({a.shape[0]}, 3), got {p.shape}")
+        if self.more_xyz_mm is not None:
+            more = np.asarray(self.more_xyz_mm, dtype=float)
+            if more.ndim != 3 or more.shape[0] != a.shape[0] or more.shape[2] != 3:
+                raise ValueError(
+                    f"further targets must have shape ({a.shape[0]}, K - 1, 3), got {more.shape}"
+                )
+            object.__setattr__(self, "more_xyz_mm", more)
         object.__setattr__(self, "a_deg", a)
         object.__setattr__(self, "xyz_mm", p)
         object.__setattr__(self, "n", a.shape[0])
@@ -157,6 +172,7 @@ class FitRows:
             dir=None if dataset.dir is None else directions_of(dataset, rows, unknown_dir),
             payload_kg=dataset.payload_kg[rows],
             temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
+            more_xyz_mm=None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[rows],
         )
 
 
@@ -269,12 +285,45 @@ def _kinematic(
         temp_c=rows.temp_c,
         effects=effects,
         frame=options.frame,
+        more_targets_mm=rows.more_xyz_mm,
+    )
+
+
+def _attach_tcp_covariance(kf: KinematicFit) -> None:
+    """The parameter covariance of the TCP's prediction: with several targets, the block of the
+    geometric and effect parameters of the whole fit (the targets' offsets do not move the TCP)."""
+    if kf.targets == 1:
+        attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
+        return
+    jac = kf.lm.jacobian
+    if jac.shape[0] <= jac.shape[1]:
+        return
+    cov, s = covariance_from_fit(jac, kf.lm.residual)
+    keep = np.array([not name.startswith("target") for name in kf.identified])
+    kf.model.uncertainty = ParameterCovariance(
+        tuple(n for n, k in zip(kf.identified, keep, strict=True) if k),
+        kf.values[keep],
+        cov[np.ix_(keep, keep)],
+        s,
+        kf.n_rows,
     )
 
 
 def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
+    targets: dict[str, Any] = {}
+    if kf.targets > 1:
+        assert kf.model.more_targets_mm is not None
+        targets = {
+            "targets": kf.targets,
+            "identification": "6-DOF: every target's position"
+            if kf.targets >= 3
+            else "every target's position",
+            "targets_rms_mm": kf.targets_rms_mm,
+            "more_targets_mm": kf.model.more_targets_mm.tolist(),
+        }
     return {
         "rms_mm": kf.rms_mm,
+        **targets,
         "effects": list(effects),
         "solver": lm_info(kf.lm),
         "identifiability": report_info(kf.report),
@@ -287,7 +336,7 @@ def fit_kinematic_kind(
 ) -> FittedModel:
     """MDH calibration with the spec's joint effects."""
     kf = _kinematic(robot, rows, spec.effects, options)
-    attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
+    _attach_tcp_covariance(kf)
     return FittedModel(
         kf.model, kf.frame, {"kind": spec.kind, "rows": rows.n, **_kinematic_info(kf, spec.effects)}
     )

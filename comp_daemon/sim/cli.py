@@ -47,6 +47,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     sample.add_argument("--no-gratings", action="store_true", help="leave out the g columns")
     sample.add_argument(
+        "--targets",
+        type=int,
+        default=None,
+        help="reflectors on the flange measured at every pose (x,y,z, x2,y2,z2 …; default: the scenario's)",
+    )
+    sample.add_argument(
         "--cell",
         default=None,
         help="with --scenario ballbar|crossbar: the scenario whose hidden robot is measured (default "
@@ -82,7 +88,10 @@ def _positive(value: int | None, flag: str) -> None:
 def _sample(args: argparse.Namespace) -> int:
     _positive(args.n, "--n")
     _positive(args.repeats, "--repeats")
+    _positive(args.targets, "--targets")
     if args.scenario in CAMPAIGN_SCENARIOS:
+        if args.targets is not None:
+            raise ValueError(f"--targets is for pose campaigns, not a {args.scenario} campaign")
         return _sample_bars(args)
     scenario = _scenario(args)
     dataset = run_campaign(
@@ -92,6 +101,7 @@ def _sample(args: argparse.Namespace) -> int:
         repeats=args.repeats,
         in_tracker_frame=args.tracker_frame,
         gratings=not args.no_gratings,
+        targets=args.targets,
     )
     write_dataset(dataset, args.out)
     assert dataset.split is not None
