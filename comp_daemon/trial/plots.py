@@ -7,7 +7,7 @@ Plot ids (each figure is ``<figure id="plot-ID">``):
     (seed 000 Fig. 11);
 ``error-histogram-per-method``
     the same counts as one panel per method (every run of Table 2), mean and max in the title;
-``point-errors``
+``point-errors-x``, ``-y``, ``-z``, ``-3d``
     the error x, y, z and 3-D of every target point in visiting order, per method (Figs 7–10);
 ``iso9283``
     vAP and RP per ISO 9283 test point without and with joint feedback (Fig. 6).
@@ -30,7 +30,7 @@ __all__ = [
     "error_histogram_figure",
     "iso_figure",
     "method_histograms_figure",
-    "point_error_figure",
+    "point_error_figures",
 ]
 
 COLORS = {
@@ -96,6 +96,9 @@ def method_histograms_figure(result: TrialResult, keys: Sequence[str]) -> str:
     h = histogram(filled) if filled else None
     top = max((max(c) for c in h["counts"].values()), default=1) if h else 1
     for i, ax in enumerate(axes):
+        if not keys:
+            no_data(ax, "the trial has no run with a measured target point", "3-D error per method")
+            continue
         if i >= len(keys):
             ax.set_visible(False)
             continue
@@ -112,8 +115,6 @@ def method_histograms_figure(result: TrialResult, keys: Sequence[str]) -> str:
         ax.set_ylim(0, top * 1.1)
         ax.set_xlabel("3-D error (mm)")
         ax.set_ylabel("target points")
-    if not keys:
-        no_data(axes[0], "the trial has no run with a measured target point", "3-D error per method")
     return figure_html(
         fig,
         "error-histogram-per-method",
@@ -121,11 +122,12 @@ def method_histograms_figure(result: TrialResult, keys: Sequence[str]) -> str:
     )
 
 
-def point_error_figure(result: TrialResult, keys: Sequence[str]) -> str:
-    """Error x, y, z and 3-D of every target point in visiting order, one line per method."""
-    fig, axes = new_figure(9.0, 8.6, 4, 1)
-    labelled = False
-    for ax, (name, col) in zip(axes, (("x", 0), ("y", 1), ("z", 2), ("3-D", None)), strict=True):
+def point_error_figures(result: TrialResult, keys: Sequence[str]) -> str:
+    """Error x, y, z and 3-D of every target point in visiting order, one line per method: four
+    figures (``point-errors-x``, ``-y``, ``-z``, ``-3d``)."""
+    out = []
+    for name, col in (("x", 0), ("y", 1), ("z", 2), ("3-D", None)):
+        fig, (ax,) = new_figure(9.0, 2.6)
         title = f"error {name} per target point" + (" (eq. 27)" if col is None else "")
         drawn = False
         for k in keys:
@@ -139,21 +141,22 @@ def point_error_figure(result: TrialResult, keys: Sequence[str]) -> str:
                 drawn = True
         if not drawn:
             no_data(ax, "no target point was measured", title)
-            continue
-        ax.set_title(title)
-        ax.set_xlabel("target point (visiting order)")
-        ax.set_ylabel("mm")
-        if col is not None:
-            ax.axhline(0.0, color="#bbbbbb", lw=0.8)
-        if not labelled:
-            fig.legend(*ax.get_legend_handles_labels(), loc="outside upper center", ncols=len(keys))
-            labelled = True
-    return figure_html(
-        fig,
-        "point-errors",
-        "Error (tracker − wanted TCP, robot base frame) of every target point in visiting order, per "
-        "axis and in 3-D (seed 000 Figs 7–10); a gap is a target that did not finish.",
-    )
+        else:
+            ax.set_title(title)
+            ax.set_xlabel("target point (visiting order)")
+            ax.set_ylabel("mm")
+            if col is not None:
+                ax.axhline(0.0, color="#bbbbbb", lw=0.8)
+            fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")
+        out.append(
+            figure_html(
+                fig,
+                "point-errors-" + ("3d" if col is None else name),
+                f"Error {name} (tracker − wanted TCP, robot base frame) of every target point in visiting "
+                "order (seed 000 Figs 7–10); a gap is a target that did not finish.",
+            )
+        )
+    return "".join(out)
 
 
 def iso_figure(result: TrialResult) -> str:

@@ -16,7 +16,7 @@ from comp_daemon.trial.plots import (
     error_histogram_figure,
     iso_figure,
     method_histograms_figure,
-    point_error_figure,
+    point_error_figures,
 )
 from comp_daemon.trial.report_data import (
     COMPARISONS,
@@ -239,7 +239,7 @@ Seed 000 gives only the 3-D figures quoted in its text.</p>
 {_html_table2(result)}
 <div class=fig>{hist}</div>
 <h2>Per target point (seed 000 Figs 7–10)</h2>
-<div class=fig>{point_error_figure(result, figure_rows(result))}</div>
+<div class=fig>{point_error_figures(result, figure_rows(result))}</div>
 <h2>ISO 9283 multi-directional pose accuracy (seed 000 Figs 5–6)</h2>
 <p>Each test point approached from +x, +y and +z ({_e(result.iso.get("approach_mm"))} mm moves),
 {_e(result.iso.get("cycles"))} cycles after {_e(result.iso.get("warmup_cycles"))} warm-up cycle(s);
