@@ -292,7 +292,8 @@ def residual_joint_figure(a_deg: FloatArray, resid: FloatArray, after: str) -> s
         if lim is not None:
             pad = 0.05 * (lim[1] - lim[0] or 1.0)
             ax.set_ylim(lim[0] - pad, lim[1] + pad)
-        legend_if_labelled(ax, loc="upper right", ncols=3)
+        if j == 1:
+            legend_if_labelled(ax, loc="upper right", ncols=3)
     return figure_html(
         fig,
         "residual-joint",

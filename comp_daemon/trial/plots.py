@@ -147,7 +147,8 @@ def point_error_figures(result: TrialResult, keys: Sequence[str]) -> str:
             ax.set_ylabel("mm")
             if col is not None:
                 ax.axhline(0.0, color="#bbbbbb", lw=0.8)
-            fig.legend(*ax.get_legend_handles_labels(), loc="outside right upper")
+            handles, labels = ax.get_legend_handles_labels()
+            fig.legend(handles, labels, loc="outside lower center", ncols=len(labels))
         out.append(
             figure_html(
                 fig,
@@ -165,7 +166,7 @@ def iso_figure(result: TrialResult) -> str:
     without = runs.get("without", {}).get("stats")
     with_ = runs.get("with", {}).get("stats")
     fig, (ax,) = new_figure(7.9, 3.0)
-    title = "ISO 9283 multi-directional pose accuracy variation vAP and repeatability RP"
+    title = "ISO 9283: vAP and RP per test point"
     series: list[tuple[str, list[float], str]] = []
     if without is not None:
         series.append(("vAP, robot alone", without["vap_mm"], "#c0392b"))
