@@ -1,8 +1,9 @@
 """Figures for the HTML reports, drawn by matplotlib and embedded as inline SVG.
 
 Every report figure is a :class:`matplotlib.figure.Figure` made by :func:`new_figure` (an Agg
-canvas, never pyplot, so no GUI backend is loaded and figures can be drawn from any thread) and
-turned into one ``<figure>`` element by :func:`figure_html`: the SVG inline, text kept as text,
+canvas, never pyplot, so no GUI backend is loaded), drawn by a function wrapped in
+:func:`styled` (the report style; one figure at a time, from any thread) and turned into one
+``<figure>`` element by :func:`figure_html`: the SVG inline, text kept as text,
 no external resource, no script. Element ids inside each SVG are prefixed with the plot's id
 and matplotlib's hashed ids are salted with it, so several figures share one page without id
 clashes and the same data gives the same bytes (tests compare structure, not pixels).
@@ -12,12 +13,14 @@ A panel that has nothing finite to draw says so (:func:`no_data`) instead of fai
 
 from __future__ import annotations
 
+import functools
 import html
 import io
 import re
-from collections.abc import Iterator, Sequence
+import threading
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
-from typing import Any
+from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
 from matplotlib import rc_context
@@ -37,6 +40,7 @@ __all__ = [
     "no_data",
     "plot_style",
     "shared_limits",
+    "styled",
 ]
 
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#17becf", "#7f7f7f")
@@ -67,20 +71,36 @@ RASTER_ABOVE = 400
 RASTER_DPI = 150
 
 _ID = re.compile(r"[^A-Za-z0-9_-]")
+# matplotlib's rcParams are global: figures are drawn one at a time, whichever thread asks
+_LOCK = threading.RLock()
+P = ParamSpec("P")
+R = TypeVar("R")
 
 
 @contextmanager
-def plot_style(plot_id: str) -> Iterator[None]:
-    """The report style, with SVG ids salted by ``plot_id`` (repeatable output)."""
-    with rc_context({**STYLE, "svg.hashsalt": plot_id}):
+def plot_style(plot_id: str | None = None) -> Iterator[None]:
+    """The report style (SVG ids salted by ``plot_id`` for repeatable output), held by one thread."""
+    extra: dict[Any, Any] = {} if plot_id is None else {"svg.hashsalt": plot_id}
+    with _LOCK, rc_context({**STYLE, **extra}):
         yield
+
+
+def styled(draw: Callable[P, R]) -> Callable[P, R]:
+    """Run a figure-drawing function in the report style (rcParams are read as artists are made)."""
+
+    @functools.wraps(draw)
+    def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
+        with plot_style():
+            return draw(*args, **kwargs)
+
+    return wrapper
 
 
 def new_figure(
     width_in: float, height_in: float, nrows: int = 1, ncols: int = 1
 ) -> tuple[Figure, list[Axes]]:
     """A figure on an Agg canvas with ``nrows × ncols`` axes (returned flat, row by row)."""
-    with rc_context(STYLE):
+    with plot_style():
         fig = Figure(figsize=(width_in, height_in), layout="constrained")
         FigureCanvasAgg(fig)
         axes = fig.subplots(nrows, ncols, squeeze=False)

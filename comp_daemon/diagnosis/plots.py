@@ -46,6 +46,7 @@ from comp_daemon.common.plots import (
     new_figure,
     no_data,
     shared_limits,
+    styled,
 )
 from comp_daemon.diagnosis.fitting import linearize, predict_mm
 from comp_daemon.diagnosis.result import Diagnosis, Step
@@ -81,6 +82,7 @@ def _scatter(ax: Axes, x: FloatArray, y: FloatArray, **kwargs: object) -> bool:
     return True
 
 
+@styled
 def ladder_figure(
     labels: Sequence[str],
     values: Sequence[float],
@@ -127,6 +129,7 @@ def ladder_figure(
     )
 
 
+@styled
 def effect_figure(
     k: int,
     heading: str,
@@ -164,6 +167,7 @@ def effect_figure(
     )
 
 
+@styled
 def geometric_order_figure(resid: FloatArray) -> str:
     """The residual after the geometric step per axis, in campaign (row) order."""
     fig, axes = new_figure(10.5, 2.7, 1, 3)
@@ -181,6 +185,7 @@ def geometric_order_figure(resid: FloatArray) -> str:
     )
 
 
+@styled
 def joint_error_figure(
     a_deg: FloatArray,
     e_resid: FloatArray,
@@ -217,6 +222,7 @@ def joint_error_figure(
     )
 
 
+@styled
 def check_histogram_figure(panels: Sequence[tuple[str, Sequence[tuple[str, FloatArray, str]]]]) -> str:
     """Overlaid histograms of the 3-D check error, one panel per (title, [(label, errors, colour)])."""
     fig, axes = new_figure(5.2 * len(panels), 2.9, 1, len(panels))
@@ -248,6 +254,7 @@ def check_histogram_figure(panels: Sequence[tuple[str, Sequence[tuple[str, Float
     )
 
 
+@styled
 def residual_pose_figure(resid: FloatArray, check: NDArray[np.bool_], after: str) -> str:
     """The remaining 3-D error per pose in row order, fit rows and check rows apart."""
     fig, (ax,) = new_figure(10.5, 2.8)
@@ -272,6 +279,7 @@ def residual_pose_figure(resid: FloatArray, check: NDArray[np.bool_], after: str
     return figure_html(fig, "residual-pose", f"Remaining 3-D error of every pose after {after} (mm).")
 
 
+@styled
 def residual_joint_figure(a_deg: FloatArray, resid: FloatArray, after: str) -> str:
     """The remaining error per axis (x, y, z) against each joint's angle, one panel per joint."""
     fig, axes = new_figure(10.5, 5.6, 2, 3)
@@ -301,6 +309,7 @@ def residual_joint_figure(a_deg: FloatArray, resid: FloatArray, after: str) -> s
     )
 
 
+@styled
 def variogram_figure(a_deg: FloatArray, resid: FloatArray, after: str, *, n_bins: int = 12) -> str:
     """Matheron's semivariogram (seed 001 eq. 12) of the remaining error per axis vs joint distance."""
     fig, (ax,) = new_figure(6.4, 3.2)
@@ -341,6 +350,7 @@ def variogram_figure(a_deg: FloatArray, resid: FloatArray, after: str, *, n_bins
     )
 
 
+@styled
 def remainder_time_figure(clock: FloatArray | None, clock_name: str, resid: FloatArray, after: str) -> str:
     """The remaining error per axis and in 3-D against the campaign clock (hours of ``t_s``, or row)."""
     fig, (ax,) = new_figure(10.5, 2.9)
@@ -370,6 +380,7 @@ def remainder_time_figure(clock: FloatArray | None, clock_name: str, resid: Floa
     return figure_html(fig, "remainder-time", f"Remaining error after {after} against {xlabel} (mm).")
 
 
+@styled
 def predicted_measured_figure(
     predicted: FloatArray, measured: FloatArray, check: NDArray[np.bool_], after: str
 ) -> str:
@@ -444,6 +455,7 @@ def _effect_figures(diag: Diagnosis, preds: list[FloatArray]) -> list[str]:
     return out
 
 
+@styled
 def report_figures(diag: Diagnosis) -> dict[str, str]:
     """Every figure of the report as HTML, by section: ``ladder``, ``effects`` (one or more
     figures), ``joints``, ``histograms``, ``residuals`` (per pose, per joint angle, variogram,

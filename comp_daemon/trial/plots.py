@@ -21,7 +21,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from comp_daemon.common.plots import figure_html, finite_xy, legend_if_labelled, new_figure, no_data
+from comp_daemon.common.plots import figure_html, finite_xy, legend_if_labelled, new_figure, no_data, styled
 from comp_daemon.trial.result import TrialResult
 from comp_daemon.trial.stats import histogram
 
@@ -52,6 +52,7 @@ def _errors_3d(result: TrialResult, keys: Sequence[str]) -> dict[str, np.ndarray
     return out
 
 
+@styled
 def error_histogram_figure(result: TrialResult, keys: Sequence[str]) -> str:
     """Grouped bars per bin: share of the target points of each method (seed 000 Fig. 11)."""
     fig, (ax,) = new_figure(7.9, 3.1)
@@ -85,6 +86,7 @@ def error_histogram_figure(result: TrialResult, keys: Sequence[str]) -> str:
     )
 
 
+@styled
 def method_histograms_figure(result: TrialResult, keys: Sequence[str]) -> str:
     """One histogram panel per method (every row of Table 2) on shared bins and axes."""
     n = max(1, len(keys))
@@ -122,6 +124,7 @@ def method_histograms_figure(result: TrialResult, keys: Sequence[str]) -> str:
     )
 
 
+@styled
 def point_error_figures(result: TrialResult, keys: Sequence[str]) -> str:
     """Error x, y, z and 3-D of every target point in visiting order, one line per method: four
     figures (``point-errors-x``, ``-y``, ``-z``, ``-3d``)."""
@@ -160,6 +163,7 @@ def point_error_figures(result: TrialResult, keys: Sequence[str]) -> str:
     return "".join(out)
 
 
+@styled
 def iso_figure(result: TrialResult) -> str:
     """vAP per test point without and with joint feedback, and the largest RP (seed 000 Fig. 6)."""
     runs = result.iso.get("runs", {})
