@@ -66,9 +66,9 @@ STYLE: dict[Any, Any] = {  # rc keys (matplotlib types them as literals)
 }
 
 #: scatter layers with more points than this are embedded as pixels (PNG inside the SVG), so a
-#: report of thousands of poses stays a few hundred kB; axes and text stay vector
-RASTER_ABOVE = 400
-RASTER_DPI = 150
+#: report of thousands of poses stays small; axes, lines and text stay vector
+RASTER_ABOVE = 150
+RASTER_DPI = 120
 
 _ID = re.compile(r"[^A-Za-z0-9_-]")
 # matplotlib's rcParams are global: figures are drawn one at a time, whichever thread asks

@@ -155,7 +155,7 @@ def effect_figure(
         if as_line:
             ax.plot(xs, ys, color=RED, lw=1.6, label=f"{effect} contribution")
         else:
-            ax.scatter(xs, ys, s=5, color=RED, alpha=0.9, linewidths=0, label=f"{effect} contribution")
+            _scatter(ax, xs, ys, s=5, color=RED, alpha=0.9, label=f"{effect} contribution")
         ax.set_title(title)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(f"{name} (mm)")
@@ -265,8 +265,8 @@ def residual_pose_figure(resid: FloatArray, check: NDArray[np.bool_], after: str
     for sel, color, label in ((~check, BLUE, "fit rows"), (check, ORANGE, "check rows")):
         xs, ys = finite_xy(rows[sel], norm[sel])
         if xs.size:
-            ax.vlines(xs, 0.0, ys, color=color, lw=0.8, alpha=0.8)
-            ax.scatter(xs, ys, s=6, color=color, linewidths=0, label=label)
+            ax.vlines(xs, 0.0, ys, color=color, lw=0.8, alpha=0.8, rasterized=xs.size > RASTER_ABOVE)
+            _scatter(ax, xs, ys, s=6, color=color, label=label)
             drawn = True
     if not drawn:
         no_data(ax, "no finite residual", title)
