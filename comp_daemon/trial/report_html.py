@@ -31,6 +31,7 @@ from comp_daemon.trial.verdict import verdict
 
 __all__ = ["render_html"]
 
+
 def _e(text: object) -> str:
     return html.escape(str(text))
 
