@@ -157,3 +157,40 @@ def test_trial_plots_without_data_show_no_data() -> None:
     )
     assert "no data:" in _figure(method_histograms_figure(result, []), "error-histogram-per-method")
     assert "ISO 9283 test did not run" in _figure(iso_figure(result), "iso9283")
+
+
+def test_degenerate_inputs_draw_without_warnings() -> None:
+    # one pose, constant values, one empty group: drawn (pytest turns any warning into an error)
+    one3, one6 = np.array([[0.01, -0.02, 0.0]]), np.zeros((1, 6))
+    same3, same6 = np.full((5, 3), 0.01), np.zeros((5, 6))
+    pages = [
+        ladder_figure(["nominal"], [1.0], [], 1.0, "repeats"),
+        check_histogram_figure([("t", [("a", np.array([]), "#000"), ("b", np.array([0.1]), "#111")])]),
+        residual_pose_figure(one3, np.array([True]), "geometric"),
+        residual_joint_figure(one6, one3, "geometric"),
+        residual_joint_figure(same6, same3, "geometric"),
+        remainder_time_figure(np.zeros(5), "t_s", same3, "geometric"),
+        predicted_measured_figure(one3, one3, np.array([False]), "geometric"),
+        predicted_measured_figure(same3, same3, np.zeros(5, bool), "geometric"),
+        effect_figure(2, "thermal", np.full(5, 20.0), "temp_c (°C)", same3, same3, "thermal", as_line=True),
+    ]
+    for page in pages:
+        assert "<svg" in page and "no data" not in page
+    assert "no data:" in variogram_figure(same6, same3, "geometric")  # every pair at distance 0
+
+
+def test_trial_plots_of_one_point_and_half_an_iso_test() -> None:
+    result = _empty_result()
+    run = result.runs["kinematic"]
+    run.measured_mm[0] = [0.1, 0.0, 0.0]
+    run.state[0] = "done"
+    result.iso = {"runs": {"without": {"stats": {"vap_mm": [0.3], "rp_max_mm": [0.05]}}}}
+    pages = {
+        "error-histogram": error_histogram_figure(result, ["kinematic"]),
+        "error-histogram-per-method": method_histograms_figure(result, ["kinematic"]),
+        "point-errors-3d": point_error_figures(result, ["kinematic"]),
+        "iso9283": iso_figure(result),
+    }
+    for plot_id, page in pages.items():
+        assert "no data" not in _figure(page, plot_id), plot_id
+    assert ">vAP, robot alone<" in pages["iso9283"] and ">vAP, with joint feedback<" not in pages["iso9283"]
