@@ -17,7 +17,6 @@ import html
 import json
 from typing import Any
 
-from comp_daemon.diagnosis.plots import report_figures
 from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.diagnosis.structure import describe_structure
 
@@ -134,6 +133,9 @@ def _where_tables(where: dict[str, Any]) -> str:
 
 def render_report_html(diag: Diagnosis) -> str:
     """The HTML report of a diagnosis (a complete document, UTF-8 text)."""
+    # matplotlib is loaded when a report is drawn, not by every command and the daemon at start
+    from comp_daemon.diagnosis.plots import report_figures
+
     figures = report_figures(diag)
     doc = diag.to_json()
     skipped = (
