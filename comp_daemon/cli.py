@@ -25,7 +25,9 @@ COMMAND_MODULES: dict[str, str] = {
     "run": "comp_daemon.commands.run",
     "diagnose": "comp_daemon.commands.diagnose",
     "fit": "comp_daemon.commands.fit",
+    "plan": "comp_daemon.commands.plan",
     "trial": "comp_daemon.commands.trial",
+    "export": "comp_daemon.commands.export",
 }
 #: commands whose module is imported only to run them, with the help line of the command listing
 ON_DEMAND: dict[str, str] = {"sim": "the simulated drilling cell: measurement campaigns, figures"}

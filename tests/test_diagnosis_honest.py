@@ -31,14 +31,15 @@ TIME = ("t_s", "pose_order")
 
 
 def _scenario(name: str, effects: EffectParams, **noise: Any) -> Scenario:
-    """The scenario with ``effects``, a constant temperature and one payload.
+    """The scenario with ``effects``, a constant temperature, one payload and one target.
 
     One payload: the plant visits the poses in one block per payload, so a second payload would
-    change at one moment too and its gravity torques could stand in for a step.
+    change at one moment too and its gravity torques could stand in for a step. One target: the
+    noise floor's evidence here is repeats or nothing (not the distances of several reflectors).
     """
     sc = load_scenario(name)
     sc = dataclasses.replace(
-        sc, effects=effects, campaign=dataclasses.replace(sc.campaign, payload_kg=(0.0,))
+        sc, effects=effects, campaign=dataclasses.replace(sc.campaign, payload_kg=(0.0,), targets=1)
     )
     cell = dataclasses.replace(sc.cell, temp_drift_k_per_h=0.0, temp_amplitude_k=0.0)
     sc = dataclasses.replace(sc, cell=cell)

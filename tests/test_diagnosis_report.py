@@ -1,4 +1,4 @@
-"""The HTML report (self-contained, pictures) and ``comp-daemon diagnose`` end to end."""
+"""The HTML report (self-contained, matplotlib figures inline) and ``comp-daemon diagnose`` end to end."""
 
 from __future__ import annotations
 
@@ -15,6 +15,8 @@ from comp_daemon.data.dataset import write_dataset
 from comp_daemon.diagnosis import diagnose
 from comp_daemon.diagnosis.report import render_report_html
 
+VOID = ("meta", "br")
+
 
 class _Tags(HTMLParser):
     def __init__(self) -> None:
@@ -22,22 +24,29 @@ class _Tags(HTMLParser):
         self.stack: list[str] = []
         self.counts: dict[str, int] = {}
         self.urls: list[str] = []
+        self.ids: list[str] = []
 
     def handle_starttag(self, tag: str, attrs: list[tuple[str, str | None]]) -> None:
         self.counts[tag] = self.counts.get(tag, 0) + 1
         for name, value in attrs:
-            if name in ("src", "href") or (value and "url(" in value):
+            internal = value is not None and (value.startswith(("#", "url(#", "data:image/png;base64,")))
+            if (name in ("src", "href") or (value and "url(" in value)) and not internal:
                 self.urls.append(f"{name}={value}")
-        if tag not in ("meta", "rect", "circle", "line", "polyline", "br", "path"):
+            if name == "id":
+                self.ids.append(str(value))
+        if tag not in VOID:
             self.stack.append(tag)
 
     def handle_endtag(self, tag: str) -> None:
-        if tag in ("meta", "rect", "circle", "line", "polyline", "br", "path"):
+        if tag in VOID:
             return
         assert self.stack and self.stack[-1] == tag, (
             f"</{tag}> closes <{self.stack[-1] if self.stack else None}>"
         )
         self.stack.pop()
+
+
+RESIDUAL_PLOTS = ["residual-pose", "residual-joint", "variogram", "remainder-time", "predicted-measured"]
 
 
 @pytest.fixture(scope="module")
@@ -57,9 +66,21 @@ def test_report_is_self_contained_and_draws_every_section(campaign) -> None:
     assert tags.urls == []
     assert "<script" not in page and "@import" not in page
     assert re.findall(r"https?://[^\"' ]*", page) == ["http://www.w3.org/2000/svg"] * page.count("<svg")
-    # ladder bar chart + 3 axes per effect step + 6 joints + 2 histograms
-    n_effect_steps = len(diag.steps) - 1
-    assert page.count("<svg") == 1 + 3 * n_effect_steps + 6 + 2
+    assert len(tags.ids) == len(set(tags.ids)), "ids repeat across the figures"
+    # one figure per plot, each an inline SVG with a caption
+    effect_plots = [f"effect-step-{k}" for k in range(2, len(diag.steps) + 1)]
+    names = ["ladder", *effect_plots, "joint-error", "check-histogram", *RESIDUAL_PLOTS]
+    figures = re.findall(r'<figure class=plot id="plot-([^"]+)">(.*?)</figure>', page, re.S)
+    assert [n for n, _ in figures] == names
+    for name, body in figures:
+        assert body.count("<svg") == 1 and "<figcaption>" in body and "no data" not in body, name
+    by_name = dict(figures)
+    for j in range(1, 7):
+        assert f"residual vs A{j}" in by_name["residual-joint"]
+        assert f"Joint {j}: equivalent error vs A{j}" in by_name["joint-error"]
+    assert "joint-space distance (deg)" in by_name["variogram"]
+    assert "measured = predicted" in by_name["predicted-measured"]
+    assert render_report_html(diag) == page  # the same diagnosis gives the same bytes
     for step in diag.steps:
         assert f">{step.effect}<" in page
     assert "backlash contribution" in page and "thermal contribution" in page

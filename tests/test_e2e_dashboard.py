@@ -5,8 +5,8 @@ The page loads with a token from the link's fragment, goes live over server-sent
 loop's numbers changing without a reload (faster than its 5 s status poll could change them), the
 joints, the queue with each compensated target's model uncertainty (σ), the fitted model with
 Table 2, and logs no console error. A screenshot is saved
-in the test's folder, and also at ``$DASHBOARD_SCREENSHOT`` when set (the repository keeps one
-as ``docs/dashboard.png``).
+in the test's folder, and also at ``$DASHBOARD_SCREENSHOT`` when set (the repository's
+``docs/screenshots/dashboard.png`` is made by tests/test_screenshots.py).
 
 Without ``/usr/bin/chromium`` the test is skipped, except in CI (``CI=true``), where ``.ci/run``
 installs it and its absence is a failure. The browser is never downloaded.

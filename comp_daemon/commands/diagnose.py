@@ -4,7 +4,8 @@ Reads a measurement data set (CSV, or JSON records when the file name ends in ``
 diagnosis of ``shared/spec/diagnose.md`` against the robot's nominal twin, and writes the JSON
 document (to ``--json``, else to stdout) and, with ``--report``, the self-contained HTML report.
 Outputs are written only when the whole diagnosis succeeded, each through a temporary file that is
-renamed into place.
+renamed into place. On a terminal, stderr shows a spinner with the elapsed time while it runs
+(:mod:`comp_daemon.commands.progress`).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ import json
 import sys
 from pathlib import Path
 
+from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset, read_dataset_json
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
@@ -70,7 +72,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         metavar="S",
         help="the tracker's uncertainty (σ per axis, mm): the noise floor (√3·S, 3-D) when the data "
-        "have no repeated poses; without either, no noise floor is claimed",
+        "have no repeated poses and no second target on the flange; without any, no noise floor is claimed",
     )
     p.add_argument(
         "--effects",
@@ -98,9 +100,11 @@ def _run(args: argparse.Namespace) -> int:
     for target in (args.json_out, args.report):
         if target is not None and not target.expanduser().parent.is_dir():
             raise ValueError(f"cannot write {target}: no such directory")
-    diag = diagnose(dataset, robot, options)
-    doc = json.dumps(diag.to_json(), indent=2, ensure_ascii=False)
-    report = render_report_html(diag) if args.report is not None else None
+    with progress(f"diagnosing {len(dataset)} rows of {dataset.source}") as steps:
+        diag = diagnose(dataset, robot, options)
+        doc = json.dumps(diag.to_json(), indent=2, ensure_ascii=False)
+        steps.note("writing the report")
+        report = render_report_html(diag) if args.report is not None else None
     if args.json_out is None:
         print(doc)
     else:
@@ -123,7 +127,7 @@ def _run(args: argparse.Namespace) -> int:
                 file=out,
             )
         floor = (
-            "no noise floor (no repeats, no --tracker-sigma-mm): not compared with noise"
+            "no noise floor (no repeats, no second target, no --tracker-sigma-mm): not compared with noise"
             if diag.noise_floor_mm is None
             else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
         )
@@ -138,4 +142,6 @@ def _run(args: argparse.Namespace) -> int:
                 "remainder follows: " + ", ".join(f"{r.against} ({r.share_pct:.0f} %)" for r in found),
                 file=out,
             )
+        if diag.remainder_model is not None and diag.remainder_model.tried:
+            print(diag.remainder_model.describe(), file=out)
     return 0

@@ -6,7 +6,8 @@
   model on the fit rows and prints seed 000's Table 2 on the check rows (drawn reproducibly when
   the file has no ``split`` column), sorted by the check rows' 3-D RMS, with each model's fit and
   predict time; ``all`` is every kind and the seeds' stacks
-  (:data:`comp_daemon.models.registry.ALL_MODELS`). One progress line per model goes to stderr.
+  (:data:`comp_daemon.models.registry.ALL_MODELS`). On a terminal, stderr shows the progress
+  (:mod:`comp_daemon.commands.progress`) and a line per model fitted.
 
 On a data set without ``dir1..dir6`` columns, ``fit`` and ``evaluate`` of a model that needs the
 approach directions (backlash) derive them from the pose order
@@ -32,17 +33,21 @@ from typing import Any, Literal
 
 import numpy as np
 
+from comp_daemon.commands.campaigns import evaluate_calibrated, fit_campaign_file, is_campaign_file
 from comp_daemon.commands.errors import UserError
+from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import (
     DEFAULT_LIMITS,
     MAPPINGS,
     CompensationLimits,
     CompensationRefused,
+    CompensationResult,
     compensate,
     nominal_targets,
 )
@@ -87,7 +92,11 @@ def _order_arg(text: str) -> Order:
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     fit = subparsers.add_parser("fit", help="fit an error model on a measurement data set, write MODEL.json")
-    fit.add_argument("data", metavar="DATA", help="measurement data set (CSV, or .json records)")
+    fit.add_argument(
+        "data",
+        metavar="DATA",
+        help="measurement data set, or a ballbar / cross-bar campaign (CSV, or .json records)",
+    )
     fit.add_argument("--robot", required=True, help=ROBOT_HELP)
     fit.add_argument("--model", required=True, help=MODEL_HELP)
     fit.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
@@ -109,6 +118,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
     _common(ev)
     ev.add_argument("--json", default=None, metavar="OUT.json", help="write the statistics and fits as JSON")
+    ev.add_argument(
+        "--calibrated",
+        default=None,
+        metavar="MODEL.json,...",
+        help="also judge these artifacts (e.g. fitted from a ballbar or cross-bar campaign) on the check "
+        "rows; only their base frame is fitted, on the fit rows",
+    )
     ev.set_defaults(func=_evaluate)
 
     comp = subparsers.add_parser("compensate", help="compensated axis values for targets, by a model")
@@ -120,38 +136,43 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     comp.add_argument("--out", required=True, metavar="CORRECTED.csv", help="data set of compensated targets")
     comp.add_argument("--robot", default=None, help="refuse the model unless it belongs to this robot")
-    comp.add_argument(
+    compensation_options(comp)
+    comp.set_defaults(func=_compensate)
+
+
+def compensation_options(parser: argparse.ArgumentParser) -> None:
+    """The options of ``compensate`` (tolerance, limits, joint mapping), also taken by ``export targets``."""
+    parser.add_argument(
         "--tol-mm", type=float, default=1e-6, help="predicted-position tolerance (default 1e-6 mm)"
     )
-    comp.add_argument(
+    parser.add_argument(
         "--max-axis-change-deg",
         type=float,
         default=DEFAULT_LIMITS.max_axis_change_deg,
         help="refuse a target whose compensation changes an axis by more than this from the nominal "
         f"solution (default {DEFAULT_LIMITS.max_axis_change_deg:g})",
     )
-    comp.add_argument(
+    parser.add_argument(
         "--wrist-singularity-deg",
         type=float,
         default=DEFAULT_LIMITS.wrist_singularity_deg,
         help="refuse a target whose axes 4 and 6 are nearer than this to in line, |A5| on a KUKA wrist "
         f"(default {DEFAULT_LIMITS.wrist_singularity_deg:g})",
     )
-    comp.add_argument(
+    parser.add_argument(
         "--hull-margin-deg",
         type=float,
         default=DEFAULT_LIMITS.hull_margin_deg,
         help="refuse a target this far beyond the model's sampled axis ranges "
         f"(default {DEFAULT_LIMITS.hull_margin_deg:g})",
     )
-    comp.add_argument(
+    parser.add_argument(
         "--mapping",
         choices=MAPPINGS,
         default="six-axis",
         help="six-axis: inverse kinematics of every axis (default); seed000: seed 000's mapping of the "
         "predicted error onto joints 1-3, the wrist from the nominal solution",
     )
-    comp.set_defaults(func=_compensate)
 
 
 def _common(parser: argparse.ArgumentParser) -> None:
@@ -223,6 +244,8 @@ def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
 
 
 def _fit(args: argparse.Namespace) -> int:
+    if is_campaign_file(args.data):  # ballbar or cross-bar: the campaign's own calibration
+        return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
     dataset = _read(args.data, robot, max_parameters(spec), "measurement")
@@ -233,7 +256,8 @@ def _fit(args: argparse.Namespace) -> int:
     rows = dataset.fit_rows()
     if len(rows) < 3:
         raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
-    fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
+    with progress(f"fitting {spec.name} on {len(rows)} rows"):
+        fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
     fit_info = dict(fitted.info)
     fit_info["model"] = spec.name
     fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
@@ -251,6 +275,8 @@ def _fit(args: argparse.Namespace) -> int:
     if "identifiability" in fitted.info:
         ident = fitted.info["identifiability"]
         extra = f", {ident['identifiable']} of {ident['candidates']} parameters identifiable"
+    if "targets" in fitted.info:
+        extra += f", {fitted.info['targets']} targets per pose ({fitted.info['identification']})"
     print(
         f"{args.model}{order}: {len(rows)} rows ({fitted.frame} frame), "
         f"fit RMS {fitted.info['rms_mm']:.4f} mm{extra} -> {args.out}"
@@ -303,7 +329,8 @@ def _evaluate(args: argparse.Namespace) -> int:
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
-    for i, (token, spec) in enumerate(parsed, 1):
+    for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
+        steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
         t0 = time.perf_counter()
         fitted = _fit_rows(dataset, spec, args, split.fit_rows, unknown_dir)
         t1 = time.perf_counter()
@@ -318,13 +345,19 @@ def _evaluate(args: argparse.Namespace) -> int:
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()
             )
-        if len(parsed) > 1:
-            print(
-                f"[{i}/{len(parsed)}] {token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
-                f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms",
-                file=sys.stderr,
-                flush=True,
-            )
+        steps.log(
+            f"{token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
+            f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms"
+        )
+    if args.calibrated:
+        t0 = time.perf_counter()
+        calibrated, calibrated_fits = evaluate_calibrated(
+            args.calibrated, robot, dataset, split.fit_rows, check
+        )
+        for name in calibrated:
+            table[name] = calibrated[name]
+            fits[name] = calibrated_fits[name]
+            timing[name] = {"fit_s": 0.0, "predict_s": time.perf_counter() - t0, "predict_rows": len(check)}
     ranking = sorted(table, key=lambda name: table[name]["3d"]["rms"])
     table = {name: table[name] for name in ranking}
     print(
@@ -397,6 +430,58 @@ def _compensate(args: argparse.Namespace) -> int:
     model = loaded.model
     targets = _read(args.targets, model.robot, 0, "targets")
     n = len(targets)
+    wanted, result, limits = compensate_targets(model, targets, args)
+    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    extra = dict(targets.extra)
+    for k in range(6):
+        extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
+    extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
+    sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
+    if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
+        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
+    extra["model_kind"] = (model.kind,) * n
+    out = Dataset(
+        a_deg=result.a_deg,
+        dir=targets.dir,
+        payload_kg=targets.payload_kg,
+        temp_c=targets.temp_c,
+        pose_id=targets.pose_id,
+        target_xyz_mm=wanted,
+        target_abc_deg=targets.target_abc_deg,
+        extra=extra,
+        source=args.out,
+    )
+    write_dataset(out, args.out)
+    outside = ""
+    if isinstance(model, ChebyshevModel) and model.order > 0:
+        n_out = int(model.outside_range(result.a_deg).sum())
+        if n_out:
+            outside = f"; {n_out} outside the fitted joint ranges (error held at the range edge)"
+    da = np.abs(result.da_deg)
+    worst_axis = int(np.argmax(da.max(axis=0)))
+    region = (
+        f"within {limits.hull_margin_deg:g} deg of the model's sampled axis ranges"
+        if result.region_deg is not None
+        else f"the {model.kind} model has no sampled region to keep to"
+    )
+    print(
+        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
+        f"in {result.iterations} iterations "
+        f"(max predicted error {result.residual_mm.max():.2e} mm, "
+        f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
+        f"{outside} -> {args.out}"
+    )
+    return 0
+
+
+def compensate_targets(
+    model: ErrorModel, targets: Dataset, args: argparse.Namespace
+) -> tuple[np.ndarray, CompensationResult, CompensationLimits]:
+    """The wanted TCPs (robot base frame), the compensation and its limits of a target file's rows
+    (``a1..a6`` nominal program, or ``tx, ty, tz[, ta, tb, tc]``) by :func:`compensate`, with the
+    options of :func:`compensation_options`; refusals, unreachable and unconverged targets as
+    :class:`UserError` naming the rows."""
+    n = len(targets)
     if n == 0:
         raise UserError(f"{targets.source}: no targets")
     if targets.target_xyz_mm is not None:
@@ -443,43 +528,4 @@ def _compensate(args: argparse.Namespace) -> int:
             f"{targets.source}: compensation did not converge (row {int(targets.row_numbers[worst])}: "
             f"{result.residual_mm[worst]:.3g} mm left after {result.iterations} iterations)"
         )
-    extra = dict(targets.extra)
-    for k in range(6):
-        extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
-    extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
-    sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
-    if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
-        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
-    extra["model_kind"] = (model.kind,) * n
-    out = Dataset(
-        a_deg=result.a_deg,
-        dir=targets.dir,
-        payload_kg=targets.payload_kg,
-        temp_c=targets.temp_c,
-        pose_id=targets.pose_id,
-        target_xyz_mm=wanted,
-        target_abc_deg=targets.target_abc_deg,
-        extra=extra,
-        source=args.out,
-    )
-    write_dataset(out, args.out)
-    outside = ""
-    if isinstance(model, ChebyshevModel) and model.order > 0:
-        n_out = int(model.outside_range(result.a_deg).sum())
-        if n_out:
-            outside = f"; {n_out} outside the fitted joint ranges (error held at the range edge)"
-    da = np.abs(result.da_deg)
-    worst_axis = int(np.argmax(da.max(axis=0)))
-    region = (
-        f"within {limits.hull_margin_deg:g} deg of the model's sampled axis ranges"
-        if result.region_deg is not None
-        else f"the {model.kind} model has no sampled region to keep to"
-    )
-    print(
-        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
-        f"in {result.iterations} iterations "
-        f"(max predicted error {result.residual_mm.max():.2e} mm, "
-        f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
-        f"{outside} -> {args.out}"
-    )
-    return 0
+    return wanted, result, limits

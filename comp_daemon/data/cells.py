@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Literal
 
@@ -27,6 +27,8 @@ from comp_daemon.data.columns import (
     TARGET_XYZ_COLUMNS,
     XYZ_COLUMNS,
     DatasetError,
+    reflector_columns,
+    reflector_index,
 )
 from comp_daemon.data.table import SPLIT_VALUES, Dataset, FloatArray, IntArray
 
@@ -170,8 +172,9 @@ def _check_header(table: CellTable, kind: DatasetKind) -> None:
         if name in seen:
             raise refuse(f"duplicate column name (columns {seen[name]} and {k})", name)
         seen[name] = k
-        if name not in known and name.lower() in known:
-            raise refuse(f"column names are lower case: did you mean '{name.lower()}'?", name)
+        lower = name.lower()
+        if name not in known and name != lower and (lower in known or reflector_index(lower) is not None):
+            raise refuse(f"column names are lower case: did you mean '{lower}'?", name)
 
     present = set(header)
 
@@ -191,6 +194,7 @@ def _check_header(table: CellTable, kind: DatasetKind) -> None:
 
     has_axes = group(AXIS_COLUMNS, "a1..a6")
     has_xyz = group(XYZ_COLUMNS, "x, y, z")
+    _check_reflectors(header, has_xyz, group, refuse)
     group(DIR_COLUMNS, "dir1..dir6")
     has_targets = group(TARGET_XYZ_COLUMNS, "tx, ty, tz")
     has_abc = group(TARGET_ABC_COLUMNS, "ta, tb, tc")
@@ -210,6 +214,34 @@ def _check_header(table: CellTable, kind: DatasetKind) -> None:
             + hint("a1"),
             "a1",
         )
+
+
+def reflector_count(header: Sequence[str]) -> int:
+    """K, the number of targets per row that ``header`` names (1 + the highest ``xk``; 1 without any)."""
+    return max((k for k in map(reflector_index, header) if k is not None), default=1)
+
+
+def _check_reflectors(
+    header: Sequence[str],
+    has_xyz: bool,
+    group: Callable[[Sequence[str], str], bool],
+    refuse: Callable[[str, str | None], DatasetError],
+) -> None:
+    """Further targets come as whole triplets ``xk, yk, zk``, numbered 2..K without a gap, after x, y, z."""
+    count = reflector_count(header)
+    if count == 1:
+        return
+    for k in range(2, count + 1):
+        names = reflector_columns(k)
+        if not any(c in header for c in names):
+            raise refuse(
+                f"column missing (targets are numbered without gaps: target {count} is given, "
+                f"target {k} is not)",
+                names[0],
+            )
+        group(names, f"the columns of target {k}")
+    if not has_xyz:
+        raise refuse("column missing (further targets x2, y2, z2 … need the first target's x, y, z)", "x")
 
 
 def build_dataset(
@@ -259,6 +291,7 @@ def build_dataset(
             raise ValueError(f"limits_deg must have shape (6, 2), got {limits.shape}")
     a_deg = block(AXIS_COLUMNS, limits)
     xyz_mm = block(XYZ_COLUMNS)
+    more = [block(reflector_columns(k)) for k in range(2, reflector_count(table.header) + 1)]
     target_xyz_mm = block(TARGET_XYZ_COLUMNS)
     target_abc_deg = block(TARGET_ABC_COLUMNS)
 
@@ -308,7 +341,12 @@ def build_dataset(
         pose_id=tuple(table.columns["pose_id"]) if "pose_id" in present else None,
         target_xyz_mm=target_xyz_mm,
         target_abc_deg=target_abc_deg,
-        extra={name: tuple(table.columns[name]) for name in table.header if name not in KNOWN_COLUMNS},
+        more_xyz_mm=np.stack([m for m in more if m is not None], axis=1) if more else None,
+        extra={
+            name: tuple(table.columns[name])
+            for name in table.header
+            if name not in KNOWN_COLUMNS and reflector_index(name) is None
+        },
         source=table.source,
         row_numbers=np.asarray(table.row_numbers, dtype=np.int64),
         row_label=table.row_label,

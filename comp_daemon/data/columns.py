@@ -1,13 +1,15 @@
 """Column names of the measurement data set (``shared/spec/dataset.md``) and the error a reader raises.
 
 Column names are case-sensitive and lower case, exactly as the spec writes them; surrounding
-whitespace in a header cell is ignored. A header cell that differs from a known column only in
-case (``A1``, ``X``) is refused with a hint rather than kept as an unknown column, so that a
-file written for another tool cannot silently lose its axis values.
+whitespace in a header cell is ignored. Further targets (reflectors) on the flange have the
+numbered columns ``x2, y2, z2`` … ``xK, yK, zK`` (:func:`reflector_columns`). A header cell
+that differs from a known column only in case (``A1``, ``X``) is refused with a hint rather than
+kept as an unknown column, so that a file written for another tool cannot silently lose its axis values.
 """
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 __all__ = [
@@ -20,6 +22,9 @@ __all__ = [
     "TARGET_XYZ_COLUMNS",
     "XYZ_COLUMNS",
     "DatasetError",
+    "is_reflector_column",
+    "reflector_columns",
+    "reflector_index",
 ]
 
 AXIS_COLUMNS: tuple[str, ...] = ("a1", "a2", "a3", "a4", "a5", "a6")
@@ -42,6 +47,30 @@ KNOWN_COLUMNS: tuple[str, ...] = (
     *TARGET_XYZ_COLUMNS,
     *TARGET_ABC_COLUMNS,
 )
+
+
+_REFLECTOR = re.compile(r"([xyz])([1-9][0-9]*)")
+
+
+def reflector_columns(k: int) -> tuple[str, ...]:
+    """The columns of target (reflector) ``k`` >= 1: ``x, y, z`` for the first, ``xk, yk, zk`` after."""
+    if k < 1:
+        raise ValueError(f"targets are numbered from 1, got {k}")
+    return XYZ_COLUMNS if k == 1 else (f"x{k}", f"y{k}", f"z{k}")
+
+
+def reflector_index(name: str) -> int | None:
+    """``k`` of a further target's column ``xk``/``yk``/``zk`` (k >= 2), else None."""
+    found = _REFLECTOR.fullmatch(name)
+    if found is None:
+        return None
+    k = int(found.group(2))
+    return k if k >= 2 else None
+
+
+def is_reflector_column(name: str) -> bool:
+    """Whether ``name`` is a further target's column (``x2`` … ``zK``)."""
+    return reflector_index(name) is not None
 
 
 class DatasetError(ValueError):

@@ -17,6 +17,8 @@ Conventions of this implementation, where the spec leaves room:
   ``fit`` or ``check``; ``repeat`` an integer >= 0; ``payload_kg`` >= 0.
 - Column groups come whole or not at all: a1..a6, x/y/z, dir1..dir6, tx/ty/tz, ta/tb/tc
   (ta/tb/tc need tx/ty/tz). Any subset of g1..g6 is allowed.
+- Further targets on the flange: ``x2, y2, z2`` … ``xK, yK, zK``, each triplet whole, numbered
+  without a gap, only beside ``x, y, z``; their cells follow the number rules of ``x, y, z``.
 - Measurement data (``kind="measurement"``) needs a1..a6 and x, y, z. Target files
   (``kind="targets"``, or ``"any"``) need a1..a6 or tx, ty, tz.
 - A UTF-8 byte order mark is accepted. Blank lines are accepted only at the end of the file.
@@ -51,6 +53,7 @@ from comp_daemon.data.columns import (
     TARGET_XYZ_COLUMNS,
     XYZ_COLUMNS,
     DatasetError,
+    is_reflector_column,
 )
 from comp_daemon.data.jsontext import JsonRecords, load_json_records, record_path
 from comp_daemon.data.table import Dataset
@@ -265,7 +268,7 @@ def _json_number_text(value: Any) -> str | None:
 
 def _json_cell(column: str, value: Any) -> tuple[str, str | None]:
     """(cell text, type problem or None) for one JSON value."""
-    if column in _NUMERIC_COLUMNS:
+    if column in _NUMERIC_COLUMNS or is_reflector_column(column):
         if value is None:
             return "", None
         text = _json_number_text(value)

@@ -2,7 +2,8 @@
 
 Units are those of the spec and are carried in the field names: axis values ``a_deg`` (controller
 convention, KUKA A1..A6, degrees), measured TCP ``xyz_mm`` (mm), grating readings ``g_deg`` (deg),
-``payload_kg``, ``temp_c``, ``t_s``, target pose ``target_xyz_mm`` (mm) and ``target_abc_deg``
+``payload_kg``, ``temp_c``, ``t_s``, further targets (reflectors) on the flange ``more_xyz_mm`` (mm),
+target pose ``target_xyz_mm`` (mm) and ``target_abc_deg``
 (KUKA A, B, C in deg: rotations about z, y, x). Rows are indexed 0..n-1 in arrays;
 ``row_numbers`` maps them back to the 1-based row of the file they came from (header = row 1),
 or to the 1-based record number for JSON records (``row_label == "record"``).
@@ -41,6 +42,8 @@ from comp_daemon.data.columns import (
     TARGET_ABC_COLUMNS,
     TARGET_XYZ_COLUMNS,
     XYZ_COLUMNS,
+    is_reflector_column,
+    reflector_columns,
 )
 
 __all__ = [
@@ -90,6 +93,10 @@ class Dataset:
     instead of axis values. ``g_present`` (6,) says which grating columns the file had; absent
     columns hold NaN in ``g_deg`` (``g_deg`` is ``None`` when none is present). ``payload_kg``
     defaults to zeros. ``extra`` holds unknown columns, verbatim, in file order.
+
+    ``more_xyz_mm`` (n, K − 1, 3) holds the further targets (reflectors) fixed to the same flange,
+    columns ``x2, y2, z2`` … ``xK, yK, zK``, in the frame of ``xyz_mm`` (target 1);
+    :attr:`reflectors_mm` stacks all K as (n, K, 3).
     """
 
     a_deg: FloatArray | None
@@ -105,6 +112,7 @@ class Dataset:
     pose_id: tuple[str, ...] | None = None
     target_xyz_mm: FloatArray | None = None
     target_abc_deg: FloatArray | None = None
+    more_xyz_mm: FloatArray | None = None
     extra: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     source: str = "<memory>"
     row_numbers: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -136,6 +144,7 @@ class Dataset:
             value = getattr(self, name)
             if value is not None:
                 _require_finite(value, name)
+        self._init_reflectors(n)
         if self.target_abc_deg is not None and self.target_xyz_mm is None:
             raise ValueError("Dataset.target_abc_deg: needs target_xyz_mm")
         if (payload < 0).any():
@@ -170,7 +179,7 @@ class Dataset:
         extra: dict[str, tuple[str, ...]] = {}
         known = set(KNOWN_COLUMNS)
         for key, values in self.extra.items():
-            if not key or key != key.strip() or key.lower() in known:
+            if not key or key != key.strip() or key.lower() in known or is_reflector_column(key.lower()):
                 raise ValueError(f"Dataset.extra: {key!r} cannot be the name of an extra column")
             column = tuple(str(v) for v in values)
             if len(column) != n:
@@ -183,6 +192,39 @@ class Dataset:
         put(self, "row_numbers", _frozen(rows, np.int64, (n,), "row_numbers"))
         if self.row_label not in ("row", "record"):
             raise ValueError("Dataset.row_label: 'row' or 'record'")
+
+    def _init_reflectors(self, n: int) -> None:
+        if self.more_xyz_mm is None:
+            return
+        more = np.array(self.more_xyz_mm, dtype=np.float64, copy=True)
+        if more.ndim != 3 or more.shape[0] != n or more.shape[2] != 3:
+            raise ValueError(
+                f"Dataset.more_xyz_mm: expected shape (n, K - 1, 3) with n = {n}, got {more.shape}"
+            )
+        if more.shape[1] == 0:
+            object.__setattr__(self, "more_xyz_mm", None)
+            return
+        if self.xyz_mm is None:
+            raise ValueError("Dataset.more_xyz_mm: further targets need the first one (xyz_mm)")
+        _require_finite(more, "more_xyz_mm")
+        more.flags.writeable = False
+        object.__setattr__(self, "more_xyz_mm", more)
+
+    @property
+    def n_reflectors(self) -> int:
+        """How many targets (reflectors) each row measures: 0 without x, y, z, else 1 + the further ones."""
+        if self.xyz_mm is None:
+            return 0
+        return 1 + (0 if self.more_xyz_mm is None else int(self.more_xyz_mm.shape[1]))
+
+    @property
+    def reflectors_mm(self) -> FloatArray | None:
+        """(n, K, 3) every target's measured position (target 1 = ``xyz_mm``); None without x, y, z."""
+        if self.xyz_mm is None:
+            return None
+        if self.more_xyz_mm is None:
+            return self.xyz_mm[:, None, :]
+        return np.concatenate([self.xyz_mm[:, None, :], self.more_xyz_mm], axis=1)
 
     def _init_gratings(self, n: int) -> None:
         put = object.__setattr__
@@ -251,6 +293,9 @@ class Dataset:
 
         numbers(AXIS_COLUMNS, self.a_deg)
         numbers(XYZ_COLUMNS, self.xyz_mm)
+        if self.more_xyz_mm is not None:
+            for k in range(self.more_xyz_mm.shape[1]):
+                numbers(reflector_columns(k + 2), self.more_xyz_mm[:, k, :])
         if self.dir is not None:
             for k, name in enumerate(DIR_COLUMNS):
                 out.append((name, [str(int(v)) for v in self.dir[:, k]]))
@@ -315,6 +360,7 @@ class Dataset:
             pose_id=None if self.pose_id is None else take_text(self.pose_id),
             target_xyz_mm=take(self.target_xyz_mm),
             target_abc_deg=take(self.target_abc_deg),
+            more_xyz_mm=take(self.more_xyz_mm),
             extra={k: take_text(v) for k, v in self.extra.items()},
             source=self.source,
             row_numbers=self.row_numbers[index],
@@ -388,6 +434,7 @@ class Dataset:
             "extra_columns": list(self.extra),
             "axes": self.a_deg is not None,
             "measured_xyz": self.xyz_mm is not None,
+            "reflectors": self.n_reflectors,
             "pose_targets": self.target_xyz_mm is not None,
             "split": split,
             "payloads_kg": sorted({float(p) for p in self.payload_kg}),

@@ -2,7 +2,7 @@
 
 Modules, lowest first: ``fitting`` and ``stats`` (the numerics), ``result`` (options, steps and the
 document), ``candidates`` (the effect catalogue as selection candidates), ``selection``, ``where``,
-``ladder`` (:func:`diagnose`), ``svg`` and ``report`` (the HTML page).
+``ladder`` (:func:`diagnose`), ``plots`` and ``report`` (the HTML page).
 """
 
 from comp_daemon.diagnosis.ladder import DiagnoseOptions, Diagnosis, Step, diagnose

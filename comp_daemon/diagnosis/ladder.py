@@ -44,8 +44,11 @@ Method (all choices on fit rows; check rows only report):
    effect (on all its selected joints) to everything before it, refitted on the fit rows; each step
    reports its check error. The best rejected candidate is appended as a step with
    ``significant: false``, so the report shows what the next effect would have bought.
-5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else a
-   declared tracker uncertainty, else none (``None``). Never the fit residual.
+5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else the
+   spread of the mutual distances of several targets on the flange, else a declared tracker
+   uncertainty, else none (``None``). Never the fit residual. With three or more targets, ``where``
+   also gives the flange's position and orientation errors apart
+   (:mod:`comp_daemon.diagnosis.targets`).
 6. Remainder structure. The final model's remainder (check rows; fit rows out of fold) against
    time or row order, axis values, payload, temperature and directions
    (:mod:`comp_daemon.diagnosis.structure`).
@@ -71,10 +74,12 @@ from comp_daemon.diagnosis.candidates import (
     unidentifiable_candidates,
 )
 from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize, predict_mm
+from comp_daemon.diagnosis.remainder import RemainderModel, judge_remainder
 from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
 from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
+from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets
 from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
@@ -209,7 +214,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
 
     # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
     steps = _ladder(ctx, start, geo_fit, accepted, rejected, base_rms)
-    floor, floor_source = _noise_floor(obs, options.tracker_sigma_mm)
+    floor, floor_source = _noise_floor(obs, options.tracker_sigma_mm, dataset.reflectors_mm)
     structure = _structure(ctx, dataset, steps)
     skipped = group_skips(reasons)
     by_joint = {j: [n for c in cands if c.joint == j and c not in reasons for n in c.names] for j in JOINTS}
@@ -222,6 +227,12 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         structure=describe_structure(structure),
     )
     where = locate(obs, mass, steps, baseline, ctx.problem, by_joint)
+    flange = flange_errors(mass, steps[0].fit, obs, dataset.reflectors_mm, fit_rows, check_rows, robot, frame)
+    if flange is not None:
+        where["flange"] = flange
+        where["summary"] += " " + flange_words(flange)
+    remainder = _remainder(ctx, steps)
+    where["summary"] = f"{where['summary']} {remainder.describe()}"
     return Diagnosis(
         robot=robot,
         dataset=dataset,
@@ -246,6 +257,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         residual_structure=structure,
         remainder_rows="check rows, and fit rows out of fold",
         time_nuisance=ctx.nuisance is not None,
+        remainder_model=remainder,
     )
 
 
@@ -345,16 +357,23 @@ def _ladder(
     return steps
 
 
-def _noise_floor(obs: Observations, tracker_sigma_mm: float | None) -> tuple[float | None, str | None]:
+def _noise_floor(
+    obs: Observations, tracker_sigma_mm: float | None, reflectors_mm: FloatArray | None = None
+) -> tuple[float | None, str | None]:
     """The noise floor (mm, 3-D RMS) and its source, from independent evidence only.
 
     Repeated poses first (they measure the tracker and the robot's repeatability together), else
-    the tracker uncertainty the user declares (σ per axis: ``√3·σ``), else ``(None, None)``. The
-    fit residual is never a noise floor: it is the quantity the diagnosis explains.
+    the spread of the mutual distances of several targets on the flange (the tracker alone,
+    :func:`~comp_daemon.diagnosis.targets.noise_from_targets`: ``√3·σ̂``), else the tracker
+    uncertainty the user declares (σ per axis: ``√3·σ``), else ``(None, None)``. The fit residual
+    is never a noise floor: it is the quantity the diagnosis explains.
     """
     floor = _noise_floor_from_repeats(obs)
     if floor is not None:
         return floor, "repeats"
+    from_targets = noise_from_targets(reflectors_mm)
+    if from_targets is not None:
+        return from_targets[1], "targets"
     if tracker_sigma_mm is not None:
         return math.sqrt(3.0) * tracker_sigma_mm, "declared"
     return None, None
@@ -449,6 +468,27 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     for j in JOINTS:
         columns[f"dir{j}"] = None if obs.dir is None else obs.dir[:, j - 1]
     return residual_structure(resid, columns, obs.pose_group, folds=ctx.options.folds, seed=ctx.options.seed)
+
+
+def _remainder(ctx: Context, steps: list[Step]) -> RemainderModel:
+    """The joint-space remainder model on top of the final step, kept only if it wins out of fold."""
+    if not ctx.options.remainder_model:
+        return RemainderModel(False, False, "not asked for (DiagnoseOptions.remainder_model)")
+    final = final_step(steps)
+    names = [n for s in steps if s.significant and s.effect != "geometric" for n in s.names]
+    lp = ctx.problem(final.fit, names)
+    resid_check = ctx.obs_check.xyz_mm - predict_mm(
+        ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
+    )
+    return judge_remainder(
+        lp,
+        ctx.own_cols(len(names)),
+        ctx.obs_fit.a_deg,
+        lp.r,
+        ctx.obs_check.a_deg,
+        resid_check,
+        seed=ctx.options.seed,
+    )
 
 
 def _geo_pvalue(start: FitResult, ctx: Context, geo_cols: list[int]) -> float:

@@ -5,8 +5,10 @@ line); for each significant effect, the residual before that step per axis (x, y
 the variable that drives the effect (axis value, gravity torque or temperature) with the effect's
 fitted contribution drawn over it; per joint, the equivalent joint error of the post-geometric
 residual against the axis value, by approach direction, with the fitted effects' share drawn
-over it; histograms of the 3-D check error before and after; the ``where`` tables; what was
-skipped and why, and the parameters geometry could not identify.
+over it; histograms of the 3-D check error before and after; the remaining error per pose, per
+joint angle, as a variogram over joint distance, against time, and measured against predicted;
+the ``where`` tables; what was skipped and why, and the parameters geometry could not identify.
+The figures are drawn by matplotlib in :mod:`comp_daemon.diagnosis.plots`.
 """
 
 from __future__ import annotations
@@ -15,20 +17,11 @@ import html
 import json
 from typing import Any
 
-import numpy as np
-from numpy.typing import NDArray
-
-from comp_daemon.diagnosis.fitting import linearize, predict_mm
-from comp_daemon.diagnosis.result import Diagnosis, Step
+from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.diagnosis.structure import describe_structure
-from comp_daemon.diagnosis.svg import Series, bar_chart, histograms, panel
-from comp_daemon.diagnosis.where import equivalent_joint_error_deg
-from comp_daemon.models.effects import MassModel, effect_by_name, twin_inputs
 
 __all__ = ["render_report_html"]
 
-FloatArray = NDArray[np.float64]
-GREY, RED, BLUE, DARK, GREEN, ORANGE = "#8a8a8a", "#d62728", "#1f77b4", "#222222", "#2ca02c", "#ff7f0e"
 
 CSS = """
 body{font-family:sans-serif;margin:24px;color:#222;max-width:1400px}
@@ -37,6 +30,7 @@ table{border-collapse:collapse;font-size:12px;margin:8px 0}
 td,th{border:1px solid #ccc;padding:3px 7px;text-align:right}th{background:#f3f3f3}
 td.l,th.l{text-align:left}.sig{color:#1a7f37;font-weight:bold}.nsig{color:#999}
 .grid{display:flex;flex-wrap:wrap;gap:8px}
+figure.plot{margin:10px 0}figcaption{font-size:12px;color:#555;max-width:1000px}
 .summary{background:#f7f7f2;padding:10px;border-left:4px solid #2ca02c}
 code{font-size:11px}
 """
@@ -50,24 +44,6 @@ def _num(v: float | None, digits: int = 4) -> str:
     if v is None:
         return "–"
     return f"{v:.{digits}g}"
-
-
-def _driver(diag: Diagnosis, step: Step) -> tuple[FloatArray, str]:
-    """The variable an effect depends on, per row, and its axis label (the catalogue's driver)."""
-    obs = diag.obs
-    params = diag.baseline_fit.params
-    inputs = twin_inputs(
-        MassModel.from_robot(diag.robot),
-        params,
-        obs.a_deg,
-        obs.dir,
-        obs.payload_kg,
-        obs.temp_c,
-        t_ref_c=diag.options.t_ref_c,
-        clock=obs.clock,
-        step_at=diag.baseline_fit.effects.step_at,
-    )
-    return effect_by_name(step.effect).driver(inputs, step.joints[0] if step.joints else None)
 
 
 def _ladder_table(diag: Diagnosis) -> str:
@@ -125,142 +101,31 @@ def _structure_table(diag: Diagnosis) -> str:
     )
 
 
-def _ladder_chart(diag: Diagnosis) -> str:
-    labels = ["nominal"] + [
-        f"{s.effect}{' J' + ','.join(map(str, s.joints)) if s.joints else ''}" for s in diag.steps
-    ]
-    values = [diag.baseline_check_rms_mm] + [s.check_rms_mm for s in diag.steps]
-    colors = [GREY] + [GREEN if s.significant else "#cccccc" for s in diag.steps]
-    floor = diag.noise_floor_mm
-    title = "Check RMS after each step (mm, log scale); light grey: not significant; " + (
-        f"dashed: noise floor {floor:.4f} mm ({diag.noise_floor_source})"
-        if floor is not None
-        else "no noise floor known (no repeats, no declared tracker uncertainty)"
-    )
-    return bar_chart(
-        labels,
-        values,
-        colors,
-        title=title,
-        ylabel="check RMS (mm)",
-        hline=floor,
-        width=max(560, 120 * len(labels)),
-    )
-
-
-def _effect_panels(diag: Diagnosis, preds: list[FloatArray]) -> str:
-    obs = diag.obs
-    out = []
-    for k, step in enumerate(diag.steps[1:], start=1):
-        before = obs.xyz_mm - preds[k - 1]
-        added = preds[k] - preds[k - 1]
-        x, xlabel = _driver(diag, step)
-        tag = "" if step.significant else " (not significant)"
-        joints = (
-            f" on joint{'s' if len(step.joints) > 1 else ''} {', '.join(map(str, step.joints))}"
-            if step.joints
-            else ""
-        )
-        out.append(f"<h3>Step {k + 1}: {_e(step.effect)}{_e(joints)}{_e(tag)}</h3><div class=grid>")
-        order = np.argsort(x, kind="stable")
-        for axis, name in enumerate("xyz"):
-            smooth = effect_by_name(step.effect).smooth_driver
-            kind = "line" if smooth and len(step.joints) == 1 else "points"
-            series = [
-                Series(x, before[:, axis], GREY, f"residual before the step ({name})"),
-                Series(
-                    x[order],
-                    added[order, axis],
-                    RED,
-                    f"{step.effect} contribution",
-                    kind=kind,
-                    radius=1.6,
-                    opacity=0.9,
-                ),
-            ]
-            out.append(
-                panel(series, title=f"{name}: residual vs {xlabel}", xlabel=xlabel, ylabel=f"{name} (mm)")
-            )
-        out.append("</div>")
-    if len(diag.steps) == 1:
-        geo = obs.xyz_mm - preds[0]
-        rows = np.arange(len(obs), dtype=float)
-        out.append("<div class=grid>")
-        for axis, name in enumerate("xyz"):
-            out.append(
-                panel(
-                    [Series(rows, geo[:, axis], GREY, f"residual after geometric ({name})")],
-                    title=f"{name}: residual after geometric, in campaign order",
-                    xlabel="row",
-                    ylabel=f"{name} (mm)",
-                )
-            )
-        out.append("</div>")
-    return "".join(out)
-
-
-def _joint_panels(diag: Diagnosis, preds: list[FloatArray], final_index: int) -> str:
-    obs = diag.obs
-    geo = diag.steps[0].fit
-    resid, jac = linearize(MassModel.from_robot(diag.robot), geo.params, geo.effects, [], obs)
-    jac_theta = jac[:, :, 0:30:5]
-    e_resid = equivalent_joint_error_deg(resid, jac_theta)
-    e_model = equivalent_joint_error_deg(preds[final_index] - preds[0], jac_theta)
-    shares = {p["joint"]: p["share_pct"] for p in diag.where.get("per_joint", [])}
-    out = ["<div class=grid>"]
-    for j in range(1, 7):
-        a = obs.a_deg[:, j - 1]
-        if not np.isfinite(e_resid[:, j - 1]).any():
-            continue
-        series = []
-        if obs.dir is not None:
-            for sign, color, label in ((1.0, RED, f"dir{j} = +1"), (-1.0, BLUE, f"dir{j} = −1")):
-                sel = obs.dir[:, j - 1] == sign
-                series.append(Series(a[sel], e_resid[sel, j - 1], color, label, opacity=0.45))
-        else:
-            series.append(Series(a, e_resid[:, j - 1], GREY, "residual", opacity=0.45))
-        if final_index > 0:
-            series.append(Series(a, e_model[:, j - 1], DARK, "fitted effects", radius=1.3, opacity=0.9))
-        out.append(
-            panel(
-                series,
-                title=f"Joint {j}: equivalent error vs A{j} (share {shares.get(j, 0):.0f} %)",
-                xlabel=f"A{j} (deg)",
-                ylabel="equivalent joint error (deg)",
-                width=400,
-            )
-        )
-    out.append("</div>")
-    return "".join(out)
-
-
-def _histograms(diag: Diagnosis, preds: list[FloatArray], final_index: int) -> str:
-    obs = diag.obs.take(diag.check_rows)
-    base = np.linalg.norm(
-        obs.xyz_mm
-        - predict_mm(
-            MassModel.from_robot(diag.robot), diag.baseline_fit.params, diag.baseline_fit.effects, obs
+def _remainder_html(diag: Diagnosis) -> str:
+    """The joint-space remainder model: whether it won out of fold, and what it took on check rows."""
+    model = diag.remainder_model
+    if model is None:
+        return "<p>No joint-space remainder model was tried.</p>"
+    words = f"<p>{_e(model.describe())}</p>"
+    if not model.tried:
+        return words
+    scales = ", ".join(f"A{j} {v:.3g}°" for j, v in model.length_scales_deg.items())
+    rows = [
+        ("kept", "<b>yes</b>" if model.kept else "no"),
+        ("why", _e(model.reason)),
+        (
+            "cross-validated RMS on fit rows, before → after",
+            f"{_num(model.cv_rms_mm_before)} → {_num(model.cv_rms_mm_after)} mm",
         ),
-        axis=1,
-    )
-    geo = np.linalg.norm(obs.xyz_mm - preds[0][diag.check_rows], axis=1)
-    final = np.linalg.norm(obs.xyz_mm - preds[final_index][diag.check_rows], axis=1)
-    charts = [
-        histograms(
-            [("nominal twin", base, GREY), ("after geometric", geo, BLUE)],
-            title="3-D check error: before and after geometric calibration",
-            xlabel="error (mm)",
-        )
+        (
+            "check RMS, before → after",
+            f"{_num(model.check_rms_mm_before)} → {_num(model.check_rms_mm_after)} mm",
+        ),
+        ("length scales", _e(scales)),
+        ("smooth part / noise (3-D RMS)", f"{_num(model.signal_rms_mm)} / {_num(model.noise_rms_mm)} mm"),
     ]
-    if final_index > 0:
-        charts.append(
-            histograms(
-                [("after geometric", geo, BLUE), ("after the significant effects", final, GREEN)],
-                title="3-D check error: before and after the effects",
-                xlabel="error (mm)",
-            )
-        )
-    return "<div class=grid>" + "".join(charts) + "</div>"
+    table = "".join(f"<tr><th>{k}</th><td>{v}</td></tr>" for k, v in rows)
+    return words + "<table>" + table + "</table>"
 
 
 def _where_tables(where: dict[str, Any]) -> str:
@@ -290,14 +155,25 @@ def _where_tables(where: dict[str, Any]) -> str:
             f"<td>{r['rms_mm']}</td><td>{r['max_mm']}</td></tr>"
         )
     out.append("</table>")
+    flange = where.get("flange")
+    if flange is not None:
+        out.append(
+            f"<table><tr><th>flange ({flange['targets']} targets, check rows)</th>"
+            "<th>RMS</th><th>max</th></tr>"
+            f"<tr><td class=l>position (mm)</td><td>{flange['position_rms_mm']}</td>"
+            f"<td>{flange['position_max_mm']}</td></tr>"
+            f"<tr><td class=l>orientation (deg)</td><td>{flange['orientation_rms_deg']}</td>"
+            f"<td>{flange['orientation_max_deg']}</td></tr></table>"
+        )
     return "".join(out)
 
 
 def render_report_html(diag: Diagnosis) -> str:
     """The HTML report of a diagnosis (a complete document, UTF-8 text)."""
-    mass = MassModel.from_robot(diag.robot)
-    preds = [predict_mm(mass, s.fit.params, s.fit.effects, diag.obs) for s in diag.steps]
-    final_index = max((k for k, s in enumerate(diag.steps) if s.significant), default=0)
+    # matplotlib is loaded when a report is drawn, not by every command and the daemon at start
+    from comp_daemon.diagnosis.plots import report_figures
+
+    figures = report_figures(diag)
     doc = diag.to_json()
     skipped = (
         "".join(
@@ -324,20 +200,21 @@ def render_report_html(diag: Diagnosis) -> str:
         f"<p class=summary>{_e(diag.where['summary'])}</p>",
         "<h2>The ladder</h2>",
         _ladder_table(diag),
-        _ladder_chart(diag),
+        figures["ladder"],
         "<h2>Residuals per axis, with each added effect</h2>",
-        _effect_panels(diag, preds),
+        figures["effects"],
         "<h2>Per joint: equivalent joint error after the geometric step</h2>",
-        "<p>The angle joint j alone would have to be off by to explain each pose's residual best; "
-        "colours give the "
-        "approach direction, dark points what the fitted effects account for.</p>",
-        _joint_panels(diag, preds, final_index),
+        figures["joints"],
         "<h2>Before and after (check rows)</h2>",
-        _histograms(diag, preds, final_index),
+        figures["histograms"],
+        "<h2>The remaining error</h2>",
+        figures["residuals"],
         "<h2>Where the gap lies after the geometric step (all rows)</h2>",
         _where_tables(diag.where),
         "<h2>Structure in the remainder</h2>",
         _structure_table(diag),
+        "<h2>Joint-space remainder model</h2>",
+        _remainder_html(diag),
         "<h2>Not tested</h2><ul>",
         skipped,
         "</ul>",

@@ -200,7 +200,8 @@ def _fmt(mm: float) -> str:
 def _floor_words(floor: float | None, source: str | None) -> str:
     if floor is None:
         return (
-            ", and no noise floor is known (no repeated poses, no declared tracker uncertainty): "
+            ", and no noise floor is known (no repeated poses, no second target on the flange, no "
+            "declared tracker uncertainty): "
             "the remainder could not be compared with noise."
         )
     return f", against a noise floor of {_fmt(floor)} ({source})."
@@ -214,7 +215,8 @@ def _left_words(left: float, floor: float | None, structured: bool, any_effect: 
             return f"{further.capitalize()} is significant; what is left is {_fmt(left)}."
         return (
             f"{further.capitalize()} is significant; what is left ({_fmt(left)}) could not be compared "
-            "with noise: measure some poses several times or declare the tracker's uncertainty."
+            "with noise: measure some poses several times, put several targets on the flange or declare "
+            "the tracker's uncertainty."
         )
     if left <= 1.25 * floor:
         if any_effect:

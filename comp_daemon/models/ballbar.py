@@ -30,7 +30,7 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.kinematics.inverse import solve_ik_axes
@@ -120,7 +120,7 @@ def arc_through_points(p1: NDArray[np.float64], p2: NDArray[np.float64], p3: NDA
 def sphere_point_mm(
     azimuth_deg: float,
     elevation_deg: float,
-    pivot_mm: Sequence[float] = PAPER_PIVOT_MM,
+    pivot_mm: ArrayLike = PAPER_PIVOT_MM,
     radius_mm: float = 100.0,
 ) -> NDArray[np.float64]:
     """Point on the ballbar sphere about the pivot at azimuth φ and elevation ψ (deg)."""
@@ -130,9 +130,7 @@ def sphere_point_mm(
     )
 
 
-def default_arcs(
-    pivot_mm: Sequence[float] = PAPER_PIVOT_MM, radius_mm: float = PAPER_RADIUS_MM
-) -> tuple[Arc, ...]:
+def default_arcs(pivot_mm: ArrayLike = PAPER_PIVOT_MM, radius_mm: float = PAPER_RADIUS_MM) -> tuple[Arc, ...]:
     """The spec's three arcs (A.6): ψ = 10° from φ −90° to 90°; x–z and y–z great circles over the top."""
     pts = [
         ((-90.0, 10.0), (0.0, 10.0), (90.0, 10.0)),
@@ -227,7 +225,7 @@ def pair_variogram(
 
 
 def ballbar_lengths_mm(
-    model: PoeModel, a_deg: NDArray[np.float64], theta: NDArray[np.float64], pivot_mm: Sequence[float]
+    model: PoeModel, a_deg: NDArray[np.float64], theta: NDArray[np.float64], pivot_mm: ArrayLike
 ) -> NDArray[np.float64]:
     """(n,) predicted centre-to-centre lengths for ``theta`` = (12 POE errors, dXo, dYo, dZo)."""
     th = np.asarray(theta, dtype=float)
@@ -236,7 +234,7 @@ def ballbar_lengths_mm(
 
 
 def ballbar_jacobian(
-    model: PoeModel, a_deg: NDArray[np.float64], theta: NDArray[np.float64], pivot_mm: Sequence[float]
+    model: PoeModel, a_deg: NDArray[np.float64], theta: NDArray[np.float64], pivot_mm: ArrayLike
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """Lengths (n,) and their Jacobian (n, 15) w.r.t. ``theta``."""
     ch = poe_chain(model, a_deg, theta[:N_POE_PARAMS])
@@ -253,7 +251,7 @@ def ballbar_jacobian(
 def ballbar_identifiability(
     model: PoeModel,
     a_deg: NDArray[np.float64],
-    pivot_mm: Sequence[float],
+    pivot_mm: ArrayLike,
     theta: NDArray[np.float64] | None = None,
     rtol: float = 1e-7,
 ) -> tuple[IdentifiabilityReport, tuple[NullDirection, ...]]:
@@ -304,7 +302,7 @@ def fit_ballbar(
     model: PoeModel,
     a_deg: NDArray[np.float64],
     bar_mm: NDArray[np.float64],
-    pivot_mm: Sequence[float],
+    pivot_mm: ArrayLike,
     *,
     weights: NDArray[np.float64] | None = None,
     weights_are_inverse_variance: bool = False,
@@ -347,7 +345,7 @@ def fit_ballbar(
     )
 
 
-def to_canonical(theta: NDArray[np.float64], pivot_mm: Sequence[float]) -> NDArray[np.float64]:
+def to_canonical(theta: NDArray[np.float64], pivot_mm: ArrayLike) -> NDArray[np.float64]:
     """The ballbar-equivalent parameter vector with Δθ1 = Δl1 = Δl2 = Δl5 = 0 (exact, not linearised).
 
     Every ballbar length is unchanged: Δθ1 turns all TCPs about z0, which equals turning the pivot

@@ -23,13 +23,8 @@ table; the doors call them through it.
   the kriging on kinematic + ratio + backlash + compliance) and the options ``k=N`` (local
   neighbourhoods of N samples instead of one dense system; dense is the default up to 2 000
   samples) and ``aniso`` (per-joint ranges instead of the isotropic joint-space distance);
-- ``compliance``: the kinematic calibration with seed 004's joint compliance C2, C3 under the
-  gravity torques of the links and the payload of each row (``payload_kg``);
-  ``compliance:paper`` the paper's own form, zero offsets and C2, C3 on the nominal geometry;
-- ``poe``: a product-of-exponentials calibration with a full twist error per joint and the tool
-  offset (:mod:`comp_daemon.models.poe_twist`); ``poe:paper`` seed 002's errors ``dl1..dl6``,
-  ``dtheta1..dtheta6``; both with the base frame (:func:`comp_daemon.models.poe_model.fit_poe`), the
-  dependent parameters removed by name and the directions the data do not see listed.
+- ``compliance`` and ``poe`` (and their papers' forms ``compliance:paper``, ``poe:paper``):
+  :mod:`comp_daemon.models.fitting_forms`.
 
 What earns its place. The joint effects of the kinematic, kriging and compliance kinds, a kriging
 stage on its base and per-joint kriging ranges are kept only if they lower the error of held-out
@@ -40,6 +35,13 @@ back to what is left (a kriging kind whose kriging is dropped is its kinematic b
 ``selection`` says what was kept and dropped and on what numbers. The ``all`` option
 (``kinematic:all+ratio+backlash``, ``kriging-backlash:all``, ``compliance:all``) keeps every part, as
 the papers do.
+
+Several targets per pose (``x2, y2, z2`` … of the data set, :attr:`FitRows.more_xyz_mm`): the
+kinematic calibration, and the kinematic base of both kriging kinds, identify every target's flange
+offset with the rest and fit all targets' positions (6-DOF with three or more targets,
+:mod:`comp_daemon.models.kinematic`); the model predicts, and every kind is judged on, the TCP (the
+first target, ``x, y, z``). The other kinds (``nominal``, ``chebyshev``, ``compliance``, ``poe``)
+and the kriging layer itself fit the TCP alone; the further targets are ignored there.
 """
 
 from __future__ import annotations
@@ -57,13 +59,11 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
-from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceFit, calibrate_compliance
-from comp_daemon.models.covariance import attach_covariance
+from comp_daemon.models.covariance import ParameterCovariance, attach_covariance, covariance_from_fit
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
-from comp_daemon.models.poe_model import fit_poe
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.models.selection import Decision, Selection, judge, keep_all, select_kinematic_effects
 from comp_daemon.robot.description import RobotDescription
@@ -75,13 +75,15 @@ __all__ = [
     "FittedModel",
     "ModelSpec",
     "fit_chebyshev_kind",
-    "fit_compliance_kind",
     "fit_kinematic_kind",
     "fit_kriging_backlash_kind",
     "fit_kriging_kind",
     "fit_nominal_kind",
-    "fit_poe_kind",
+    "identified_info",
     "infer_fit_directions",
+    "lm_info",
+    "report_info",
+    "select_effects",
 ]
 
 DEFAULT_CHEBYSHEV_ORDER = 3  # seed 000 fits m = 3
@@ -153,6 +155,7 @@ class FitRows:
     dir: NDArray[np.float64] | None = None
     payload_kg: NDArray[np.float64] | float = 0.0
     temp_c: NDArray[np.float64] | None = None
+    more_xyz_mm: NDArray[np.float64] | None = None  # (n, K − 1, 3) further targets on the flange
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -160,6 +163,13 @@ class FitRows:
         p = np.asarray(self.xyz_mm, dtype=float)
         if p.shape != (a.shape[0], 3):
             raise ValueError(f"measured positions must have shape ({a.shape[0]}, 3), got {p.shape}")
+        if self.more_xyz_mm is not None:
+            more = np.asarray(self.more_xyz_mm, dtype=float)
+            if more.ndim != 3 or more.shape[0] != a.shape[0] or more.shape[2] != 3:
+                raise ValueError(
+                    f"further targets must have shape ({a.shape[0]}, K - 1, 3), got {more.shape}"
+                )
+            object.__setattr__(self, "more_xyz_mm", more)
         object.__setattr__(self, "a_deg", a)
         object.__setattr__(self, "xyz_mm", p)
         object.__setattr__(self, "n", a.shape[0])
@@ -173,6 +183,7 @@ class FitRows:
             None if self.dir is None else self.dir[rows],
             payload,
             None if self.temp_c is None else self.temp_c[rows],
+            None if self.more_xyz_mm is None else self.more_xyz_mm[rows],
         )
 
     def errors(self, model: ErrorModel) -> NDArray[np.float64]:
@@ -196,6 +207,7 @@ class FitRows:
             dir=None if dataset.dir is None else directions_of(dataset, rows, unknown_dir),
             payload_kg=dataset.payload_kg[rows],
             temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
+            more_xyz_mm=None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[rows],
         )
 
 
@@ -273,7 +285,7 @@ def report_info(report: IdentifiabilityReport, list_removed: bool = True) -> dic
     return out
 
 
-def _identified(
+def identified_info(
     names: Sequence[str], values: NDArray[np.float64], std: NDArray[np.float64]
 ) -> dict[str, Any]:
     return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(names, values, std, strict=True)}
@@ -308,16 +320,49 @@ def _kinematic(
         temp_c=rows.temp_c,
         effects=effects,
         frame=options.frame,
+        more_targets_mm=rows.more_xyz_mm,
+    )
+
+
+def _attach_tcp_covariance(kf: KinematicFit) -> None:
+    """The parameter covariance of the TCP's prediction: with several targets, the block of the
+    geometric and effect parameters of the whole fit (the targets' offsets do not move the TCP)."""
+    if kf.targets == 1:
+        attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
+        return
+    jac = kf.lm.jacobian
+    if jac.shape[0] <= jac.shape[1]:
+        return
+    cov, s = covariance_from_fit(jac, kf.lm.residual)
+    keep = np.array([not name.startswith("target") for name in kf.identified])
+    kf.model.uncertainty = ParameterCovariance(
+        tuple(n for n, k in zip(kf.identified, keep, strict=True) if k),
+        kf.values[keep],
+        cov[np.ix_(keep, keep)],
+        s,
+        kf.n_rows,
     )
 
 
 def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
+    targets: dict[str, Any] = {}
+    if kf.targets > 1:
+        assert kf.model.more_targets_mm is not None
+        targets = {
+            "targets": kf.targets,
+            "identification": "6-DOF: every target's position"
+            if kf.targets >= 3
+            else "every target's position",
+            "targets_rms_mm": kf.targets_rms_mm,
+            "more_targets_mm": kf.model.more_targets_mm.tolist(),
+        }
     return {
         "rms_mm": kf.rms_mm,
+        **targets,
         "effects": list(effects),
         "solver": lm_info(kf.lm),
         "identifiability": report_info(kf.report),
-        "identified": _identified(kf.identified, kf.values, kf.std),
+        "identified": identified_info(kf.identified, kf.values, kf.std),
     }
 
 
@@ -376,7 +421,7 @@ def fit_kinematic_kind(
     with ``:all``)."""
     effects, selection = select_effects(robot, rows, spec, options, spec.effects)
     kf = _kinematic(robot, rows, effects, options)
-    attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
+    _attach_tcp_covariance(kf)
     info = {
         "kind": spec.kind,
         "rows": rows.n,
@@ -487,12 +532,13 @@ def _fit_kriging(
         )
         selection = selection + _decided(decision)
         if not decision.kept:
-            attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
+            _attach_tcp_covariance(kf)
             info = {
                 "kind": spec.kind,
                 "rows": rows.n,
                 "model_kind": "kinematic",
                 **_kinematic_info(kf, effects),
+                "base": base_info,  # the model itself, under the key the kept case uses too
                 "kriging": _kriging_info(kg, rows),
                 "selection": selection.to_info(),
             }
@@ -528,76 +574,3 @@ def fit_kriging_backlash_kind(
     the spec's further effects, e.g. ``kriging-backlash+compliance``)."""
     effects = tuple(dict.fromkeys((*SEED001_EFFECTS, *spec.effects)))
     return _fit_kriging(robot, rows, spec, options, effects, "aware")
-
-
-def fit_compliance_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
-) -> FittedModel:
-    """Seed 004's compliance of joints 2 and 3 under the rows' payloads, on the whole kinematic
-    geometry (``compliance``; the compliance kept only if it earns its place, every time with
-    ``:all``) or on the zero offsets alone (``compliance:paper``, the paper's form)."""
-    geometry = not spec.paper
-
-    def calibrate(effs: Sequence[str], sub: FitRows, fo: FitOptions) -> ComplianceFit:
-        return calibrate_compliance(
-            robot,
-            sub.a_deg,
-            sub.xyz_mm,
-            payload_kg=sub.payload_kg,
-            compliance_joints=COMPLIANCE_JOINTS if "compliance" in effs else (),
-            frame=fo.frame,
-            geometry=geometry,
-        )
-
-    kept: tuple[str, ...] = ("compliance",)
-    if spec.paper:
-        selection = keep_all(kept)
-    else:
-        kept, selection = select_effects(
-            robot, rows, spec, options, ("compliance",), lambda e, sub, fo: calibrate(e, sub, fo).model
-        )
-    cf = calibrate(kept, rows, options)
-    attach_covariance(cf.model, cf.identified, cf.values, cf.lm.jacobian, cf.lm.residual)
-    info = {
-        "kind": spec.kind,
-        "rows": rows.n,
-        "form": "zero offsets and C2, C3 (seed 004)" if spec.paper else "kinematic geometry and C2, C3",
-        "rms_mm": cf.rms_mm,
-        "compliance_rad_per_nm": cf.model.compliance_rad_per_nm.tolist(),
-        "zero_offset_rad": cf.model.zero_offset_rad.tolist(),
-        "solver": lm_info(cf.lm),
-        "identifiability": report_info(cf.report),
-        "identified": _identified(cf.identified, cf.values, cf.std),
-        "selection": selection.to_info(),
-    }
-    return FittedModel(cf.model, cf.frame, info)
-
-
-def fit_poe_kind(robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions) -> FittedModel:
-    """The POE calibration: a twist error per joint, the tool offset and the base frame
-    (``poe``), or seed 002's errors Δl, Δθ and the base frame (``poe:paper``)."""
-    nominal = KinematicParams.from_robot(robot)
-    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
-    chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
-    reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
-    pf = fit_poe(robot, rows.a_deg, rows.xyz_mm, reg, "paper" if spec.paper else "twist")
-    fit = pf.fit
-    keep = fit.report.identifiable_index
-    info = {
-        "kind": spec.kind,
-        "rows": rows.n,
-        "form": "dl1..dl6, dtheta1..dtheta6 (seed 002)"
-        if spec.paper
-        else "a twist error per joint (dtheta, dwu, dwn, dpu, dpn, dlax) and the tool offset",
-        "rms_mm": pf.rms_mm,
-        "solver": {
-            "method": "improved Levenberg-Marquardt (seed 000), columns scaled",
-            "iterations": fit.iterations,
-            "stop": fit.reason,
-        },
-        "identifiability": report_info(fit.report),
-        "not_identifiable": [d.describe() for d in fit.null_space],
-        # the base parameters are increments of the rigid start frame; removed parameters stay 0
-        "identified": _identified([fit.names[i] for i in keep], fit.theta[keep], fit.std[keep]),
-    }
-    return FittedModel(pf.model, chosen, info)

@@ -20,6 +20,22 @@ least-squares sense (eq. 6) and iterated to convergence:
    seed 000 (:func:`comp_daemon.models.lm.improved_lm`, columns scaled); the Jacobian is exact,
    the base rotation being a rotation vector (its Jacobian through the SO(3) left Jacobian).
 
+Several targets. When the flange carries further targets (reflectors ``x2, y2, z2`` … of the data
+set), each one's position in the flange frame is three more parameters (``target2_x`` …, mm; the
+first target is the tool, ``tool_x`` …), started from the registered nominal flange poses (the mean
+of the measured points seen from the flange) and identified with the rest. The residual stacks every
+target's position error (mm), target after target. Three or more non-collinear targets carry the
+flange's orientation as well as its position, so this is a 6-DOF identification in which the
+orientation is weighted by the targets' lever arms, in the same unit and with the same (isotropic)
+tracker noise as the positions: the least-squares optimum of the measurements as they are, with no
+choice of weight between millimetres and radians. A parameter that only the orientation sees (a
+wrist twist the TCP hardly feels) becomes better determined; parameters that move every target
+alike with an offset (``d6``, ``theta6`` against the targets' offsets) drop out as dependent.
+The target positions are computed from the twin's flange frame (payload at the TCP); the
+Jacobian of target k is the twin's with target k as the tool, whose compliance columns carry the
+payload at that target (exact without a payload or a compliance effect; otherwise a few per cent
+on those columns, which changes the steps, not the fixed point of an exact residual).
+
 Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`); effect units as in
 :mod:`comp_daemon.models.effects` (the catalogue: deg for backlash, 1 for the ratio error …).
 """
@@ -27,7 +43,7 @@ Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`)
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -37,7 +53,14 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import left_jacobian, skew
 from comp_daemon.models.base import ErrorModel, as_axes
-from comp_daemon.models.effects import EFFECTS, EffectParams, effect_param_names, twin_jacobian, twin_tcp_mm
+from comp_daemon.models.effects import (
+    EFFECTS,
+    EffectParams,
+    effect_param_names,
+    twin_jacobian,
+    twin_state,
+    twin_tcp_mm,
+)
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability, mdh_priority
 from comp_daemon.models.lm import LMResult, improved_lm
 from comp_daemon.models.registration import detect_frame, rigid_registration
@@ -49,6 +72,7 @@ __all__ = [
     "KinematicModel",
     "KinematicProblem",
     "calibrate_kinematic",
+    "target_param_names",
 ]
 
 SEED001_EFFECTS: tuple[str, ...] = ("ratio", "backlash")
@@ -66,10 +90,13 @@ class KinematicModel(ErrorModel):
         params: KinematicParams,
         effects: EffectParams | None = None,
         registration: NDArray[np.float64] | None = None,
+        more_targets_mm: NDArray[np.float64] | None = None,
     ):
         self.robot = robot
         self.params = params
         self.effects = effects
+        # (K − 1, 3) further targets' positions in the flange frame (mm); None: the TCP only
+        self.more_targets_mm = None if more_targets_mm is None else np.array(more_targets_mm, dtype=float)
         self.world_T_base = params.world_T_base
         self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
 
@@ -86,6 +113,20 @@ class KinematicModel(ErrorModel):
         payload = 0.0 if payload_kg is None else payload_kg
         return twin_tcp_mm(self.robot, self.params, self.effects, a, dir, payload, temp_c)
 
+    def predict_targets_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        """(n, K, 3) every target's position (the TCP first, then the further targets), mm."""
+        a = as_axes(a_deg)
+        effects = self.effects if self.effects is not None else EffectParams.zeros()
+        payload = 0.0 if payload_kg is None else payload_kg
+        more = np.zeros((0, 3)) if self.more_targets_mm is None else self.more_targets_mm
+        return targets_mm(self.robot, self.params, effects, more, a, dir, payload, temp_c)
+
     def ik_params(self) -> KinematicParams:
         return self.params
 
@@ -101,6 +142,8 @@ class KinematicModel(ErrorModel):
             "world_T_base": p.world_T_base.tolist(),
             "effects": None,
         }
+        if self.more_targets_mm is not None:
+            out["more_targets_mm"] = self.more_targets_mm.tolist()
         if self.effects is not None:
             names = self.effects.names()
             out["effects"] = {
@@ -138,7 +181,10 @@ class KinematicModel(ErrorModel):
             effects = EffectParams.zeros(int(eff["n_harmonics"]), float(eff["t_ref_c"])).with_values(
                 names, values
             )
-        return cls(robot, params, effects, registration)
+        more = payload.get("more_targets_mm")
+        if more is not None:
+            more = _floats(more, (len(more), 3), "more_targets_mm")
+        return cls(robot, params, effects, registration, more)
 
 
 def _floats(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
@@ -150,12 +196,37 @@ def _floats(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64
     return out
 
 
+def target_param_names(n_more: int) -> list[str]:
+    """The offset parameters of the further targets 2..K (flange frame, mm): ``target2_x`` …"""
+    return [f"target{k}_{c}" for k in range(2, n_more + 2) for c in "xyz"]
+
+
+def targets_mm(
+    robot: RobotDescription,
+    params: KinematicParams,
+    effects: EffectParams,
+    more_flange_mm: NDArray[np.float64],
+    a_deg: NDArray[np.float64],
+    dir: NDArray[np.float64] | None,
+    payload_kg: NDArray[np.float64] | float,
+    temp_c: NDArray[np.float64] | None,
+) -> NDArray[np.float64]:
+    """(n, K, 3): the twin's TCP and the points ``more_flange_mm`` (K − 1, 3) fixed to its flange."""
+    st = twin_state(robot, params, effects, a_deg, dir, payload_kg, temp_c)
+    flange = st.chain.world_T_frame[:, 6]
+    more = np.einsum("nij,kj->nki", flange[:, :3, :3], more_flange_mm) + flange[:, None, :3, 3]
+    return np.concatenate([st.tcp_mm[:, None, :], more], axis=1)
+
+
 class KinematicProblem:
     """Residual and exact Jacobian of the calibration over a subset of parameters.
 
     ``x`` holds the increments of the geometric parameters ``geo_idx`` (indices into
     :data:`PARAM_NAMES`, the layout of :meth:`KinematicParams.apply` on ``start``) followed by the
-    values of the effect parameters ``eff_names``. The residual is predicted − measured (mm, (3n,)).
+    values of the effect parameters ``eff_names``, then, with further targets, the increments of
+    their flange offsets ``more_idx`` (indices into the flattened (K − 1, 3) ``more_start_mm``).
+    The residual is predicted − measured (mm): (3n,) for the TCP alone, (3nK,) with K targets,
+    target after target (the TCP's n rows first).
     """
 
     def __init__(
@@ -170,33 +241,74 @@ class KinematicProblem:
         dir: NDArray[np.float64] | None,
         payload_kg: NDArray[np.float64] | float,
         temp_c: NDArray[np.float64] | None,
+        *,
+        more_measured_mm: NDArray[np.float64] | None = None,
+        more_start_mm: NDArray[np.float64] | None = None,
+        more_idx: NDArray[np.intp] | None = None,
     ) -> None:
         self.robot, self.start, self.eff0 = robot, start, eff0
         self.geo_idx = np.asarray(geo_idx, dtype=np.intp)
         self.eff_names = list(eff_names)
         self.a, self.p_meas, self.dir, self.payload, self.temp = a_deg, p_measured_mm, dir, payload_kg, temp_c
         self._cols = np.concatenate([self.geo_idx, np.arange(N_PARAMS, N_PARAMS + len(self.eff_names))])
+        self.more_meas = more_measured_mm  # (n, K − 1, 3) or None
+        m = 0 if more_measured_mm is None else more_measured_mm.shape[1]
+        self.more_start = (
+            np.zeros((m, 3)) if more_start_mm is None else np.asarray(more_start_mm, dtype=float)
+        )
+        self.more_idx = np.arange(3 * m) if more_idx is None else np.asarray(more_idx, dtype=np.intp)
 
     def unpack(self, x: NDArray[np.float64]) -> tuple[KinematicParams, EffectParams, NDArray[np.float64]]:
         n_geo = self.geo_idx.size
+        n_eff = len(self.eff_names)
         dx = np.zeros(N_PARAMS)
         dx[self.geo_idx] = x[:n_geo]
-        eff = self.eff0.with_values(self.eff_names, x[n_geo:]) if self.eff_names else self.eff0
+        eff = self.eff0.with_values(self.eff_names, x[n_geo : n_geo + n_eff]) if self.eff_names else self.eff0
         return self.start.apply(dx), eff, dx
+
+    def more_targets(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(K − 1, 3) the further targets' flange offsets at ``x``."""
+        flat = self.more_start.reshape(-1).copy()
+        flat[self.more_idx] += x[self._cols.size :]
+        return flat.reshape(-1, 3)
 
     def residual(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         params, eff, _ = self.unpack(x)
-        tcp = twin_tcp_mm(self.robot, params, eff, self.a, self.dir, self.payload, self.temp)
-        return (tcp - self.p_meas).reshape(-1)
+        if self.more_meas is None:
+            tcp = twin_tcp_mm(self.robot, params, eff, self.a, self.dir, self.payload, self.temp)
+            return (tcp - self.p_meas).reshape(-1)
+        pts = targets_mm(
+            self.robot, params, eff, self.more_targets(x), self.a, self.dir, self.payload, self.temp
+        )
+        meas = np.concatenate([self.p_meas[:, None, :], self.more_meas], axis=1)
+        return (pts - meas).transpose(1, 0, 2).reshape(-1)
 
-    def jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
-        params, eff, dx = self.unpack(x)
+    def _target_jacobian(
+        self, params: KinematicParams, eff: EffectParams, dx: NDArray[np.float64]
+    ) -> NDArray[np.float64]:
         tcp, jac = twin_jacobian(
             self.robot, params, eff, self.eff_names, self.a, self.dir, self.payload, self.temp
         )
         # the base rotation is the rotation vector dx[33:36] applied on the left of the start frame
         jac[:, :, 33:36] = -skew(tcp - dx[30:33]) @ left_jacobian(dx[33:36])
-        return jac[:, :, self._cols].reshape(-1, self._cols.size)
+        return jac
+
+    def jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        params, eff, dx = self.unpack(x)
+        jac = self._target_jacobian(params, eff, dx)
+        if self.more_meas is None:
+            return jac[:, :, self._cols].reshape(-1, self._cols.size)
+        n = self.a.shape[0]
+        more = self.more_targets(x)
+        m = more.shape[0]
+        blocks = [np.concatenate([jac[:, :, self._cols], np.zeros((n, 3, self.more_idx.size))], axis=2)]
+        for k in range(m):
+            jk = self._target_jacobian(replace(params, tool_xyz_mm=more[k]), eff, dx)
+            offset = np.zeros((n, 3, 3 * m))
+            offset[:, :, 3 * k : 3 * k + 3] = jk[:, :, 36:39]  # ∂p_k/∂(its flange offset)
+            jk[:, :, 36:39] = 0.0  # the tool is the first target's offset
+            blocks.append(np.concatenate([jk[:, :, self._cols], offset[:, :, self.more_idx]], axis=2))
+        return np.concatenate(blocks, axis=0).reshape(-1, self._cols.size + self.more_idx.size)
 
 
 @dataclass(frozen=True, slots=True)
@@ -211,8 +323,10 @@ class KinematicFit:
     values: NDArray[np.float64]  # their increments from the start (registered nominal, no effects)
     std: NDArray[np.float64]  # their 1-sigma standard errors from the residual (same units)
     lm: LMResult
-    rms_mm: float  # 3-D RMS residual on the fitted rows
+    rms_mm: float  # 3-D RMS residual of the TCP (the first target) on the fitted rows
     n_rows: int
+    targets: int = 1  # targets per row the fit used (K)
+    targets_rms_mm: float | None = None  # 3-D RMS residual over every target (None: the TCP only)
 
     def named_values(self) -> dict[str, float]:
         return {n: float(v) for n, v in zip(self.identified, self.values, strict=True)}
@@ -234,18 +348,27 @@ def calibrate_kinematic(
     fit_tool: bool = True,
     rtol: float = 1e-8,
     max_iter: int = 100,
+    more_targets_mm: NDArray[np.float64] | None = None,
 ) -> KinematicFit:
     """Calibrate the robot's MDH parameters (and ``effects``) on measured TCP positions.
 
     ``a_deg`` (n, 6) commanded axis values, ``p_measured_mm`` (n, 3) measured TCPs (robot base frame
     or tracker frame, see ``frame``); ``effects`` from :data:`comp_daemon.models.effects.EFFECTS`
-    (seed 001: ``("ratio", "backlash")``), on ``effect_joints``.
+    (seed 001: ``("ratio", "backlash")``), on ``effect_joints``. ``more_targets_mm`` (n, K − 1, 3):
+    further targets on the flange measured at the same poses, in the same frame; their flange
+    offsets are identified with the rest (module docstring: 6-DOF with three or more targets).
     """
     a = as_axes(a_deg)
     p_meas = np.asarray(p_measured_mm, dtype=float)
     n = a.shape[0]
     if p_meas.shape != (n, 3):
         raise ValueError(f"measured positions must have shape ({n}, 3), got {p_meas.shape}")
+    more_meas = None
+    if more_targets_mm is not None:
+        more_meas = np.asarray(more_targets_mm, dtype=float)
+        if more_meas.ndim != 3 or more_meas.shape[0] != n or more_meas.shape[2] != 3:
+            raise ValueError(f"further targets must have shape ({n}, K - 1, 3), got {more_meas.shape}")
+        more_meas = more_meas if more_meas.shape[1] else None
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
@@ -263,26 +386,65 @@ def calibrate_kinematic(
         for name in PARAM_NAMES
         if (fit_base or not name.startswith("base_")) and (fit_tool or not name.startswith("tool_"))
     ]
-    all_names = (*PARAM_NAMES, *eff_names)
-    _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
+    n_more = 0 if more_meas is None else more_meas.shape[1]
+    more_names = target_param_names(n_more)
+    all_names = (*PARAM_NAMES, *eff_names, *more_names)
+    more_start = None
+    if more_meas is None:
+        _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
+    else:
+        more_start = _start_offsets(robot, start, eff0, a, dir_arr, payload_kg, temp_c, more_meas)
+        full = KinematicProblem(
+            robot,
+            start,
+            eff0,
+            np.arange(N_PARAMS),
+            eff_names,
+            a,
+            p_meas,
+            dir_arr,
+            payload_kg,
+            temp_c,
+            more_measured_mm=more_meas,
+            more_start_mm=more_start,
+        )
+        jac0 = full.jacobian(np.zeros(len(all_names)))
     report = analyze_identifiability(
         jac0,
         all_names,
-        candidates=[*geo_candidates, *eff_names],
-        priority=mdh_priority(start, extra=eff_names),
+        candidates=[*geo_candidates, *eff_names, *more_names],
+        priority=_priority(start, eff_names, more_names),
         rtol=rtol,
     )
     idx = report.identifiable_index
+    n_eff = len(eff_names)
     geo_idx = idx[idx < N_PARAMS]
-    eff_sel = [all_names[i] for i in idx[idx >= N_PARAMS]]
-    problem = KinematicProblem(robot, start, eff0, geo_idx, eff_sel, a, p_meas, dir_arr, payload_kg, temp_c)
+    eff_sel = [all_names[i] for i in idx[(idx >= N_PARAMS) & (idx < N_PARAMS + n_eff)]]
+    more_idx = idx[idx >= N_PARAMS + n_eff] - (N_PARAMS + n_eff)
+    problem = KinematicProblem(
+        robot,
+        start,
+        eff0,
+        geo_idx,
+        eff_sel,
+        a,
+        p_meas,
+        dir_arr,
+        payload_kg,
+        temp_c,
+        more_measured_mm=more_meas,
+        more_start_mm=more_start,
+        more_idx=more_idx,
+    )
 
     x0 = np.zeros(idx.size)
     result = improved_lm(problem.residual, problem.jacobian, x0, x_scale="jac", max_iter=max_iter)
     params, eff, _ = problem.unpack(result.x)
-    model = KinematicModel(robot, params, eff if effects else None, registration)
+    more_fit = None if more_meas is None else problem.more_targets(result.x)
+    model = KinematicModel(robot, params, eff if effects else None, registration, more_fit)
     std = _standard_errors(result.jacobian, result.residual)
-    rms = float(np.sqrt(np.mean(np.sum(result.residual.reshape(n, 3) ** 2, axis=1))))
+    per_point = np.sum(result.residual.reshape(-1, n, 3) ** 2, axis=2)  # (K, n)
+    rms = float(np.sqrt(np.mean(per_point[0])))
     return KinematicFit(
         model=model,
         frame=chosen,
@@ -294,7 +456,33 @@ def calibrate_kinematic(
         lm=result,
         rms_mm=rms,
         n_rows=n,
+        targets=1 + n_more,
+        targets_rms_mm=None if more_meas is None else float(np.sqrt(np.mean(per_point))),
     )
+
+
+def _priority(start: KinematicParams, eff_names: Sequence[str], more_names: Sequence[str]) -> tuple[str, ...]:
+    """MDH priority with the further targets' offsets offered right after the tool (the first target's)."""
+    order = list(mdh_priority(start, extra=eff_names))
+    at = max(i for i, name in enumerate(order) if name.startswith("tool_")) + 1
+    return tuple(order[:at] + list(more_names) + order[at:])
+
+
+def _start_offsets(
+    robot: RobotDescription,
+    start: KinematicParams,
+    eff0: EffectParams,
+    a: NDArray[np.float64],
+    dir: NDArray[np.float64] | None,
+    payload_kg: NDArray[np.float64] | float,
+    temp_c: NDArray[np.float64] | None,
+    more_meas: NDArray[np.float64],
+) -> NDArray[np.float64]:
+    """(K − 1, 3) start offsets of the further targets: the mean of each measured point seen from the
+    start twin's flange (off by about the nominal twin's error, which the iteration removes)."""
+    flange = twin_state(robot, start, eff0, a, dir, payload_kg, temp_c).chain.world_T_frame[:, 6]
+    local = np.einsum("nji,nkj->nki", flange[:, :3, :3], more_meas - flange[:, None, :3, 3])
+    return np.asarray(local.mean(axis=0))
 
 
 def _standard_errors(jac: NDArray[np.float64], residual: NDArray[np.float64]) -> NDArray[np.float64]:

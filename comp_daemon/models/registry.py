@@ -51,13 +51,12 @@ from comp_daemon.models.fitting import (
     FittedModel,
     ModelSpec,
     fit_chebyshev_kind,
-    fit_compliance_kind,
     fit_kinematic_kind,
     fit_kriging_backlash_kind,
     fit_kriging_kind,
     fit_nominal_kind,
-    fit_poe_kind,
 )
+from comp_daemon.models.fitting_forms import fit_compliance_kind, fit_poe_kind
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.poe_model import PoeErrorModel

@@ -95,6 +95,8 @@ def run_fit(
     robot = load_robot(robot_name)
     progress(0.02, "reading the data set")
     source = f"dataset {dataset_id}"
+    if _is_campaign(csv_text):
+        return _run_campaign_fit(csv_text, robot, model, source, progress)
     ds = parse_dataset(
         csv_text,
         source=source,
@@ -154,6 +156,60 @@ def run_fit(
         "fit": info,
     }
     artifact = model_document(fitted.model, data_sha256=data_sha256, frame=fitted.frame, fit=info)
+    return {"stats": stats, "artifact": artifact}
+
+
+def _is_campaign(csv_text: str) -> bool:
+    """Whether a stored data set is a ballbar or cross-bar campaign (by its header's columns)."""
+    from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS
+
+    header = {h.strip().strip('"') for h in csv_text.split("\n", 1)[0].split(",")}
+    return bool(header & {*BALLBAR_MARKERS, *CROSSBAR_MARKERS})
+
+
+def _run_campaign_fit(
+    csv_text: str, robot: Any, model: str, source: str, progress: Progress
+) -> dict[str, Any]:
+    """A ballbar campaign calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
+    (:func:`comp_daemon.models.campaign_fit.fit_campaign`); the stats give the rank reached, the
+    directions the instrument cannot see and, with a ``split``, the bar errors of the check arcs or
+    crosses before and after."""
+    from comp_daemon.data.bars import read_table
+    from comp_daemon.data.campaigns import campaign_of
+    from comp_daemon.kinematics.forward import tcp_position_mm
+    from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
+    from comp_daemon.models.artifact import model_document
+    from comp_daemon.models.campaign_fit import fit_campaign
+
+    params = KinematicParams.from_robot(robot)
+    table = read_table(csv_text.encode("utf-8"), fmt="csv", source=source, limits_deg=robot.axis_limits_deg)
+    campaign = campaign_of(table, tcp_mm=lambda a: tcp_position_mm(params, axes_deg_to_q_rad(a, params.sign)))
+    assert campaign is not None
+    progress(0.05, f"calibrating from the {type(campaign).__name__}")
+    try:
+        fitted, check = fit_campaign(robot, campaign, model=model)
+    except ValueError as exc:
+        raise ValueError(f"{source}: {exc}") from None
+    info = {**fitted.info, "model": fitted.model.kind, "data_source": source, "campaign_check": check}
+    stats = {
+        "model": model,
+        "kind": fitted.model.kind,
+        "artifact_kind": fitted.model.kind,
+        "effects": [],
+        "order": None,
+        "frame": fitted.frame,
+        "campaign": info["campaign"],
+        "rank": info["rank"],
+        "not_identifiable": info["not_identifiable"],
+        "rows": {"fit": check["fit_rows"], "check": check["check_rows"]},
+        "split": "the file's split (whole arcs / placements)"
+        if table.split is not None
+        else "every row fitted",
+        "directions": None,
+        "bar_error_rms_mm": check.get("bar_error_rms_mm"),
+        "fit": info,
+    }
+    artifact = model_document(fitted.model, data_sha256=table.content_sha256, frame=fitted.frame, fit=info)
     return {"stats": stats, "artifact": artifact}
 
 

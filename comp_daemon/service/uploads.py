@@ -10,7 +10,10 @@
 - The rules are the file readers' (:mod:`comp_daemon.data.readers`, :mod:`comp_daemon.data.jsontext`):
   CSV as :func:`~comp_daemon.data.dataset.parse_dataset` reads it, JSON as
   :func:`~comp_daemon.data.dataset.read_dataset_json` does (a key given twice, a NUL or a lone
-  surrogate, an integer beyond any double are refused with the value's path).
+  surrogate, an integer beyond any double are refused with the value's path). A ballbar or
+  cross-bar campaign (told by its columns: ``bar_mm`` / ``dr_um``, ``placement`` / ``socket`` /
+  ``bar_l_mm``) is checked by its own form's rules (:mod:`comp_daemon.data.ballbar`,
+  :mod:`comp_daemon.data.crossbar`) and stored with every column; its summary names the campaign.
 
 Every refusal is an :class:`UploadRefused`: a :class:`~comp_daemon.data.dataset.DatasetError`
 with the same message, ``row``, ``column`` and, for JSON, the value's ``path`` (``$[3].a1``,
@@ -28,6 +31,8 @@ from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import IO, Any, Literal
 
+from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS, campaign_kind
+from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.dataset import DatasetError, dataset_from_json, dataset_to_csv, parse_dataset
 from comp_daemon.data.jsontext import load_json_records
 from comp_daemon.service.orphans import exit_with_parent
@@ -85,17 +90,38 @@ def check_upload(data: bytes, fmt: UploadFormat, name: str, limits: Any, kind: U
     ``name`` is the data set's name (a JSON ``{"name": …, "records": …}`` may give another).
     Raises :class:`UploadRefused`.
     """
+    campaign = None
     try:
         if fmt == "csv":
-            ds = parse_dataset(data, source=name, limits_deg=limits, min_rows=1, kind=kind)
+            as_kind = "any" if _campaign_header(data) else kind
+            ds = parse_dataset(data, source=name, limits_deg=limits, min_rows=1, kind=as_kind)
         else:
             doc = load_json_records(data, name)
             name = (doc.name or name)[:200]
-            ds = dataset_from_json(doc, source=name, limits_deg=limits, min_rows=1, kind=kind)
+            keys = set(doc.records[0]) if doc.records and isinstance(doc.records[0], dict) else set()
+            as_kind = "any" if keys & _MARKERS else kind
+            ds = dataset_from_json(doc, source=name, limits_deg=limits, min_rows=1, kind=as_kind)
+        if campaign_kind(ds) is not None:
+            campaign = campaign_of(ds)
     except DatasetError as exc:
         raise UploadRefused.of(exc) from None
     del data
-    return CheckedUpload(name, dataset_to_csv(ds), ds.content_sha256, len(ds), ds.summary())
+    summary = ds.summary()
+    if campaign is not None:
+        summary["campaign"] = campaign_kind(ds)
+    return CheckedUpload(name, dataset_to_csv(ds), ds.content_sha256, len(ds), summary)
+
+
+_MARKERS = frozenset((*BALLBAR_MARKERS, *CROSSBAR_MARKERS))
+
+
+def _campaign_header(data: bytes) -> bool:
+    """Whether the first line of a CSV body names a ballbar or cross-bar column."""
+    first = bytes(data[: data.find(b"\n") if b"\n" in data[:65536] else 65536])
+    names = {
+        cell.strip().strip('"') for cell in first.decode("utf-8", "replace").removeprefix("\ufeff").split(",")
+    }
+    return bool(names & _MARKERS)
 
 
 def _check_file(path: str, fmt: UploadFormat, name: str, limits: Any, kind: UploadKind) -> CheckedUpload:

@@ -13,6 +13,10 @@ box diagonal, each approached ``n_cycles`` times from three mutually perpendicul
 (start points ``approach_mm`` along +x, +y, +z of the base frame). ``vAP`` is the largest distance
 between the barycentres of the three directions; ``RP = l̄ + 3·S_l`` the repeatability of one
 direction (l: distances of the attained positions to their barycentre).
+
+Several targets (``targets`` > 1): reflectors fixed to the flange beside the TCP
+(:func:`reflector_offsets_mm`), measured at every pose with independent tracker noise each and
+written as the columns ``x2, y2, z2`` … of the data set.
 """
 
 from __future__ import annotations
@@ -41,6 +45,7 @@ __all__ = [
     "measure_at",
     "nearest_neighbour_route",
     "raw_error_stats",
+    "reflector_offsets_mm",
     "run_campaign",
     "sample_poses",
     "solve_axes",
@@ -48,6 +53,20 @@ __all__ = [
 
 GRATING_RESOLUTION_MM = 50e-6
 DT_S = 0.012
+REFLECTOR_RADIUS_MM = 150.0
+MAX_TARGETS = 7
+
+
+def reflector_offsets_mm(tool_xyz_mm: NDArray[np.float64], targets: int) -> NDArray[np.float64]:
+    """(targets, 3) positions of the reflectors in the flange frame (mm): the first at the TCP
+    (``tool_xyz_mm``), the others :data:`REFLECTOR_RADIUS_MM` from it in the flange's x-y plane,
+    60° apart (three targets: an equilateral triangle of 150 mm sides; up to seven: a hexagon)."""
+    if not 1 <= targets <= MAX_TARGETS:
+        raise ValueError(f"targets: between 1 and {MAX_TARGETS} reflectors, got {targets}")
+    phi = np.deg2rad(60.0 * np.arange(targets - 1))
+    ring = REFLECTOR_RADIUS_MM * np.stack([np.cos(phi), np.sin(phi), np.zeros_like(phi)], axis=1)
+    tool = np.asarray(tool_xyz_mm, dtype=float)
+    return np.concatenate([tool[None, :], tool + ring], axis=0)
 
 
 @dataclass(frozen=True, slots=True)
@@ -130,12 +149,22 @@ class Measurement:
     g_deg: NDArray[np.float64]  # (6,) grating reading (quantised output angle)
     t_s: float
     temp_c: float
+    more_xyz_mm: NDArray[np.float64] | None = None  # (K − 1, 3) tracker readings of further reflectors
 
 
 def measure_at(
-    plant: RobotPlant, tracker: LaserTracker, a_deg: NDArray[np.float64], dwell_s: float, radius_mm: float
+    plant: RobotPlant,
+    tracker: LaserTracker,
+    a_deg: NDArray[np.float64],
+    dwell_s: float,
+    radius_mm: float,
+    more_flange_xyz_mm: NDArray[np.float64] | None = None,
 ) -> Measurement:
-    """Move to ``a_deg``, settle, dwell, and measure (tracker, directions, gratings, time, temperature)."""
+    """Move to ``a_deg``, settle, dwell, and measure (tracker, directions, gratings, time, temperature).
+
+    ``more_flange_xyz_mm`` (K − 1, 3): further reflectors on the flange (flange frame), measured
+    with the TCP, each with its own tracker noise.
+    """
     plant.move_to(a_deg)
     plant.run_until_settled(DT_S)
     if dwell_s > 0.0:
@@ -143,13 +172,20 @@ def measure_at(
     true = plant.tcp_true_mm()
     out = plant.output_angles_deg()
     counts = np.round(np.deg2rad(out) * radius_mm / GRATING_RESOLUTION_MM)
+    more = None
+    if more_flange_xyz_mm is not None and len(more_flange_xyz_mm):
+        both = tracker.measure(np.concatenate([true[None, :], plant.points_true_mm(more_flange_xyz_mm)]))
+        measured, more = both[0], both[1:]
+    else:
+        measured = tracker.measure(true)
     return Measurement(
-        xyz_mm=tracker.measure(true),
+        xyz_mm=measured,
         tcp_true_mm=true,
         dir=plant.approach_dir(),
         g_deg=np.rad2deg(counts * GRATING_RESOLUTION_MM / radius_mm),
         t_s=plant.time_s,
         temp_c=plant.temperature_c(),
+        more_xyz_mm=more,
     )
 
 
@@ -166,17 +202,22 @@ def run_campaign(
     repeats: int | None = None,
     in_tracker_frame: bool = False,
     gratings: bool = True,
+    targets: int | None = None,
 ) -> Dataset:
     """A measurement campaign of ``n`` poses (× ``repeats``) on the scenario's hidden robot.
 
     ``seed`` (default: the scenario's campaign seed) drives the poses, the payload assignment, the
     split and all noise; the hidden robot is the scenario's own. ``in_tracker_frame`` reports
     x, y, z in the tracker frame of ``[cell]`` instead of the robot base frame. ``gratings`` adds
-    g columns for the scenario's grating joints.
+    g columns for the scenario's grating joints. ``targets`` (default: the scenario's) reflectors
+    on the flange are measured at every pose (:func:`reflector_offsets_mm`; the hidden robot's tool
+    is the first).
     """
     cam = scenario.campaign
     seed = cam.seed if seed is None else seed
     repeats = cam.repeats if repeats is None else repeats
+    targets = cam.targets if targets is None else targets
+    more_flange = reflector_offsets_mm(scenario.true_params().tool_xyz_mm, targets)[1:]
     if repeats < 1:
         raise ValueError(f"repeats: must be >= 1, got {repeats}")
     rng = np.random.default_rng(seed)
@@ -213,6 +254,7 @@ def run_campaign(
                     poses.a_deg[pose],
                     scenario.motion.dwell_s,
                     scenario.cell.grating_radius_mm,
+                    more_flange,
                 )
             )
             rows_pose.append(int(pose))
@@ -236,6 +278,7 @@ def run_campaign(
         pose_id=tuple(f"p{p + 1:04d}" for p in idx),
         target_xyz_mm=poses.target_xyz_mm[idx],
         target_abc_deg=poses.target_abc_deg[idx],
+        more_xyz_mm=np.array([m.more_xyz_mm for m in meas]) if targets > 1 else None,
         source=f"sim:{scenario.name}:seed{seed}",
     )
 

@@ -19,6 +19,7 @@ import numpy as np
 
 from comp_daemon.data.dataset import write_dataset
 from comp_daemon.robot.description import PRESETS, load_robot
+from comp_daemon.sim.bars import CAMPAIGN_SCENARIOS, run_ballbar_campaign, run_crossbar_campaign
 from comp_daemon.sim.campaign import iso9283_multidirection, raw_error_stats, run_campaign
 from comp_daemon.sim.scenario import PRESET_SCENARIOS, Scenario, load_scenario
 
@@ -26,7 +27,10 @@ from comp_daemon.sim.scenario import PRESET_SCENARIOS, Scenario, load_scenario
 def register(subparsers: argparse._SubParsersAction) -> None:
     sim = subparsers.add_parser("sim", help="the simulated drilling cell: measurement campaigns, figures")
     sub = sim.add_subparsers(dest="sim_command", metavar="SIM_COMMAND", required=True)
-    scen_help = f"preset ({', '.join(PRESET_SCENARIOS)}) or path to a scenario TOML (default kr210-cell)"
+    scen_help = (
+        f"preset ({', '.join(PRESET_SCENARIOS)}) or path to a scenario TOML (default kr210-cell); "
+        "ballbar or crossbar: a campaign of that instrument (see --cell)"
+    )
     robot_help = f"use this robot description ({', '.join(PRESETS)} or a path) instead of the scenario's"
 
     sample = sub.add_parser("sample", help="write a measurement campaign (data set CSV) of a scenario")
@@ -42,6 +46,19 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="report x, y, z in the tracker's own frame (the scenario's [cell] tracker pose)",
     )
     sample.add_argument("--no-gratings", action="store_true", help="leave out the g columns")
+    sample.add_argument(
+        "--targets",
+        type=int,
+        default=None,
+        help="reflectors on the flange measured at every pose (x,y,z, x2,y2,z2 …; default: the scenario's)",
+    )
+    sample.add_argument(
+        "--cell",
+        default=None,
+        help="with --scenario ballbar|crossbar: the scenario whose hidden robot is measured (default "
+        + ", ".join(f"{k}: {v}" for k, v in CAMPAIGN_SCENARIOS.items())
+        + "); --n is then the number of arcs / cross placements",
+    )
     sample.set_defaults(func=_sample)
 
     report = sub.add_parser(
@@ -71,6 +88,11 @@ def _positive(value: int | None, flag: str) -> None:
 def _sample(args: argparse.Namespace) -> int:
     _positive(args.n, "--n")
     _positive(args.repeats, "--repeats")
+    _positive(args.targets, "--targets")
+    if args.scenario in CAMPAIGN_SCENARIOS:
+        if args.targets is not None:
+            raise ValueError(f"--targets is for pose campaigns, not a {args.scenario} campaign")
+        return _sample_bars(args)
     scenario = _scenario(args)
     dataset = run_campaign(
         scenario,
@@ -79,6 +101,7 @@ def _sample(args: argparse.Namespace) -> int:
         repeats=args.repeats,
         in_tracker_frame=args.tracker_frame,
         gratings=not args.no_gratings,
+        targets=args.targets,
     )
     write_dataset(dataset, args.out)
     assert dataset.split is not None
@@ -86,6 +109,27 @@ def _sample(args: argparse.Namespace) -> int:
     print(
         f"wrote {len(dataset.split)} rows ({len(dataset.split) - n_check} fit, {n_check} check) of scenario "
         f"{scenario.name} to {args.out}",
+        file=sys.stderr,
+    )
+    return 0
+
+
+def _sample_bars(args: argparse.Namespace) -> int:
+    """A ballbar (--n arcs) or cross-bar (--n placements) campaign (:mod:`comp_daemon.sim.bars`)."""
+    cell = args.cell or CAMPAIGN_SCENARIOS[args.scenario]
+    scenario = load_scenario(cell)
+    if args.robot is not None:
+        scenario = dataclasses.replace(scenario, robot=load_robot(args.robot))
+    seed = 0 if args.seed is None else args.seed
+    if args.scenario == "ballbar":
+        dataset = run_ballbar_campaign(scenario, arcs=args.n, seed=seed, repeats=args.repeats or 1)
+        what = f"{args.n} arcs"
+    else:
+        dataset = run_crossbar_campaign(scenario, placements=args.n, seed=seed)
+        what = f"{args.n} cross placements"
+    write_dataset(dataset, args.out)
+    print(
+        f"wrote {len(dataset)} rows ({what}) of a {args.scenario} campaign on {cell} to {args.out}",
         file=sys.stderr,
     )
     return 0

@@ -353,3 +353,9 @@ class RobotPlant:
     def tcp_true_mm(self) -> NDArray[np.float64]:
         """(3,) true TCP in the robot base frame (mm)."""
         return self._twin().tcp_mm[0].copy()
+
+    def points_true_mm(self, flange_xyz_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+        """(k, 3) true positions (robot base frame, mm) of points fixed to the flange at ``flange_xyz_mm``
+        (k, 3, flange frame): further reflectors beside the TCP."""
+        flange = self._twin().chain.world_T_frame[0, 6]
+        return np.asarray(flange_xyz_mm, dtype=float) @ flange[:3, :3].T + flange[:3, 3]

@@ -24,7 +24,8 @@ sampled and the noise. Units are in the field names (mm, deg, kg, °C, s, N m). 
                  zeros: the tracker reports in the robot base frame), grating_joints, grating_radius_mm
     [campaign]   box_min_mm, box_max_mm (robot base frame), abc_min_deg, abc_max_deg (KUKA A, B, C
                  of the tool frame), home_deg, payload_kg (list: each pose gets one), check_fraction,
-                 repeats, seed
+                 repeats, seed, targets (reflectors on the flange per pose, default 1; see
+                 :func:`comp_daemon.sim.campaign.reflector_offsets_mm`)
 
 The tool frame of A, B, C is KUKA's: x along the tool (the flange frame's z), so A = B = C = 0 is
 the tool pointing along +x of the base, as at the KR210's home pose.
@@ -159,6 +160,7 @@ class CampaignSettings:
     check_fraction: float = 0.4
     repeats: int = 1
     seed: int = 0
+    targets: int = 1  # reflectors on the flange measured at every pose (x,y,z, then x2,y2,z2 …)
 
 
 @dataclass(frozen=True, slots=True)
@@ -405,6 +407,7 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         "check_fraction",
         "repeats",
         "seed",
+        "targets",
     }
     cam_t = _table(doc, "campaign", source, cam_fields)
     box_min = _arr(cam_t, "box_min_mm", w, (3,))
@@ -427,11 +430,11 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         raise ScenarioError(f"{w}.check_fraction: must be below 1, got {check_fraction}")
     repeats = cam_t.get("repeats", 1)
     cseed = cam_t.get("seed", 0)
-    for key, val in (("repeats", repeats), ("seed", cseed)):
-        if not isinstance(val, int) or isinstance(val, bool) or val < (1 if key == "repeats" else 0):
-            raise ScenarioError(
-                f"{w}.{key}: expected an integer >= {1 if key == 'repeats' else 0}, got {val!r}"
-            )
+    targets = cam_t.get("targets", 1)
+    for key, val in (("repeats", repeats), ("seed", cseed), ("targets", targets)):
+        least = 0 if key == "seed" else 1
+        if not isinstance(val, int) or isinstance(val, bool) or val < least:
+            raise ScenarioError(f"{w}.{key}: expected an integer >= {least}, got {val!r}")
     campaign = CampaignSettings(
         box_min_mm=box_min,
         box_max_mm=box_max,
@@ -442,6 +445,7 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         check_fraction=check_fraction,
         repeats=repeats,
         seed=cseed,
+        targets=targets,
     )
     return Scenario(
         name=name,

@@ -6,8 +6,9 @@ errors (Fig. 11) and seed 001's model comparison on the same data. The HTML page
 error of every target point (Figs 7–10) and the details (models, data sets, loop statistics). It
 loads nothing, runs no script, and prints on one page width. Numbers are mm unless marked.
 
-The text is rendered here, the page in :mod:`comp_daemon.trial.report_html`; what both pick out of
-the result is :mod:`comp_daemon.trial.report_data`.
+The text is rendered here, the page in :mod:`comp_daemon.trial.report_html` (its figures, drawn by
+matplotlib, in :mod:`comp_daemon.trial.plots`); what both pick out of the result is
+:mod:`comp_daemon.trial.report_data`.
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """The trial's report as a self-contained HTML page (:mod:`comp_daemon.trial.report` says what it shows).
 
-The page loads nothing, runs no script, and prints on one page width; figures are inline SVG
-(:mod:`comp_daemon.diagnosis.svg`).
+The page loads nothing, runs no script, and prints on one page width; figures are drawn by
+matplotlib and embedded as inline SVG (:mod:`comp_daemon.trial.plots`).
 """
 
 from __future__ import annotations
@@ -11,7 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from comp_daemon.diagnosis.svg import Series, panel
+from comp_daemon.trial.plots import (
+    COLORS,
+    error_histogram_figure,
+    iso_figure,
+    method_histograms_figure,
+    point_error_figures,
+)
 from comp_daemon.trial.report_data import (
     COMPARISONS,
     figure_rows,
@@ -21,20 +27,9 @@ from comp_daemon.trial.report_data import (
     table_rows,
 )
 from comp_daemon.trial.result import TrialResult
-from comp_daemon.trial.stats import histogram
 from comp_daemon.trial.verdict import verdict
 
 __all__ = ["render_html"]
-
-COLORS = {
-    "uncompensated": "#c0392b",
-    "kinematic": "#e67e22",
-    "feedback": "#8e44ad",
-    "kinematic+feedback": "#2980b9",
-    "chebyshev+feedback": "#27ae60",
-    "chebyshev-seed000+feedback": "#16a085",
-}
-FONT = "font-family:sans-serif;font-size:11px"
 
 
 def _e(text: object) -> str:
@@ -45,115 +40,6 @@ def _f(v: Any, digits: int = 3) -> str:
     if v is None or (isinstance(v, float) and not np.isfinite(v)):
         return "—"
     return f"{float(v):.{digits}f}"
-
-
-def _grouped_bars(
-    edges: list[float], groups: list[tuple[str, list[float], str]], *, title: str, xlabel: str, ylabel: str
-) -> str:
-    """Grouped vertical bars per bin (seed 000 Fig. 11): shares in %, one colour per method."""
-    width, height = 760, 300
-    ml, mr, mt, mb = 52, 10, 24, 44
-    pw, ph = width - ml - mr, height - mt - mb
-    nb = max(1, len(edges) - 1)
-    top = max((max(v) for _, v, _ in groups if v), default=0.0) * 100.0
-    ystep = next(s for s in (5, 10, 20, 25, 50) if top / s <= 6)
-    ymax = max(ystep, ystep * np.ceil(top / ystep))
-    body = [
-        f'<rect x="{ml}" y="{mt}" width="{pw}" height="{ph}" fill="#fff" stroke="#888" stroke-width="0.8"/>',
-        f'<text x="{ml}" y="15" style="{FONT};font-weight:bold">{_e(title)}</text>',
-        f'<text x="{ml + pw / 2}" y="{height - 6}" text-anchor="middle" style="{FONT}">{_e(xlabel)}</text>',
-        f'<text transform="translate(13,{mt + ph / 2}) rotate(-90)" text-anchor="middle" '
-        f'style="{FONT}">{_e(ylabel)}</text>',
-    ]
-    for t in np.arange(0.0, ymax + 1e-9, ystep):
-        y = mt + ph * (1.0 - t / ymax)
-        body.append(f'<line x1="{ml}" x2="{ml + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="#eee"/>')
-        body.append(f'<text x="{ml - 4}" y="{y + 3.5:.1f}" text-anchor="end" style="{FONT}">{t:.0f}</text>')
-    slot = pw / nb
-    bw = 0.8 * slot / max(1, len(groups))
-    for b in range(nb):
-        x_label = ml + (b + 0.5) * slot
-        if nb <= 20 or b % 2 == 0:
-            body.append(
-                f'<text x="{x_label:.1f}" y="{mt + ph + 13}" text-anchor="middle" style="{FONT}">'
-                f"{edges[b]:.2f}–{edges[b + 1]:.2f}</text>"
-                if nb <= 10
-                else f'<text x="{ml + b * slot:.1f}" y="{mt + ph + 13}" text-anchor="middle" '
-                f'style="{FONT}">{edges[b]:.2f}</text>'
-            )
-        for gi, (_, share, color) in enumerate(groups):
-            v = 100.0 * share[b]
-            h = ph * v / ymax
-            x = ml + b * slot + 0.1 * slot + gi * bw
-            body.append(
-                f'<rect x="{x:.1f}" y="{mt + ph - h:.1f}" width="{bw:.1f}" height="{h:.1f}" fill="{color}"/>'
-            )
-    y = mt + 12
-    for label, _, color in groups:
-        body.append(f'<rect x="{ml + pw - 230}" y="{y - 8}" width="9" height="9" fill="{color}"/>')
-        body.append(f'<text x="{ml + pw - 217}" y="{y}" style="{FONT}">{_e(label)}</text>')
-        y += 14
-    return (
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-        f'viewBox="0 0 {width} {height}" role="img" aria-label="{_e(title)}">' + "".join(body) + "</svg>"
-    )
-
-
-def _iso_bars(result: TrialResult) -> str:
-    """vAP per test point without and with feedback, and the largest RP (seed 000 Fig. 6)."""
-    runs = result.iso.get("runs", {})
-    without = runs.get("without", {}).get("stats")
-    with_ = runs.get("with", {}).get("stats")
-    if without is None:
-        return ""
-    n = len(without["vap_mm"])
-    series: list[tuple[str, list[float], str]] = [("vAP, robot alone", without["vap_mm"], "#c0392b")]
-    if with_ is not None:
-        series.append(("vAP, with joint feedback", with_["vap_mm"], "#27ae60"))
-    series.append(("RP (largest direction), robot alone", without["rp_max_mm"], "#7f8c8d"))
-    if with_ is not None:
-        series.append(("RP, with joint feedback", with_["rp_max_mm"], "#bdc3c7"))
-    width, height = 760, 280
-    ml, mr, mt, mb = 52, 10, 24, 36
-    pw, ph = width - ml - mr, height - mt - mb
-    top = max(max(v) for _, v, _ in series)
-    step = next(s for s in (0.02, 0.05, 0.1, 0.2, 0.5, 1.0) if top / s <= 6)
-    ymax = step * np.ceil(top / step + 0.15)
-    body = [
-        f'<rect x="{ml}" y="{mt}" width="{pw}" height="{ph}" fill="#fff" stroke="#888" stroke-width="0.8"/>',
-        f'<text x="{ml}" y="15" style="{FONT};font-weight:bold">ISO 9283 multi-directional pose accuracy '
-        "variation vAP and pose repeatability RP (mm)</text>",
-    ]
-    for t in np.arange(0.0, ymax + 1e-9, step):
-        y = mt + ph * (1.0 - t / ymax)
-        body.append(f'<line x1="{ml}" x2="{ml + pw}" y1="{y:.1f}" y2="{y:.1f}" stroke="#eee"/>')
-        body.append(f'<text x="{ml - 4}" y="{y + 3.5:.1f}" text-anchor="end" style="{FONT}">{t:.2f}</text>')
-    slot = pw / n
-    bw = 0.7 * slot / len(series)
-    for i in range(n):
-        body.append(
-            f'<text x="{ml + (i + 0.5) * slot:.1f}" y="{mt + ph + 14}" text-anchor="middle" '
-            f'style="{FONT}">P{i + 1}</text>'
-        )
-        for k, (_, vals, color) in enumerate(series):
-            h = ph * vals[i] / ymax
-            x = ml + i * slot + 0.15 * slot + k * bw
-            body.append(
-                f'<rect x="{x:.1f}" y="{mt + ph - h:.1f}" width="{bw:.1f}" height="{h:.1f}" fill="{color}"/>'
-            )
-            body.append(
-                f'<text x="{x + bw / 2:.1f}" y="{mt + ph - h - 3:.1f}" text-anchor="middle" '
-                f'style="{FONT};font-size:9px">{vals[i]:.3f}</text>'
-            )
-    y = mt + 12
-    for label, _, color in series:
-        body.append(f'<rect x="{ml + pw - 250}" y="{y - 8}" width="9" height="9" fill="{color}"/>')
-        body.append(f'<text x="{ml + pw - 237}" y="{y}" style="{FONT}">{_e(label)}</text>')
-        y += 14
-    return (
-        f'<svg xmlns="http://www.w3.org/2000/svg" width="{width}" height="{height}" '
-        f'viewBox="0 0 {width} {height}" role="img" aria-label="ISO 9283">' + "".join(body) + "</svg>"
-    )
 
 
 def _html_table2(result: TrialResult) -> str:
@@ -267,33 +153,6 @@ def _html_models(result: TrialResult) -> str:
     )
 
 
-def _error_panels(result: TrialResult) -> str:
-    rows = figure_rows(result)
-    if not rows:
-        return ""
-    panels = []
-    for title, col in (("x", 0), ("y", 1), ("z", 2), ("3-D", None)):
-        series = []
-        for k in rows:
-            run = result.runs[k]
-            e = run.measured_mm - run.wanted_mm
-            y = np.linalg.norm(e, axis=1) if col is None else e[:, col]
-            y = np.where(run.ok, y, np.nan)
-            x = np.arange(1, run.n + 1, dtype=float)
-            series.append(Series(x, y, COLORS.get(k, "#555"), run.label, kind="line"))
-        panels.append(
-            panel(
-                series,
-                title=f"error {title} per target point" + (" (eq. 27)" if col is None else ""),
-                xlabel="target point (visiting order)",
-                ylabel="mm",
-                width=760,
-                height=240,
-            )
-        )
-    return "".join(f"<div class=fig>{p}</div>" for p in panels)
-
-
 CSS = """
 body{font-family:system-ui,sans-serif;margin:24px auto;max-width:900px;color:#222;line-height:1.4}
 h1{font-size:22px;margin-bottom:4px}h2{font-size:17px;margin-top:28px;border-bottom:1px solid #ddd}
@@ -304,7 +163,8 @@ td.paper{color:#666;font-style:italic}.dot{display:inline-block;width:9px;height
 .summary{display:flex;gap:10px;flex-wrap:wrap;margin:14px 0}
 .card{border:1px solid #ddd;border-radius:6px;padding:8px 12px;min-width:170px}
 .card b{font-size:20px;display:block}.card small{color:#666}.ok{color:#1e8449}.bad{color:#c0392b}
-.fig{margin:6px 0}small{color:#666}code{font-size:12px}
+.fig{margin:6px 0}figure.plot{margin:8px 0}figcaption{font-size:12px;color:#555}
+small{color:#666}code{font-size:12px}
 """
 
 
@@ -333,18 +193,9 @@ def render_html(result: TrialResult, *, command: str | None = None) -> str:
             f"(−{100 * t['reduction']:.0f} %; −{100 * t['vs_kinematic']:.0f} % against kinematic "
             f"calibration), every axis within ±{t['axis_max_abs']:.3f} mm.</p>"
         )
-    hist = ""
-    rows = figure_rows(result)
-    if rows:
-        errs = {k: np.linalg.norm(result.runs[k].errors_mm(), axis=1) for k in rows}
-        h = histogram(errs)
-        hist = _grouped_bars(
-            h["edges_mm"],
-            [(result.runs[k].label, h["share"][k], COLORS.get(k, "#555")) for k in rows],
-            title="Frequency of the 3-D positioning error of the target points (seed 000 Fig. 11)",
-            xlabel="3-D error (mm)",
-            ylabel="share of target points (%)",
-        )
+    hist = error_histogram_figure(result, figure_rows(result)) + method_histograms_figure(
+        result, table_rows(result)
+    )
     grat = ""
     if result.gratings:
         grat = "<table class=num><tr><th>joint</th><th>readings</th><th>span (°)</th><th>scale</th>" \
@@ -389,14 +240,14 @@ Seed 000 gives only the 3-D figures quoted in its text.</p>
 {_html_table2(result)}
 <div class=fig>{hist}</div>
 <h2>Per target point (seed 000 Figs 7–10)</h2>
-{_error_panels(result)}
+<div class=fig>{point_error_figures(result, figure_rows(result))}</div>
 <h2>ISO 9283 multi-directional pose accuracy (seed 000 Figs 5–6)</h2>
 <p>Each test point approached from +x, +y and +z ({_e(result.iso.get("approach_mm"))} mm moves),
 {_e(result.iso.get("cycles"))} cycles after {_e(result.iso.get("warmup_cycles"))} warm-up cycle(s);
 vAP: largest
 distance between the three directions' barycentres; RP = l̄ + 3·S_l of the worst direction; rated
 repeatability ±{_e(result.iso.get("repeatability_rated_mm"))} mm.</p>
-<div class=fig>{_iso_bars(result)}</div>
+<div class=fig>{iso_figure(result)}</div>
 {_html_iso_table(result)}
 <h2>Seed 001's model comparison on the same data</h2>
 {_html_comparison(result)}

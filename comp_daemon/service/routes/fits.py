@@ -4,17 +4,23 @@
 a fit can name. A fit runs in the process pool; ``GET /api/jobs/{id}`` follows it (state,
 progress 0..1, result statistics). When it is done, the model it made is listed under
 ``/api/models`` (inactive); activating one makes the daemon compensate with it from its next
-target on.
+target on. ``GET /api/models/{id}/export?format=kuka|abb|csv`` lists a kinematic model's identified
+parameters (``docs/export.md``).
 """
 
 from __future__ import annotations
 
+import json
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query
-from fastapi.responses import JSONResponse, Response
+from fastapi.responses import JSONResponse, PlainTextResponse, Response
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.models.artifact import ModelArtifactError, parse_model
+from comp_daemon.models.export.formats import params_text
+from comp_daemon.models.export.params import listing_of
+from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.registry import KINDS, UnknownModelError, parse_model_name, with_order
 from comp_daemon.service import job_kinds
 from comp_daemon.service.auth import Principal, require
@@ -238,6 +244,45 @@ async def get_artifact(model_id: ModelId, svc: State, who: Viewer) -> JSONRespon
     return JSONResponse(
         model.artifact,
         headers={"Content-Disposition": f'attachment; filename="model-{model.id}-{model.kind}.json"'},
+    )
+
+
+@router.get(
+    "/models/{model_id}/export",
+    tags=["models"],
+    summary="A kinematic model's identified parameters as a KUKA, ABB or CSV listing (docs/export.md)",
+    response_class=PlainTextResponse,
+    responses={
+        200: {"content": {"text/plain": {}, "text/csv": {}}, "description": "the listing"},
+        **_NOT_FOUND,
+        409: {"model": ErrorOut},
+    },
+)
+async def export_model(
+    model_id: ModelId,
+    svc: State,
+    who: Viewer,
+    fmt: Annotated[
+        Literal["kuka", "abb", "csv"], Query(alias="format", description="listing format")
+    ] = "csv",
+) -> Response:
+    model = await svc.run(svc.store.get_model, model_id, with_artifact=True)
+
+    def listing() -> str:
+        loaded = parse_model(json.dumps(model.artifact), source=f"model {model_id}")
+        listed = listing_of(loaded.model, loaded.document)  # ValueError: not a kinematic model
+        assert isinstance(loaded.model, KinematicModel)
+        return params_text(listed, loaded.model, fmt)[0]
+
+    try:
+        text = await svc.run(listing)
+    except (ModelArtifactError, ValueError) as exc:
+        raise ApiError(409, "conflict", f"model {model_id}: {exc}") from None
+    suffix = {"kuka": "dat", "abb": "cfg", "csv": "csv"}[fmt]
+    return PlainTextResponse(
+        text,
+        media_type="text/csv" if fmt == "csv" else "text/plain",
+        headers={"Content-Disposition": f'attachment; filename="model-{model_id}-{fmt}.{suffix}"'},
     )
 
 

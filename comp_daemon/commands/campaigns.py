@@ -1,0 +1,114 @@
+"""The ballbar and cross-bar doors of ``comp-daemon fit`` and ``evaluate``.
+
+- ``fit CAMPAIGN.csv --robot R --model poe|kinematic --out MODEL.json``: a ballbar campaign
+  calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
+  (:func:`comp_daemon.models.campaign_fit.fit_campaign`); the file's form is told by its columns.
+  The artifact is an ordinary ``poe`` / ``kinematic`` model, which ``evaluate --calibrated`` and
+  ``compensate`` take. The report names the rank reached and the directions the instrument cannot see.
+- ``evaluate TRACKER.csv --calibrated MODEL.json,…``: each artifact, calibrated elsewhere, is judged
+  on the tracker data's check rows next to the models fitted there; only its base frame is fitted,
+  on the fit rows (:func:`comp_daemon.models.campaign_fit.registered_prediction`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import io
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from comp_daemon.commands.errors import UserError
+from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS, read_table
+from comp_daemon.data.campaigns import campaign_of
+from comp_daemon.data.columns import DatasetError
+from comp_daemon.data.table import Dataset
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
+from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
+from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction
+from comp_daemon.models.evaluation import error_statistics
+from comp_daemon.robot.description import RobotDescription
+
+__all__ = ["evaluate_calibrated", "fit_campaign_file", "is_campaign_file", "nominal_tcp"]
+
+
+def nominal_tcp(robot: RobotDescription) -> Any:
+    """The robot description's TCP (n, 3) of axis values (n, 6): the readers' 5 mm pivot check."""
+    params = KinematicParams.from_robot(robot)
+    return lambda a_deg: tcp_position_mm(params, axes_deg_to_q_rad(a_deg, params.sign))
+
+
+def _header(path: str) -> list[str]:
+    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
+        first = next(csv.reader(io.StringIO(f.readline())), [])
+    return [h.strip() for h in first]
+
+
+def is_campaign_file(path: str) -> bool:
+    """Whether a CSV file's header is that of a ballbar or cross-bar campaign (JSON: read whole)."""
+    try:
+        if Path(path).suffix.lower() == ".json":
+            from comp_daemon.data.bars import campaign_kind
+
+            return campaign_kind(read_table(path)) is not None
+        header = set(_header(path))
+    except (OSError, DatasetError):
+        return False
+    return bool(header & {*BALLBAR_MARKERS, *CROSSBAR_MARKERS})
+
+
+def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
+    """``fit`` of a ballbar or cross-bar campaign (module docstring)."""
+    try:
+        table = read_table(args.data, limits_deg=robot.axis_limits_deg)
+        campaign = campaign_of(table, tcp_mm=nominal_tcp(robot))
+    except DatasetError as exc:
+        raise UserError(str(exc)) from None
+    assert campaign is not None
+    try:
+        fitted, check = fit_campaign(robot, campaign, model=args.model, seed=args.seed)
+    except ValueError as exc:
+        raise UserError(f"{campaign.source}: {exc}") from None
+    info = dict(fitted.info)
+    info.update(model=fitted.model.kind, data_source=campaign.source, campaign_check=check)
+    info["data_rows_used"] = "fit rows" if campaign.rows.split is not None else "all rows"
+    save_model(fitted.model, args.out, data_sha256=table.content_sha256, frame=fitted.frame, fit=info)
+    print(
+        f"{info['campaign']} campaign -> {fitted.model.kind} model: {check['fit_rows']} rows, "
+        f"rank {info['rank']} of {info['parameters']}, residual RMS {info['rms_mm']:.4f} mm -> {args.out}"
+    )
+    for line in info["not_identifiable"]:
+        print(f"  {line if line.startswith('not identifiable') else 'not identifiable: ' + line}")
+    if "bar_error_rms_mm" in check:
+        b = check["bar_error_rms_mm"]
+        print(f"  check {check['check_rows']} rows: bar error RMS {b['before']:.4f} -> {b['after']:.4f} mm")
+    return 0
+
+
+def evaluate_calibrated(
+    paths: str, robot: RobotDescription, dataset: Dataset, fit_rows: np.ndarray, check_rows: np.ndarray
+) -> tuple[dict[str, dict[str, Any]], dict[str, dict[str, Any]]]:
+    """(Table 2 statistics, fit info) of each artifact of ``paths`` (comma-separated) on the check rows."""
+    assert dataset.a_deg is not None and dataset.xyz_mm is not None
+    table: dict[str, dict[str, Any]] = {}
+    fits: dict[str, dict[str, Any]] = {}
+    for path in (p.strip() for p in paths.split(",") if p.strip()):
+        try:
+            loaded = load_model(path, robot)
+        except ModelArtifactError as exc:
+            raise UserError(str(exc)) from None
+        pred, frame = registered_prediction(
+            loaded.model,
+            dataset.a_deg[fit_rows],
+            dataset.xyz_mm[fit_rows],
+            dataset.a_deg[check_rows],
+            dataset.payload_kg[fit_rows],
+            dataset.payload_kg[check_rows],
+        )
+        name = Path(path).name
+        table[name] = error_statistics(dataset.xyz_mm[check_rows], pred)
+        fits[name] = {"artifact": path, "kind": loaded.model.kind, "registered_frame": frame.tolist()}
+    return table, fits

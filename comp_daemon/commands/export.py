@@ -1,0 +1,166 @@
+"""``comp-daemon export params | targets``: a model in the controller's own form.
+
+- ``export params --model MODEL.json --format kuka|abb|csv -o FILE [--data DATA]`` lists a
+  kinematic model's identified parameters (``kinematic``, ``kinematic+ratio+backlash`` …) for a
+  KUKA or ABB engineer to review, or as CSV with the nominal value, the change and the 1-σ of each
+  (:mod:`comp_daemon.models.export.params`); ``--data`` adds the RMS on the data set's check rows
+  to the header.
+- ``export targets --model MODEL.json --targets TARGETS.csv --format krl|rapid|csv -o FILE``
+  compensates the targets as ``compensate`` does (the same refusals and options; any model kind)
+  and writes the compensated axis values with the nominal Cartesian target, one named point a
+  target (:mod:`comp_daemon.models.export.targets`).
+
+Both read their output back before they finish and refuse to leave a file that does not give the
+values it was written from (parameters: the same TCP to 1e-6 mm at the model's corner poses;
+targets: the same axis values to 1e-9 deg). The formats, their fields and units are in
+``docs/export.md``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from comp_daemon.commands.errors import UserError
+from comp_daemon.commands.fit import compensate_targets, compensation_options
+from comp_daemon.common.atomic import write_text_atomic
+from comp_daemon.data.dataset import DatasetError, read_dataset, read_dataset_json
+from comp_daemon.models.artifact import LoadedModel, ModelArtifactError, load_model
+from comp_daemon.models.compensation import nominal_targets
+from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, params_text, write_targets
+from comp_daemon.models.export.frames import abc_deg_to_matrix
+from comp_daemon.models.export.params import listing_of
+from comp_daemon.models.export.targets import TargetList, module_name, point_names
+from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, load_robot
+
+__all__ = ["register"]
+
+#: the largest axis difference (deg) a target list read back may have
+ROUND_TRIP_DEG = 1e-9
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    export = subparsers.add_parser(
+        "export",
+        help="a model in the controller's form: KUKA/ABB/CSV parameter listings, KRL/RAPID/CSV target lists",
+    )
+    sub = export.add_subparsers(dest="export_command", metavar="WHAT", required=True)
+    robot_help = f"refuse the model unless it belongs to this robot (preset: {', '.join(PRESETS)}, or TOML)"
+
+    params = sub.add_parser(
+        "params", help="a kinematic model's identified parameters as a reviewable listing"
+    )
+    params.add_argument(
+        "--model", required=True, metavar="MODEL.json", help="model artifact written by 'fit'"
+    )
+    params.add_argument("--format", required=True, choices=tuple(PARAM_FORMATS), help="listing format")
+    params.add_argument("-o", "--out", required=True, metavar="FILE", help="listing to write")
+    params.add_argument(
+        "--data", default=None, metavar="DATA", help="measurement data set: report the RMS on its check rows"
+    )
+    params.add_argument("--robot", default=None, help=robot_help)
+    params.set_defaults(func=_params)
+
+    targets = sub.add_parser("targets", help="compensated targets as a KRL, RAPID or CSV point list")
+    targets.add_argument(
+        "--model", required=True, metavar="MODEL.json", help="model artifact written by 'fit'"
+    )
+    targets.add_argument(
+        "--targets",
+        required=True,
+        metavar="TARGETS.csv",
+        help="targets: a1..a6 (nominal program) or tx,ty,tz[,ta,tb,tc] (robot base frame, mm / KUKA deg)",
+    )
+    targets.add_argument("--format", required=True, choices=tuple(TARGET_FORMATS), help="list format")
+    targets.add_argument("-o", "--out", required=True, metavar="FILE", help="target list to write")
+    targets.add_argument("--robot", default=None, help=robot_help)
+    compensation_options(targets)
+    targets.set_defaults(func=_targets)
+
+
+def _load(args: argparse.Namespace) -> LoadedModel:
+    robot = load_robot(args.robot) if args.robot else None
+    try:
+        return load_model(args.model, robot)
+    except ModelArtifactError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _check_rms_mm(loaded: LoadedModel, path: str) -> float:
+    model = loaded.model
+    reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
+    try:
+        data = reader(path, limits_deg=model.robot.axis_limits_deg, kind="measurement")
+    except DatasetError as exc:
+        raise UserError(str(exc)) from None
+    check = np.asarray(data.split_or_draw().check_rows)
+    if len(check) == 0:
+        raise UserError(f"{data.source}: no check rows")
+    assert data.a_deg is not None and data.xyz_mm is not None
+    dir_ = None if data.dir is None else data.dir[check].astype(float)
+    temp = None if data.temp_c is None else data.temp_c[check]
+    pred = model.predict_tcp_mm(data.a_deg[check], dir_, data.payload_kg[check], temp)
+    return float(np.sqrt(np.mean(np.sum((data.xyz_mm[check] - pred) ** 2, axis=1))))
+
+
+def _params(args: argparse.Namespace) -> int:
+    loaded = _load(args)
+    model = loaded.model
+    check = _check_rms_mm(loaded, args.data) if args.data else None
+    try:
+        listing = listing_of(model, loaded.document, check)
+    except ValueError as exc:
+        raise UserError(f"{args.model}: {exc}") from None
+    info = listing.info
+    assert isinstance(model, KinematicModel)  # listing_of refused the others
+    try:
+        text, diff = params_text(listing, model, args.format)
+    except ValueError as exc:
+        raise UserError(f"{args.out}: {exc}; not written") from None
+    write_text_atomic(args.out, text)
+    print(
+        f"{info.model} ({model.robot.name}): {len(text.splitlines())} lines, {args.format} listing "
+        f"(read back: TCP within {diff:.1e} mm) -> {args.out}"
+    )
+    return 0
+
+
+def _targets(args: argparse.Namespace) -> int:
+    loaded = _load(args)
+    model = loaded.model
+    reader = read_dataset_json if Path(args.targets).suffix.lower() == ".json" else read_dataset
+    try:
+        targets = reader(args.targets, limits_deg=model.robot.axis_limits_deg, kind="targets")
+    except DatasetError as exc:
+        raise UserError(str(exc)) from None
+    wanted, result, _ = compensate_targets(model, targets, args)
+    n = len(targets)
+    if targets.target_abc_deg is not None:
+        flange_R = abc_deg_to_matrix(np.asarray(targets.target_abc_deg)) @ FLANGE_R_KUKA_TOOL.T
+    else:  # the nominal program's orientation, or where only a position was asked for, the nominal solution's
+        _, flange_R = nominal_targets(model, result.a_uncompensated_deg)
+    # KRL and RAPID take identifiers; the CSV keeps the pose ids as they were
+    names = targets.pose_id if args.format == "csv" and targets.pose_id else point_names(targets.pose_id, n)
+    points = TargetList(tuple(names), result.a_deg, np.asarray(wanted), flange_R)
+    fit = loaded.document.get("fit", {})
+    model_id = str(loaded.document["checksum_sha256"])[:16]
+    header = [
+        f"comp-daemon compensated targets: {n} points, robot {model.robot.name}",
+        f"model: {fit.get('model', model.kind)} (id {model_id}), {args.mapping} mapping, "
+        f"max predicted error {result.residual_mm.max():.2e} mm",
+    ]
+    text = write_targets(args.format, points, module_name(Path(args.out).stem, "CD_TARGETS"), header)
+    back = TARGET_FORMATS[args.format](text, args.out)
+    diff = float(np.max(np.abs(back.a_deg - points.a_deg)))
+    if back.names != points.names or diff > ROUND_TRIP_DEG:
+        raise UserError(f"{args.out}: the list read back differs by {diff:.3g} deg; not written")
+    write_text_atomic(args.out, text)
+    da = np.abs(result.da_deg).max()
+    print(
+        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping), "
+        f"max axis change {da:.4f} deg, {args.format} list -> {args.out}"
+    )
+    return 0

@@ -1,0 +1,235 @@
+"""Kinematic models calibrated from ballbar and cross-bar campaigns (seeds 002 and 003).
+
+- :func:`fit_ballbar_campaign`: the ballbar lengths of a campaign (:mod:`comp_daemon.data.ballbar`)
+  identify the POE errors Δl, Δθ and the pivot offset (:func:`comp_daemon.models.ballbar.fit_ballbar`);
+  the result is a ``poe`` model (:class:`~comp_daemon.models.poe_model.PoeErrorModel`) in the robot
+  base frame, carrying the covariance of its identified errors.
+- :func:`fit_crossbar_campaign`: the cross-bar readings (:mod:`comp_daemon.data.crossbar`) identify
+  the MDH errors and the probe (tool) offset by the weighted distance and perpendicularity rows
+  (:func:`comp_daemon.models.crossbar.calibrate_crossbar`); the result is a ``kinematic`` model
+  (:class:`~comp_daemon.models.kinematic.KinematicModel`) in the nominal base frame.
+
+Neither instrument sees where the robot stands: a ballbar measures lengths, a cross-bar distances
+and angles. Rotations about and shifts along axis 1 (Δθ1, Δl1 + Δl2 for the ballbar; θ1, d1 for the
+cross-bar) are kept at zero and reported as not identifiable, together with the other null
+directions; the fit summary (``info``) gives the rank reached. On tracker data the base frame of
+such a model is registered to the tracker on fit rows (:func:`registered_prediction`), as for the
+``nominal`` model, before it predicts check rows.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.common.logs import get_logger
+from comp_daemon.data.ballbar import BallbarCampaign
+from comp_daemon.data.campaigns import Campaign
+from comp_daemon.data.crossbar import CrossbarCampaign
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
+from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, ballbar_lengths_mm, fit_ballbar
+from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.covariance import ParameterCovariance
+from comp_daemon.models.crossbar import bar_errors_mm, calibrate_crossbar, check_plan
+from comp_daemon.models.fitting import FittedModel, report_info
+from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.models.poe_model import PoeErrorModel
+from comp_daemon.models.registration import rigid_registration, transform_points
+from comp_daemon.robot.description import RobotDescription
+
+__all__ = [
+    "CAMPAIGN_MODELS",
+    "campaign_model",
+    "fit_ballbar_campaign",
+    "fit_campaign",
+    "fit_crossbar_campaign",
+    "registered_prediction",
+]
+
+_log = get_logger(__name__)
+
+
+def _identified(names: list[str], values: NDArray[np.float64], std: NDArray[np.float64]) -> dict[str, Any]:
+    return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(names, values, std, strict=True)}
+
+
+def fit_ballbar_campaign(
+    robot: RobotDescription, campaign: BallbarCampaign, rows: NDArray[np.intp] | None = None
+) -> FittedModel:
+    """The ``poe`` model of a ballbar campaign's rows ``rows`` (default: all)."""
+    idx = np.arange(len(campaign)) if rows is None else np.asarray(rows)
+    a = campaign.a_deg[idx]
+    bar = campaign.bar_mm[idx]
+    twists = PoeModel.from_robot(robot)
+    fit = fit_ballbar(twists, a, bar, campaign.pivot_mm)
+    model = PoeErrorModel(robot, fit.theta[:N_POE_PARAMS], np.eye(4))
+    keep = fit.report.identifiable_index
+    poe_keep = [int(i) for i in keep if i < N_POE_PARAMS]
+    if poe_keep and bar.size > keep.size:
+        model.uncertainty = ParameterCovariance(
+            names=tuple(POE_PARAM_NAMES[i] for i in poe_keep),
+            values=fit.theta[poe_keep],
+            covariance=fit.cov[np.ix_(poe_keep, poe_keep)],
+            sigma_mm=fit.h_after_mm * float(np.sqrt(bar.size / (bar.size - keep.size))),  # per length
+            rows=int(bar.size),
+        )
+    info: dict[str, Any] = {
+        "kind": "ballbar",
+        "campaign": "ballbar",
+        "rows": int(bar.size),
+        "arcs": sorted({int(k) for k in campaign.arc[idx]}),
+        "pivot_mm": campaign.pivot_mm.tolist(),
+        "pivot_offset_mm": fit.theta[N_POE_PARAMS:].tolist(),
+        "rms_mm": fit.h_after_mm,
+        "bar_rms_before_mm": fit.h_before_mm,
+        "bar_rms_after_mm": fit.h_after_mm,
+        "rank": fit.rank,
+        "parameters": len(BALLBAR_PARAM_NAMES),
+        "solver": {
+            "method": "improved Levenberg-Marquardt, columns scaled",
+            "iterations": fit.iterations,
+            "stop": fit.reason,
+        },
+        "identifiability": report_info(fit.report),
+        "not_identifiable": [d.describe() for d in fit.null_space],
+        "identified": _identified([BALLBAR_PARAM_NAMES[i] for i in keep], fit.theta[keep], fit.std[keep]),
+        "frame": "robot base (nominal); a tracker frame is registered on tracker data",
+    }
+    _log.info("ballbar_campaign_fit", rows=int(bar.size), rank=fit.rank, h_after_mm=fit.h_after_mm)
+    return FittedModel(model, "base", info)
+
+
+def fit_crossbar_campaign(
+    robot: RobotDescription,
+    campaign: CrossbarCampaign,
+    groups: NDArray[np.intp] | None = None,
+    *,
+    weighted: bool = True,
+) -> FittedModel:
+    """The ``kinematic`` model of a cross-bar campaign's groups ``groups`` (default: all): the MDH
+    errors and the probe (the robot's TOML tool) from the distance and perpendicularity rows."""
+    a, lengths = campaign.readings(groups)
+    check_plan(a)
+    params = KinematicParams.from_robot(robot)
+    before = bar_errors_mm(params, a, robot.sign, lengths)
+    fit = calibrate_crossbar(params, a, robot.sign, lengths, weighted=weighted, tool=True)
+    kept = np.setdiff1d(np.arange(a.shape[0]), np.asarray(fit.dropped, dtype=np.intp))
+    after = bar_errors_mm(fit.params, a[kept], robot.sign, lengths[kept])
+    report = fit.report
+    info: dict[str, Any] = {
+        "kind": "crossbar",
+        "campaign": "crossbar",
+        "rows": int(4 * a.shape[0]),
+        "crosses": int(a.shape[0]),
+        "rms_mm": float(np.sqrt(np.mean(after**2))),
+        "bar_error_max_before_mm": float(np.abs(before).max()),
+        "bar_error_max_after_mm": float(np.abs(after).max()),
+        "rank": int(report.rank_svd),
+        "parameters": len(report.candidates),
+        "solver": {
+            "method": "Gauss-Newton on distance and perpendicularity rows"
+            + (", sqrt(2)L weighting" if weighted else ""),
+            "iterations": fit.iterations,
+            "stop": fit.reason,
+            "step_max": list(fit.step_max),
+        },
+        "dropped_crosses": [int(d) for d in fit.dropped],
+        "identifiability": report_info(report),
+        "not_identifiable": list(fit.not_identified),
+        "identified": {
+            n: {"value": float(fit.dx[i])}
+            for n, i in zip(report.identifiable, report.identifiable_index, strict=True)
+        },
+        "frame": "robot base (nominal); a tracker frame is registered on tracker data",
+    }
+    _log.info(
+        "crossbar_campaign_fit", crosses=int(a.shape[0]), rank=int(report.rank_svd), dropped=fit.dropped
+    )
+    return FittedModel(KinematicModel(robot, fit.params), "base", info)
+
+
+#: the model kind each campaign form calibrates
+CAMPAIGN_MODELS: dict[str, str] = {"ballbar": "poe", "crossbar": "kinematic"}
+
+
+def campaign_model(kind: str, model: str | None) -> str:
+    """The model a ``kind`` campaign calibrates; ``model`` (a name given by the user) must be it."""
+    wanted = CAMPAIGN_MODELS[kind]
+    if model is not None and model.strip() not in (wanted, kind):
+        raise ValueError(
+            f"a {kind} campaign calibrates the {wanted} model (lengths and angles, no positions), "
+            f"not {model!r}; name --model {wanted}"
+        )
+    return wanted
+
+
+def fit_campaign(
+    robot: RobotDescription,
+    campaign: Campaign,
+    *,
+    model: str | None = None,
+    seed: int = 0,
+    check_fraction: float = 0.0,
+) -> tuple[FittedModel, dict[str, Any]]:
+    """Fit the model a campaign calibrates on its fit arcs / crosses, and judge it on the check ones.
+
+    The split is the file's (whole arcs or placements), or drawn with ``check_fraction`` and
+    ``seed``; the returned dict holds the rows used and the bar errors (mm) of the check arcs or
+    crosses before (nominal) and after the calibration (empty without check rows).
+    """
+    if isinstance(campaign, BallbarCampaign):
+        campaign_model("ballbar", model)
+        fit_rows, check_rows, drawn = campaign.split(seed=seed, check_fraction=check_fraction)
+        fitted = fit_ballbar_campaign(robot, campaign, fit_rows)
+        check: dict[str, Any] = {
+            "fit_rows": int(fit_rows.size),
+            "check_rows": int(check_rows.size),
+            "drawn": drawn,
+        }
+        if check_rows.size:
+            twists = PoeModel.from_robot(robot)
+            a, bar = campaign.a_deg[check_rows], campaign.bar_mm[check_rows]
+            before = (
+                ballbar_lengths_mm(twists, a, np.zeros(len(BALLBAR_PARAM_NAMES)), campaign.pivot_mm) - bar
+            )
+            assert isinstance(fitted.model, PoeErrorModel)
+            theta = np.concatenate([fitted.model.x, fitted.info["pivot_offset_mm"]])
+            after = ballbar_lengths_mm(twists, a, theta, campaign.pivot_mm) - bar
+            check["bar_error_rms_mm"] = {"before": _rms(before), "after": _rms(after)}
+        return fitted, check
+    campaign_model("crossbar", model)
+    fit_groups, check_groups, drawn = campaign.split(seed=seed, check_fraction=check_fraction)
+    fitted = fit_crossbar_campaign(robot, campaign, fit_groups)
+    check = {"fit_rows": int(4 * fit_groups.size), "check_rows": int(4 * check_groups.size), "drawn": drawn}
+    if check_groups.size:
+        a, lengths = campaign.readings(check_groups)
+        nominal = KinematicParams.from_robot(robot)
+        params = fitted.model.ik_params()
+        check["bar_error_rms_mm"] = {
+            "before": _rms(bar_errors_mm(nominal, a, robot.sign, lengths)),
+            "after": _rms(bar_errors_mm(params, a, robot.sign, lengths)),
+        }
+    return fitted, check
+
+
+def _rms(values: NDArray[np.float64]) -> float:
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+def registered_prediction(
+    model: ErrorModel,
+    a_fit_deg: NDArray[np.float64],
+    xyz_fit_mm: NDArray[np.float64],
+    a_check_deg: NDArray[np.float64],
+    payload_fit: NDArray[np.float64] | float = 0.0,
+    payload_check: NDArray[np.float64] | float = 0.0,
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The model's predictions of the check rows in the measurement frame, and that frame
+    (``meas_T_model``, 4×4): the rigid motion that best maps its predictions of the fit rows onto
+    the measured ones. Only the frame is fitted; the model's parameters stay as calibrated."""
+    p_fit = model.predict_tcp_mm(a_fit_deg, payload_kg=payload_fit)
+    frame = rigid_registration(p_fit, np.asarray(xyz_fit_mm, dtype=float))
+    return transform_points(frame, model.predict_tcp_mm(a_check_deg, payload_kg=payload_check)), frame

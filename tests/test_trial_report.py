@@ -1,0 +1,52 @@
+"""The trial's HTML report draws each of its figures (matplotlib, inline SVG), from the stored trial
+result the docs show (``docs/trial-result.json``, a full trial's output)."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+from comp_daemon.trial.report import render_html
+from comp_daemon.trial.report_data import figure_rows, table_rows
+from comp_daemon.trial.result import TrialResult
+
+STORED = Path(__file__).resolve().parents[1] / "docs" / "trial-result.json"
+POINT_ERRORS = ["point-errors-x", "point-errors-y", "point-errors-z", "point-errors-3d"]
+PLOTS = ["error-histogram", "error-histogram-per-method", *POINT_ERRORS, "iso9283"]
+
+
+@pytest.fixture(scope="module")
+def result() -> TrialResult:
+    return TrialResult.load(STORED)
+
+
+def test_report_has_every_figure_with_data(result: TrialResult) -> None:
+    page = render_html(result)
+    figures = dict(re.findall(r'<figure class=plot id="plot-([^"]+)">(.*?)</figure>', page, re.S))
+    assert sorted(figures) == sorted(PLOTS)
+    for name, body in figures.items():
+        assert body.count("<svg") == 1 and "<figcaption>" in body and "no data" not in body, name
+    assert re.findall(r"https?://[^\"' ]*", page) == ["http://www.w3.org/2000/svg"] * page.count("<svg")
+    assert "<script" not in page and "data:" not in page
+    ids = re.findall(r'\bid="([^"]+)"', page)
+    assert len(ids) == len(set(ids))
+    # one histogram panel per row of Table 2, the methods of seed 000's figures in the others
+    for k in table_rows(result):
+        assert result.runs[k].label in figures["error-histogram-per-method"]
+    for k in figure_rows(result):
+        assert result.runs[k].label in figures["error-histogram"]
+        assert all(result.runs[k].label in figures[p] for p in POINT_ERRORS)
+    for name, plot in zip(("x", "y", "z", "3-D"), POINT_ERRORS, strict=True):
+        assert f"error {name} per target point" in figures[plot]
+    n_points = len(result.iso["points_mm"])
+    assert all(f">P{i + 1}<" in figures["iso9283"] for i in range(n_points))
+    assert render_html(result) == page
+
+
+def test_report_of_a_trial_without_iso_or_runs_says_no_data(result: TrialResult) -> None:
+    result = TrialResult(plan=result.plan, started_at=result.started_at, environment={})
+    page = render_html(result)
+    assert page.count("no data:") >= 7
+    assert "ISO 9283 test did not run" in page
