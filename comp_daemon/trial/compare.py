@@ -113,7 +113,7 @@ def compare_models(
     judge(
         "kinematic + ratio + backlash",
         "seed 001 §1",
-        fitted_model("kinematic", effects=("ratio", "backlash")),
+        fitted_model("kinematic:all", effects=("ratio", "backlash")),
     )
     judge(
         "kriging (direction-aware) on kinematic + ratio + backlash",
