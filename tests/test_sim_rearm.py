@@ -108,7 +108,7 @@ async def test_rearmed_session_runs_on_when_replies_come_in_time(make: Make) -> 
     def answer(n: int, t: RobTelegram) -> bytes | None:
         return ok(n, t) if replying else None
 
-    controller, raw = await make(answer, clock, timeout_count=2, rearm_after_s=1.0)
+    controller, _ = await make(answer, clock, timeout_count=2, rearm_after_s=1.0)
     await until(lambda: controller.state is RsiState.STOPPED)
     replying = True
     clock.t += 1.0

@@ -185,7 +185,9 @@ class SimCellProcess:
         """The simulated controller's ``status`` (state, stop cause, the stops of its sessions…)."""
         if self.info is None:
             raise RuntimeError("the simulated cell is not running")
-        answer = await line_command(self.info.motion_host, self.info.motion_port, "status", timeout_s=timeout_s)
+        answer = await line_command(
+            self.info.motion_host, self.info.motion_port, "status", timeout_s=timeout_s
+        )
         doc: dict[str, Any] = json.loads(answer)
         return doc
 

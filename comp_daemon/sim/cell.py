@@ -18,16 +18,16 @@ Interfaces (all on 127.0.0.1):
   ``clear J`` (converter fault injection: bad_crc, error_bit, warning_bit, silent, garble);
   ``unplug J`` / ``replug J``; ``payload KG``; ``status`` → ``OK <json>``.
 
-RSI starts when a client sends ``rsi_on`` on the motion port (as the robot program's ``RSI_ON``
-once the operator starts it), or at once with ``--rsi-on``. With ``--rearm-after-s S`` the
-controller restarts RSI S seconds after each stop (late replies, Stop=1, AXISCORRMON), as the
-operator does on the line; the motion port's ``status`` lists the stops with their causes. On start the cell prints one JSON line
-on stdout (ports, grating symlinks, converter geometry: :class:`comp_daemon.rt.simcell.SimCellInfo`)
-and then serves until SIGTERM/SIGINT, when it stops RSI, unplugs the converters and exits 0. With
-``--exit-with-parent`` (how the daemon starts it) it does the same when its stdin reaches end of
-file: the parent holds the pipe's other end, so a daemon killed with SIGKILL leaves no simulated
-cell behind sending telegrams. Logs go to stderr. A scenario that cannot be loaded exits 2 with
-the reason on stderr, before the ready line.
+RSI starts when a client sends ``rsi_on`` on the motion port (as the robot program's ``RSI_ON`` once
+the operator starts it), or at once with ``--rsi-on``. With ``--rearm-after-s S`` the controller
+restarts RSI S seconds after each stop (late replies, Stop=1, AXISCORRMON), as the operator does on
+the line; the motion port's ``status`` lists the stops with their causes. On start the cell prints
+one JSON line on stdout (ports, grating symlinks, converter geometry:
+:class:`comp_daemon.rt.simcell.SimCellInfo`) and then serves until SIGTERM/SIGINT, when it stops
+RSI, unplugs the converters and exits 0. With ``--exit-with-parent`` (how the daemon starts it) it
+does the same when its stdin reaches end of file: the parent holds the pipe's other end, so a daemon
+killed with SIGKILL leaves no simulated cell behind sending telegrams. Logs go to stderr. A scenario
+that cannot be loaded exits 2 with the reason on stderr, before the ready line.
 """
 
 from __future__ import annotations

@@ -118,7 +118,9 @@ class StopCause(enum.StrEnum):
 
 
 #: stops after which an operator restarts the program (not RSI_OFF, not the controller's shutdown)
-_REARMABLE = frozenset({StopCause.LATE_REPLIES, StopCause.SENSOR_STOP, StopCause.AXISCORRMON, StopCause.INTERNAL_ERROR})
+_REARMABLE = frozenset(
+    {StopCause.LATE_REPLIES, StopCause.SENSOR_STOP, StopCause.AXISCORRMON, StopCause.INTERNAL_ERROR}
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -391,7 +393,9 @@ class SimulatedRsiController:
 
     def _cycle(self, k: int, steps: int) -> None:
         if self.state is RsiState.STOPPED and self.rearm_at is not None and self.now() >= self.rearm_at:
-            log.info("rsi controller: RSI re-armed", after_s=self.config.rearm_after_s, cause=str(self.stop_cause))
+            log.info(
+                "rsi controller: RSI re-armed", after_s=self.config.rearm_after_s, cause=str(self.stop_cause)
+            )
             self.stats.rearms += 1
             self.rsi_on()
         if self.state is RsiState.RUNNING and self._pending_ipoc is not None:

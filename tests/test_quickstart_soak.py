@@ -1,0 +1,219 @@
+"""The quick start stays up: ``comp-daemon run --sim`` on busy cores, with RSI stops and re-arms.
+
+The daemon runs as a real process with the quick start's settings (the controller's Timeout at 10
+late replies, gratings stale after 36 ms, the simulated controller re-arming RSI 5 s after a stop)
+over real UDP, pseudo-terminals and HTTP. Load: one CPU burner per core and kinematic fits started
+through the HTTP API one after the other. Once, the test freezes the daemon's real-time process
+(SIGSTOP) for longer than ten cycles, so the controller stops RSI on late replies whatever the load
+does; the stops the load itself causes come on top. The test checks that
+
+- every stop is on ``/api/status`` (``rsi.stops``) with a cause, the cycles before it, the late
+  replies, and what happens next, and in the store's event log (``rsi.stopped``), and counted in
+  ``comp_daemon_rsi_stops_total``;
+- every stop older than the re-arm pause was re-armed, and the forced one says why (late replies);
+- while RSI was stopped, the gratings stayed fresh on the dashboard (they do not depend on RSI);
+- at the end the loop runs, or was stopped so recently that its re-arm is still due.
+
+``COMP_DAEMON_SOAK_S`` sets the soak's length (default 75 s; docs/reliability.md has a 10-minute run).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import httpx
+import pytest
+from e2e_daemon import TOKENS, DaemonProcess, cmdline, descendants, free_port, sample_campaign, wait_until
+
+pytestmark = pytest.mark.slow
+
+SOAK_S = float(os.environ.get("COMP_DAEMON_SOAK_S", "75"))
+REARM_S = 5.0  # SimOptions.rearm_after_s, the quick start's
+CAUSES = {"late_replies", "timeout", "fault", "operator"}
+
+
+def quick_start_config(data_dir: Path, http_port: int, rsi_port: int) -> str:
+    """The quick start's settings (no margins for a loaded machine), on free ports, three tokens."""
+    tokens = "".join(
+        f'[[auth.tokens]]\nname = "{role}"\nrole = "{role}"\ntoken = "{TOKENS[role]}"\n'
+        for role in ("viewer", "operator", "engineer")
+    )
+    return f"""
+[http]
+host = "127.0.0.1"
+port = {http_port}
+[store]
+data_dir = "{data_dir}"
+[rsi]
+listen_host = "127.0.0.1"
+listen_port = {rsi_port}
+[jobs]
+workers = 1
+[log]
+level = "INFO"
+format = "json"
+{tokens}"""
+
+
+@pytest.fixture
+def daemon(tmp_path: Path) -> Iterator[DaemonProcess]:
+    d = DaemonProcess(tmp_path)
+    d.http_port = free_port(socket.SOCK_STREAM)
+    d.base_url = f"http://127.0.0.1:{d.http_port}"
+    d.config_path.write_text(quick_start_config(d.data_dir, d.http_port, d.rsi_port), encoding="utf-8")
+    try:
+        yield d
+    finally:
+        d.cleanup()
+
+
+@pytest.fixture
+def burners() -> Iterator[list[subprocess.Popen[bytes]]]:
+    """One busy loop per CPU core, ended by pid."""
+    procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(os.cpu_count() or 2)]
+    try:
+        yield procs
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+
+
+def rt_child(daemon: DaemonProcess) -> int:
+    pids = [p for p in descendants(daemon.pid) if "comp_daemon.rt.child" in cmdline(p)]
+    assert len(pids) == 1, [cmdline(p) for p in descendants(daemon.pid)]
+    return pids[0]
+
+
+def start_fit(eng: httpx.Client, dataset_id: int) -> int:
+    r = eng.post("/api/fits", json={"dataset_id": dataset_id, "model": "kinematic"})
+    assert r.status_code == 202, r.text
+    return int(r.json()["id"])
+
+
+def metric_sum(text: str, name: str) -> float:
+    return sum(float(m.group(1)) for m in re.finditer(rf"^{name}(?:{{[^}}]*}})? (\S+)$", text, re.M))
+
+
+def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
+    daemon: DaemonProcess, tmp_path: Path, burners: list[subprocess.Popen[bytes]]
+) -> None:
+    campaign = sample_campaign(tmp_path / "campaign.csv", n=60, seed=3)
+    daemon.start()
+    daemon.wait_http(90)
+
+    with daemon.client("engineer", timeout_s=30.0) as eng:
+        r = eng.post("/api/datasets", content=campaign.read_bytes(), headers={"Content-Type": "text/csv"})
+        assert r.status_code == 201, r.text
+        dataset_id = r.json()["id"]
+
+        def status() -> dict[str, Any]:
+            r = eng.get("/api/status")
+            assert r.status_code == 200, r.text
+            doc: dict[str, Any] = r.json()
+            return doc
+
+        # 1. a forced stop: the real-time process frozen for 0.4 s = 33 cycles without a reply
+        doc = wait_until(lambda: (d := status())["rsi"]["running"] and d, 120, "RSI running", every_s=0.05)
+        session = doc["rsi"]["sessions"]
+        child = rt_child(daemon)
+        os.kill(child, signal.SIGSTOP)
+        time.sleep(0.4)
+        os.kill(child, signal.SIGCONT)
+        forced_at = time.time()
+
+        def stopped() -> dict[str, Any] | None:
+            doc = status()
+            stops = [s for s in doc["rsi"]["stops"] if s["session"] == session]
+            return doc | {"forced": stops[0]} if stops and not doc["daemon"]["loop"]["running"] else None
+
+        doc = wait_until(stopped, 10, "the RSI stop on /api/status", every_s=0.1)
+        assert doc["daemon"]["state"] == "waiting for RSI", doc["daemon"]["state"]
+        forced = doc["forced"]
+        assert forced["cause"] == "late_replies", forced
+        assert forced["late_replies"] == 10 and forced["cycles"] > 0, forced
+        assert "Timeout" in forced["detail"], forced
+        assert forced["next"] == f"the simulated controller re-arms RSI in {REARM_S:g} s", forced
+        assert doc["rsi"]["next"] == doc["rsi"]["stops"][0]["next"]
+
+        # 2. the gratings stay fresh while RSI is stopped (they are read whether or not RSI runs)
+        time.sleep(1.0)
+        seen_fresh = 0
+        for _ in range(10):
+            doc = status()
+            if doc["daemon"]["loop"]["running"]:
+                break
+            gratings = [j for j in doc["daemon"]["joints"] if j["encoder"] != "absent"]
+            assert gratings and all(j["encoder"] == "ok" for j in gratings), gratings
+            seen_fresh += 1
+            time.sleep(0.2)
+        assert seen_fresh >= 3, "RSI came back too early to look at the gratings"
+
+        # 3. the re-arm after the pause
+        doc = wait_until(
+            lambda: (d := status())["rsi"]["rearms"] >= 1 and d["daemon"]["loop"]["running"] and d,
+            REARM_S + 15,
+            "the re-arm",
+            every_s=0.2,
+        )
+        rearmed = next(s for s in doc["rsi"]["stops"] if s["session"] == forced["session"])
+        assert rearmed["next"].startswith("the simulated controller re-armed RSI after "), rearmed
+        assert REARM_S - 0.5 <= rearmed["pause_s"] <= REARM_S + 5.0, rearmed
+        assert rearmed["rearmed_at"] - forced_at < REARM_S + 5.0
+
+        # 4. the soak: burners on every core, one fit after another through the HTTP API
+        fits = [start_fit(eng, dataset_id)]
+        end = time.monotonic() + SOAK_S
+        running_samples = []
+        while time.monotonic() < end:
+            job = eng.get(f"/api/jobs/{fits[-1]}").json()
+            if job["state"] in ("done", "failed", "cancelled"):
+                assert job["state"] == "done", job
+                fits.append(start_fit(eng, dataset_id))
+            running_samples.append(status()["daemon"]["loop"]["running"])
+            time.sleep(1.0)
+
+        # 5. the end: running, or stopped so recently that the re-arm is still due
+        doc = status()
+        rsi, loop = doc["rsi"], doc["daemon"]["loop"]
+        now = time.time()
+        if not loop["running"]:
+            last = rsi["stops"][0]
+            assert last["rearmed_at"] is None and now - last["time"] < REARM_S + 5.0, rsi
+        for stop in rsi["stops"]:
+            assert stop["cause"] in CAUSES and stop["detail"] and stop["next"], stop
+            assert stop["cycles"] >= 0 and stop["late_replies"] >= 0, stop
+            if now - stop["time"] > REARM_S + 5.0:
+                assert stop["rearmed_at"] is not None, stop
+        assert rsi["stops_total"] == len(rsi["stops"]) == sum(rsi["stops_by_cause"].values())
+        assert rsi["sessions"] == rsi["rearms"] + 1
+
+        events = eng.get("/api/events/log", params={"limit": 1000}).json()
+        assert sum(e["kind"] == "rsi.stopped" for e in events) == rsi["stops_total"]
+        assert sum(e["kind"] == "rsi.rearmed" for e in events) == rsi["rearms"]
+        metrics = eng.get("/metrics").text
+        assert metric_sum(metrics, "comp_daemon_rsi_stops_total") == rsi["stops_total"]
+        assert metric_sum(metrics, "comp_daemon_rsi_sessions_total") == rsi["sessions"]
+        late = metric_sum(metrics, "comp_daemon_rsi_late_replies_total")
+
+    print(
+        f"\nsoak {SOAK_S:g} s on {len(burners)} burners: {len(fits)} fits, sessions {rsi['sessions']}, "
+        f"stops {rsi['stops_by_cause']}, re-arms {rsi['rearms']}, cycles {loop['cycles']}, "
+        f"late replies (daemon) {late:g}, loop running in {sum(running_samples)}/{len(running_samples)} "
+        f"samples, running at the end: {loop['running']}"
+    )
+    for stop in reversed(rsi["stops"]):
+        print(
+            f"  session {stop['session']}: {stop['cause']} after {stop['cycles']} cycles "
+            f"({stop['late_replies']} late): {stop['detail']} -> {stop['next']}"
+        )
+    assert daemon.sigterm() == 0, daemon.tail()
