@@ -26,7 +26,7 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -39,6 +39,7 @@ pytestmark = pytest.mark.slow
 SOAK_S = float(os.environ.get("COMP_DAEMON_SOAK_S", "75"))
 REARM_S = 5.0  # SimOptions.rearm_after_s, the quick start's
 CAUSES = {"late_replies", "timeout", "fault", "operator"}
+CHROMIUM = Path("/usr/bin/chromium")
 
 
 def quick_start_config(data_dir: Path, http_port: int, rsi_port: int) -> str:
@@ -94,6 +95,28 @@ def rt_child(daemon: DaemonProcess) -> int:
     return pids[0]
 
 
+def force_late_reply_stop(
+    daemon: DaemonProcess, status: Callable[[], dict[str, Any]]
+) -> tuple[dict[str, Any], dict[str, Any], float]:
+    """Freeze the real-time process for 0.4 s (33 cycles without a reply) once RSI runs; returns the
+    status that shows the stop, the stop, and when the freeze ended (UNIX s)."""
+    doc = wait_until(lambda: (d := status())["rsi"]["running"] and d, 120, "RSI running", every_s=0.05)
+    session = doc["rsi"]["sessions"]
+    child = rt_child(daemon)
+    os.kill(child, signal.SIGSTOP)
+    time.sleep(0.4)
+    os.kill(child, signal.SIGCONT)
+    forced_at = time.time()
+
+    def stopped() -> dict[str, Any] | None:
+        doc = status()
+        stops = [s for s in doc["rsi"]["stops"] if s["session"] == session]
+        return doc | {"forced": stops[0]} if stops and not doc["daemon"]["loop"]["running"] else None
+
+    doc = wait_until(stopped, 10, "the RSI stop on /api/status", every_s=0.1)
+    return doc, doc["forced"], forced_at
+
+
 def start_fit(eng: httpx.Client, dataset_id: int) -> int:
     r = eng.post("/api/fits", json={"dataset_id": dataset_id, "model": "kinematic"})
     assert r.status_code == 202, r.text
@@ -123,20 +146,7 @@ def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
             return doc
 
         # 1. a forced stop: the real-time process frozen for 0.4 s = 33 cycles without a reply
-        doc = wait_until(lambda: (d := status())["rsi"]["running"] and d, 120, "RSI running", every_s=0.05)
-        session = doc["rsi"]["sessions"]
-        child = rt_child(daemon)
-        os.kill(child, signal.SIGSTOP)
-        time.sleep(0.4)
-        os.kill(child, signal.SIGCONT)
-        forced_at = time.time()
-
-        def stopped() -> dict[str, Any] | None:
-            doc = status()
-            stops = [s for s in doc["rsi"]["stops"] if s["session"] == session]
-            return doc | {"forced": stops[0]} if stops and not doc["daemon"]["loop"]["running"] else None
-
-        doc = wait_until(stopped, 10, "the RSI stop on /api/status", every_s=0.1)
+        doc, forced, forced_at = force_late_reply_stop(daemon, status)
         assert doc["daemon"]["state"] == "waiting for RSI", doc["daemon"]["state"]
         forced = doc["forced"]
         assert forced["cause"] == "late_replies", forced
@@ -217,3 +227,47 @@ def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
             f"({stop['late_replies']} late): {stop['detail']} -> {stop['next']}"
         )
     assert daemon.sigterm() == 0, daemon.tail()
+
+
+def test_dashboard_states_the_stop_and_the_rearm(daemon: DaemonProcess) -> None:
+    """The operator screen (headless Chromium) says when RSI stopped, why, after how many cycles,
+    and what happens next; once re-armed, the session table says so."""
+    if not CHROMIUM.is_file():
+        if os.environ.get("CI", "").lower() == "true":
+            pytest.fail(f"{CHROMIUM} is missing in CI")
+        pytest.skip(f"{CHROMIUM} is not installed")
+    from playwright.sync_api import expect, sync_playwright
+
+    daemon.start()
+    daemon.wait_http(90)
+    with daemon.client("viewer") as view:
+        _, forced, _ = force_late_reply_stop(daemon, lambda: view.get("/api/status").json())
+    assert forced["cause"] == "late_replies", forced
+    errors: list[str] = []
+    with sync_playwright() as pw:
+        browser = pw.chromium.launch(executable_path=str(CHROMIUM), args=["--no-sandbox", "--disable-gpu"])
+        try:
+            page = browser.new_page(viewport={"width": 1400, "height": 900})
+            page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+            page.on("pageerror", lambda e: errors.append(f"page error: {e}"))
+            page.goto(f"{daemon.base_url}/dashboard/#token={TOKENS['viewer']}")
+            box = page.get_by_test_id("rsi-stop")
+            expect(box).to_be_visible(timeout=10_000)
+            # the latest stop (on a busy machine another may have followed the forced one)
+            expect(box).to_contain_text(
+                re.compile(
+                    r"RSI stopped at .+: late replies after \d+ cycles \(10 late replies\)\. controller: Time"
+                )
+            )
+            expect(box).to_contain_text(f"Next: the simulated controller re-arms RSI in {REARM_S:g} s")
+            rows = page.locator("#rsi-stops tbody tr")
+            expect(rows.filter(has_text="controller: Timeout")).not_to_have_count(0)
+            expect(rows.filter(has_text="re-armed RSI after")).not_to_have_count(
+                0, timeout=(REARM_S + 15) * 1000
+            )
+            expect(page.locator("#rsi-summary")).to_contain_text(
+                re.compile(r"\d+ started · \d+ stopped \(\d+ late replies\) · [1-9]\d* re-armed")
+            )
+        finally:
+            browser.close()
+    assert not errors, errors
