@@ -127,6 +127,7 @@ def metric_sum(text: str, name: str) -> float:
     return sum(float(m.group(1)) for m in re.finditer(rf"^{name}(?:{{[^}}]*}})? (\S+)$", text, re.M))
 
 
+@pytest.mark.timeout(SOAK_S + 400)
 def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
     daemon: DaemonProcess, tmp_path: Path, burners: list[subprocess.Popen[bytes]]
 ) -> None:
