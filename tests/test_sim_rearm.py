@@ -1,4 +1,5 @@
-"""The simulated controller re-arms RSI after a stop, as an operator restarting the program would.
+"""The simulated controller re-arms RSI after a stop, as an operator restarting the program would,
+and the daemon records each stop with the cause it reads from the wire, and each re-arm.
 
 Real loopback UDP against misbehaving servers; the re-arm is timed by an injected clock, so the
 test decides when the pause has passed, whatever the machine's load.
@@ -14,7 +15,11 @@ from typing import Any
 import pytest
 from test_sim_wire_rsi import RawServer, RigidPlant, until
 
+from comp_daemon.daemon.rsi_sessions import STOP_CAUSES, RsiSessions
 from comp_daemon.rt.rsi_codec import RobTelegram, SenReply, build_sen
+from comp_daemon.rt.rsi_server import RsiServerStats
+from comp_daemon.rt.safety import FaultKind, fault, new_core, shutdown
+from comp_daemon.service import metrics
 from comp_daemon.sim.rsi_controller import (
     RsiControllerConfig,
     RsiState,
@@ -103,19 +108,21 @@ async def test_late_reply_stop_rearms_after_the_pause_and_not_before(make: Make)
 
 async def test_rearmed_session_runs_on_when_replies_come_in_time(make: Make) -> None:
     clock = ManualClock()
-    replying = False
+
+    stopping = True
 
     def answer(n: int, t: RobTelegram) -> bytes | None:
-        return ok(n, t) if replying else None
+        return build_sen(SenReply(t.ipoc, stop=stopping and n >= 3))  # the first session ends on Stop=1
 
-    controller, _ = await make(answer, clock, timeout_count=2, rearm_after_s=1.0)
+    controller, _ = await make(answer, clock, timeout_count=100_000, rearm_after_s=1.0)
     await until(lambda: controller.state is RsiState.STOPPED)
-    replying = True
+    stopping = False
     clock.t += 1.0
     await until(lambda: controller.stats.sessions == 2)
     before = controller.stats.replies_ok
     await until(lambda: controller.stats.replies_ok >= before + 50)
     assert controller.state is RsiState.RUNNING and controller.stop_reason is None
+    assert controller.stats.rearms == 1 and len(controller.stats.stops) == 1
 
 
 async def test_rsi_off_and_no_rearm_setting_stay_stopped(make: Make) -> None:
@@ -139,12 +146,12 @@ async def test_stop_request_from_the_sensor_is_recorded_and_rearmed(make: Make) 
     clock = ManualClock()
 
     def answer(n: int, t: RobTelegram) -> bytes | None:
-        return build_sen(SenReply(t.ipoc, stop=n == 4))
+        return build_sen(SenReply(t.ipoc, stop=n >= 4))
 
     controller, _ = await make(answer, clock, rearm_after_s=2.0)
     await until(lambda: controller.state is RsiState.STOPPED)
     (stop,) = controller.stats.stops
-    assert stop.cause is StopCause.SENSOR_STOP and stop.late == 0 and stop.telegrams == 4
+    assert stop.cause is StopCause.SENSOR_STOP and stop.telegrams >= 4  # 4 unless a reply was late
     clock.t += 2.0
     await until(lambda: controller.stats.sessions == 2)
 
@@ -153,3 +160,118 @@ def test_rearm_pause_must_be_finite_and_not_negative() -> None:
     for bad in (-1.0, float("inf"), float("nan")):
         with pytest.raises(ValueError, match="rearm_after_s"):
             RsiControllerConfig(rearm_after_s=bad)
+
+
+# ------------------------------------------------------------------ the daemon's record of the sessions
+
+
+class WireView:
+    """What the daemon's RSI session tracker reads of the loop: telegrams alive, core, last reply."""
+
+    def __init__(self) -> None:
+        self.alive = False
+        self.core = new_core([1, 2])
+        self.last_stop = False
+        self.last_ipoc: int | None = None
+
+    def rsi_alive(self) -> bool:
+        return self.alive
+
+    def telegram_age_s(self) -> float | None:
+        return 0.5
+
+
+class Recorded:
+    def __init__(self) -> None:
+        self.events: list[tuple[str, dict[str, Any]]] = []
+
+    async def __call__(self, kind: str, message: dict[str, Any]) -> None:
+        self.events.append((kind, message))
+
+
+def session(view: WireView, stats: RsiServerStats, telegrams: int, late: int, delay: int | None) -> None:
+    view.alive = True
+    stats.answered += telegrams
+    stats.late += late
+    stats.controller_delay = delay
+    view.last_ipoc = 1_000_000 + 12 * stats.answered
+
+
+async def test_the_daemon_reads_each_stop_cause_from_the_wire() -> None:
+    view, stats, events, clock = WireView(), RsiServerStats(16), Recorded(), ManualClock()
+    sessions = RsiSessions(timeout_count=10, record_event=events, wall_clock=clock)
+    runtime: Any = view
+
+    async def run_and_stop(telegrams: int, late: int, delay: int | None) -> dict[str, Any]:
+        clock.t += 5.0  # the pause before the session
+        session(view, stats, telegrams, late, delay)
+        await sessions.observe(runtime, stats)
+        clock.t += 10.0
+        view.alive = False
+        await sessions.observe(runtime, stats)
+        return sessions.stops[-1].to_dict()
+
+    late = await run_and_stop(500, 4, 9)  # Delay 9 with Timeout 10: the next late reply stopped it
+    assert late["cause"] == "late_replies" and late["cycles"] == 500 and late["late_replies"] == 10
+    assert late["time"] == pytest.approx(clock.t - 0.5)  # when the last telegram came
+    assert late["next"].startswith("on the robot: acknowledge the RSI message")
+
+    ceased = await run_and_stop(300, 0, 2)  # telegrams ceased, no Stop=1, late count far from Timeout
+    assert ceased["cause"] == "timeout" and ceased["cycles"] == 300 and ceased["late_replies"] == 2
+    first = sessions.stops[0].to_dict()
+    assert first["rearmed_at"] == pytest.approx(clock.t - 10.0) and first["pause_s"] == pytest.approx(5.5)
+    assert first["next"] == "the robot controller re-armed RSI after 5.5 s"
+
+    f = fault(view.core, FaultKind.DIVERGING, "A2 error grows", 1.0).core
+    view.core, view.last_stop = f, True
+    faulted = await run_and_stop(40, 0, 0)
+    assert (
+        faulted["cause"] == "fault"
+        and "diverging" in faulted["detail"]
+        and "A2 error grows" in faulted["detail"]
+    )
+    assert faulted["next"].startswith("acknowledge the fault here")
+
+    view.core, view.last_stop = shutdown(view.core, 2.0).core, True
+    shut = await run_and_stop(10, 0, 0)
+    assert shut["cause"] == "operator" and shut["next"] == "none: the daemon is stopping"
+
+    report = sessions.report()
+    assert report["sessions"] == 4 and report["rearms"] == 3 and report["stops_total"] == 4
+    assert report["stops_by_cause"] == {"late_replies": 1, "timeout": 1, "fault": 1, "operator": 1}
+    assert [s["cause"] for s in report["stops"]] == ["operator", "fault", "timeout", "late_replies"]
+    assert [k for k, _ in events.events] == ["rsi.stopped", *["rsi.rearmed", "rsi.stopped"] * 3]
+    assert set(STOP_CAUSES) == set(metrics.RSI_STOP_CAUSES)
+
+
+async def test_the_simulated_controller_names_the_cause_and_the_rearm() -> None:
+    view, stats, clock = WireView(), RsiServerStats(16), ManualClock()
+    answers = [
+        {
+            "state": "stopped",
+            "stop_cause": "sensor_stop",
+            "stop_reason": "Stop=1 from the sensor",
+            "rearm_after_s": 5.0,
+        }
+    ]
+
+    async def controller_status() -> dict[str, Any]:
+        return answers[-1]
+
+    sessions = RsiSessions(timeout_count=10, controller_status=controller_status, wall_clock=clock)
+    runtime: Any = view
+    session(view, stats, 100, 0, 0)
+    await sessions.observe(runtime, stats)
+    view.alive = False
+    await sessions.observe(runtime, stats)
+    stop = sessions.stops[-1]
+    assert stop.cause == "fault" and stop.detail == "controller: Stop=1 from the sensor"
+    assert stop.next == "the simulated controller re-arms RSI in 5 s"
+    assert sessions.report()["next"] == stop.next
+    clock.t += 5.2
+    view.alive = True
+    await sessions.observe(runtime, stats)
+    assert (
+        sessions.stops[-1].next == "the simulated controller re-armed RSI after 5.7 s"
+    )  # 0.5 s since the last telegram + 5.2 s
+    assert sessions.report()["next"] is None and sessions.report()["running"]

@@ -114,7 +114,7 @@ class RsiSessions:
         self.stops: deque[RsiStopRecord] = deque(maxlen=keep)
         self.stop_counts: dict[StopCauseWord, int] = dict.fromkeys(STOP_CAUSES, 0)
         self.rearm_after_s: float | None = None  # the simulated controller's pause, once known
-        self._start_answered = 0
+        self._start_answered = 0  # stats.answered at the end of the previous session
         self._start_late = 0
 
     async def observe(self, runtime: LoopView, stats: RsiServerStats) -> None:
@@ -128,7 +128,6 @@ class RsiSessions:
     async def _started(self, stats: RsiServerStats) -> None:
         self.running = True
         self.sessions += 1
-        self._start_answered, self._start_late = stats.answered, stats.late
         metrics.RSI_SESSIONS.inc()
         last = self.stops[-1] if self.stops else None
         if last is None or last.rearmed_at is not None:
@@ -167,6 +166,8 @@ class RsiSessions:
             next=self._next(cause, runtime),
         )
         self.stops.append(record)
+        # every telegram after this stop belongs to the next session (none is answered in between)
+        self._start_answered, self._start_late = stats.answered, stats.late
         self.stop_counts[cause] += 1
         metrics.RSI_STOPS.labels(cause=cause).inc()
         log.warning(f"rsi: RSI stopped after {record.cycles} cycles ({cause}: {detail}); next: {record.next}")
