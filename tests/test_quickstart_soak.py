@@ -37,6 +37,9 @@ from e2e_daemon import TOKENS, DaemonProcess, cmdline, descendants, free_port, s
 pytestmark = pytest.mark.slow
 
 SOAK_S = float(os.environ.get("COMP_DAEMON_SOAK_S", "75"))
+#: the controller's Timeout (late replies per RSI session); the quick start's 10 unless set
+TIMEOUT_COUNT = int(os.environ.get("COMP_DAEMON_SOAK_TIMEOUT_COUNT", "10"))
+KEPT_STOPS = 50  # /api/status lists the latest 50 stops; the event log has them all
 REARM_S = 5.0  # SimOptions.rearm_after_s, the quick start's
 CAUSES = {"late_replies", "timeout", "fault", "operator"}
 CHROMIUM = Path("/usr/bin/chromium")
@@ -57,6 +60,7 @@ data_dir = "{data_dir}"
 [rsi]
 listen_host = "127.0.0.1"
 listen_port = {rsi_port}
+timeout_count = {TIMEOUT_COUNT}
 [jobs]
 workers = 1
 [log]
@@ -98,13 +102,13 @@ def rt_child(daemon: DaemonProcess) -> int:
 def force_late_reply_stop(
     daemon: DaemonProcess, status: Callable[[], dict[str, Any]]
 ) -> tuple[dict[str, Any], dict[str, Any], float]:
-    """Freeze the real-time process for 0.4 s (33 cycles without a reply) once RSI runs; returns the
-    status that shows the stop, the stop, and when the freeze ended (UNIX s)."""
+    """Freeze the real-time process for 20 cycles more than the Timeout allows once RSI runs; returns
+    the status that shows the stop, the stop, and when the freeze ended (UNIX s)."""
     doc = wait_until(lambda: (d := status())["rsi"]["running"] and d, 120, "RSI running", every_s=0.05)
     session = doc["rsi"]["sessions"]
     child = rt_child(daemon)
     os.kill(child, signal.SIGSTOP)
-    time.sleep(0.4)
+    time.sleep((TIMEOUT_COUNT + 20) * 0.012)
     os.kill(child, signal.SIGCONT)
     forced_at = time.time()
 
@@ -146,12 +150,12 @@ def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
             doc: dict[str, Any] = r.json()
             return doc
 
-        # 1. a forced stop: the real-time process frozen for 0.4 s = 33 cycles without a reply
+        # 1. a forced stop: the real-time process frozen for longer than the controller's Timeout
         doc, forced, forced_at = force_late_reply_stop(daemon, status)
         assert doc["daemon"]["state"] == "waiting for RSI", doc["daemon"]["state"]
         forced = doc["forced"]
         assert forced["cause"] == "late_replies", forced
-        assert forced["late_replies"] == 10 and forced["cycles"] > 0, forced
+        assert forced["late_replies"] == TIMEOUT_COUNT and forced["cycles"] > 0, forced
         assert "Timeout" in forced["detail"], forced
         assert forced["next"] == f"the simulated controller re-arms RSI in {REARM_S:g} s", forced
         assert doc["rsi"]["next"] == doc["rsi"]["stops"][0]["next"]
@@ -197,6 +201,34 @@ def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
         doc = status()
         rsi, loop = doc["rsi"], doc["daemon"]["loop"]
         now = time.time()
+        events: list[dict[str, Any]] = []
+        while batch := eng.get(
+            "/api/events/log", params={"after_id": events[-1]["id"] if events else 0, "limit": 1000}
+        ).json():
+            events += batch
+        metrics = eng.get("/metrics").text
+        late = metric_sum(metrics, "comp_daemon_rsi_late_replies_total")
+        print(
+            f"\nsoak {SOAK_S:g} s, Timeout {TIMEOUT_COUNT}, {len(burners)} burners: {len(fits)} fits, "
+            f"sessions {rsi['sessions']}, stops {rsi['stops_by_cause']}, re-arms {rsi['rearms']}, "
+            f"cycles {loop['cycles']}, late replies (daemon) {late:g}, "
+            f"reply p99 {loop['latency_p99_ms']} ms, "
+            f"loop running in {sum(running_samples)}/{len(running_samples)} samples, "
+            f"running at the end: {loop['running']}"
+        )
+        cycles = sorted(s["cycles"] for s in rsi["stops"])
+        if cycles:
+            print(
+                f"  cycles per session (last {len(cycles)}): min {cycles[0]}, "
+                f"median {cycles[len(cycles) // 2]}, max {cycles[-1]}"
+            )
+        for stop in reversed(rsi["stops"][:5]):
+            print(
+                f"  session {stop['session']}: {stop['cause']} after {stop['cycles']} cycles "
+                f"({stop['late_replies']} late): {stop['detail']} -> {stop['next']}"
+            )
+        sys.stdout.flush()
+
         if not loop["running"]:
             last = rsi["stops"][0]
             assert last["rearmed_at"] is None and now - last["time"] < REARM_S + 5.0, rsi
@@ -205,28 +237,14 @@ def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
             assert stop["cycles"] >= 0 and stop["late_replies"] >= 0, stop
             if now - stop["time"] > REARM_S + 5.0:
                 assert stop["rearmed_at"] is not None, stop
-        assert rsi["stops_total"] == len(rsi["stops"]) == sum(rsi["stops_by_cause"].values())
+        assert len(rsi["stops"]) == min(rsi["stops_total"], KEPT_STOPS)
+        assert rsi["stops_total"] == sum(rsi["stops_by_cause"].values())
         assert rsi["sessions"] == rsi["rearms"] + 1
-
-        events = eng.get("/api/events/log", params={"limit": 1000}).json()
         assert sum(e["kind"] == "rsi.stopped" for e in events) == rsi["stops_total"]
         assert sum(e["kind"] == "rsi.rearmed" for e in events) == rsi["rearms"]
-        metrics = eng.get("/metrics").text
         assert metric_sum(metrics, "comp_daemon_rsi_stops_total") == rsi["stops_total"]
         assert metric_sum(metrics, "comp_daemon_rsi_sessions_total") == rsi["sessions"]
-        late = metric_sum(metrics, "comp_daemon_rsi_late_replies_total")
 
-    print(
-        f"\nsoak {SOAK_S:g} s on {len(burners)} burners: {len(fits)} fits, sessions {rsi['sessions']}, "
-        f"stops {rsi['stops_by_cause']}, re-arms {rsi['rearms']}, cycles {loop['cycles']}, "
-        f"late replies (daemon) {late:g}, loop running in {sum(running_samples)}/{len(running_samples)} "
-        f"samples, running at the end: {loop['running']}"
-    )
-    for stop in reversed(rsi["stops"]):
-        print(
-            f"  session {stop['session']}: {stop['cause']} after {stop['cycles']} cycles "
-            f"({stop['late_replies']} late): {stop['detail']} -> {stop['next']}"
-        )
     assert daemon.sigterm() == 0, daemon.tail()
 
 
