@@ -121,11 +121,11 @@ class RsiSessions:
         """Record a stop when telegrams have ceased since the last look, a re-arm when they came back."""
         alive = runtime.rsi_alive()
         if alive and not self.running:
-            await self._started(stats)
+            await self._started()
         elif self.running and not alive:
             await self._stopped(runtime, stats)
 
-    async def _started(self, stats: RsiServerStats) -> None:
+    async def _started(self) -> None:
         self.running = True
         self.sessions += 1
         metrics.RSI_SESSIONS.inc()
