@@ -275,3 +275,33 @@ async def test_the_simulated_controller_names_the_cause_and_the_rearm() -> None:
         sessions.stops[-1].next == "the simulated controller re-armed RSI after 5.7 s"
     )  # 0.5 s since the last telegram + 5.2 s
     assert sessions.report()["next"] is None and sessions.report()["running"]
+
+
+async def test_no_stop_is_judged_on_an_old_report_or_while_the_controller_still_sends() -> None:
+    view, stats, clock = WireView(), RsiServerStats(16), ManualClock()
+    answers = [{"state": "running", "stop_cause": None, "stop_reason": None, "rearm_after_s": 5.0}]
+
+    async def controller_status() -> dict[str, Any]:
+        return answers[-1]
+
+    sessions = RsiSessions(timeout_count=100, controller_status=controller_status, wall_clock=clock)
+    runtime: Any = view
+    session(view, stats, 100, 0, 0)
+    await sessions.observe(runtime, stats)
+    view.alive = False  # no telegram in the daemon's view...
+    await sessions.observe(runtime, stats, report_age_s=0.6)  # ...because the real-time process is frozen
+    await sessions.observe(runtime, stats, report_age_s=None)
+    assert sessions.running and not sessions.stops
+    await sessions.observe(runtime, stats)  # reports current, but the controller still sends
+    assert sessions.running and not sessions.stops
+    answers.append(
+        {
+            "state": "stopped",
+            "stop_cause": "late_replies",
+            "stop_reason": "Timeout: 100 late replies (limit 100)",
+            "rearm_after_s": 5.0,
+        }
+    )
+    await sessions.observe(runtime, stats)
+    (stop,) = sessions.stops
+    assert stop.cause == "late_replies" and stop.late_replies == 100 and not sessions.running

@@ -239,11 +239,11 @@ class Cell:
         """Record RSI stops and restarts (:class:`RsiSessions`) until the loop stops."""
         while True:
             await asyncio.sleep(period_s)
-            runtime, stats = self.runtime, self.rsi_stats
-            if runtime is None or stats is None:
+            runtime, stats, rtp = self.runtime, self.rsi_stats, self.rtp
+            if runtime is None or stats is None or rtp is None:
                 continue
             try:
-                await self.rsi_sessions.observe(runtime, stats)
+                await self.rsi_sessions.observe(runtime, stats, report_age_s=rtp.report_age_s())
             except Exception:  # a recording failure must not end the watch
                 log.exception("daemon: recording the RSI session failed")
 

@@ -2,7 +2,8 @@
 
 The robot controller is the RSI client, so the daemon learns of a stop only from the wire:
 telegrams cease. :class:`RsiSessions` watches the loop (:meth:`RsiSessions.observe`, a few times a
-second) and, when telegrams have ceased (``rsi_alive`` false), records an :class:`RsiStopRecord`:
+second, while the real-time process's reports are current) and, when telegrams have ceased
+(``rsi_alive`` false), records an :class:`RsiStopRecord`:
 when the last telegram came, the cause, how many cycles the session answered and how many late
 replies it had, and what happens next. The cause is read from what was on the wire:
 
@@ -101,6 +102,7 @@ class RsiSessions:
         record_event: Callable[[str, dict[str, Any]], Awaitable[None]] | None = None,
         wall_clock: Callable[[], float] = time.time,
         keep: int = 50,
+        max_report_age_s: float = 0.25,
     ) -> None:
         """``controller_status``: the simulated controller's ``status`` (None on a real robot);
         ``record_event(kind, message)``: writes to the store's event log."""
@@ -108,6 +110,7 @@ class RsiSessions:
         self.controller_status = controller_status
         self.record_event = record_event
         self.wall_clock = wall_clock
+        self.max_report_age_s = max_report_age_s
         self.sessions = 0
         self.rearms = 0
         self.running = False
@@ -117,8 +120,16 @@ class RsiSessions:
         self._start_answered = 0  # stats.answered at the end of the previous session
         self._start_late = 0
 
-    async def observe(self, runtime: LoopView, stats: RsiServerStats) -> None:
-        """Record a stop when telegrams have ceased since the last look, a re-arm when they came back."""
+    async def observe(
+        self, runtime: LoopView, stats: RsiServerStats, *, report_age_s: float | None = 0.0
+    ) -> None:
+        """Record a stop when telegrams have ceased since the last look, a re-arm when they came back.
+
+        ``report_age_s``: how old the real-time process's latest report is; older than
+        ``max_report_age_s`` (or None) the daemon's view of the telegrams is not current (that
+        process was not scheduled, or is gone) and nothing is judged until it is."""
+        if report_age_s is None or report_age_s > self.max_report_age_s:
+            return
         alive = runtime.rsi_alive()
         if alive and not self.running:
             await self._started()
@@ -144,11 +155,13 @@ class RsiSessions:
         await self._record("rsi.rearmed", {"session": self.sessions, "after_stop": done.to_dict()})
 
     async def _stopped(self, runtime: LoopView, stats: RsiServerStats) -> None:
-        self.running = False
         age_s = runtime.telegram_age_s()
         when = self.wall_clock() - (0.0 if age_s is None else age_s)
         cause, detail = self._cause_from_wire(runtime, stats)
         controller = await self._controller_word()
+        if controller == "running":  # the simulated controller still sends: not a stop (yet)
+            return
+        self.running = False
         if controller is not None and runtime.core.state is not SafetyState.STOPPING:
             cause, detail = controller
         delay = stats.controller_delay
@@ -192,8 +205,9 @@ class RsiSessions:
             "telegrams ceased without Stop = 1 or a late-reply count near the controller's Timeout",
         )
 
-    async def _controller_word(self) -> tuple[StopCauseWord, str] | None:
-        """The simulated controller's own stop cause and message, if there is a simulated controller."""
+    async def _controller_word(self) -> tuple[StopCauseWord, str] | Literal["running"] | None:
+        """The simulated controller's own stop cause and message, ``"running"`` if it says RSI still
+        runs, None without a simulated controller or an answer."""
         if self.controller_status is None:
             return None
         try:
@@ -202,6 +216,8 @@ class RsiSessions:
             log.warning(f"rsi: could not ask the simulated controller why RSI stopped: {exc}")
             return None
         self.rearm_after_s = doc.get("rearm_after_s")
+        if doc.get("state") == "running":
+            return "running"
         cause = _CONTROLLER_CAUSE.get(str(doc.get("stop_cause")))
         if doc.get("state") != "stopped" or cause is None:
             return None
