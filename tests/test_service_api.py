@@ -366,11 +366,15 @@ async def test_ready_metrics_status_and_events_log(env: Any) -> None:
     for name in (
         "comp_daemon_loop_reply_latency_seconds_bucket",
         "comp_daemon_rsi_late_replies_total",
-        "comp_daemon_encoder_faults",
+        "comp_daemon_encoder_faults_total",
         "comp_daemon_loop_running",
+        'comp_daemon_rsi_stops_total{cause="late_replies"} ',  # every cause exposed from the start
+        'comp_daemon_build_info{version="',
+        "process_resident_memory_bytes",
     ):
         assert name in text
     status = (await client.get("/api/status", headers=auth("viewer"))).json()
+    assert status["rsi"] is None  # no daemon attached: no RSI sessions to report
     assert status["targets"]["queued"] == 3 and status["active_model"]["id"] == model.id
     assert status["daemon"]["state"] == "not running" and status["ready"] is False
     log = (await client.get("/api/events/log?limit=10", headers=auth("viewer"))).json()

@@ -9,7 +9,10 @@ motion port, the target executor, the grating calibration, and with ``sim`` the 
   compensates, commands the motion, arms the loop and records the outcome.
 - **Grating calibration**: seed 000 step 1 (:mod:`comp_daemon.daemon.gratings`), on request.
 - **Simulated cell** (``sim``): a child process (:mod:`comp_daemon.daemon.simcell`) that the daemon
-  talks to over UDP, pseudo-terminals and TCP, exactly as to the line.
+  talks to over UDP, pseudo-terminals and TCP, exactly as to the line. Its controller re-arms RSI
+  ``rearm_after_s`` after a stop, as an operator restarting the program does.
+- **RSI sessions**: a watch task records each RSI stop with its cause and each restart
+  (:class:`comp_daemon.daemon.rsi_sessions.RsiSessions`, in the store's event log and on ``/api/status``).
 
 The daemon (:mod:`comp_daemon.daemon.app`) decides the order of the steps; this module does them.
 """
@@ -29,6 +32,7 @@ from comp_daemon.common.logs import get_logger
 from comp_daemon.daemon.compensation import ActiveModelCompensator
 from comp_daemon.daemon.gratings import GratingGeometry, calibrate_gratings, default_calibration_poses
 from comp_daemon.daemon.motion import LineMotionPort
+from comp_daemon.daemon.rsi_sessions import RsiSessions
 from comp_daemon.daemon.rt_process import ReaderMirror, RealtimeProcess, RemoteRuntime, RtProcessError
 from comp_daemon.daemon.simcell import SimCellInfo, SimCellProcess
 from comp_daemon.robot.description import RobotDescription
@@ -57,6 +61,7 @@ class SimOptions:
     scenario: str = "kr210-cell"
     seed: int = 0
     servo_lag_cycles: int = 1
+    rearm_after_s: float | None = 5.0  # the controller restarts RSI this long after a stop (None: never)
 
 
 def loop_settings_from(cs: ControllerSettings, cycle_ms: float) -> JointLoopSettings:
@@ -115,6 +120,10 @@ class Cell:
         self.sim: SimCellProcess | None = None
         self.sim_info: SimCellInfo | None = None
         self.home_deg: tuple[float, ...] | None = None
+        self.rsi_sessions = RsiSessions(
+            timeout_count=settings.rsi.timeout_count, record_event=self._record_event
+        )
+        self._rsi_watch: asyncio.Task[None] | None = None
         self.active_model_id: int | None = None
         self.calibrating = False
         self._cal_task: asyncio.Task[None] | None = None
@@ -185,8 +194,11 @@ class Cell:
                 servo_lag_cycles=opts.servo_lag_cycles,
                 timeout_count=rsi.timeout_count,
                 sen_type=rsi.sen_type,
+                rearm_after_s=opts.rearm_after_s,
             )
             info = self.sim_info = await self.sim.start()
+            self.rsi_sessions.controller_status = self.sim.controller_status
+            self.rsi_sessions.rearm_after_s = opts.rearm_after_s
             ports = {j: (path, info.bits) for j, path in info.gratings.items()}
             self.geometry = {j: GratingGeometry(info.radius_mm, info.resolution_nm) for j in info.gratings}
             self.motion = LineMotionPort(info.motion_host, info.motion_port, timeout_s=move_timeout_s)
@@ -221,6 +233,23 @@ class Cell:
         )
         self.runtime = await self.rtp.start_loop(spec)
         self.readers = dict(self.rtp.readers)
+        self._rsi_watch = asyncio.create_task(self._watch_rsi(), name="rsi sessions")
+
+    async def _watch_rsi(self, period_s: float = 0.1) -> None:
+        """Record RSI stops and restarts (:class:`RsiSessions`) until the loop stops."""
+        while True:
+            await asyncio.sleep(period_s)
+            runtime, stats, rtp = self.runtime, self.rsi_stats, self.rtp
+            if runtime is None or stats is None or rtp is None:
+                continue
+            try:
+                await self.rsi_sessions.observe(runtime, stats, report_age_s=rtp.report_age_s())
+            except Exception:  # a recording failure must not end the watch
+                log.exception("daemon: recording the RSI session failed")
+
+    async def _record_event(self, kind: str, message: dict[str, Any]) -> None:
+        if self.store is not None:
+            await asyncio.to_thread(self.store.add_event, kind, message)
 
     def attach_store(self, store: Store) -> None:
         """Follow the store from now on: the active model, and new work for the executor."""
@@ -415,6 +444,8 @@ class Cell:
         """No new targets; zero steps and ``Stop = 1`` from the next telegram; the target is reported."""
         if self.executor is not None:
             self.executor.stop_claiming()
+        if self._rsi_watch is not None:
+            self._rsi_watch.cancel()  # the stop that follows is the daemon's own (daemon.stopped)
         if self._cal_task is not None and not self._cal_task.done():
             self._cal_task.cancel()  # its moves end with the robot's Stop below
         if self.runtime is not None:

@@ -247,8 +247,10 @@ class RealtimeProcess:
 
     async def start_loop(self, spec: LoopStart) -> RemoteRuntime:
         """Start the readers and the loop in the child; returns the daemon's view of the loop."""
+        # the child judges each reading's age itself; the mirror's copy is up to one report older
+        lag_ms = self.start_cfg.push_period_s * 1e3
         self.readers = {
-            rcfg.joint: ReaderMirror(rcfg.joint, rcfg.stale_after_ms, self.clock_ns)
+            rcfg.joint: ReaderMirror(rcfg.joint, rcfg.stale_after_ms + lag_ms, self.clock_ns)
             for rcfg, _ in spec.readers
         }
         runtime = spec.build(RemoteRuntime, self.readers, self.clock_ns)

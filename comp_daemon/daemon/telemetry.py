@@ -3,8 +3,9 @@
 Every ``telemetry_s`` the daemon's supervisor calls :meth:`Telemetry.update`. It computes the loop
 statistics from the RSI counters and latency rings that the real-time process reports (percentiles
 in a worker thread, over a copy of the rings), adds what is new since the last update to the
-metrics (:mod:`comp_daemon.service.metrics`: every reply's latency into the histogram, late
-replies, rejected telegrams, grating faults, per-joint errors and corrections), and publishes the
+metrics (:mod:`comp_daemon.service.metrics`: every reply's latency and every cycle's jitter into
+their histograms, late replies, rejected telegrams, grating faults and reading ages, per-joint
+errors and corrections in radians), and publishes the
 ``loop`` and ``joints`` events on the bus the dashboard's event stream reads.
 """
 
@@ -81,7 +82,7 @@ class Telemetry:
             realtime=realtime,
         )
         rows = runtime.joint_rows()
-        self._update_metrics(runtime, stats, lat, readers, rows)
+        self._update_metrics(runtime, stats, lat, jit, readers, rows)
         self.bus.publish("loop", asdict(self.loop_stats) | {"state": state})
         self.bus.publish("joints", {"joints": rows, "state": str(runtime.core.state)})
         return self.loop_stats
@@ -96,6 +97,7 @@ class Telemetry:
         runtime: LoopView,
         stats: RsiServerStats,
         latencies_ns: np.ndarray,
+        jitters_ns: np.ndarray,
         readers: Mapping[int, ReaderMirror],
         rows: list[dict[str, Any]],
     ) -> None:
@@ -104,6 +106,9 @@ class Telemetry:
             metrics.RSI_TELEGRAMS.inc(new)
             for v in latencies_ns[-min(new, latencies_ns.size) :]:
                 metrics.LOOP_REPLY_LATENCY.observe(float(v) / 1e9)
+        new_jitter = self._delta("jitter", stats.jitter.count)
+        for v in jitters_ns[-min(new_jitter, jitters_ns.size) :] if new_jitter else ():
+            metrics.LOOP_CYCLE_JITTER.observe(abs(float(v)) / 1e9)
         late = self._delta("late", stats.late) + self._delta("superseded", stats.superseded)
         if late:
             metrics.RSI_LATE_REPLIES.inc(late)
@@ -124,6 +129,8 @@ class Telemetry:
         for row in rows:
             j = str(row["joint"])
             metrics.ENCODER_STALE.labels(joint=j).set(0.0 if row["encoder"] == "ok" else 1.0)
+            if row["reading_age_ms"] is not None:
+                metrics.GRATING_READING_AGE.labels(joint=j).set(row["reading_age_ms"] / 1e3)
             if row["error_deg"] is not None:
-                metrics.JOINT_ERROR_DEG.labels(joint=j).set(row["error_deg"])
-            metrics.JOINT_CORRECTION_DEG.labels(joint=j).set(row["correction_deg"])
+                metrics.JOINT_ERROR_RAD.labels(joint=j).set(metrics.radians(row["error_deg"]))
+            metrics.JOINT_CORRECTION_RAD.labels(joint=j).set(metrics.radians(row["correction_deg"]))

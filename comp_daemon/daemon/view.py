@@ -4,7 +4,8 @@ It implements :class:`~comp_daemon.service.daemon_view.DaemonView` (the state in
 snapshot with the joints and the loop statistics, why a target cannot start now) from the cell's
 mirrored loop and the telemetry's latest statistics, and
 :class:`~comp_daemon.service.daemon_view.DaemonControl` by handing the operator's actions (grating
-calibration, fault acknowledgement) to the cell. Every method returns at once: it reads attributes
+calibration, fault acknowledgement) to the cell; :meth:`CellView.rsi_report` adds the RSI stops
+and restarts (``/api/status`` → ``rsi``). Every method returns at once: it reads attributes
 that the event loop replaces whole, no I/O, no waiting.
 """
 
@@ -116,6 +117,10 @@ class CellView:
 
     def loop_stats(self) -> LoopStats:
         return self.telemetry.loop_stats
+
+    def rsi_report(self) -> dict[str, Any]:
+        """The RSI sessions: each stop with its cause, cycles, late replies and what happens next."""
+        return self.cell.rsi_sessions.report()
 
     # ------------------------------------------------------------------------------ DaemonControl
 

@@ -201,11 +201,16 @@ class RtChild:
             self.loop.call_soon(self.push)
 
     async def _report_idle(self) -> None:
-        """Reports while no telegrams come (after replies they are sent by :meth:`handle`)."""
+        """Reports while no telegrams come (after replies they are sent by :meth:`handle`), at the
+        same period: the daemon's copy of the grating readings must not age more while RSI is off."""
         while True:
-            await asyncio.sleep(self._push_period_ns / 1e9)
+            await asyncio.sleep(self._push_period_ns / 2e9)
             runtime = self.runtime
-            if runtime is not None and runtime.clock_ns() - self._last_push_ns >= 2 * self._push_period_ns:
+            if runtime is None:
+                continue
+            now, period = runtime.clock_ns(), self._push_period_ns
+            rx = runtime._last_rx_ns
+            if now - self._last_push_ns >= period and (rx is None or now - rx >= period):
                 self.push()
 
     async def _forward_events(self, runtime: LoopRuntime) -> None:

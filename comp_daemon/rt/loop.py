@@ -175,6 +175,11 @@ class LoopView:
         while self.telegrams < seen + n and time.monotonic() < deadline:
             await asyncio.sleep(cycle_s / 2)
 
+    def telegram_age_s(self) -> float | None:
+        """Seconds since the last telegram (None before the first)."""
+        last = self._last_rx_ns
+        return None if last is None else (self.clock_ns() - last) * 1e-9
+
     def rsi_alive(self) -> bool:
         last = self._last_rx_ns
         return last is not None and (self.clock_ns() - last) * 1e-9 <= self.rsi_alive_s

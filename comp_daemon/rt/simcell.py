@@ -7,7 +7,8 @@ tracker) is :mod:`comp_daemon.sim.cell`; this module starts it by module name
 simulator. The child prints one JSON line on stdout once it is up (:class:`SimCellInfo`), then
 serves line ports on 127.0.0.1 (:func:`line_command`):
 
-- motion (the controller's command port): ``move A1 … A6``, ``rsi_on``, ``rsi_off``, ``status``;
+- motion (the controller's command port): ``move A1 … A6``, ``rsi_on``, ``rsi_off``, ``status``
+  (:meth:`SimCellProcess.controller_status`: the RSI state and the stops with their causes);
 - cell: ``measure``, ``tcp``, ``joints``, ``fault J KIND``, ``clear J``, ``unplug J``,
   ``replug J``, ``payload KG``, ``status``.
 
@@ -27,6 +28,7 @@ from dataclasses import asdict, dataclass
 from functools import cache
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -120,8 +122,10 @@ class SimCellProcess:
         servo_lag_cycles: int = 1,
         timeout_count: int = 10,
         sen_type: str = "ImFree",
+        rearm_after_s: float | None = None,
         start_timeout_s: float = 30.0,
     ) -> None:
+        """``rearm_after_s``: the simulated controller restarts RSI this long after a stop (None: never)."""
         self.argv = [
             sys.executable,
             "-m",
@@ -144,6 +148,8 @@ class SimCellProcess:
             str(link_dir),
             "--exit-with-parent",
         ]
+        if rearm_after_s is not None:
+            self.argv += ["--rearm-after-s", repr(float(rearm_after_s))]
         self.start_timeout_s = start_timeout_s
         self.proc: asyncio.subprocess.Process | None = None
         self.info: SimCellInfo | None = None
@@ -174,6 +180,16 @@ class SimCellProcess:
         if self.info is None:
             raise RuntimeError("the simulated cell is not running")
         return await line_command(self.info.cell_host, self.info.cell_port, line, timeout_s=timeout_s)
+
+    async def controller_status(self, *, timeout_s: float = 5.0) -> dict[str, Any]:
+        """The simulated controller's ``status`` (state, stop cause, the stops of its sessions…)."""
+        if self.info is None:
+            raise RuntimeError("the simulated cell is not running")
+        answer = await line_command(
+            self.info.motion_host, self.info.motion_port, "status", timeout_s=timeout_s
+        )
+        doc: dict[str, Any] = json.loads(answer)
+        return doc
 
     async def rsi_on(self) -> None:
         """``RSI_ON`` in the robot program: the controller starts sending telegrams."""

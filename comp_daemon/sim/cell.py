@@ -18,14 +18,16 @@ Interfaces (all on 127.0.0.1):
   ``clear J`` (converter fault injection: bad_crc, error_bit, warning_bit, silent, garble);
   ``unplug J`` / ``replug J``; ``payload KG``; ``status`` → ``OK <json>``.
 
-RSI starts when a client sends ``rsi_on`` on the motion port (as the robot program's ``RSI_ON``
-once the operator starts it), or at once with ``--rsi-on``. On start the cell prints one JSON line
-on stdout (ports, grating symlinks, converter geometry: :class:`comp_daemon.rt.simcell.SimCellInfo`)
-and then serves until SIGTERM/SIGINT, when it stops RSI, unplugs the converters and exits 0. With
-``--exit-with-parent`` (how the daemon starts it) it does the same when its stdin reaches end of
-file: the parent holds the pipe's other end, so a daemon killed with SIGKILL leaves no simulated
-cell behind sending telegrams. Logs go to stderr. A scenario that cannot be loaded exits 2 with
-the reason on stderr, before the ready line.
+RSI starts when a client sends ``rsi_on`` on the motion port (as the robot program's ``RSI_ON`` once
+the operator starts it), or at once with ``--rsi-on``. With ``--rearm-after-s S`` the controller
+restarts RSI S seconds after each stop (late replies, Stop=1, AXISCORRMON), as the operator does on
+the line; the motion port's ``status`` lists the stops with their causes. On start the cell prints
+one JSON line on stdout (ports, grating symlinks, converter geometry:
+:class:`comp_daemon.rt.simcell.SimCellInfo`) and then serves until SIGTERM/SIGINT, when it stops
+RSI, unplugs the converters and exits 0. With ``--exit-with-parent`` (how the daemon starts it) it
+does the same when its stdin reaches end of file: the parent holds the pipe's other end, so a daemon
+killed with SIGKILL leaves no simulated cell behind sending telegrams. Logs go to stderr. A scenario
+that cannot be loaded exits 2 with the reason on stderr, before the ready line.
 """
 
 from __future__ import annotations
@@ -65,6 +67,7 @@ async def _run_cell(args: argparse.Namespace, scenario: Scenario) -> int:
             servo_lag_cycles=args.servo_lag_cycles,
             timeout_count=args.timeout_count,
             sen_type=args.sen_type,
+            rearm_after_s=args.rearm_after_s,
         ),
         plant,
     )
@@ -193,6 +196,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--servo-lag-cycles", type=int, default=1)
     parser.add_argument("--timeout-count", type=int, default=10)
     parser.add_argument("--sen-type", default="ImFree")
+    parser.add_argument(
+        "--rearm-after-s",
+        type=float,
+        default=None,
+        help="restart RSI this many seconds after a stop, as an operator re-selecting the program "
+        "(not after RSI_OFF; default: RSI stays stopped)",
+    )
     parser.add_argument("--cell-port", type=int, default=0)
     parser.add_argument("--link-dir", required=True)
     parser.add_argument(

@@ -20,7 +20,13 @@ whole cycles and counts an ``overrun`` instead of drifting). In cycle k it
 
 A stop (Timeout, Stop=1, AXISCORRMON) ends the telegrams, halts the plant's motion where it is (a
 pending :meth:`move_to` raises :class:`RobotStoppedError`) and keeps the correction (no jump);
-:meth:`rsi_off` ends the telegrams only; :meth:`rsi_on` starts a new RSI session.
+:meth:`rsi_off` ends the telegrams only; :meth:`rsi_on` starts a new RSI session. Each stop is
+kept (:class:`RsiStop`: when, :class:`StopCause`, the message, telegrams and late replies of the
+session). With ``rearm_after_s`` the controller re-arms RSI as an operator does on the line
+(acknowledge the message, re-select and start the program): ``rearm_after_s`` after a stop that was
+not ``RSI_OFF`` or the controller's shutdown, the next cycle starts a new session (``rsi_on``). On
+the wire that is what a restart looks like: telegrams cease, then come again with ``Delay`` 0 and
+an ``IPOC`` that has kept counting (the controller's clock ran on meanwhile).
 Motion: :meth:`move_to` starts a PTP move in the plant and waits for arrival; :meth:`serve_commands`
 offers the same over a line-based TCP port.
 
@@ -35,6 +41,7 @@ import contextlib
 import enum
 import json
 import socket
+import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Sequence
 from dataclasses import dataclass, field
@@ -52,7 +59,9 @@ __all__ = [
     "RsiControllerConfig",
     "RsiControllerStats",
     "RsiState",
+    "RsiStop",
     "SimulatedRsiController",
+    "StopCause",
     "serve_lines",
 ]
 
@@ -97,6 +106,47 @@ class RsiState(enum.StrEnum):
     STOPPED = "stopped"
 
 
+class StopCause(enum.StrEnum):
+    """Why RSI stopped, as the controller's message window says it."""
+
+    LATE_REPLIES = "late_replies"  # ETHERNET Timeout: the late-reply count reached its limit
+    SENSOR_STOP = "sensor_stop"  # Stop=1 in a reply (the sensor asked for the stop)
+    AXISCORRMON = "axiscorrmon"  # the total correction exceeded its monitored maximum
+    INTERNAL_ERROR = "internal_error"  # the controller's own cycle failed
+    RSI_OFF = "rsi_off"  # RSI_OFF in the robot program
+    SHUTDOWN = "shutdown"  # the controller itself shut down
+
+
+#: stops after which an operator restarts the program (not RSI_OFF, not the controller's shutdown)
+_REARMABLE = frozenset(
+    {StopCause.LATE_REPLIES, StopCause.SENSOR_STOP, StopCause.AXISCORRMON, StopCause.INTERNAL_ERROR}
+)
+
+
+@dataclass(frozen=True, slots=True)
+class RsiStop:
+    """One end of an RSI session: ``time`` in UNIX seconds; ``telegrams`` and ``late`` of the session."""
+
+    session: int
+    time: float
+    ipoc: int
+    cause: StopCause
+    reason: str
+    telegrams: int
+    late: int
+
+    def to_dict(self) -> dict[str, Any]:
+        return {
+            "session": self.session,
+            "time": round(self.time, 3),
+            "ipoc": self.ipoc,
+            "cause": str(self.cause),
+            "reason": self.reason,
+            "telegrams": self.telegrams,
+            "late": self.late,
+        }
+
+
 class RobotStoppedError(RuntimeError):
     """A motion ended because the robot stopped (RSI error or stop request)."""
 
@@ -126,12 +176,15 @@ class RsiControllerConfig:
     rob_type: str = "KUKA"
     ipoc_start: int = 1_000_000
     decimals: int = 4
+    rearm_after_s: float | None = None  # restart RSI this long after a stop (None: stay stopped)
 
     def __post_init__(self) -> None:
         if self.cycle_ms not in (4, 12):
             raise ValueError(f"cycle_ms must be 4 (#IPO_FAST) or 12 (#IPO), got {self.cycle_ms}")
         if self.timeout_count < 1:
             raise ValueError(f"timeout_count must be at least 1, got {self.timeout_count}")
+        if self.rearm_after_s is not None and not (0.0 <= self.rearm_after_s < float("inf")):
+            raise ValueError(f"rearm_after_s must be a finite time >= 0 s, got {self.rearm_after_s}")
         if self.mode not in ("relative", "absolute"):
             raise ValueError(f"mode must be 'relative' or 'absolute', got {self.mode!r}")
         if not 0 <= self.servo_lag_cycles <= 10:
@@ -161,7 +214,9 @@ class RsiControllerStats:
     overruns: int = 0  # wake-ups more than a cycle late (cycles skipped)
     send_errors: int = 0
     sessions: int = 0
+    rearms: int = 0  # sessions started by the re-arm (rearm_after_s), not by rsi_on
     history: deque[str] = field(default_factory=lambda: deque(maxlen=32))
+    stops: deque[RsiStop] = field(default_factory=lambda: deque(maxlen=32))
 
 
 class _ControllerProtocol(asyncio.DatagramProtocol):
@@ -179,13 +234,23 @@ class SimulatedRsiController:
     """The simulated KR C4 RSI side; see the module docstring."""
 
     def __init__(
-        self, config: RsiControllerConfig, source: JointStateSource, *, pose_fn: PoseFn | None = None
+        self,
+        config: RsiControllerConfig,
+        source: JointStateSource,
+        *,
+        pose_fn: PoseFn | None = None,
+        clock: Callable[[], float] | None = None,
     ) -> None:
+        """``clock`` (seconds) times the re-arm; by default the event loop's clock."""
         self.config = config
         self.source = source
         self.pose_fn = pose_fn
+        self.clock = clock
         self.state = RsiState.OFF
         self.stop_reason: str | None = None
+        self.stop_cause: StopCause | None = None
+        self.rearm_at: float | None = None  # when the re-arm is due (``clock`` seconds), or None
+        self._session_telegrams = 0  # telegrams_sent when the session started
         self.stats = RsiControllerStats()
         self.total_correction_deg = np.zeros(6)
         self._lo = np.asarray(config.axiscorr_min_deg)
@@ -246,7 +311,8 @@ class SimulatedRsiController:
     async def close(self) -> None:
         """Stop RSI and the cycle, close the UDP socket and the command ports."""
         if self.state is RsiState.RUNNING:
-            self._stop(_SHUTDOWN)
+            self._stop(_SHUTDOWN, StopCause.SHUTDOWN)
+        self.rearm_at = None
         if self._timer is not None:
             self._timer.cancel()
             self._timer = None
@@ -268,16 +334,26 @@ class SimulatedRsiController:
             return
         self.state = RsiState.RUNNING
         self.stop_reason = None
+        self.stop_cause = None
+        self.rearm_at = None
         self.stats.late = 0
         self.stats.sessions += 1
+        self._session_telegrams = self.stats.telegrams_sent
         self._last_ak = np.zeros(6)
         self._pending_ipoc = None
         self._reply = None
 
     def rsi_off(self) -> None:
         """``RSI_OFF`` from the robot program."""
+        self.rearm_at = None
         if self.state is RsiState.RUNNING:
-            self._stop("RSI_OFF")
+            self._stop("RSI_OFF", StopCause.RSI_OFF)
+
+    def now(self) -> float:
+        """The re-arm clock (seconds): ``clock`` if given, else the event loop's."""
+        if self.clock is not None:
+            return self.clock()
+        return self._loop.time() if self._loop is not None else time.monotonic()
 
     # motion ----------------------------------------------------------------------------------------
 
@@ -313,9 +389,15 @@ class SimulatedRsiController:
             self._cycle(k, steps)
         except Exception:  # a plant bug must not kill the interpolation cycle silently
             log.exception("rsi controller: cycle failed", cycle=k)
-            self._stop("internal error in the controller cycle")
+            self._stop("internal error in the controller cycle", StopCause.INTERNAL_ERROR)
 
     def _cycle(self, k: int, steps: int) -> None:
+        if self.state is RsiState.STOPPED and self.rearm_at is not None and self.now() >= self.rearm_at:
+            log.info(
+                "rsi controller: RSI re-armed", after_s=self.config.rearm_after_s, cause=str(self.stop_cause)
+            )
+            self.stats.rearms += 1
+            self.rsi_on()
         if self.state is RsiState.RUNNING and self._pending_ipoc is not None:
             self._judge_reply()
         for _ in range(min(steps, self.config.servo_lag_cycles + 1)):
@@ -340,12 +422,15 @@ class SimulatedRsiController:
             if stats.late >= cfg.timeout_count:
                 self._apply(ak)
                 if self.state is RsiState.RUNNING:
-                    self._stop(f"Timeout: {stats.late} late replies (limit {cfg.timeout_count})")
+                    self._stop(
+                        f"Timeout: {stats.late} late replies (limit {cfg.timeout_count})",
+                        StopCause.LATE_REPLIES,
+                    )
                 return
         else:
             stats.replies_ok += 1
             if reply.stop:
-                self._stop("Stop=1 from the sensor")
+                self._stop("Stop=1 from the sensor", StopCause.SENSOR_STOP)
                 return
             ak = np.asarray(reply.ak_deg, dtype=float)
             self._last_ak = ak
@@ -360,7 +445,7 @@ class SimulatedRsiController:
         mon = self._mon
         if mon is not None and np.any(np.abs(total) > mon):
             axes = ", ".join(f"A{i + 1}={total[i]:+.6f}" for i in np.flatnonzero(np.abs(total) > mon))
-            self._stop(f"AXISCORRMON: total correction beyond its maximum ({axes})")
+            self._stop(f"AXISCORRMON: total correction beyond its maximum ({axes})", StopCause.AXISCORRMON)
 
     def _send(self, ipoc: int) -> None:
         transport = self._transport
@@ -397,16 +482,31 @@ class SimulatedRsiController:
             return
         self._reply = reply
 
-    def _stop(self, reason: str) -> None:
+    def _stop(self, reason: str, cause: StopCause) -> None:
+        stats = self.stats
         self.state = RsiState.STOPPED
         self.stop_reason = reason
+        self.stop_cause = cause
         self._pending_ipoc = None
         self._reply = None
-        self.stats.history.append(f"RSI stopped at IPOC {self.ipoc}: {reason}")
-        if reason == "RSI_OFF":  # a program statement: the motion goes on without RSI
+        stats.history.append(f"RSI stopped at IPOC {self.ipoc}: {reason}")
+        stats.stops.append(
+            RsiStop(
+                session=stats.sessions,
+                time=time.time(),
+                ipoc=self.ipoc,
+                cause=cause,
+                reason=reason,
+                telegrams=stats.telegrams_sent - self._session_telegrams,
+                late=stats.late,
+            )
+        )
+        after = self.config.rearm_after_s
+        self.rearm_at = self.now() + after if after is not None and cause in _REARMABLE else None
+        if cause is StopCause.RSI_OFF:  # a program statement: the motion goes on without RSI
             log.info("rsi controller: RSI_OFF", ipoc=self.ipoc)
             return
-        report = log.info if reason == _SHUTDOWN else log.warning
+        report = log.info if cause is StopCause.SHUTDOWN else log.warning
         report("rsi controller: RSI stopped", ipoc=self.ipoc, reason=reason)
         self.source.halt()
         move = self._move
@@ -417,9 +517,16 @@ class SimulatedRsiController:
 
     def status(self) -> dict[str, Any]:
         s = self.stats
+        rearm_in = None if self.rearm_at is None else max(0.0, self.rearm_at - self.now())
         return {
             "state": str(self.state),
             "stop_reason": self.stop_reason,
+            "stop_cause": None if self.stop_cause is None else str(self.stop_cause),
+            "sessions": s.sessions,
+            "rearms": s.rearms,
+            "rearm_after_s": self.config.rearm_after_s,
+            "rearm_in_s": None if rearm_in is None else round(rearm_in, 3),
+            "stops": [stop.to_dict() for stop in s.stops],
             "ipoc": self.ipoc,
             "cycle_ms": self.config.cycle_ms,
             "moving": self._move is not None and not self._move.done(),

@@ -5,6 +5,11 @@ Operator actions (answered 409 ``not_ready`` when no daemon is attached): ``POST
 ``GET /api/gratings`` follows it (``calibrating``, the calibration in use, ``last_error``);
 ``POST /api/loop/reset-fault`` (operator) acknowledges a latched fault (a stop must also be cleared
 on the robot).
+
+``GET /api/status`` carries, under ``rsi``, the RSI sessions of a daemon that tracks them
+(:class:`RsiReporter`): each stop with when, why (``late_replies``, ``timeout``, ``fault``,
+``operator``), the cycles and late replies before it, and what happens next (the simulated
+controller's re-arm, or what the operator must do on the robot); ``null`` without a daemon.
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ import asyncio
 import json
 import math
 from collections.abc import AsyncIterator
-from typing import Annotated, Any
+from typing import Annotated, Any, Protocol, runtime_checkable
 
 from fastapi import APIRouter, Depends, Query
 from fastapi.responses import JSONResponse, Response, StreamingResponse
@@ -43,6 +48,16 @@ Operator = Annotated[Principal, Depends(require(Role.operator))]
 Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 
 NO_MODEL = "no model is active"
+
+
+@runtime_checkable
+class RsiReporter(Protocol):
+    """A daemon view that tracks the RSI sessions (the daemon's ``CellView``)."""
+
+    def rsi_report(self) -> dict[str, Any]:
+        """``running``, ``sessions``, ``stops_total``, ``stops_by_cause``, ``rearms``, ``next`` and
+        ``stops`` (newest first: ``time``, ``cause``, ``detail``, ``cycles``, ``late_replies``, ``next``…)."""
+        ...
 
 
 async def _readiness(svc: ServiceState) -> list[str]:
@@ -100,6 +115,7 @@ async def status(svc: State, who: Viewer) -> dict[str, Any]:
             "rough_threshold_deg": svc.settings.controller.rough_threshold_deg,
         },
         "daemon": snapshot.to_dict(),
+        "rsi": svc.daemon.rsi_report() if isinstance(svc.daemon, RsiReporter) else None,
         "ready": not reasons,
         "reasons": reasons,
         "targets": counts,

@@ -1,6 +1,7 @@
 /* comp-daemon operator screen. Plain JavaScript, no build step, no external assets.
  *
- * Data: GET /api/status (every 5 s and on demand), lists from /api/targets, /api/models, /api/jobs,
+ * Data: GET /api/status (every 5 s and on demand; its "rsi" part lists each RSI stop with its cause
+ * and what happens next), lists from /api/targets, /api/models, /api/jobs,
  * /api/datasets, /api/diagnoses; live updates from /api/events (server-sent events, read with fetch so
  * that the bearer token travels in the Authorization header, never in a URL).
  * Token: from the URL fragment (#token=...) or the sign-in dialog; kept in sessionStorage only.
@@ -233,7 +234,7 @@
       schedule("status", refreshStatus, 500);
     } else if (kind.startsWith("dataset.")) {
       schedule("datasets", refreshDatasets);
-    } else if (kind.startsWith("daemon.")) {
+    } else if (kind.startsWith("daemon.") || kind.startsWith("rsi.")) {
       schedule("status", refreshStatus, 200);
     }
   }
@@ -248,6 +249,7 @@
       $("who").textContent = status.you ? `${status.you.name} · ${status.you.role}` : "—";
       $("robot").textContent = status.robot;
       applySnapshot(status.daemon);
+      renderRsi(status.rsi, status.daemon);
       renderReady(status);
       renderQueueChips();
       renderActions();
@@ -325,6 +327,50 @@
       if (S.latency.length > 600) S.latency.splice(0, S.latency.length - 600);
     }
     drawLatency();
+  }
+
+  const CAUSE_WORDS = {
+    late_replies: "late replies",
+    timeout: "telegrams ceased",
+    fault: "fault",
+    operator: "operator",
+  };
+
+  function renderRsi(rsi, snap) {
+    const box = $("rsi-stop");
+    const body = document.querySelector("#rsi-stops tbody");
+    if (!rsi) {
+      box.classList.add("hidden");
+      $("rsi-summary").textContent = "—";
+      body.replaceChildren();
+      return;
+    }
+    const causes = Object.entries(rsi.stops_by_cause || {}).filter(([, n]) => n > 0)
+      .map(([c, n]) => `${n} ${CAUSE_WORDS[c] || c}`).join(", ");
+    $("rsi-summary").textContent = `· ${rsi.sessions} started · ${rsi.stops_total} stopped${causes ? ` (${causes})` : ""}` +
+      ` · ${rsi.rearms} re-armed`;
+    const last = (rsi.stops || [])[0];
+    const running = snap && snap.loop ? snap.loop.running : rsi.running;
+    if (last && !running && last.rearmed_at === null) {
+      const when = new Date(last.time * 1000).toLocaleTimeString();
+      box.replaceChildren(
+        el("div", {}, el("b", {}, `RSI stopped at ${when}: ${CAUSE_WORDS[last.cause] || last.cause}`),
+          ` after ${last.cycles} cycles (${last.late_replies} late replies). ${last.detail}.`),
+        el("div", {}, el("b", {}, "Next: "), last.next || "—"),
+      );
+      box.className = `rsi-stop ${last.cause === "late_replies" || last.cause === "fault" ? "bad" : "warn"}`;
+      $("rsi-sessions").open = true;
+    } else {
+      box.className = "rsi-stop hidden";
+    }
+    body.replaceChildren(...(rsi.stops || []).slice(0, 20).map((s) => el("tr", {},
+      el("td", { class: "mono" }, new Date(s.time * 1000).toLocaleTimeString()),
+      el("td", {}, pill(CAUSE_WORDS[s.cause] || s.cause, s.cause === "operator" ? "queued" : "failed")),
+      el("td", { class: "num" }, s.cycles),
+      el("td", { class: "num" }, s.late_replies),
+      el("td", {}, s.detail),
+      el("td", {}, s.next),
+    )));
   }
 
   function renderJoints(joints) {
