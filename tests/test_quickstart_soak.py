@@ -34,11 +34,13 @@ import httpx
 import pytest
 from e2e_daemon import TOKENS, DaemonProcess, cmdline, descendants, free_port, sample_campaign, wait_until
 
+from comp_daemon.commands.run import QUICK_START_TIMEOUT_COUNT
+
 pytestmark = pytest.mark.slow
 
 SOAK_S = float(os.environ.get("COMP_DAEMON_SOAK_S", "75"))
-#: the controller's Timeout (late replies per RSI session); the quick start's 10 unless set
-TIMEOUT_COUNT = int(os.environ.get("COMP_DAEMON_SOAK_TIMEOUT_COUNT", "10"))
+#: the controller's Timeout (late replies per RSI session); the quick start's unless set
+TIMEOUT_COUNT = int(os.environ.get("COMP_DAEMON_SOAK_TIMEOUT_COUNT", str(QUICK_START_TIMEOUT_COUNT)))
 KEPT_STOPS = 50  # /api/status lists the latest 50 stops; the event log has them all
 REARM_S = 5.0  # SimOptions.rearm_after_s, the quick start's
 CAUSES = {"late_replies", "timeout", "fault", "operator"}
