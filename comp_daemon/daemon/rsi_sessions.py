@@ -132,6 +132,11 @@ class RsiSessions:
             return
         alive = runtime.rsi_alive()
         if alive and not self.running:
+            # telegrams that waited in the socket while the real-time process was not scheduled
+            # arrive after the stop; the simulated controller says whether a session really runs
+            simulated = self.controller_status is not None
+            if self.stops and simulated and await self._controller_word() != "running":
+                return
             await self._started()
         elif self.running and not alive:
             await self._stopped(runtime, stats)

@@ -48,7 +48,9 @@ class CellView:
             return "holding" if core.state is SafetyState.SETTLED else executor.phase
         if core.state is SafetyState.SETTLED:
             return "holding"
-        return "idle" if runtime.rsi_alive() else "waiting for RSI"
+        sessions = cell.rsi_sessions
+        stopped = bool(sessions.stops) and not sessions.running  # a recorded stop not yet re-armed
+        return "idle" if runtime.rsi_alive() and not stopped else "waiting for RSI"
 
     def status_line(self) -> str:
         """The state word and the target in hand (systemd's STATUS=)."""
