@@ -28,7 +28,7 @@ from comp_daemon.data.table import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
-from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction
+from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction, uncertainty_summary
 from comp_daemon.models.evaluation import error_statistics
 from comp_daemon.robot.description import RobotDescription
 
@@ -85,7 +85,32 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     if "bar_error_rms_mm" in check:
         b = check["bar_error_rms_mm"]
         print(f"  check {check['check_rows']} rows: bar error RMS {b['before']:.4f} -> {b['after']:.4f} mm")
+    summary = uncertainty_summary(info)
+    if summary is not None:
+        _print_uncertainty(summary, info["identified"])
     return 0
+
+
+def _print_uncertainty(s: dict[str, Any], identified: dict[str, dict[str, float]]) -> None:
+    """The uncertainty mode's lines of the ``fit`` summary (spec A.8)."""
+    um, bm, rms = s["u_mm"], s["b_mm"], s["rms_mm"]
+    reps = s["repeats"]
+    count = f"{reps['min']}" if reps["min"] == reps["max"] else f"{reps['min']}-{reps['max']}"
+    print(
+        f"  uncertainty (spec A.8): {s['poses']} poses x {count} repeats, the last repeat the reading; "
+        f"u {um['mean'] * 1000:.2f} um mean ({um['min'] * 1000:.2f}-{um['max'] * 1000:.2f}), "
+        f"expanded b = 1.96 u (95 %) {bm['mean'] * 1000:.2f} um mean"
+    )
+    print(
+        f"  residual RMS: unweighted {rms['unweighted'] * 1000:.2f} um, weighted 1/u^2 "
+        f"{rms['weighted'] * 1000:.2f} um (chi2/dof {s['chi2_per_dof']:.2f}, covariance x "
+        f"{s['covariance_scale']:.2f}), nested correction {rms['nested'] * 1000:.2f} um "
+        f"({s['nested_rounds']} rounds, corrected {', '.join(str(c) for c in s['nested_corrected'])}; "
+        f"{s['nested_stop']}; {s['flagged']} beyond b, flagged)"
+    )
+    for name, v in identified.items():
+        unit = "rad" if name.startswith("dtheta") else "mm"
+        print(f"    {name:8s} {v['value']:+.6g} {unit}  u {v['std']:.2g}  U(95 %) {1.96 * v['std']:.2g}")
 
 
 def evaluate_calibrated(
