@@ -24,6 +24,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, fields
+from functools import partial
 from typing import cast
 
 import numpy as np
@@ -171,16 +172,18 @@ def compare_solvers(
     lm = fit_ballbar(problem.model, problem.a_fit, problem.bar_fit, problem.pivot_mm)
     t_lm = time.perf_counter() - t0
     free = lm.report.identifiable_index
-    rows = int(problem.bar_fit.size)
+    run = partial(
+        SolverRun,
+        campaign=problem.name,
+        rows=int(problem.bar_fit.size),
+        rank=lm.rank,
+        noise_mm=problem.noise_mm,
+    )
     lb, ub = -box[free], box[free]
     runs: list[SolverRun] = []
     if "lm" in solvers:
         runs.append(
-            SolverRun(
-                campaign=problem.name,
-                rows=rows,
-                rank=lm.rank,
-                noise_mm=problem.noise_mm,
+            run(
                 solver=f"lm (improved, {free.size} columns)",
                 agents=None,
                 max_iter=None,
@@ -214,11 +217,7 @@ def compare_solvers(
             theta = np.zeros(N_BALLBAR_PARAMS)
             theta[free] = res.x
             runs.append(
-                SolverRun(
-                    campaign=problem.name,
-                    rows=rows,
-                    rank=lm.rank,
-                    noise_mm=problem.noise_mm,
+                run(
                     solver=solver,
                     agents=agents,
                     max_iter=max_iter,
