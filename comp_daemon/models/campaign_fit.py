@@ -128,7 +128,10 @@ def fit_ballbar_repeats(
     chi2_nu = chi2 / max(reading_mm.size - keep.size, 1)
     # a model that does not explain the readings to their uncertainty (χ²/ν > 1) widens the covariance
     scale = max(1.0, chi2_nu)
-    fit = replace(last[0], cov=last[0].cov * scale, std=last[0].std * np.sqrt(scale))
+    # h_before of the first fit: the nominal model's, not the warm start's
+    fit = replace(
+        last[0], cov=last[0].cov * scale, std=last[0].std * np.sqrt(scale), h_before_mm=weighted.h_before_mm
+    )
     report: dict[str, Any] = {
         "method": "spec A.8: last repeat as the reading, u type A (n - 1), b = 1.96 u (95 %), "
         f"weights 1/max(u, {U_FLOOR_MM * 1000:g} um)^2, nested correction (step rule)",
