@@ -258,3 +258,33 @@ def test_a_split_holds_out_whole_arcs_and_judges_the_fit_on_them() -> None:
     assert held.isdisjoint(fitted.info["arcs"]) and check["check_rows"] == int((table.split == "check").sum())
     before, after = check["bar_error_rms_mm"]["before"], check["bar_error_rms_mm"]["after"]
     assert after < 0.25 * before
+
+
+async def test_http_fit_job_of_a_repeated_ballbar_campaign_reports_its_uncertainty(
+    client: httpx.AsyncClient,
+) -> None:
+    repeats = 3
+    n = len(PLAN.arc)
+    rng = np.random.default_rng(5)
+    exact = ballbar_lengths_mm(PoeModel.from_robot(ROBOT), PLAN.a_deg, TRUTH, PAPER_PIVOT_MM)
+    ds = ballbar_dataset(
+        np.tile(PLAN.a_deg, (repeats, 1)),
+        np.tile(PLAN.arc, repeats),
+        PAPER_PIVOT_MM,
+        bar_mm=np.tile(exact, repeats) + rng.normal(0.0, 0.002, repeats * n),
+        pose_id=tuple(f"p{i}" for i in np.tile(np.arange(n), repeats)),
+        repeat=np.repeat(np.arange(repeats), n),
+    )
+    headers = {**auth("engineer"), "Content-Type": "text/csv"}
+    up = await client.post("/api/datasets?name=bbr", content=dataset_to_csv(ds), headers=headers)
+    assert up.status_code == 201, up.text
+    r = await client.post(
+        "/api/fits", json={"dataset_id": up.json()["id"], "model": "poe"}, headers=auth("engineer")
+    )
+    job = await _done(client, r.json()["id"])
+    assert job["state"] == "done", job["error"]
+    unc = job["result"]["stats"]["uncertainty"]
+    assert unc["poses"] == n and unc["repeats"] == {"min": repeats, "max": repeats}
+    assert 0.5e-3 < unc["u_mm"]["mean"] < 4e-3
+    assert unc["b_mm"]["mean"] == pytest.approx(1.96 * unc["u_mm"]["mean"])
+    assert unc["nested_rounds"] >= 1 and "weighted" in unc["rms_mm"]

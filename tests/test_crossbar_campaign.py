@@ -21,6 +21,7 @@ from comp_daemon.sim.bars import run_crossbar_campaign
 from comp_daemon.sim.scenario import load_scenario
 
 ROBOT = load_robot("mh6")
+ROBOT_FILE = "motoman_mh6"  # seed 003's MH6 as the spec describes it
 SCENARIO = load_scenario("mh6-cell")
 
 
@@ -121,11 +122,12 @@ def test_campaign_without_seating_error_recovers_the_hidden_geometry(campaign_cs
 
 
 def test_simulated_campaign_calibrates_for_the_tracker(tmp_path: Path) -> None:
+    """The spec's robot file (``motoman_mh6``: probe (40, 0, 100) mm, no masses) through every door:
+    the hidden MH6 cell with that description, its cross-bar campaign, fit, evaluate, compensate."""
     cb, trk, model, report = (tmp_path / n for n in ("cb.csv", "trk.csv", "cb.json", "ev.json"))
-    assert (
-        main(["sim", "sample", "--scenario", "crossbar", "--n", "18", "--seed", "1", "--out", str(cb)]) == 0
-    )
-    assert main(["fit", str(cb), "--robot", "mh6", "--model", "kinematic", "--out", str(model)]) == 0
+    sample = ["sim", "sample", "--scenario", "crossbar", "--robot", ROBOT_FILE]
+    assert main([*sample, "--n", "18", "--seed", "1", "--out", str(cb)]) == 0
+    assert main(["fit", str(cb), "--robot", ROBOT_FILE, "--model", "kinematic", "--out", str(model)]) == 0
     assert load_model(model).model.kind == "kinematic"
     assert (
         main(
@@ -134,6 +136,8 @@ def test_simulated_campaign_calibrates_for_the_tracker(tmp_path: Path) -> None:
                 "sample",
                 "--scenario",
                 "mh6-cell",
+                "--robot",
+                ROBOT_FILE,
                 "--n",
                 "60",
                 "--seed",
@@ -151,7 +155,7 @@ def test_simulated_campaign_calibrates_for_the_tracker(tmp_path: Path) -> None:
                 "evaluate",
                 str(trk),
                 "--robot",
-                "mh6",
+                ROBOT_FILE,
                 "--models",
                 "nominal",
                 "--calibrated",

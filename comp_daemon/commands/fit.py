@@ -33,7 +33,12 @@ from typing import Any, Literal
 
 import numpy as np
 
-from comp_daemon.commands.campaigns import evaluate_calibrated, fit_campaign_file, is_campaign_file
+from comp_daemon.commands.campaigns import (
+    evaluate_calibrated,
+    evaluate_solvers,
+    fit_campaign_file,
+    is_campaign_file,
+)
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
@@ -124,6 +129,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="MODEL.json,...",
         help="also judge these artifacts (e.g. fitted from a ballbar or cross-bar campaign) on the check "
         "rows; only their base frame is fitted, on the fit rows",
+    )
+    ev.add_argument(
+        "--solvers",
+        default=None,
+        metavar="lm,mfo,imfo,woa",
+        help="instead of models: compare these solvers on a ballbar campaign's identification, one row "
+        "per run (LM once; each metaheuristic per --solver-seeds)",
+    )
+    ev.add_argument("--agents", type=int, default=100, help="with --solvers: population N (default 100)")
+    ev.add_argument("--iterations", type=int, default=300, help="with --solvers: K_max (default 300)")
+    ev.add_argument(
+        "--solver-seeds", default="0,1", help="with --solvers: comma-separated seeds (default 0,1)"
     )
     ev.set_defaults(func=_evaluate)
 
@@ -301,6 +318,8 @@ def _evaluate_specs(args: argparse.Namespace) -> list[tuple[str, ModelSpec]]:
 
 
 def _evaluate(args: argparse.Namespace) -> int:
+    if args.solvers is not None:
+        return evaluate_solvers(args, load_robot_cached(args))
     parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
     min_rows = max(max_parameters(spec) for _, spec in parsed)

@@ -13,7 +13,8 @@ Columns (free order, unknown columns kept, names lower case):
 Refused, besides the data set format's own rules (header, cells, axis limits): a missing required
 column; ``bar_mm`` given together with ``bar_nominal_mm``/``dr_um``; L_a ≤ 0; a pivot column that
 varies; an ``arc`` that is not an integer ≥ 1; a ``split`` that cuts an arc; fewer than 15 rows;
-in the uncertainty mode a pose with fewer than 2 repeats; and, when the caller gives the nominal
+in the uncertainty mode a pose with fewer than 2 repeats (the mode is on when asked for, and by
+default when some ``pose_id`` is repeated); and, when the caller gives the nominal
 TCP (``tcp_mm``, the robot description's forward kinematics), a length more than 5 mm from the
 nominal distance of the TCP to the pivot (a wrong pivot or a wrong bar). Each refusal is a
 :class:`~comp_daemon.data.columns.DatasetError` naming the row and the column.
@@ -77,25 +78,40 @@ class BallbarCampaign:
         unless ``check_fraction`` > 0 asks for whole arcs drawn as check arcs."""
         return group_split(self.rows, self.arc, seed=seed, check_fraction=check_fraction)
 
-    def repeat_groups(self) -> list[NDArray[np.intp]]:
-        """Row indices of each pose (rows sharing a ``pose_id``), in order of first appearance."""
+    @property
+    def repeated(self) -> bool:
+        """Whether the campaign measures its poses repeatedly (some ``pose_id`` in several rows):
+        the uncertainty mode, every pose then has at least 2 repeats."""
+        return any(g.size > 1 for g in self.repeat_groups())
+
+    def repeat_groups(self, rows: NDArray[np.intp] | None = None) -> list[NDArray[np.intp]]:
+        """Row indices of each pose (rows sharing a ``pose_id``) among ``rows`` (default: all), in
+        order of first appearance; within a pose ordered by ``repeat`` when the file has it, so the
+        last index is the last repeat."""
+        idx = np.arange(len(self)) if rows is None else np.asarray(rows, dtype=np.intp)
         ids = self.rows.pose_id
         if ids is None:
-            return [np.array([i]) for i in range(len(self))]
+            return [np.array([i]) for i in idx]
         order: dict[str, list[int]] = {}
-        for i, p in enumerate(ids):
-            order.setdefault(p, []).append(i)
-        return [np.array(v) for v in order.values()]
+        for i in idx:
+            order.setdefault(ids[int(i)], []).append(int(i))
+        rep = self.rows.repeat
+        if rep is None:
+            return [np.array(v) for v in order.values()]
+        return [np.array(sorted(v, key=lambda i: (int(rep[i]), i))) for v in order.values()]
 
 
 def ballbar_from_dataset(
     dataset: Dataset,
     *,
     tcp_mm: TcpFunction | None = None,
-    uncertainty: bool = False,
+    uncertainty: bool | None = None,
     min_rows: int = MIN_BALLBAR_ROWS,
 ) -> BallbarCampaign:
-    """The ballbar campaign of a table read with every column kept (module docstring for the rules)."""
+    """The ballbar campaign of a table read with every column kept (module docstring for the rules).
+
+    ``uncertainty``: the uncertainty mode (every pose repeated at least twice); ``None`` turns it on
+    when some ``pose_id`` is repeated."""
     cols = Columns(dataset)
     has_bar = cols.has("bar_mm")
     has_pair = cols.has("bar_nominal_mm") or cols.has("dr_um")
@@ -145,6 +161,8 @@ def ballbar_from_dataset(
                 bar_column,
             )
     campaign = BallbarCampaign(dataset, bar, pivot_mm, arc)
+    if uncertainty is None:
+        uncertainty = campaign.repeated
     if uncertainty:
         if dataset.pose_id is None:
             raise cols.error("required column missing (the uncertainty mode needs pose_id)", None, "pose_id")
@@ -166,7 +184,7 @@ def read_ballbar(
     source: str | None = None,
     limits_deg: ArrayLike | None = None,
     tcp_mm: TcpFunction | None = None,
-    uncertainty: bool = False,
+    uncertainty: bool | None = None,
 ) -> BallbarCampaign:
     """Read a ballbar campaign (CSV, or JSON records) from a path, bytes or text."""
     table = read_table(path_or_data, fmt=fmt, source=source, limits_deg=limits_deg)

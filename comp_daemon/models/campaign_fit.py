@@ -3,7 +3,13 @@
 - :func:`fit_ballbar_campaign`: the ballbar lengths of a campaign (:mod:`comp_daemon.data.ballbar`)
   identify the POE errors Δl, Δθ and the pivot offset (:func:`comp_daemon.models.ballbar.fit_ballbar`);
   the result is a ``poe`` model (:class:`~comp_daemon.models.poe_model.PoeErrorModel`) in the robot
-  base frame, carrying the covariance of its identified errors.
+  base frame, carrying the covariance of its identified errors. A campaign whose poses are measured
+  repeatedly (``pose_id`` with ≥ 2 repeats each) is fitted in the uncertainty mode of spec A.8
+  (:func:`fit_ballbar_repeats`): each pose's last repeat is its reading, the spread of its repeats
+  gives the standard uncertainty u and the expanded one b = 1.96·u (95 %), the fit weights each
+  reading by 1/max(u, 0.5 µm)², the nested correction re-identifies on corrected readings, and the
+  covariance is (JᵀWJ)⁻¹ — the measurement uncertainty, not the residual, scales it, and through
+  it the model's prediction σ.
 - :func:`fit_crossbar_campaign`: the cross-bar readings (:mod:`comp_daemon.data.crossbar`) identify
   the MDH errors and the probe (tool) offset by the weighted distance and perpendicularity rows
   (:func:`comp_daemon.models.crossbar.calibrate_crossbar`); the result is a ``kinematic`` model
@@ -19,6 +25,7 @@ such a model is registered to the tracker on fit rows (:func:`registered_predict
 
 from __future__ import annotations
 
+from dataclasses import replace
 from typing import Any
 
 import numpy as np
@@ -30,7 +37,7 @@ from comp_daemon.data.campaigns import Campaign
 from comp_daemon.data.crossbar import CrossbarCampaign
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
-from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, ballbar_lengths_mm, fit_ballbar
+from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, BallbarFit, ballbar_lengths_mm, fit_ballbar
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.models.crossbar import bar_errors_mm, calibrate_crossbar, check_plan
@@ -38,15 +45,24 @@ from comp_daemon.models.fitting import FittedModel, report_info
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.poe_model import PoeErrorModel
 from comp_daemon.models.registration import rigid_registration, transform_points
+from comp_daemon.models.uncertainty import (
+    U_FLOOR_MM,
+    Z_95,
+    nested_identification,
+    repeat_uncertainty,
+    weights_from_uncertainty,
+)
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "CAMPAIGN_MODELS",
     "campaign_model",
     "fit_ballbar_campaign",
+    "fit_ballbar_repeats",
     "fit_campaign",
     "fit_crossbar_campaign",
     "registered_prediction",
+    "uncertainty_summary",
 ]
 
 _log = get_logger(__name__)
@@ -56,24 +72,161 @@ def _identified(names: list[str], values: NDArray[np.float64], std: NDArray[np.f
     return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(names, values, std, strict=True)}
 
 
+def _repeat_readings(
+    campaign: BallbarCampaign, idx: NDArray[np.intp]
+) -> tuple[NDArray[np.intp], NDArray[np.float64], NDArray[np.int64]]:
+    """Per pose among rows ``idx``: the row of its last repeat, the standard uncertainty u of one
+    reading (type A, eq. 34), the number of repeats."""
+    last, u, n = [], [], []
+    for group in campaign.repeat_groups(idx):
+        if group.size < 2:
+            raise ValueError(
+                f"row {int(group[0]) + 1}: pose {campaign.rows.pose_id[int(group[0])]!r} has 1 reading; "  # type: ignore[index]
+                "the uncertainty mode needs at least 2 repeats of every pose"
+            )
+        rep = repeat_uncertainty(campaign.bar_mm[group][None, :])
+        last.append(int(group[-1]))
+        u.append(float(rep.u[0]))
+        n.append(group.size)
+    return np.array(last, dtype=np.intp), np.array(u), np.array(n, dtype=np.int64)
+
+
+def fit_ballbar_repeats(
+    twists: PoeModel,
+    a_deg: NDArray[np.float64],
+    reading_mm: NDArray[np.float64],
+    u_mm: NDArray[np.float64],
+    pivot_mm: NDArray[np.float64],
+) -> tuple[BallbarFit, NDArray[np.float64], dict[str, Any]]:
+    """The uncertainty mode of spec A.8 on one reading per pose with its standard uncertainty ``u_mm``.
+
+    Returns the weighted fit of the last nested round (its ``cov`` is (JᵀWJ)⁻¹ with W = 1/max(u,
+    0.5 µm)², widened by the reduced χ² of the weighted fit when it exceeds 1: a model that does not
+    explain the readings to their uncertainty), the nested loop's parameters (the model's), and the
+    report: u and b = 1.96·u, the unweighted and weighted fits side by side, every nested round.
+    """
+    b = Z_95 * u_mm
+    w = weights_from_uncertainty(u_mm)
+    unweighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm)
+    weighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm, weights=w, weights_are_inverse_variance=True)
+    last = [weighted]
+
+    def identify(values: NDArray[np.float64], warm: NDArray[np.float64] | None) -> NDArray[np.float64]:
+        if warm is None:
+            return weighted.theta
+        last[0] = fit_ballbar(
+            twists, a_deg, values, pivot_mm, weights=w, weights_are_inverse_variance=True, theta0=warm
+        )
+        return last[0].theta
+
+    nested = nested_identification(
+        identify, lambda th: ballbar_lengths_mm(twists, a_deg, th, pivot_mm), reading_mm, b
+    )
+    keep = last[0].report.identifiable_index
+    residual = reading_mm - ballbar_lengths_mm(twists, a_deg, nested.theta, pivot_mm)
+    chi2 = float(np.sum(w * (reading_mm - ballbar_lengths_mm(twists, a_deg, weighted.theta, pivot_mm)) ** 2))
+    chi2_nu = chi2 / max(reading_mm.size - keep.size, 1)
+    # a model that does not explain the readings to their uncertainty (χ²/ν > 1) widens the covariance
+    scale = max(1.0, chi2_nu)
+    # h_before of the first fit: the nominal model's, not the warm start's
+    fit = replace(
+        last[0], cov=last[0].cov * scale, std=last[0].std * np.sqrt(scale), h_before_mm=weighted.h_before_mm
+    )
+    report: dict[str, Any] = {
+        "method": "spec A.8: last repeat as the reading, u type A (n - 1), b = 1.96 u (95 %), "
+        f"weights 1/max(u, {U_FLOOR_MM * 1000:g} um)^2, nested correction (step rule)",
+        "poses": int(reading_mm.size),
+        "u_mm": {"mean": float(u_mm.mean()), "min": float(u_mm.min()), "max": float(u_mm.max())},
+        "b_mm": {"mean": float(b.mean()), "min": float(b.min()), "max": float(b.max())},
+        "per_pose": {"u_mm": u_mm.tolist(), "b_mm": b.tolist()},
+        "unweighted": {
+            "rms_mm": unweighted.h_after_mm,
+            "identified": _identified(
+                [BALLBAR_PARAM_NAMES[i] for i in keep], unweighted.theta[keep], unweighted.std[keep]
+            ),
+        },
+        "weighted": {
+            "rms_mm": weighted.h_after_mm,
+            # reduced chi-square: near 1 when the model explains the readings to their uncertainty
+            "chi2_per_dof": chi2_nu,
+            "identified": _identified(
+                [BALLBAR_PARAM_NAMES[i] for i in keep], weighted.theta[keep], weighted.std[keep]
+            ),
+        },
+        "nested": {
+            "rounds": [
+                {"rms_mm": r.h, "corrected": r.n_corrected, "mean_shift_mm": r.mean_shift}
+                for r in nested.rounds
+            ],
+            "stop": nested.reason,
+            "rms_mm": float(np.sqrt(np.mean(nested.residual**2))),
+            "flagged": int(nested.flagged.sum()),
+            "max_abs_residual_over_b": float(np.max(np.abs(nested.residual) / np.maximum(b, 1e-15))),
+        },
+        "rms_mm_to_readings": float(np.sqrt(np.mean(residual**2))),
+        "covariance": "(J^T W J)^-1 x max(1, chi2/dof) = "
+        f"x {scale:.3g}: the measurement uncertainty scales the parameters' and the predictions' sigma",
+        "covariance_scale": scale,
+    }
+    return fit, nested.theta, report
+
+
+def uncertainty_summary(info: dict[str, Any]) -> dict[str, Any] | None:
+    """The uncertainty mode's report of a ballbar fit's ``info`` without the per-pose lists (``None``
+    for a fit without repeats): what the fit summary prints and the service's job stats carry."""
+    unc = info.get("uncertainty")
+    if unc is None:
+        return None
+    nested = unc["nested"]
+    return {
+        "poses": unc["poses"],
+        "repeats": unc["repeats"],
+        "u_mm": unc["u_mm"],
+        "b_mm": unc["b_mm"],
+        "rms_mm": {
+            "unweighted": unc["unweighted"]["rms_mm"],
+            "weighted": unc["weighted"]["rms_mm"],
+            "nested": nested["rms_mm"],
+        },
+        "chi2_per_dof": unc["weighted"]["chi2_per_dof"],
+        "covariance_scale": unc["covariance_scale"],
+        "nested_rounds": len(nested["rounds"]),
+        "nested_corrected": [r["corrected"] for r in nested["rounds"]],
+        "nested_stop": nested["stop"],
+        "flagged": nested["flagged"],
+    }
+
+
 def fit_ballbar_campaign(
     robot: RobotDescription, campaign: BallbarCampaign, rows: NDArray[np.intp] | None = None
 ) -> FittedModel:
-    """The ``poe`` model of a ballbar campaign's rows ``rows`` (default: all)."""
+    """The ``poe`` model of a ballbar campaign's rows ``rows`` (default: all); a campaign of repeated
+    poses in the uncertainty mode (module docstring)."""
     idx = np.arange(len(campaign)) if rows is None else np.asarray(rows)
-    a = campaign.a_deg[idx]
-    bar = campaign.bar_mm[idx]
     twists = PoeModel.from_robot(robot)
-    fit = fit_ballbar(twists, a, bar, campaign.pivot_mm)
-    model = PoeErrorModel(robot, fit.theta[:N_POE_PARAMS], np.eye(4))
+    uncertainty: dict[str, Any] | None = None
+    if campaign.repeated:
+        idx, u, counts = _repeat_readings(campaign, idx)
+        a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
+        fit, theta, uncertainty = fit_ballbar_repeats(twists, a, bar, u, campaign.pivot_mm)
+        uncertainty["repeats"] = {"min": int(counts.min()), "max": int(counts.max())}
+        h_after = _rms(ballbar_lengths_mm(twists, a, theta, campaign.pivot_mm) - bar)
+        sigma = float(np.sqrt(np.mean(np.maximum(u, U_FLOOR_MM) ** 2)))  # per length, from the repeats
+    else:
+        a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
+        fit = fit_ballbar(twists, a, bar, campaign.pivot_mm)
+        theta, h_after = fit.theta, fit.h_after_mm
+    model = PoeErrorModel(robot, theta[:N_POE_PARAMS], np.eye(4))
     keep = fit.report.identifiable_index
     poe_keep = [int(i) for i in keep if i < N_POE_PARAMS]
     if poe_keep and bar.size > keep.size:
+        if uncertainty is None:
+            sigma = fit.h_after_mm * float(np.sqrt(bar.size / (bar.size - keep.size)))  # per length
         model.uncertainty = ParameterCovariance(
             names=tuple(POE_PARAM_NAMES[i] for i in poe_keep),
-            values=fit.theta[poe_keep],
+            values=theta[poe_keep],
             covariance=fit.cov[np.ix_(poe_keep, poe_keep)],
-            sigma_mm=fit.h_after_mm * float(np.sqrt(bar.size / (bar.size - keep.size))),  # per length
+            sigma_mm=sigma,
             rows=int(bar.size),
         )
     info: dict[str, Any] = {
@@ -82,23 +235,32 @@ def fit_ballbar_campaign(
         "rows": int(bar.size),
         "arcs": sorted({int(k) for k in campaign.arc[idx]}),
         "pivot_mm": campaign.pivot_mm.tolist(),
-        "pivot_offset_mm": fit.theta[N_POE_PARAMS:].tolist(),
-        "rms_mm": fit.h_after_mm,
+        "pivot_offset_mm": theta[N_POE_PARAMS:].tolist(),
+        "rms_mm": h_after,
         "bar_rms_before_mm": fit.h_before_mm,
-        "bar_rms_after_mm": fit.h_after_mm,
+        "bar_rms_after_mm": h_after,
         "rank": fit.rank,
         "parameters": len(BALLBAR_PARAM_NAMES),
         "solver": {
-            "method": "improved Levenberg-Marquardt, columns scaled",
+            "method": "improved Levenberg-Marquardt, columns scaled"
+            + (", weighted 1/u^2, nested correction" if uncertainty else ""),
             "iterations": fit.iterations,
             "stop": fit.reason,
         },
         "identifiability": report_info(fit.report),
         "not_identifiable": [d.describe() for d in fit.null_space],
-        "identified": _identified([BALLBAR_PARAM_NAMES[i] for i in keep], fit.theta[keep], fit.std[keep]),
+        "identified": _identified([BALLBAR_PARAM_NAMES[i] for i in keep], theta[keep], fit.std[keep]),
         "frame": "robot base (nominal); a tracker frame is registered on tracker data",
     }
-    _log.info("ballbar_campaign_fit", rows=int(bar.size), rank=fit.rank, h_after_mm=fit.h_after_mm)
+    if uncertainty is not None:
+        info["uncertainty"] = uncertainty
+    _log.info(
+        "ballbar_campaign_fit",
+        rows=int(bar.size),
+        rank=fit.rank,
+        h_after_mm=h_after,
+        uncertainty_mode=uncertainty is not None,
+    )
     return FittedModel(model, "base", info)
 
 

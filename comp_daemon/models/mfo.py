@@ -33,13 +33,13 @@ Objectives: :func:`ballbar_objective` (``H(x) = sqrt(mean((L_t − L_a)²))`` in
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
 import scipy.optimize
-from numpy.typing import NDArray
+from numpy.typing import ArrayLike, NDArray
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.kinematics.poe import N_POE_PARAMS, PoeModel, poe_chain
@@ -48,6 +48,7 @@ __all__ = [
     "DEFAULT_BOUNDS",
     "IkMfoResult",
     "MfoResult",
+    "Variant",
     "at_bound",
     "ballbar_objective",
     "ik_objective",
@@ -222,7 +223,7 @@ def ballbar_objective(
     model: PoeModel,
     a_deg: NDArray[np.float64],
     bar_mm: NDArray[np.float64],
-    pivot_mm: Sequence[float],
+    pivot_mm: ArrayLike,
     free: NDArray[np.intp],
     fixed: NDArray[np.float64] | None = None,
     weights: NDArray[np.float64] | None = None,

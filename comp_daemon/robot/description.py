@@ -22,6 +22,7 @@ from numpy.typing import NDArray
 
 __all__ = [
     "FLANGE_R_KUKA_TOOL",
+    "MASSLESS_PRESETS",
     "PRESETS",
     "Joint",
     "RobotDescription",
@@ -40,7 +41,10 @@ PRESETS: dict[str, str] = {
     "kr210": "KUKA KR 210 R2700 extra",
     "irb120": "ABB IRB 120",
     "mh6": "Yaskawa MOTOMAN-MH6",
+    "motoman_mh6": "Yaskawa MOTOMAN-MH6",
 }
+#: presets without link masses: the gravity models (compliance, gravity torques) do not apply
+MASSLESS_PRESETS: frozenset[str] = frozenset({"motoman_mh6"})
 
 N_JOINTS = 6
 
@@ -260,7 +264,11 @@ def parse_robot_toml(text: str, source: str = "<string>") -> RobotDescription:
 
 
 def load_robot(name_or_path: str | Path) -> RobotDescription:
-    """Load a preset by name (``kr210``, ``irb120``, ``mh6``) or a description file by path."""
+    """Load a preset by name (``kr210``, ``irb120``, ``mh6``, ``motoman_mh6``) or a description file by path.
+
+    ``motoman_mh6`` is seed 003's MH6 as the spec gives it (B.1, probe (40, 0, 100) mm, no masses);
+    ``mh6`` the same geometry with a probe at (40, 0, 120) mm and approximate link masses, for the
+    gravity models and the simulated MH6 cell."""
     key = str(name_or_path)
     if key in PRESETS:
         text = resources.files("comp_daemon.robot").joinpath(f"presets/{key}.toml").read_text("utf-8")

@@ -172,14 +172,15 @@ def _run_campaign_fit(
 ) -> dict[str, Any]:
     """A ballbar campaign calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
     (:func:`comp_daemon.models.campaign_fit.fit_campaign`); the stats give the rank reached, the
-    directions the instrument cannot see and, with a ``split``, the bar errors of the check arcs or
-    crosses before and after."""
+    directions the instrument cannot see, with a ``split`` the bar errors of the check arcs or
+    crosses before and after, and for a ballbar campaign of repeated poses its uncertainty report
+    (``uncertainty``, spec A.8)."""
     from comp_daemon.data.bars import read_table
     from comp_daemon.data.campaigns import campaign_of
     from comp_daemon.kinematics.forward import tcp_position_mm
     from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
     from comp_daemon.models.artifact import model_document
-    from comp_daemon.models.campaign_fit import fit_campaign
+    from comp_daemon.models.campaign_fit import fit_campaign, uncertainty_summary
 
     params = KinematicParams.from_robot(robot)
     table = read_table(csv_text.encode("utf-8"), fmt="csv", source=source, limits_deg=robot.axis_limits_deg)
@@ -207,6 +208,7 @@ def _run_campaign_fit(
         else "every row fitted",
         "directions": None,
         "bar_error_rms_mm": check.get("bar_error_rms_mm"),
+        "uncertainty": uncertainty_summary(info),
         "fit": info,
     }
     artifact = model_document(fitted.model, data_sha256=table.content_sha256, frame=fitted.frame, fit=info)
