@@ -15,7 +15,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
-from comp_daemon.data.cells import CellTable, _Faults, _parse_numbers
+from comp_daemon.data.cells import CellFaults, CellTable, parse_numbers
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.jsontext import load_json_records
 from comp_daemon.data.readers import dataset_from_json, parse_dataset
@@ -103,7 +103,7 @@ class Columns:
             row_numbers=[int(r) for r in dataset.row_numbers],
             row_label=dataset.row_label,
         )
-        self.faults = _Faults(self.table)
+        self.faults = CellFaults(self.table)
 
     def has(self, name: str) -> bool:
         return name in self.dataset.extra
@@ -120,7 +120,7 @@ class Columns:
         return DatasetError(problem, source=ds.source, row=row, column=column, row_label=ds.row_label)
 
     def numbers(self, name: str) -> NDArray[np.float64] | None:
-        return _parse_numbers(self.table, self.faults, name)
+        return parse_numbers(self.table, self.faults, name)
 
     def positive(self, name: str) -> NDArray[np.float64] | None:
         values = self.numbers(name)

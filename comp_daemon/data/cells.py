@@ -32,7 +32,15 @@ from comp_daemon.data.columns import (
 )
 from comp_daemon.data.table import SPLIT_VALUES, Dataset, FloatArray, IntArray
 
-__all__ = ["CellTable", "DatasetKind", "build_dataset", "printable", "text_fault"]
+__all__ = [
+    "CellFaults",
+    "CellTable",
+    "DatasetKind",
+    "build_dataset",
+    "parse_numbers",
+    "printable",
+    "text_fault",
+]
 
 DatasetKind = Literal["measurement", "targets", "any"]
 
@@ -71,7 +79,7 @@ class CellTable:
     pre_errors: dict[str, tuple[int, str]] = field(default_factory=dict)
 
 
-class _Faults:
+class CellFaults:
     """Collects the first fault of each column; the one reported is the first in reading order."""
 
     def __init__(self, table: CellTable) -> None:
@@ -109,7 +117,7 @@ def _number_fault(cell: str) -> str:
     return f"not a plain decimal number: {cell!r} (use digits, '.', and an optional exponent)"
 
 
-def _parse_numbers(table: CellTable, faults: _Faults, name: str) -> FloatArray | None:
+def parse_numbers(table: CellTable, faults: CellFaults, name: str) -> FloatArray | None:
     """The column as floats, or None after recording its first fault."""
     cells = table.columns[name]
     if not all(map(_NUMBER.fullmatch, map(str.strip, cells))):
@@ -126,8 +134,8 @@ def _parse_numbers(table: CellTable, faults: _Faults, name: str) -> FloatArray |
     return values
 
 
-def _parse_dir(table: CellTable, faults: _Faults, name: str) -> NDArray[np.int8] | None:
-    values = _parse_numbers(table, faults, name)
+def _parse_dir(table: CellTable, faults: CellFaults, name: str) -> NDArray[np.int8] | None:
+    values = parse_numbers(table, faults, name)
     if values is None:
         return None
     bad = np.flatnonzero((values != 1.0) & (values != -1.0))
@@ -138,7 +146,7 @@ def _parse_dir(table: CellTable, faults: _Faults, name: str) -> NDArray[np.int8]
     return values.astype(np.int8)
 
 
-def _parse_split(table: CellTable, faults: _Faults) -> NDArray[np.str_] | None:
+def _parse_split(table: CellTable, faults: CellFaults) -> NDArray[np.str_] | None:
     cells = [c.strip() for c in table.columns["split"]]
     for i, cell in enumerate(cells):
         if cell not in SPLIT_VALUES:
@@ -148,7 +156,7 @@ def _parse_split(table: CellTable, faults: _Faults) -> NDArray[np.str_] | None:
     return np.array(cells, dtype="<U5")
 
 
-def _parse_repeat(table: CellTable, faults: _Faults) -> IntArray | None:
+def _parse_repeat(table: CellTable, faults: CellFaults) -> IntArray | None:
     cells = table.columns["repeat"]
     for i, cell in enumerate(cells):
         text = cell.strip()
@@ -259,7 +267,7 @@ def build_dataset(
     if n == 0:
         raise DatasetError("no data rows after the header", source=table.source, row=2)
     present = set(table.header)
-    faults = _Faults(table)
+    faults = CellFaults(table)
 
     def block(names: Sequence[str], limits: FloatArray | None = None) -> FloatArray | None:
         """The group of columns as an (n, len(names)) array; None if absent or faulty."""
@@ -267,7 +275,7 @@ def build_dataset(
             return None
         columns = []
         for j, name in enumerate(names):
-            values = _parse_numbers(table, faults, name)
+            values = parse_numbers(table, faults, name)
             if values is None:
                 continue
             if limits is not None:
@@ -306,13 +314,13 @@ def build_dataset(
     if g_present.any():
         g_deg = np.full((n, 6), np.nan)
         for j in np.flatnonzero(g_present):
-            values = _parse_numbers(table, faults, GRATING_COLUMNS[j])
+            values = parse_numbers(table, faults, GRATING_COLUMNS[j])
             if values is not None:
                 g_deg[:, j] = values
 
     scalars: dict[str, FloatArray | None] = {}
     for name in SCALAR_NUMBER_COLUMNS:
-        scalars[name] = _parse_numbers(table, faults, name) if name in present else None
+        scalars[name] = parse_numbers(table, faults, name) if name in present else None
     payload = scalars["payload_kg"]
     if payload is not None and (payload < 0).any():
         i = int(np.flatnonzero(payload < 0)[0])
