@@ -12,6 +12,7 @@ with zero corrections and exits on its own — no motion from a loop nobody supe
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 import os
 import pickle
@@ -286,6 +287,37 @@ async def test_commands_reach_the_loop_and_a_refused_target_comes_back_faulted(r
     assert runtime.core.fault is not None and runtime.core.fault.kind is FaultKind.CORRECTION_LIMIT
     runtime.reset()
     await until(lambda: runtime.core.state is SafetyState.IDLE)
+
+
+async def test_close_waits_for_stop_replies_counted_in_the_child(rtp: RealtimeProcess) -> None:
+    """A slow controller (a telegram every 40 ms, as on a loaded machine): the endpoint stays open
+    until the grace replies with ``Stop = 1`` have gone out, and the daemon has the final state
+    (last reply ``Stop = 1``, zero steps) when ``close_rsi`` returns."""
+    runtime = rtp.runtime
+    assert runtime is not None
+    ctl = controller_of(rtp)
+    replies: list[SenReply] = []
+
+    def slow_controller() -> None:
+        with contextlib.suppress(TimeoutError, OSError):
+            for _ in range(40):
+                replies.append(ctl.cycle())
+                time.sleep(0.04)
+
+    client = threading.Thread(target=slow_controller)
+    client.start()
+    try:
+        await until(lambda: runtime.telegrams >= 2 and runtime.rsi_alive())
+        runtime.shutdown()
+        await rtp.close_rsi(3)
+        assert runtime.last_stop is True and runtime.last_ak_deg == (0.0,) * 6
+        assert runtime.replies_after_shutdown >= 3
+    finally:
+        await asyncio.to_thread(client.join, 10.0)
+        ctl.close()
+    stops = [r for r in replies if r.stop]
+    assert len(stops) >= 3 and all(r.ak_deg == (0.0,) * 6 for r in stops)
+    assert len(replies) < 40  # the endpoint closed after them
 
 
 async def test_child_logs_reach_the_daemon_loggers(

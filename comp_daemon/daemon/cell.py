@@ -471,12 +471,10 @@ class Cell:
 
     async def close_rsi(self) -> None:
         """Let the controller see ``Stop = 1`` for the grace cycles, then stop listening."""
-        runtime, rtp = self.runtime, self.rtp
-        if runtime is not None and rtp is not None and rtp.alive and runtime.rsi_alive():
-            await runtime.wait_telegrams(self.stop_grace_cycles, self.settings.rsi.cycle_ms / 1000.0)
+        rtp = self.rtp
         if rtp is not None:
             with contextlib.suppress(RtProcessError, TimeoutError):  # it has gone already
-                await rtp.close_rsi()
+                await rtp.close_rsi(self.stop_grace_cycles)
 
     async def stop_realtime(self) -> None:
         if self.rtp is not None:

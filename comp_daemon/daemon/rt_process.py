@@ -259,8 +259,10 @@ class RealtimeProcess:
         await self.request("loop", spec, timeout_s=30.0)
         return runtime
 
-    async def close_rsi(self) -> None:
-        await self.request("close_rsi", timeout_s=5.0)
+    async def close_rsi(self, grace_cycles: int) -> None:
+        """The child replies with ``Stop = 1`` for ``grace_cycles`` telegrams (it counts them where
+        they are handled), reports its final state, then closes the endpoint."""
+        await self.request("close_rsi", grace_cycles, timeout_s=5.0)
 
     async def stop(self, timeout_s: float = 10.0) -> int | None:
         """Stop the readers and the child; returns its exit code. Idempotent."""

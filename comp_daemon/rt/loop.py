@@ -167,12 +167,13 @@ class LoopView:
             return None
         return last + max(1, -(-elapsed // cycle_ns)) * cycle_ns
 
-    async def wait_telegrams(self, n: int, cycle_s: float) -> None:
-        """Wait until ``n`` more telegrams have been handled, or ``n + 2`` cycle times have passed
-        (how the shutdown lets the controller see ``Stop = 1`` before the endpoint closes)."""
-        seen = self.telegrams
-        deadline = time.monotonic() + (n + 2) * cycle_s
-        while self.telegrams < seen + n and time.monotonic() < deadline:
+    async def wait_stop_replies(self, n: int, cycle_s: float, floor_s: float = 0.5) -> None:
+        """Wait until ``n`` replies with ``Stop = 1`` have gone out since the shutdown, or until
+        ``max(n + 2 cycles, floor_s)`` has passed (how the shutdown lets the controller see
+        ``Stop = 1`` before the endpoint closes). Counted where the telegrams are handled, so a
+        busy machine delays the wait, never the count."""
+        deadline = time.monotonic() + max((n + 2) * cycle_s, floor_s)
+        while self.replies_after_shutdown < n and time.monotonic() < deadline:
             await asyncio.sleep(cycle_s / 2)
 
     def telegram_age_s(self) -> float | None:
