@@ -73,14 +73,15 @@ class TrialSizes:
 
 FULL = TrialSizes()
 #: The reduced trial of the test suite, through the running daemon: one ISO point, two cycles;
-#: 28 sampling + 14 target points (42 rows: the least a kinematic fit (27 identifiable parameters
-#: on the fit rows) and an order-0 Chebyshev model (42 coefficients) accept); the Chebyshev model
+#: 32 sampling + 14 target points (46 rows: four more than the least a kinematic fit (27 identifiable
+#: parameters on the fit rows) and an order-0 Chebyshev model (42 coefficients) accept, so a point
+#: without a grating reading does not stop the trial); the Chebyshev model
 #: fitted on the open-loop sampling (no second, closed-loop pass); three grating calibration poses.
 QUICK = TrialSizes(
     iso_fractions=(0.5,),
     iso_cycles=2,
     iso_warmup_cycles=0,
-    n_sampling=28,
+    n_sampling=32,
     n_targets=14,
     chebyshev_order=0,
     dwell_s=0.1,

@@ -142,14 +142,21 @@ class TrialSession:
             await asyncio.sleep(self.sizes.dwell_s)
         return await self.cell.measure_mm()
 
-    async def gratings_now(self) -> NDArray[np.float64]:
-        status = await self.cell.api("GET", "/api/status")
-        out = np.full(3, np.nan)
-        for joint in status["daemon"]["joints"]:
-            j, g = int(joint["joint"]), joint.get("grating_deg")
-            if j <= 3 and g is not None:
-                out[j - 1] = float(g)
-        return out
+    async def gratings_now(self, wait_s: float = 2.0, every_s: float = 0.05) -> NDArray[np.float64]:
+        """A1..A3 as the daemon's gratings read them now (NaN where it has none). The robot stands
+        still here, so a reading that is stale for a moment (a busy computer) is asked for again for
+        up to ``wait_s`` before the point goes without it."""
+        deadline = time.monotonic() + wait_s
+        while True:
+            status = await self.cell.api("GET", "/api/status")
+            out = np.full(3, np.nan)
+            for joint in status["daemon"]["joints"]:
+                j, g = int(joint["joint"]), joint.get("grating_deg")
+                if j <= 3 and g is not None:
+                    out[j - 1] = float(g)
+            if np.all(np.isfinite(out)) or time.monotonic() >= deadline:
+                return out
+            await asyncio.sleep(every_s)
 
     async def target(self, axes_deg: NDArray[np.float64], pose_id: str) -> tuple[dict[str, Any], list[str]]:
         """A target of the daemon, posted again (up to :data:`RETRIES` times) when it failed for a
