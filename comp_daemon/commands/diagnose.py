@@ -20,7 +20,6 @@ from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset, read_dataset_json
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
-from comp_daemon.kinematics.params import N_PARAMS
 from comp_daemon.models.effects import EFFECTS
 from comp_daemon.robot.description import PRESETS, load_robot
 
@@ -96,7 +95,8 @@ def _run(args: argparse.Namespace) -> int:
     )
     path = Path(args.data)
     reader = read_dataset_json if path.suffix.lower() == ".json" else read_dataset
-    dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=N_PARAMS, kind="measurement")
+    # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
+    dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=0, kind="measurement")
     for target in (args.json_out, args.report):
         if target is not None and not target.expanduser().parent.is_dir():
             raise ValueError(f"cannot write {target}: no such directory")

@@ -64,11 +64,12 @@ from comp_daemon.models.registry import (
     MAX_ORDER,
     MissingColumnError,
     ModelSpec,
+    UndeterminedModelError,
     UnknownModelError,
     fit_spec,
     get_kind,
-    max_parameters,
     parse_model_name,
+    undetermined_reason,
     uses_directions,
     with_order,
 )
@@ -246,7 +247,7 @@ def _fit_rows(
     options = FitOptions(frame=args.frame, cv_folds=args.folds, seed=args.seed)
     try:
         return fit_spec(spec, load_robot_cached(args), FitRows.of(dataset, rows, unknown_dir), options)
-    except MissingColumnError as exc:
+    except (MissingColumnError, UndeterminedModelError) as exc:
         raise UserError(f"{dataset.source}: {exc}") from None
     except np.linalg.LinAlgError as exc:
         raise UserError(f"{dataset.source}: the {spec.name} fit failed ({exc})") from None
@@ -265,7 +266,10 @@ def _fit(args: argparse.Namespace) -> int:
         return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
-    dataset = _read(args.data, robot, max_parameters(spec), "measurement")
+    dataset = _read(args.data, robot, 0, "measurement")
+    reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
+    if reason is not None:
+        raise UserError(f"{dataset.source}: {len(dataset)} data rows; {reason}")
     data_sha256 = dataset.content_sha256
     dataset, unknown_dir, directions = _directions(dataset, [spec], args)
     if directions:
@@ -322,20 +326,31 @@ def _evaluate(args: argparse.Namespace) -> int:
         return evaluate_solvers(args, load_robot_cached(args))
     parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
-    min_rows = max(max_parameters(spec) for _, spec in parsed)
-    dataset = _read(args.data, robot, min_rows, "measurement")
+    dataset = _read(args.data, robot, 0, "measurement")
     if len(dataset) < 2:
         raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
     data_sha256 = dataset.content_sha256
+    # a model the rows cannot determine is left out by name; the evaluation goes on with the rest
+    skipped = {
+        t: reason
+        for t, spec in parsed
+        if (reason := undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)) is not None
+    }
+    parsed = [(t, spec) for t, spec in parsed if t not in skipped]
+    if not parsed:
+        reasons = "; ".join(f"{t}: {r}" for t, r in skipped.items())
+        raise UserError(f"{dataset.source}: {len(dataset)} data rows; no model can be evaluated ({reasons})")
+    for token, reason in skipped.items():
+        print(f"{dataset.source}: left out {token}: {reason}")
     dataset, unknown_dir, directions = _directions(dataset, [spec for _, spec in parsed], args)
     if directions:
         print(f"{dataset.source}: {directions}")
-    skipped: dict[str, str] = {}
     if args.models.strip() == "all" and dataset.dir is None:
-        skipped = {t: "no dir1..dir6 columns (--no-infer-dir)" for t, spec in parsed if uses_directions(spec)}
-        parsed = [(t, spec) for t, spec in parsed if t not in skipped]
-        if skipped:
-            print(f"{dataset.source}: left out (no dir columns): {', '.join(skipped)}", file=sys.stderr)
+        no_dir = {t: "no dir1..dir6 columns (--no-infer-dir)" for t, spec in parsed if uses_directions(spec)}
+        parsed = [(t, spec) for t, spec in parsed if t not in no_dir]
+        if no_dir:
+            print(f"{dataset.source}: left out (no dir columns): {', '.join(no_dir)}", file=sys.stderr)
+        skipped.update(no_dir)
     split = dataset.split_or_draw()
     if split.drawn:
         print(split.message, file=sys.stderr)
@@ -353,6 +368,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         fitted = _fit_rows(dataset, spec, args, split.fit_rows, unknown_dir)
         t1 = time.perf_counter()
+        identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
+        if len(split.fit_rows) < identifiable:
+            skipped[token] = (
+                f"{len(split.fit_rows)} fit rows for {identifiable} identifiable parameters: not determined"
+            )
+            print(f"{dataset.source}: left out {token}: {skipped[token]}")
+            continue
         pred = fitted.model.predict_tcp_mm(
             dataset.a_deg[check], dir_check, dataset.payload_kg[check], temp_check
         )

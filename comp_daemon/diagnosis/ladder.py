@@ -167,9 +167,17 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
             f"{dataset.source}: the split column marks no row 'check'; the diagnosis needs check rows"
         )
     if len(fit_rows) < N_PARAMS:
+        if split.drawn:
+            need = int(np.ceil(N_PARAMS / (1.0 - options.check_fraction)))
+            how = (
+                f"{len(check_rows)} of the {len(dataset)} rows are held out as check rows; give at least "
+                f"{need} rows, or a split column with at least {N_PARAMS} 'fit' rows"
+            )
+        else:
+            how = f"the split column marks {len(fit_rows)} rows 'fit'; at least {N_PARAMS} are needed"
         raise ValueError(
             f"{dataset.source}: {len(fit_rows)} fit rows, fewer than the {N_PARAMS} parameters "
-            "of the geometric step"
+            f"of the geometric step ({how})"
         )
     mass = MassModel.from_robot(robot)
     nominal = KinematicParams.from_robot(robot)

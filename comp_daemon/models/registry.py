@@ -72,6 +72,7 @@ __all__ = [
     "MissingColumnError",
     "ModelKind",
     "ModelSpec",
+    "UndeterminedModelError",
     "UnknownModelError",
     "fit_model",
     "fit_spec",
@@ -80,6 +81,7 @@ __all__ = [
     "max_parameters",
     "model_from_payload",
     "parse_model_name",
+    "undetermined_reason",
     "uses_directions",
     "with_order",
 ]
@@ -99,6 +101,11 @@ class UnknownModelError(ValueError):
 
 class MissingColumnError(ValueError):
     """The data lack a column the model needs (``dir`` for backlash, …)."""
+
+
+class UndeterminedModelError(ValueError):
+    """The rows (with the robot description) cannot determine the model: too few rows for its
+    parameters, or a compliance with nothing that loads the joints."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -383,14 +390,54 @@ def max_parameters(spec: ModelSpec) -> int:
     return get_kind(spec.kind).parameters(spec)
 
 
+def uses_compliance(spec: ModelSpec) -> bool:
+    """Whether the model ``spec`` fits a joint compliance (it needs gravity or payload torques)."""
+    return spec.kind == "compliance" or "compliance" in spec.effects
+
+
+def undetermined_reason(
+    spec: ModelSpec, robot: RobotDescription, n_rows: int, payload_kg: Any = 0.0
+) -> str | None:
+    """Why ``n_rows`` rows with these payloads cannot determine ``spec`` on ``robot``, as a sentence
+    naming the model; None when they can.
+
+    - fewer rows than the model has parameters before the identifiability analysis
+      (:func:`max_parameters`, the data set spec's floor);
+    - a compliance (``compliance``, ``+compliance``) on a robot description without link masses
+      and rows without a payload: no torque loads the joints, so C2, C3 would be fitted on nothing.
+    """
+    needed = max_parameters(spec)
+    if n_rows < needed:
+        return (
+            f"the {spec.name} model has {needed} parameters; {n_rows} rows leave it undetermined "
+            f"(it needs at least {needed} rows)"
+        )
+    if (
+        uses_compliance(spec)
+        and not np.any(robot.link_mass_kg > 0)
+        and not np.any(np.asarray(payload_kg) > 0)
+    ):
+        return (
+            f"the {spec.name} model needs link masses in the robot description ({robot.name} has none) "
+            "or rows measured with a payload (payload_kg > 0): nothing loads the joints, so the "
+            "compliance is not determined"
+        )
+    return None
+
+
 def fit_spec(
     spec: ModelSpec, robot: RobotDescription, rows: FitRows, options: FitOptions | None = None
 ) -> FittedModel:
-    """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack."""
+    """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack,
+    :class:`UndeterminedModelError` when a compliance has no masses and no payload to load the joints
+    (:func:`undetermined_reason`; the row floor is the doors' to apply, on the data set)."""
     kind = get_kind(spec.kind)
     for column in kind.needed_columns(spec):
         if getattr(rows, column) is None:
             raise MissingColumnError(f"the {spec.name} model needs the {_column_label(column)} column(s)")
+    reason = undetermined_reason(spec, robot, max_parameters(spec), rows.payload_kg)
+    if reason is not None:
+        raise UndeterminedModelError(reason)
     return kind.fit(robot, rows, spec, options or FitOptions())
 
 

@@ -1,0 +1,150 @@
+"""Campaigns shaped unlike the simulator's defaults, through the doors: few rows, only the required
+columns, rows out of visiting order, a robot without link masses. Each door refuses a model the
+rows cannot determine by name, or degrades with a sentence; none crashes."""
+
+from __future__ import annotations
+
+import csv
+import json
+from pathlib import Path
+
+import pytest
+
+from comp_daemon.cli import main
+from comp_daemon.data.dataset import read_dataset
+from comp_daemon.models.fitting import infer_fit_directions
+from comp_daemon.models.registry import parse_model_name, undetermined_reason
+from comp_daemon.robot.description import load_robot
+
+REQUIRED = ("a1", "a2", "a3", "a4", "a5", "a6", "x", "y", "z")
+
+
+def _subset(src: Path, dst: Path, columns: tuple[str, ...] | None, rows: int | None = None) -> Path:
+    with src.open(newline="") as f:
+        table = list(csv.DictReader(f))
+    keep = list(columns) if columns is not None else list(table[0])
+    with dst.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(keep)
+        for r in table[:rows]:
+            w.writerow([r[c] for c in keep])
+    return dst
+
+
+@pytest.fixture(scope="module")
+def kr_campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("odd") / "kr.csv"
+    assert main(["sim", "sample", "--n", "30", "--seed", "3", "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="module")
+def mh6_campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("odd") / "mh6.csv"
+    assert (
+        main(["sim", "sample", "--scenario", "mh6-cell", "--n", "50", "--seed", "6", "--out", str(out)]) == 0
+    )
+    return out
+
+
+def test_evaluate_all_on_few_rows_leaves_out_the_undetermined_models_by_name(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _subset(kr_campaign, tmp_path / "twelve.csv", REQUIRED, rows=12)
+    out = tmp_path / "e.json"
+    assert main(["evaluate", str(data), "--robot", "kr210", "--models", "all", "--json", str(out)]) == 0
+    text = capsys.readouterr().out
+    doc = json.loads(out.read_text())
+    # only the nominal model has as few parameters as 12 rows; every other one is named with its reason
+    assert doc["ranking"] == ["nominal"]
+    assert "left out chebyshev: the chebyshev model has 150 parameters; 12 rows leave it undetermined" in text
+    assert "kinematic" in doc["skipped"] and "39 parameters" in doc["skipped"]["kinematic"]
+    assert doc["split"]["drawn"] and doc["split"]["check_rows"] > 0
+
+
+def test_evaluate_refuses_when_no_model_is_determined(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _subset(kr_campaign, tmp_path / "twenty.csv", REQUIRED, rows=20)
+    assert main(["evaluate", str(data), "--robot", "kr210", "--models", "chebyshev,poe"]) == 2
+    err = capsys.readouterr().err
+    assert "no model can be evaluated" in err
+    assert "chebyshev: the chebyshev model has 150 parameters" in err and "poe: the poe model" in err
+
+
+def test_fit_names_the_model_the_rows_cannot_determine(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _subset(kr_campaign, tmp_path / "twenty.csv", REQUIRED, rows=20)
+    code = main(
+        ["fit", str(data), "--robot", "kr210", "--model", "kinematic", "--out", str(tmp_path / "m.json")]
+    )
+    assert code == 2
+    assert "the kinematic model has 39 parameters; 20 rows leave it undetermined" in capsys.readouterr().err
+    assert not (tmp_path / "m.json").exists()
+
+
+def test_compliance_without_link_masses_is_refused_by_name(
+    mh6_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "c.json"
+    code = main(
+        ["fit", str(mh6_campaign), "--robot", "motoman_mh6", "--model", "compliance", "--out", str(out)]
+    )
+    assert code == 2
+    err = capsys.readouterr().err
+    assert "needs link masses in the robot description" in err and "payload_kg > 0" in err
+    assert not out.exists()
+    # the same campaign on the preset with masses fits
+    assert main(["fit", str(mh6_campaign), "--robot", "mh6", "--model", "compliance", "--out", str(out)]) == 0
+
+
+def test_evaluate_leaves_out_compliance_on_a_massless_robot(
+    mh6_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "e.json"
+    models = "nominal,kinematic+compliance,compliance:paper"
+    assert (
+        main(
+            ["evaluate", str(mh6_campaign), "--robot", "motoman_mh6", "--models", models, "--json", str(out)]
+        )
+        == 0
+    )
+    doc = json.loads(out.read_text())
+    assert doc["ranking"] == ["nominal"]
+    assert set(doc["skipped"]) == {"kinematic+compliance", "compliance:paper"}
+    assert all("link masses" in reason for reason in doc["skipped"].values())
+    assert (
+        "left out kinematic+compliance: the kinematic+compliance model needs link masses"
+        in capsys.readouterr().out
+    )
+
+
+def test_undetermined_reason_takes_a_payload_as_load() -> None:
+    massless = load_robot("motoman_mh6")
+    spec = parse_model_name("compliance")
+    assert undetermined_reason(spec, massless, 100, 0.0) is not None
+    assert undetermined_reason(spec, massless, 100, [0.0, 5.0]) is None
+    assert undetermined_reason(parse_model_name("kinematic"), massless, 100, 0.0) is None
+    assert undetermined_reason(spec, load_robot("kr210"), 100, 0.0) is None
+
+
+def test_inferred_directions_say_the_row_order_is_assumed(kr_campaign: Path, tmp_path: Path) -> None:
+    data = read_dataset(_subset(kr_campaign, tmp_path / "req.csv", REQUIRED))
+    _, _, note = infer_fit_directions(data)
+    assert note is not None and "in row order" in note
+    assert "assumed: the file lists the poses in the order the robot visited them" in note
+    # with a clock the order is the clock's, and nothing is assumed about the file's row order
+    timed = read_dataset(_subset(kr_campaign, tmp_path / "timed.csv", (*REQUIRED, "t_s")))
+    _, _, note = infer_fit_directions(timed)
+    assert note is not None and "in t_s" in note and "assumed: the file lists" not in note
+
+
+def test_diagnose_on_few_rows_says_how_many_it_needs(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _subset(kr_campaign, tmp_path / "req.csv", REQUIRED)
+    assert main(["diagnose", str(data), "--robot", "kr210"]) == 2
+    err = capsys.readouterr().err
+    assert "21 fit rows, fewer than the 39 parameters of the geometric step" in err
+    assert "give at least 56 rows" in err
