@@ -14,6 +14,7 @@ from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset
 from comp_daemon.models.fitting import infer_fit_directions
 from comp_daemon.models.registry import parse_model_name, undetermined_reason
+from comp_daemon.models.selection import selection_line
 from comp_daemon.robot.description import load_robot
 
 REQUIRED = ("a1", "a2", "a3", "a4", "a5", "a6", "x", "y", "z")
@@ -148,3 +149,34 @@ def test_diagnose_on_few_rows_says_how_many_it_needs(
     err = capsys.readouterr().err
     assert "21 fit rows, fewer than the 39 parameters of the geometric step" in err
     assert "give at least 56 rows" in err
+
+
+def test_a_dropped_part_with_a_lower_held_out_rms_says_why() -> None:
+    decision = {"part": "kriging", "kept": False, "rms_without_mm": 0.2268, "rms_with_mm": 0.2251}
+    worse = {"part": "ratio", "kept": False, "rms_without_mm": 0.2, "rms_with_mm": 0.21}
+    line = selection_line(
+        {"selection": {"kept": [], "dropped": ["kriging", "ratio"], "decisions": [decision, worse]}}
+    )
+    assert line is not None
+    assert (
+        "kriging (0.2268 mm held out without, 0.2251 with: a gain within 2 standard errors, not kept)" in line
+    )
+    assert "ratio (0.2000 mm held out without, 0.2100 with)" in line
+
+
+def test_diagnose_without_dir_says_what_it_did_not_test_and_that_the_remainder_is_not_noise(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    full = tmp_path / "rep.csv"
+    assert main(["sim", "sample", "--n", "30", "--repeats", "2", "--seed", "5", "--out", str(full)]) == 0
+    data = _subset(full, tmp_path / "req.csv", REQUIRED)
+    assert main(["diagnose", str(data), "--robot", "kr210", "--json", str(tmp_path / "d.json")]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "d.json").read_text())
+    assert doc["noise_floor_source"] == "repeats"
+    ratio = doc["unexplained_rms_mm"] / doc["noise_floor_mm"]
+    # the simulated cell has backlash the file cannot show: far above the floor, and said so
+    assert ratio > 2.0
+    assert f"({ratio:.1f} x the floor: not noise" in out
+    assert "not tested: backlash (no dir1..dir6 columns" in out and "thermal (no temp_c column" in out
+    assert "unmodelled: none;" not in out

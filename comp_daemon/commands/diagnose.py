@@ -14,12 +14,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset, read_dataset_json
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
+from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.models.effects import EFFECTS
 from comp_daemon.robot.description import PRESETS, load_robot
 
@@ -132,10 +134,13 @@ def _run(args: argparse.Namespace) -> int:
             else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
         )
         print(
-            f"unmodelled: {', '.join(diag.unmodelled) or 'none'}; "
-            f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
+            f"unmodelled: {', '.join(diag.unmodelled) or 'none found'}; "
+            f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}{_against_floor(diag)}",
             file=out,
         )
+        untested = _untested(diag.skipped)
+        if untested:
+            print(f"not tested: {untested}", file=out)
         found = [r for r in diag.residual_structure if r.significant]
         if found:
             print(
@@ -145,3 +150,27 @@ def _run(args: argparse.Namespace) -> int:
         if diag.remainder_model is not None and diag.remainder_model.tried:
             print(diag.remainder_model.describe(), file=out)
     return 0
+
+
+#: above this multiple of the noise floor the unexplained error is said not to be noise
+NOT_NOISE_RATIO = 2.0
+
+
+def _against_floor(diag: Diagnosis) -> str:
+    """The unexplained error as a multiple of the noise floor, and what that multiple says."""
+    if diag.noise_floor_mm is None or diag.noise_floor_mm <= 0:
+        return ""
+    ratio = diag.unexplained_rms_mm / diag.noise_floor_mm
+    if ratio > NOT_NOISE_RATIO:
+        return f" ({ratio:.1f} x the floor: not noise; an error the effects tried do not name remains)"
+    return f" ({ratio:.1f} x the floor: within the noise)"
+
+
+def _untested(skipped: list[dict[str, Any]]) -> str:
+    """The effects the data could not test on any joint, with the reason (one per effect)."""
+    reasons: dict[str, str] = {}
+    for entry in skipped:
+        joints = entry.get("joints") or []
+        if len(joints) in (0, 6) and entry["effect"] not in reasons:
+            reasons[entry["effect"]] = entry["reason"]
+    return "; ".join(f"{effect} ({reason})" for effect, reason in reasons.items())

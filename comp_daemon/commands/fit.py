@@ -415,7 +415,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     ref = "; ".join(
         f"{k} " + "/".join(f"{s} {v:.2f}" for s, v in row.items()) for k, row in SEED000_TABLE2_MM.items()
     )
-    print(f"seed 000 Table 2 (3-D, KR210, 104 points): {ref}")
+    print(f"for reference, seed 000's published Table 2 (its own KR210 campaign of 104 points, 3-D): {ref}")
     if args.json:
         doc = {
             "data": dataset.source,

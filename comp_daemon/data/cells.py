@@ -117,13 +117,24 @@ def _number_fault(cell: str) -> str:
     return f"not a plain decimal number: {cell!r} (use digits, '.', and an optional exponent)"
 
 
+_FURTHER_TARGET = re.compile(r"[xyz]([2-9]|[1-9][0-9]+)")
+_UNSEEN_TARGET = (
+    "; a target the tracker did not see at a pose has no number: leave out that pose's row, "
+    "or that target's columns"
+)
+
+
 def parse_numbers(table: CellTable, faults: CellFaults, name: str) -> FloatArray | None:
-    """The column as floats, or None after recording its first fault."""
+    """The column as floats, or None after recording its first fault (for a further target's
+    column, a missing or non-finite value says how to leave out an unseen target)."""
     cells = table.columns[name]
     if not all(map(_NUMBER.fullmatch, map(str.strip, cells))):
         for i, cell in enumerate(cells):
             if not _NUMBER.fullmatch(cell.strip()):
-                faults.add(name, i, _number_fault(cell))
+                problem = _number_fault(cell)
+                if _FURTHER_TARGET.fullmatch(name) and (not cell.strip() or "non-finite" in problem):
+                    problem += _UNSEEN_TARGET
+                faults.add(name, i, problem)
                 break
         return None
     values = np.fromiter(map(float, cells), dtype=np.float64, count=len(cells))
