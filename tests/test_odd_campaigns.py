@@ -8,11 +8,13 @@ import csv
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset
 from comp_daemon.models.fitting import infer_fit_directions
+from comp_daemon.models.registration import scale_problem
 from comp_daemon.models.registry import parse_model_name, undetermined_reason
 from comp_daemon.models.selection import selection_line
 from comp_daemon.robot.description import load_robot
@@ -180,3 +182,40 @@ def test_diagnose_without_dir_says_what_it_did_not_test_and_that_the_remainder_i
     assert f"({ratio:.1f} x the floor: not noise" in out
     assert "not tested: backlash (no dir1..dir6 columns" in out and "thermal (no temp_c column" in out
     assert "unmodelled: none;" not in out
+
+
+def _scaled(src: Path, dst: Path, factor: float, rows: int) -> Path:
+    with src.open(newline="") as f:
+        table = list(csv.DictReader(f))[:rows]
+    with dst.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(REQUIRED)
+        for r in table:
+            w.writerow([r[c] if c.startswith("a") else repr(float(r[c]) * factor) for c in REQUIRED])
+    return dst
+
+
+def test_positions_in_metres_are_refused_not_fitted_to_zero(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _scaled(kr_campaign, tmp_path / "metres.csv", 1e-3, rows=30)
+    out = tmp_path / "m.json"
+    # a kinematic calibration could shrink every length a thousand times and fit "perfectly"
+    assert main(["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "spread 0.001 times as far as the nominal TCP positions" in err and "(in metres?)" in err
+    assert not out.exists()
+    assert main(["diagnose", str(data), "--robot", "kr210"]) == 2
+    assert "not millimetres of this robot (in metres?)" in capsys.readouterr().err
+
+
+def test_scale_problem_passes_a_rigidly_moved_campaign_and_names_inches() -> None:
+    rng = np.random.default_rng(1)
+    p = rng.normal(size=(40, 3)) * 400.0
+    angle = np.radians(37.0)
+    rot = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0], [0, 0, 1]])
+    far = p @ rot.T + np.array([4200.0, -3100.0, 850.0])
+    assert scale_problem(p, far + rng.normal(scale=0.05, size=p.shape)) is None
+    assert "(in inches?)" in str(scale_problem(p, far / 25.4))
+    # too little spread to judge: no claim either way
+    assert scale_problem(p * 0.01, p * 0.00001) is None

@@ -84,7 +84,7 @@ from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
-from comp_daemon.models.registration import detect_frame, rigid_registration
+from comp_daemon.models.registration import detect_frame, rigid_registration, scale_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -166,6 +166,12 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         raise ValueError(
             f"{dataset.source}: the split column marks no row 'check'; the diagnosis needs check rows"
         )
+    mass = MassModel.from_robot(robot)
+    nominal = KinematicParams.from_robot(robot)
+    effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
+    scale = scale_problem(predict_mm(mass, nominal, effects0, obs), obs.xyz_mm)
+    if scale is not None:
+        raise ValueError(f"{dataset.source}: {scale}")
     if len(fit_rows) < N_PARAMS:
         if split.drawn:
             need = int(np.ceil(N_PARAMS / (1.0 - options.check_fraction)))
@@ -179,9 +185,6 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
             f"{dataset.source}: {len(fit_rows)} fit rows, fewer than the {N_PARAMS} parameters "
             f"of the geometric step ({how})"
         )
-    mass = MassModel.from_robot(robot)
-    nominal = KinematicParams.from_robot(robot)
-    effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
 
     # 1. frame
     obs_fit = obs.take(fit_rows)

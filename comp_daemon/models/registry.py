@@ -39,6 +39,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
 from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
@@ -61,6 +63,7 @@ from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.poe_model import PoeErrorModel
 from comp_daemon.models.poe_twist import N_TWIST_PARAMS
+from comp_daemon.models.registration import scale_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -430,7 +433,9 @@ def fit_spec(
 ) -> FittedModel:
     """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack,
     :class:`UndeterminedModelError` when a compliance has no masses and no payload to load the joints
-    (:func:`undetermined_reason`; the row floor is the doors' to apply, on the data set)."""
+    (:func:`undetermined_reason`; the row floor is the doors' to apply, on the data set), or when the
+    measured positions are not millimetres of this robot
+    (:func:`comp_daemon.models.registration.scale_problem`)."""
     kind = get_kind(spec.kind)
     for column in kind.needed_columns(spec):
         if getattr(rows, column) is None:
@@ -438,6 +443,10 @@ def fit_spec(
     reason = undetermined_reason(spec, robot, max_parameters(spec), rows.payload_kg)
     if reason is not None:
         raise UndeterminedModelError(reason)
+    nominal = KinematicParams.from_robot(robot)
+    scale = scale_problem(tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign)), rows.xyz_mm)
+    if scale is not None:
+        raise UndeterminedModelError(scale)
     return kind.fit(robot, rows, spec, options or FitOptions())
 
 
