@@ -219,3 +219,25 @@ def test_scale_problem_passes_a_rigidly_moved_campaign_and_names_inches() -> Non
     assert "(in inches?)" in str(scale_problem(p, far / 25.4))
     # too little spread to judge: no claim either way
     assert scale_problem(p * 0.01, p * 0.00001) is None
+
+
+def test_diagnose_says_a_declared_sigma_is_not_used_when_repeats_measure_the_noise(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    full = tmp_path / "rep.csv"
+    assert main(["sim", "sample", "--n", "30", "--repeats", "2", "--seed", "5", "--out", str(full)]) == 0
+    data = _subset(full, tmp_path / "req.csv", REQUIRED)
+    args = [
+        "diagnose",
+        str(data),
+        "--robot",
+        "kr210",
+        "--tracker-sigma-mm",
+        "0.01",
+        "--json",
+        str(tmp_path / "d.json"),
+    ]
+    assert main(args) == 0
+    out = capsys.readouterr().out
+    assert "noise floor" in out and "(repeats)" in out
+    assert "--tracker-sigma-mm not used: the repeats measure the noise" in out

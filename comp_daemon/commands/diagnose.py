@@ -133,9 +133,12 @@ def _run(args: argparse.Namespace) -> int:
             if diag.noise_floor_mm is None
             else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
         )
+        floor += _against_floor(diag)
+        if args.tracker_sigma_mm is not None and diag.noise_floor_source not in (None, "declared"):
+            floor += f"; --tracker-sigma-mm not used: the {diag.noise_floor_source} measure the noise"
         print(
             f"unmodelled: {', '.join(diag.unmodelled) or 'none found'}; "
-            f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}{_against_floor(diag)}",
+            f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
             file=out,
         )
         untested = _untested(diag.skipped)
