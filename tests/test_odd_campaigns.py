@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from comp_daemon.cli import main
+from comp_daemon.commands.diagnose import untested_effects
 from comp_daemon.data.dataset import read_dataset
 from comp_daemon.models.fitting import infer_fit_directions
 from comp_daemon.models.registration import scale_problem
@@ -241,3 +242,13 @@ def test_diagnose_says_a_declared_sigma_is_not_used_when_repeats_measure_the_noi
     out = capsys.readouterr().out
     assert "noise floor" in out and "(repeats)" in out
     assert "--tracker-sigma-mm not used: the repeats measure the noise" in out
+
+
+def test_untested_effects_count_every_joint_of_an_effect() -> None:
+    skipped = [
+        {"effect": "backlash", "joints": [1, 2, 3, 4, 5], "reason": "no dir1..dir6 columns"},
+        {"effect": "backlash", "joints": [6], "reason": "joint 6 does not move the TCP"},
+        {"effect": "compliance", "joints": [1], "reason": "no gravity torque on joint 1"},
+        {"effect": "thermal", "joints": [], "reason": "no temp_c column"},
+    ]
+    assert untested_effects(skipped) == "backlash (no dir1..dir6 columns); thermal (no temp_c column)"

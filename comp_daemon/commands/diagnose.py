@@ -141,7 +141,7 @@ def _run(args: argparse.Namespace) -> int:
             f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
             file=out,
         )
-        untested = _untested(diag.skipped)
+        untested = untested_effects(diag.skipped)
         if untested:
             print(f"not tested: {untested}", file=out)
         found = [r for r in diag.residual_structure if r.significant]
@@ -169,11 +169,15 @@ def _against_floor(diag: Diagnosis) -> str:
     return f" ({ratio:.1f} x the floor: within the noise)"
 
 
-def _untested(skipped: list[dict[str, Any]]) -> str:
-    """The effects the data could not test on any joint, with the reason (one per effect)."""
-    reasons: dict[str, str] = {}
+def untested_effects(skipped: list[dict[str, Any]]) -> str:
+    """The effects the data could not test on any joint (their skipped entries cover all six joints,
+    or the effect has no joints), each with the reason that covers the most joints."""
+    joints: dict[str, set[int]] = {}
+    reason: dict[str, tuple[int, str]] = {}
     for entry in skipped:
-        joints = entry.get("joints") or []
-        if len(joints) in (0, 6) and entry["effect"] not in reasons:
-            reasons[entry["effect"]] = entry["reason"]
-    return "; ".join(f"{effect} ({reason})" for effect, reason in reasons.items())
+        effect, on = entry["effect"], entry.get("joints") or []
+        joints.setdefault(effect, set()).update(on if on else range(1, 7))
+        weight = len(on) if on else 6
+        if effect not in reason or weight > reason[effect][0]:
+            reason[effect] = (weight, entry["reason"])
+    return "; ".join(f"{e} ({reason[e][1]})" for e, on in joints.items() if len(on) >= 6)
