@@ -252,3 +252,25 @@ def test_untested_effects_count_every_joint_of_an_effect() -> None:
         {"effect": "thermal", "joints": [], "reason": "no temp_c column"},
     ]
     assert untested_effects(skipped) == "backlash (no dir1..dir6 columns); thermal (no temp_c column)"
+
+
+def test_a_drift_on_the_row_order_says_the_row_order_is_the_clock(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    full = tmp_path / "full.csv"
+    assert main(["sim", "sample", "--n", "90", "--seed", "4", "--out", str(full)]) == 0
+    with full.open(newline="") as f:
+        table = list(csv.DictReader(f))
+    columns = [*REQUIRED, "dir1", "dir2", "dir3", "dir4", "dir5", "dir6"]
+    data = tmp_path / "drift.csv"
+    with data.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(columns)
+        for i, r in enumerate(table):  # a tracker drifting 0.6 mm along x over the campaign, no t_s
+            r["x"] = repr(float(r["x"]) + 0.6 * i / len(table))
+            w.writerow([r[c] for c in columns])
+    assert main(["diagnose", str(data), "--robot", "kr210", "--json", str(tmp_path / "d.json")]) == 0
+    out = capsys.readouterr().out
+    doc = json.loads((tmp_path / "d.json").read_text())
+    assert "drift" in doc["unmodelled"] and doc["clock"]["from"] == "pose_order"
+    assert "clock: the row order (no t_s column): drift" in out

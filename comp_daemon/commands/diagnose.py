@@ -141,6 +141,13 @@ def _run(args: argparse.Namespace) -> int:
             f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
             file=out,
         )
+        timed = [s.effect for s in diag.steps if s.significant and s.effect in ("drift", "step")]
+        if timed and diag.obs.clock_name != "t_s":
+            print(
+                f"clock: the row order (no t_s column): {' and '.join(timed)} assume the rows are in "
+                "the order they were measured",
+                file=out,
+            )
         untested = untested_effects(diag.skipped)
         if untested:
             print(f"not tested: {untested}", file=out)
