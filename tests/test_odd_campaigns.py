@@ -13,7 +13,7 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.commands.diagnose import untested_effects
-from comp_daemon.data.dataset import read_dataset
+from comp_daemon.data.dataset import DatasetError, read_dataset
 from comp_daemon.models.fitting import infer_fit_directions
 from comp_daemon.models.registration import scale_problem
 from comp_daemon.models.registry import parse_model_name, undetermined_reason
@@ -274,3 +274,21 @@ def test_a_drift_on_the_row_order_says_the_row_order_is_the_clock(
     doc = json.loads((tmp_path / "d.json").read_text())
     assert "drift" in doc["unmodelled"] and doc["clock"]["from"] == "pose_order"
     assert "clock: the row order (no t_s column): drift" in out
+
+
+@pytest.mark.parametrize(("sep", "what"), [(";", "semicolons"), ("\t", "tabs")])
+def test_a_file_separated_by_semicolons_or_tabs_is_named_as_such(
+    kr_campaign: Path, tmp_path: Path, sep: str, what: str
+) -> None:
+    text = _subset(kr_campaign, tmp_path / "req.csv", REQUIRED).read_text().replace(",", sep)
+    with pytest.raises(DatasetError, match=f"the header is one column holding {what}; this format separates"):
+        read_dataset(text.encode())
+
+
+def test_an_unseen_reflector_says_how_to_leave_it_out(kr_campaign: Path, tmp_path: Path) -> None:
+    lines = _subset(kr_campaign, tmp_path / "req.csv", REQUIRED).read_text().splitlines()
+    header = lines[0] + ",x2,y2,z2"
+    body = [line + ",1.0,2.0,3.0" for line in lines[1:]]
+    body[3] = lines[4] + ",,,"
+    with pytest.raises(DatasetError, match=r"row 5, column 'x2': empty cell.*leave out that pose's row"):
+        read_dataset("\n".join([header, *body]).encode())

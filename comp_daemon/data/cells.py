@@ -183,6 +183,14 @@ def _check_header(table: CellTable, kind: DatasetKind) -> None:
     def refuse(problem: str, column: str | None) -> DatasetError:
         return DatasetError(problem, source=table.source, row=1, column=column, row_label=table.row_label)
 
+    if len(header) == 1:
+        for sep, what in ((";", "semicolons"), ("\t", "tabs")):
+            if sep in header[0]:
+                raise refuse(
+                    f"the header is one column holding {what}; this format separates columns with commas "
+                    "(and writes decimals with '.')",
+                    None,
+                )
     seen: dict[str, int] = {}
     known = set(KNOWN_COLUMNS)
     for k, name in enumerate(header, start=1):
