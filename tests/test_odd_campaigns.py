@@ -14,6 +14,8 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.commands.diagnose import untested_effects
 from comp_daemon.data.dataset import DatasetError, read_dataset
+from comp_daemon.models.effects.base import EffectData
+from comp_daemon.models.effects.catalogue import COMPLIANCE
 from comp_daemon.models.fitting import infer_fit_directions
 from comp_daemon.models.registration import scale_problem
 from comp_daemon.models.registry import parse_model_name, undetermined_reason
@@ -292,3 +294,23 @@ def test_an_unseen_reflector_says_how_to_leave_it_out(kr_campaign: Path, tmp_pat
     body[3] = lines[4] + ",,,"
     with pytest.raises(DatasetError, match=r"row 5, column 'x2': empty cell.*leave out that pose's row"):
         read_dataset("\n".join([header, *body]).encode())
+
+
+def test_compliance_on_a_massless_robot_is_skipped_for_the_masses_not_a_vertical_axis() -> None:
+    n = 20
+    data = EffectData(
+        a_deg=np.zeros((n, 6)),
+        dir=None,
+        payload_kg=np.zeros(n),
+        temp_c=None,
+        tau_nm=np.zeros((n, 6)),
+        moves_tcp=np.ones(6, dtype=bool),
+    )
+    for joint in (1, 2, 3):
+        reason = COMPLIANCE.data_reason(data, joint)
+        assert reason is not None and "the robot description has no link masses" in reason
+    tau = np.zeros((n, 6))
+    tau[:, 1] = np.linspace(10.0, 200.0, n)  # joint 2 loaded, joint 1 vertical
+    loaded = EffectData(np.zeros((n, 6)), None, np.zeros(n), None, tau, np.ones(6, dtype=bool))
+    assert "its axis is vertical" in str(COMPLIANCE.data_reason(loaded, 1))
+    assert COMPLIANCE.data_reason(loaded, 2) is None
