@@ -314,3 +314,16 @@ def test_compliance_on_a_massless_robot_is_skipped_for_the_masses_not_a_vertical
     loaded = EffectData(np.zeros((n, 6)), None, np.zeros(n), None, tau, np.ones(6, dtype=bool))
     assert "its axis is vertical" in str(COMPLIANCE.data_reason(loaded, 1))
     assert COMPLIANCE.data_reason(loaded, 2) is None
+
+
+def test_frame_base_on_tracker_frame_data_says_so(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    data = tmp_path / "tracker.csv"
+    assert main(["sim", "sample", "--n", "50", "--seed", "8", "--tracker-frame", "--out", str(data)]) == 0
+    out = tmp_path / "m.json"
+    args = ["fit", str(data), "--robot", "kr210", "--model", "nominal", "--frame", "base", "--out", str(out)]
+    assert main(args) == 0
+    assert "--frame base, but the measured positions lie" in capsys.readouterr().out
+    assert "frame_warning" in json.loads(out.read_text())["fit"]
+    # auto registers the frame and has nothing to warn about
+    assert main(["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(out)]) == 0
+    assert "--frame base" not in capsys.readouterr().out

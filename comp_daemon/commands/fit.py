@@ -305,6 +305,8 @@ def _fit(args: argparse.Namespace) -> int:
     line = selection_line(fitted.info)
     if line:
         print(f"{args.model}: {line} (out of fold on the fit rows)")
+    if "frame_warning" in fitted.info:
+        print(f"{args.model}: {fitted.info['frame_warning']}")
     return 0
 
 
@@ -363,6 +365,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
+    frame_warned = False
     for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
         steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
         t0 = time.perf_counter()
@@ -382,6 +385,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         table[token] = error_statistics(dataset.xyz_mm[check], pred)
         timing[token] = {"fit_s": t1 - t0, "predict_s": t2 - t1, "predict_rows": len(check)}
         fits[token] = {"frame": fitted.frame, **fitted.info}
+        if "frame_warning" in fitted.info and not frame_warned:  # the same for every model: once
+            print(f"{dataset.source}: {fitted.info['frame_warning']}")
+            frame_warned = True
         if isinstance(fitted.model, ChebyshevModel):
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()

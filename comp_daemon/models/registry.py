@@ -63,7 +63,7 @@ from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.poe_model import PoeErrorModel
 from comp_daemon.models.poe_twist import N_TWIST_PARAMS
-from comp_daemon.models.registration import scale_problem
+from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM, detect_frame, scale_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -444,10 +444,20 @@ def fit_spec(
     if reason is not None:
         raise UndeterminedModelError(reason)
     nominal = KinematicParams.from_robot(robot)
-    scale = scale_problem(tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign)), rows.xyz_mm)
+    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
+    scale = scale_problem(p_nominal, rows.xyz_mm)
     if scale is not None:
         raise UndeterminedModelError(scale)
-    return kind.fit(robot, rows, spec, options or FitOptions())
+    options = options or FitOptions()
+    fitted = kind.fit(robot, rows, spec, options)
+    if options.frame == "base" and detect_frame(p_nominal, rows.xyz_mm) == "tracker":
+        off = float(np.sqrt(np.mean(np.sum((rows.xyz_mm - p_nominal) ** 2, axis=1))))
+        fitted.info["frame_warning"] = (
+            f"--frame base, but the measured positions lie {off:.1f} mm RMS from the nominal TCPs "
+            f"(more than {BASE_FRAME_MAX_RMS_MM:g} mm): they look like a tracker's frame; --frame auto "
+            "or tracker registers it first"
+        )
+    return fitted
 
 
 def _column_label(column: str) -> str:
