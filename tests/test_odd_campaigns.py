@@ -327,3 +327,16 @@ def test_frame_base_on_tracker_frame_data_says_so(tmp_path: Path, capsys: pytest
     # auto registers the frame and has nothing to warn about
     assert main(["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(out)]) == 0
     assert "--frame base" not in capsys.readouterr().out
+
+
+def test_a_drawn_split_of_repeated_poses_says_it_keeps_them_together(tmp_path: Path) -> None:
+    full = tmp_path / "rep.csv"
+    assert main(["sim", "sample", "--n", "20", "--repeats", "3", "--seed", "5", "--out", str(full)]) == 0
+    ds = read_dataset(_subset(full, tmp_path / "req.csv", REQUIRED))
+    split = ds.split_or_draw()
+    assert ds.a_deg is not None
+    assert "60 rows are 20 poses by identical axis values; a pose's repeats stay together" in split.message
+    check_poses = {tuple(a) for a in ds.a_deg[split.check_rows]}
+    assert not check_poses & {tuple(a) for a in ds.a_deg[split.fit_rows]}
+    single = read_dataset(_subset(full, tmp_path / "one.csv", REQUIRED, rows=1)).split_or_draw()
+    assert "repeats stay together" not in single.message
