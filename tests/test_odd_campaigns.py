@@ -7,6 +7,7 @@ from __future__ import annotations
 import csv
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -247,7 +248,7 @@ def test_diagnose_says_a_declared_sigma_is_not_used_when_repeats_measure_the_noi
 
 
 def test_untested_effects_count_every_joint_of_an_effect() -> None:
-    skipped = [
+    skipped: list[dict[str, Any]] = [
         {"effect": "backlash", "joints": [1, 2, 3, 4, 5], "reason": "no dir1..dir6 columns"},
         {"effect": "backlash", "joints": [6], "reason": "joint 6 does not move the TCP"},
         {"effect": "compliance", "joints": [1], "reason": "no gravity torque on joint 1"},
