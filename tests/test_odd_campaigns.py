@@ -15,6 +15,8 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.commands.diagnose import untested_effects
 from comp_daemon.data.dataset import DatasetError, read_dataset
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects.base import EffectData
 from comp_daemon.models.effects.catalogue import COMPLIANCE
 from comp_daemon.models.fitting import infer_fit_directions
@@ -254,7 +256,9 @@ def test_untested_effects_count_every_joint_of_an_effect() -> None:
         {"effect": "compliance", "joints": [1], "reason": "no gravity torque on joint 1"},
         {"effect": "thermal", "joints": [], "reason": "no temp_c column"},
     ]
-    assert untested_effects(skipped) == "backlash (no dir1..dir6 columns); thermal (no temp_c column)"
+    assert untested_effects(skipped) == (
+        "backlash (no dir1..dir6 columns / joint 6 does not move the TCP); thermal (no temp_c column)"
+    )
 
 
 def test_a_drift_on_the_row_order_says_the_row_order_is_the_clock(
@@ -341,3 +345,48 @@ def test_a_drawn_split_of_repeated_poses_says_it_keeps_them_together(tmp_path: P
     assert not check_poses & {tuple(a) for a in ds.a_deg[split.fit_rows]}
     single = read_dataset(_subset(full, tmp_path / "one.csv", REQUIRED, rows=1)).split_or_draw()
     assert "repeats stay together" not in single.message
+
+
+def _one_pose(src: Path, dst: Path, n: int, move_a1: bool = False) -> Path:
+    """``n`` rows of the first pose of ``src`` (repeats), or with only A1 stepping when ``move_a1``
+    (positions: the nominal KR210's)."""
+    with src.open(newline="") as f:
+        first = next(csv.DictReader(f))
+    a = np.tile([float(first[f"a{k}"]) for k in range(1, 7)], (n, 1))
+    xyz = np.tile([float(first[c]) for c in "xyz"], (n, 1))
+    if move_a1:
+        a[:, 0] += 0.5 * np.arange(n)
+        nominal = KinematicParams.from_robot(load_robot("kr210"))
+        xyz = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
+    xyz[:, 0] += 0.01 * (np.arange(n) % 3)
+    with dst.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(REQUIRED)
+        for i in range(n):
+            w.writerow([repr(float(v)) for v in (*a[i], *xyz[i])])
+    return dst
+
+
+def test_one_pose_repeated_is_refused_by_every_door_with_the_reason(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _one_pose(kr_campaign, tmp_path / "same.csv", 45)
+    out = tmp_path / "m.json"
+    assert main(["fit", str(data), "--robot", "kr210", "--model", "kinematic", "--out", str(out)]) == 2
+    captured = capsys.readouterr()
+    assert "A1, A2, A3, A4, A5, A6 do not move on the fit rows" in captured.out
+    assert "the fit rows hold 1 distinct pose(s)" in captured.err and not out.exists()
+    assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal,kinematic"]) == 2
+    assert "no pose is left to hold out" in capsys.readouterr().err
+    assert main(["diagnose", str(data), "--robot", "kr210"]) == 2
+    assert "the 45 rows are one pose" in capsys.readouterr().err
+
+
+def test_a_campaign_moving_one_axis_says_the_others_stand_still(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = _one_pose(kr_campaign, tmp_path / "a1.csv", 45, move_a1=True)
+    out = tmp_path / "m.json"
+    assert main(["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(out)]) == 0
+    text = capsys.readouterr().out
+    assert "A2, A3, A4, A5, A6 do not move on the fit rows" in text and "elsewhere it extrapolates" in text

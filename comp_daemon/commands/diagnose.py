@@ -178,13 +178,17 @@ def _against_floor(diag: Diagnosis) -> str:
 
 def untested_effects(skipped: list[dict[str, Any]]) -> str:
     """The effects the data could not test on any joint (their skipped entries cover all six joints,
-    or the effect has no joints), each with the reason that covers the most joints."""
+    or the effect has no joints), each with its reasons, the one covering the most joints first."""
     joints: dict[str, set[int]] = {}
-    reason: dict[str, tuple[int, str]] = {}
+    reasons: dict[str, dict[str, int]] = {}
     for entry in skipped:
         effect, on = entry["effect"], entry.get("joints") or []
         joints.setdefault(effect, set()).update(on if on else range(1, 7))
-        weight = len(on) if on else 6
-        if effect not in reason or weight > reason[effect][0]:
-            reason[effect] = (weight, entry["reason"])
-    return "; ".join(f"{e} ({reason[e][1]})" for e, on in joints.items() if len(on) >= 6)
+        by_reason = reasons.setdefault(effect, {})
+        by_reason[entry["reason"]] = by_reason.get(entry["reason"], 0) + (len(on) if on else 6)
+    out = []
+    for effect, on in joints.items():
+        if len(on) >= 6:
+            ranked = sorted(reasons[effect], key=lambda r: -reasons[effect][r])
+            out.append(f"{effect} ({' / '.join(ranked)})")
+    return "; ".join(out)

@@ -277,6 +277,9 @@ def _fit(args: argparse.Namespace) -> int:
     rows = dataset.fit_rows()
     if len(rows) < 3:
         raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
+    still = still_axes_note(dataset, rows)
+    if still:
+        print(f"{dataset.source}: {still}")
     with progress(f"fitting {spec.name} on {len(rows)} rows"):
         fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
     fit_info = dict(fitted.info)
@@ -357,7 +360,13 @@ def _evaluate(args: argparse.Namespace) -> int:
     if split.drawn:
         print(split.message, file=sys.stderr)
     if len(split.check_rows) == 0:
-        raise UserError(f"{dataset.source}: no check rows to evaluate on")
+        why = (
+            "the rows are one pose (repeats): no pose is left to hold out" if split.drawn else "split column"
+        )
+        raise UserError(f"{dataset.source}: no check rows to evaluate on ({why})")
+    still = still_axes_note(dataset, split.fit_rows)
+    if still:
+        print(f"{dataset.source}: {still}")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
     check = split.check_rows
     dir_check = None if dataset.dir is None else directions_of(dataset, check, unknown_dir)
@@ -446,6 +455,28 @@ def _evaluate(args: argparse.Namespace) -> int:
         }
         _write_json(args.json, doc)
     return 0
+
+
+#: an axis whose values on the fit rows span less than this (deg) did not move in the campaign
+STILL_AXIS_DEG = 0.01
+
+
+def still_axes_note(dataset: Dataset, rows: np.ndarray) -> str | None:
+    """A sentence naming the axes that do not move on ``rows`` (a model is then determined only at
+    their values there), or None when every axis moves."""
+    assert dataset.a_deg is not None
+    span = np.ptp(dataset.a_deg[rows], axis=0)
+    still = [f"A{k + 1}" for k in range(6) if span[k] < STILL_AXIS_DEG]
+    if not still:
+        return None
+    held = ", ".join(
+        f"A{k + 1} {dataset.a_deg[rows][0, k]:.3f}°" for k in range(6) if span[k] < STILL_AXIS_DEG
+    )
+    return (
+        f"{', '.join(still)} {'does' if len(still) == 1 else 'do'} not move on the fit rows ({held}): "
+        "a model is determined only at "
+        "these values; elsewhere it extrapolates"
+    )
 
 
 def _head(token: str) -> str:

@@ -163,6 +163,12 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     split = dataset.split_or_draw(seed=options.seed, check_fraction=options.check_fraction)
     fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
     if len(check_rows) == 0:
+        if split.drawn:
+            raise ValueError(
+                f"{dataset.source}: the {len(dataset)} rows are one pose (repeats of the same axis "
+                "values): no pose is left to hold out as check rows; the diagnosis needs poses spread "
+                "over the workspace"
+            )
         raise ValueError(
             f"{dataset.source}: the split column marks no row 'check'; the diagnosis needs check rows"
         )

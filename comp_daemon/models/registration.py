@@ -47,7 +47,10 @@ def rigid_registration(p_src_mm: NDArray[np.float64], p_dst_mm: NDArray[np.float
     cov = (dst - c_dst).T @ (src - c_src)
     u, sv, vt = np.linalg.svd(cov)
     if sv[1] <= 1e-12 * max(sv[0], 1e-300):
-        raise ValueError("the points are (nearly) collinear: the rotation is not determined")
+        raise ValueError(
+            "the TCP positions lie (nearly) on a line (collinear) or at one point: the rotation between the "
+            "tracker's frame and the robot's is not determined (measure poses spread over the workspace)"
+        )
     d = np.sign(np.linalg.det(u @ vt)) or 1.0
     rot = u @ np.diag([1.0, 1.0, d]) @ vt
     out = np.eye(4)

@@ -90,6 +90,7 @@ __all__ = [
 ]
 
 MAX_ORDER = 8
+MIN_POSES = 3  # distinct axis-value rows below which no model but the nominal one is fitted
 KRIGING_OPTIONS = ("k=N", "aniso", "all")
 OPTION_ORDER = ("aniso", "all", "paper")  # canonical order of the option words after k=N
 KINEMATIC_PARAMETERS = 39  # 30 MDH + 6 base + 3 tool
@@ -448,6 +449,12 @@ def fit_spec(
     scale = scale_problem(p_nominal, rows.xyz_mm)
     if scale is not None:
         raise UndeterminedModelError(scale)
+    poses = len(np.unique(rows.a_deg, axis=0))
+    if poses < MIN_POSES and spec.kind != "nominal":
+        raise UndeterminedModelError(
+            f"the fit rows hold {poses} distinct pose(s) (repeats of one pose add no geometry); "
+            f"the {spec.name} model needs at least {MIN_POSES} poses spread over the workspace"
+        )
     options = options or FitOptions()
     fitted = kind.fit(robot, rows, spec, options)
     if options.frame == "base" and detect_frame(p_nominal, rows.xyz_mm) == "tracker":
