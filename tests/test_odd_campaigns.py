@@ -390,3 +390,15 @@ def test_a_campaign_moving_one_axis_says_the_others_stand_still(
     assert main(["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "A2, A3, A4, A5, A6 do not move on the fit rows" in text and "elsewhere it extrapolates" in text
+
+
+def test_an_unreachable_target_is_named_by_its_row(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = tmp_path / "m.json"
+    assert main(["fit", str(kr_campaign), "--robot", "kr210", "--model", "nominal", "--out", str(model)]) == 0
+    targets = tmp_path / "t.csv"
+    targets.write_text("tx,ty,tz\n1800,0,800\n9000,0,800\n1900,50,900\n")
+    assert main(["compensate", str(model), str(targets), "--out", str(tmp_path / "c.csv")]) == 2
+    err = capsys.readouterr().err
+    assert "unreachable within joint limits: row 3 (left" in err and "target 2" not in err

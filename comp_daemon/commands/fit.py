@@ -595,7 +595,12 @@ def compensate_targets(
             mapping=args.mapping,
         )
     except UnreachableTargetError as exc:
-        raise UserError(f"{targets.source}: {exc}") from None
+        rows = ", ".join(
+            f"row {int(targets.row_numbers[i])} (left {e:.3f} mm)"
+            for i, e in zip(exc.indices[:5], exc.position_error_mm[:5], strict=False)
+        )
+        more = f" and {len(exc.indices) - 5} more" if len(exc.indices) > 5 else ""
+        raise UserError(f"{targets.source}: unreachable within joint limits: {rows}{more}") from None
     except CompensationRefused as exc:
         rows = "; ".join(f"row {int(targets.row_numbers[r.index])}: {r.reason}" for r in exc.refusals[:5])
         more = f"; and {len(exc.refusals) - 5} more" if len(exc.refusals) > 5 else ""
