@@ -402,3 +402,12 @@ def test_an_unreachable_target_is_named_by_its_row(
     assert main(["compensate", str(model), str(targets), "--out", str(tmp_path / "c.csv")]) == 2
     err = capsys.readouterr().err
     assert "unreachable within joint limits: row 3 (left" in err and "target 2" not in err
+
+
+def test_a_split_column_without_fit_rows_is_refused_by_name(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = tmp_path / "allcheck.csv"
+    data.write_text(kr_campaign.read_text().replace(",fit,", ",check,"))
+    assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal"]) == 2
+    assert "0 fit rows (the split column marks them 'fit'); a fit needs at least 3" in capsys.readouterr().err

@@ -364,6 +364,9 @@ def _evaluate(args: argparse.Namespace) -> int:
             "the rows are one pose (repeats): no pose is left to hold out" if split.drawn else "split column"
         )
         raise UserError(f"{dataset.source}: no check rows to evaluate on ({why})")
+    if len(split.fit_rows) < 3:
+        how = "drawn" if split.drawn else "the split column marks them 'fit'"
+        raise UserError(f"{dataset.source}: {len(split.fit_rows)} fit rows ({how}); a fit needs at least 3")
     still = still_axes_note(dataset, split.fit_rows)
     if still:
         print(f"{dataset.source}: {still}")
