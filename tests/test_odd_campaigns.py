@@ -411,3 +411,19 @@ def test_a_split_column_without_fit_rows_is_refused_by_name(
     data.write_text(kr_campaign.read_text().replace(",fit,", ",check,"))
     assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal"]) == 2
     assert "0 fit rows (the split column marks them 'fit'); a fit needs at least 3" in capsys.readouterr().err
+
+
+def test_compliance_on_a_massless_robot_with_payloads_fits_and_says_what_it_sees(
+    mh6_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with mh6_campaign.open(newline="") as f:
+        table = list(csv.DictReader(f))
+    data = tmp_path / "loaded.csv"
+    with data.open("w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow([*REQUIRED, "payload_kg"])
+        for i, r in enumerate(table):
+            w.writerow([*(r[c] for c in REQUIRED), "0" if i % 2 else "5"])
+    out = tmp_path / "c.json"
+    assert main(["fit", str(data), "--robot", "motoman_mh6", "--model", "compliance", "--out", str(out)]) == 0
+    assert "has no link masses: the compliance sees the payload's torque only" in capsys.readouterr().out

@@ -308,8 +308,9 @@ def _fit(args: argparse.Namespace) -> int:
     line = selection_line(fitted.info)
     if line:
         print(f"{args.model}: {line} (out of fold on the fit rows)")
-    if "frame_warning" in fitted.info:
-        print(f"{args.model}: {fitted.info['frame_warning']}")
+    for warning in ("frame_warning", "mass_warning"):
+        if warning in fitted.info:
+            print(f"{args.model}: {fitted.info[warning]}")
     return 0
 
 
@@ -400,6 +401,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         if "frame_warning" in fitted.info and not frame_warned:  # the same for every model: once
             print(f"{dataset.source}: {fitted.info['frame_warning']}")
             frame_warned = True
+        if "mass_warning" in fitted.info:
+            print(f"{dataset.source}: {token}: {fitted.info['mass_warning']}")
         if isinstance(fitted.model, ChebyshevModel):
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()

@@ -457,6 +457,11 @@ def fit_spec(
         )
     options = options or FitOptions()
     fitted = kind.fit(robot, rows, spec, options)
+    if uses_compliance(spec) and not np.any(robot.link_mass_kg > 0):
+        fitted.info["mass_warning"] = (
+            f"{robot.name} has no link masses: the compliance sees the payload's torque only, not the "
+            "links' own weight"
+        )
     if options.frame == "base" and detect_frame(p_nominal, rows.xyz_mm) == "tracker":
         off = float(np.sqrt(np.mean(np.sum((rows.xyz_mm - p_nominal) ** 2, axis=1))))
         fitted.info["frame_warning"] = (
