@@ -427,3 +427,14 @@ def test_compliance_on_a_massless_robot_with_payloads_fits_and_says_what_it_sees
     out = tmp_path / "c.json"
     assert main(["fit", str(data), "--robot", "motoman_mh6", "--model", "compliance", "--out", str(out)]) == 0
     assert "has no link masses: the compliance sees the payload's torque only" in capsys.readouterr().out
+
+
+def test_diagnose_frame_base_on_tracker_frame_data_says_so(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    full = tmp_path / "tracker.csv"
+    assert main(["sim", "sample", "--n", "60", "--seed", "8", "--tracker-frame", "--out", str(full)]) == 0
+    data = _subset(full, tmp_path / "req.csv", REQUIRED)
+    args = ["diagnose", str(data), "--robot", "kr210", "--frame", "base", "--json", str(tmp_path / "d.json")]
+    assert main(args) == 0
+    assert "--frame base, but the nominal twin misses the measurements by" in capsys.readouterr().out

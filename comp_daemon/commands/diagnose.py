@@ -23,6 +23,7 @@ from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -120,6 +121,14 @@ def _run(args: argparse.Namespace) -> int:
             f"on {len(diag.check_rows)} check rows",
             file=out,
         )
+        if args.frame == "base" and diag.baseline_check_rms_mm > BASE_FRAME_MAX_RMS_MM:
+            print(
+                f"--frame base, but the nominal twin misses the measurements by "
+                f"{diag.baseline_check_rms_mm:.1f} mm RMS (more than {BASE_FRAME_MAX_RMS_MM:g} mm): they "
+                "look like a tracker's frame; the baseline and the geometric shrink then measure the "
+                "frame, not the robot (--frame auto or tracker registers it first)",
+                file=out,
+            )
         for s in diag.steps:
             joints = ",".join(map(str, s.joints)) or "-"
             flag = "significant" if s.significant else "not significant"
