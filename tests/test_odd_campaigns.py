@@ -179,8 +179,9 @@ def test_diagnose_without_dir_says_what_it_did_not_test_and_that_the_remainder_i
     assert main(["sim", "sample", "--n", "30", "--repeats", "2", "--seed", "5", "--out", str(full)]) == 0
     data = _subset(full, tmp_path / "req.csv", REQUIRED)
     assert main(["diagnose", str(data), "--robot", "kr210", "--json", str(tmp_path / "d.json")]) == 0
-    out = capsys.readouterr().out
+    out, err = capsys.readouterr()
     doc = json.loads((tmp_path / "d.json").read_text())
+    assert "no split column; held out" in err and doc["split"]["drawn"]
     assert doc["noise_floor_source"] == "repeats"
     ratio = doc["unexplained_rms_mm"] / doc["noise_floor_mm"]
     # the simulated cell has backlash the file cannot show: far above the floor, and said so

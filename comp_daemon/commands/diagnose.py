@@ -108,6 +108,8 @@ def _run(args: argparse.Namespace) -> int:
         doc = json.dumps(diag.to_json(), indent=2, ensure_ascii=False)
         steps.note("writing the report")
         report = render_report_html(diag) if args.report is not None else None
+    if diag.split_drawn:
+        print(diag.split_message, file=sys.stderr)
     if args.json_out is None:
         print(doc)
     else:
