@@ -42,6 +42,7 @@ from comp_daemon.commands.campaigns import (
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
+from comp_daemon.data.coverage import still_axes_note
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
@@ -461,28 +462,6 @@ def _evaluate(args: argparse.Namespace) -> int:
         }
         _write_json(args.json, doc)
     return 0
-
-
-#: an axis whose values on the fit rows span less than this (deg) did not move in the campaign
-STILL_AXIS_DEG = 0.01
-
-
-def still_axes_note(dataset: Dataset, rows: np.ndarray) -> str | None:
-    """A sentence naming the axes that do not move on ``rows`` (a model is then determined only at
-    their values there), or None when every axis moves."""
-    assert dataset.a_deg is not None
-    span = np.ptp(dataset.a_deg[rows], axis=0)
-    still = [f"A{k + 1}" for k in range(6) if span[k] < STILL_AXIS_DEG]
-    if not still:
-        return None
-    held = ", ".join(
-        f"A{k + 1} {dataset.a_deg[rows][0, k]:.3f}°" for k in range(6) if span[k] < STILL_AXIS_DEG
-    )
-    return (
-        f"{', '.join(still)} {'does' if len(still) == 1 else 'do'} not move on the fit rows ({held}): "
-        "a model is determined only at "
-        "these values; elsewhere it extrapolates"
-    )
 
 
 def _head(token: str) -> str:
