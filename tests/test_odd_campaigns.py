@@ -439,3 +439,10 @@ def test_diagnose_frame_base_on_tracker_frame_data_says_so(
     args = ["diagnose", str(data), "--robot", "kr210", "--frame", "base", "--json", str(tmp_path / "d.json")]
     assert main(args) == 0
     assert "--frame base, but the nominal twin misses the measurements by" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(("value", "meant"), [("train", "fit"), ("test", "check"), ("Validation", "check")])
+def test_a_split_named_as_other_tools_name_it_gets_a_hint(kr_campaign: Path, value: str, meant: str) -> None:
+    text = kr_campaign.read_text().replace(",fit,", f",{value},").replace(",check,", f",{value},")
+    with pytest.raises(DatasetError, match=f"got '{value}'; did you mean '{meant}'"):
+        read_dataset(text.encode())

@@ -157,11 +157,24 @@ def _parse_dir(table: CellTable, faults: CellFaults, name: str) -> NDArray[np.in
     return values.astype(np.int8)
 
 
+# what other tools call the two sides of a split
+_SPLIT_SYNONYMS = {
+    "train": "fit",
+    "training": "fit",
+    "calibration": "fit",
+    "test": "check",
+    "testing": "check",
+    "validation": "check",
+    "verification": "check",
+}
+
+
 def _parse_split(table: CellTable, faults: CellFaults) -> NDArray[np.str_] | None:
     cells = [c.strip() for c in table.columns["split"]]
     for i, cell in enumerate(cells):
         if cell not in SPLIT_VALUES:
-            hint = f"; did you mean '{cell.lower()}'?" if cell.lower() in SPLIT_VALUES else ""
+            meant = _SPLIT_SYNONYMS.get(cell.lower(), cell.lower())
+            hint = f"; did you mean '{meant}'?" if meant in SPLIT_VALUES else ""
             faults.add("split", i, f"split must be 'fit' or 'check', got {table.columns['split'][i]!r}{hint}")
             return None
     return np.array(cells, dtype="<U5")
