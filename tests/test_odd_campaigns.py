@@ -446,3 +446,12 @@ def test_a_split_named_as_other_tools_name_it_gets_a_hint(kr_campaign: Path, val
     text = kr_campaign.read_text().replace(",fit,", f",{value},").replace(",check,", f",{value},")
     with pytest.raises(DatasetError, match=f"got '{value}'; did you mean '{meant}'"):
         read_dataset(text.encode())
+
+
+@pytest.mark.parametrize("folds", ["0", "1", "21", "x"])
+def test_fold_counts_that_cannot_cross_validate_are_refused(
+    kr_campaign: Path, folds: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit):
+        main(["evaluate", str(kr_campaign), "--robot", "kr210", "--models", "nominal", "--folds", folds])
+    assert "expected 2..20 folds" in capsys.readouterr().err

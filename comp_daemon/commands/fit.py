@@ -97,6 +97,12 @@ def _order_arg(text: str) -> Order:
         raise argparse.ArgumentTypeError(f"expected an order 0..{MAX_ORDER} or 'cv', got {text!r}") from None
 
 
+def _folds_arg(text: str) -> int:
+    if not (text.strip().isdigit() and 2 <= int(text) <= 20):
+        raise argparse.ArgumentTypeError(f"expected 2..20 folds, got {text!r}")
+    return int(text)
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
     fit = subparsers.add_parser("fit", help="fit an error model on a measurement data set, write MODEL.json")
     fit.add_argument(
@@ -201,7 +207,9 @@ def _common(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="frame of x, y, z: robot base, tracker (registered first), or auto (default)",
     )
-    parser.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    parser.add_argument(
+        "--folds", type=_folds_arg, default=5, help="cross-validation folds, 2..20 (default 5)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the cross-validation folds (default 0)")
     parser.add_argument(
         "--no-infer-dir",
