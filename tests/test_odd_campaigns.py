@@ -378,7 +378,7 @@ def test_one_pose_repeated_is_refused_by_every_door_with_the_reason(
     assert "A1, A2, A3, A4, A5, A6 do not move on the fit rows" in captured.out
     assert "the fit rows hold 1 distinct pose(s)" in captured.err and not out.exists()
     assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal,kinematic"]) == 2
-    assert "no pose is left to hold out" in capsys.readouterr().err
+    assert "one pose (repeats): none left to hold out" in capsys.readouterr().err
     assert main(["diagnose", str(data), "--robot", "kr210"]) == 2
     assert "the 45 rows are one pose" in capsys.readouterr().err
 
@@ -455,3 +455,12 @@ def test_fold_counts_that_cannot_cross_validate_are_refused(
     with pytest.raises(SystemExit):
         main(["evaluate", str(kr_campaign), "--robot", "kr210", "--models", "nominal", "--folds", folds])
     assert "expected 2..20 folds" in capsys.readouterr().err
+
+
+def test_a_split_column_without_check_rows_is_refused_by_name(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = tmp_path / "allfit.csv"
+    data.write_text(kr_campaign.read_text().replace(",check,", ",fit,"))
+    assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal"]) == 2
+    assert "no check rows to evaluate on (the split marks no row 'check')" in capsys.readouterr().err

@@ -370,9 +370,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if split.drawn:
         print(split.message, file=sys.stderr)
     if len(split.check_rows) == 0:
-        why = (
-            "the rows are one pose (repeats): no pose is left to hold out" if split.drawn else "split column"
-        )
+        why = "one pose (repeats): none left to hold out" if split.drawn else "the split marks no row 'check'"
         raise UserError(f"{dataset.source}: no check rows to evaluate on ({why})")
     if len(split.fit_rows) < 3:
         how = "drawn" if split.drawn else "the split column marks them 'fit'"
