@@ -464,3 +464,25 @@ def test_a_split_column_without_check_rows_is_refused_by_name(
     data.write_text(kr_campaign.read_text().replace(",check,", ",fit,"))
     assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal"]) == 2
     assert "no check rows to evaluate on (the split marks no row 'check')" in capsys.readouterr().err
+
+
+def test_compensating_with_a_backlash_model_without_dir_says_the_backlash_is_not_applied(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    data = tmp_path / "c.csv"
+    assert main(["sim", "sample", "--n", "70", "--seed", "9", "--out", str(data)]) == 0
+    model = tmp_path / "m.json"
+    args = ["fit", str(data), "--robot", "kr210", "--model", "kinematic:all+backlash", "--out", str(model)]
+    assert main(args) == 0
+    targets = _subset(data, tmp_path / "t.csv", ("a1", "a2", "a3", "a4", "a5", "a6"), rows=5)
+    capsys.readouterr()
+    assert main(["compensate", str(model), str(targets), "--out", str(tmp_path / "o.csv")]) == 0
+    assert "no dir1..dir6 columns: the model's backlash is not applied" in capsys.readouterr().out
+    with_dir = _subset(
+        data,
+        tmp_path / "td.csv",
+        (*(f"a{k}" for k in range(1, 7)), *(f"dir{k}" for k in range(1, 7))),
+        rows=5,
+    )
+    assert main(["compensate", str(model), str(with_dir), "--out", str(tmp_path / "o.csv")]) == 0
+    assert "backlash is not applied" not in capsys.readouterr().out

@@ -46,7 +46,7 @@ from comp_daemon.data.coverage import still_axes_note
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
-from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.base import ErrorModel, uses_approach_directions
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import (
     DEFAULT_LIMITS,
@@ -501,6 +501,11 @@ def _compensate(args: argparse.Namespace) -> int:
     n = len(targets)
     wanted, result, limits = compensate_targets(model, targets, args)
     dir_ = None if targets.dir is None else targets.dir.astype(float)
+    if dir_ is None and uses_approach_directions(model):
+        print(
+            f"{targets.source}: no dir1..dir6 columns: the model's backlash is not applied (approach "
+            "directions unknown); give the direction each axis will approach its target from"
+        )
     extra = dict(targets.extra)
     for k in range(6):
         extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
