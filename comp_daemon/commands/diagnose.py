@@ -14,14 +14,16 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import Any
 
 from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset, read_dataset_json
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
-from comp_daemon.kinematics.params import N_PARAMS
+from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -96,7 +98,8 @@ def _run(args: argparse.Namespace) -> int:
     )
     path = Path(args.data)
     reader = read_dataset_json if path.suffix.lower() == ".json" else read_dataset
-    dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=N_PARAMS, kind="measurement")
+    # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
+    dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=0, kind="measurement")
     for target in (args.json_out, args.report):
         if target is not None and not target.expanduser().parent.is_dir():
             raise ValueError(f"cannot write {target}: no such directory")
@@ -105,6 +108,8 @@ def _run(args: argparse.Namespace) -> int:
         doc = json.dumps(diag.to_json(), indent=2, ensure_ascii=False)
         steps.note("writing the report")
         report = render_report_html(diag) if args.report is not None else None
+    if diag.split_drawn:
+        print(diag.split_message, file=sys.stderr)
     if args.json_out is None:
         print(doc)
     else:
@@ -118,6 +123,14 @@ def _run(args: argparse.Namespace) -> int:
             f"on {len(diag.check_rows)} check rows",
             file=out,
         )
+        if args.frame == "base" and diag.baseline_check_rms_mm > BASE_FRAME_MAX_RMS_MM:
+            print(
+                f"--frame base, but the nominal twin misses the measurements by "
+                f"{diag.baseline_check_rms_mm:.1f} mm RMS (more than {BASE_FRAME_MAX_RMS_MM:g} mm): they "
+                "look like a tracker's frame; the baseline and the geometric shrink then measure the "
+                "frame, not the robot (--frame auto or tracker registers it first)",
+                file=out,
+            )
         for s in diag.steps:
             joints = ",".join(map(str, s.joints)) or "-"
             flag = "significant" if s.significant else "not significant"
@@ -131,11 +144,24 @@ def _run(args: argparse.Namespace) -> int:
             if diag.noise_floor_mm is None
             else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
         )
+        floor += _against_floor(diag)
+        if args.tracker_sigma_mm is not None and diag.noise_floor_source not in (None, "declared"):
+            floor += f"; --tracker-sigma-mm not used: the {diag.noise_floor_source} measure the noise"
         print(
-            f"unmodelled: {', '.join(diag.unmodelled) or 'none'}; "
+            f"unmodelled: {', '.join(diag.unmodelled) or 'none found'}; "
             f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
             file=out,
         )
+        timed = [s.effect for s in diag.steps if s.significant and s.effect in ("drift", "step")]
+        if timed and diag.obs.clock_name != "t_s":
+            print(
+                f"clock: the row order (no t_s column): {' and '.join(timed)} assume the rows are in "
+                "the order they were measured",
+                file=out,
+            )
+        untested = untested_effects(diag.skipped)
+        if untested:
+            print(f"not tested: {untested}", file=out)
         found = [r for r in diag.residual_structure if r.significant]
         if found:
             print(
@@ -145,3 +171,35 @@ def _run(args: argparse.Namespace) -> int:
         if diag.remainder_model is not None and diag.remainder_model.tried:
             print(diag.remainder_model.describe(), file=out)
     return 0
+
+
+#: above this multiple of the noise floor the unexplained error is said not to be noise
+NOT_NOISE_RATIO = 2.0
+
+
+def _against_floor(diag: Diagnosis) -> str:
+    """The unexplained error as a multiple of the noise floor, and what that multiple says."""
+    if diag.noise_floor_mm is None or diag.noise_floor_mm <= 0:
+        return ""
+    ratio = diag.unexplained_rms_mm / diag.noise_floor_mm
+    if ratio > NOT_NOISE_RATIO:
+        return f" ({ratio:.1f} x the floor: not noise; an error the effects tried do not name remains)"
+    return f" ({ratio:.1f} x the floor: within the noise)"
+
+
+def untested_effects(skipped: list[dict[str, Any]]) -> str:
+    """The effects the data could not test on any joint (their skipped entries cover all six joints,
+    or the effect has no joints), each with its reasons, the one covering the most joints first."""
+    joints: dict[str, set[int]] = {}
+    reasons: dict[str, dict[str, int]] = {}
+    for entry in skipped:
+        effect, on = entry["effect"], entry.get("joints") or []
+        joints.setdefault(effect, set()).update(on if on else range(1, 7))
+        by_reason = reasons.setdefault(effect, {})
+        by_reason[entry["reason"]] = by_reason.get(entry["reason"], 0) + (len(on) if on else 6)
+    out = []
+    for effect, on in joints.items():
+        if len(on) >= 6:
+            ranked = sorted(reasons[effect], key=lambda r: -reasons[effect][r])
+            out.append(f"{effect} ({' / '.join(ranked)})")
+    return "; ".join(out)

@@ -42,10 +42,11 @@ from comp_daemon.commands.campaigns import (
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
+from comp_daemon.data.coverage import still_axes_note
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json, write_dataset
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
-from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.base import ErrorModel, uses_approach_directions
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import (
     DEFAULT_LIMITS,
@@ -64,11 +65,12 @@ from comp_daemon.models.registry import (
     MAX_ORDER,
     MissingColumnError,
     ModelSpec,
+    UndeterminedModelError,
     UnknownModelError,
     fit_spec,
     get_kind,
-    max_parameters,
     parse_model_name,
+    undetermined_reason,
     uses_directions,
     with_order,
 )
@@ -93,6 +95,12 @@ def _order_arg(text: str) -> Order:
         return int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an order 0..{MAX_ORDER} or 'cv', got {text!r}") from None
+
+
+def _folds_arg(text: str) -> int:
+    if not (text.strip().isdigit() and 2 <= int(text) <= 20):
+        raise argparse.ArgumentTypeError(f"expected 2..20 folds, got {text!r}")
+    return int(text)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -199,7 +207,9 @@ def _common(parser: argparse.ArgumentParser) -> None:
         default="auto",
         help="frame of x, y, z: robot base, tracker (registered first), or auto (default)",
     )
-    parser.add_argument("--folds", type=int, default=5, help="cross-validation folds (default 5)")
+    parser.add_argument(
+        "--folds", type=_folds_arg, default=5, help="cross-validation folds, 2..20 (default 5)"
+    )
     parser.add_argument("--seed", type=int, default=0, help="seed of the cross-validation folds (default 0)")
     parser.add_argument(
         "--no-infer-dir",
@@ -246,7 +256,7 @@ def _fit_rows(
     options = FitOptions(frame=args.frame, cv_folds=args.folds, seed=args.seed)
     try:
         return fit_spec(spec, load_robot_cached(args), FitRows.of(dataset, rows, unknown_dir), options)
-    except MissingColumnError as exc:
+    except (MissingColumnError, UndeterminedModelError) as exc:
         raise UserError(f"{dataset.source}: {exc}") from None
     except np.linalg.LinAlgError as exc:
         raise UserError(f"{dataset.source}: the {spec.name} fit failed ({exc})") from None
@@ -265,7 +275,10 @@ def _fit(args: argparse.Namespace) -> int:
         return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
-    dataset = _read(args.data, robot, max_parameters(spec), "measurement")
+    dataset = _read(args.data, robot, 0, "measurement")
+    reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
+    if reason is not None:
+        raise UserError(f"{dataset.source}: {len(dataset)} data rows; {reason}")
     data_sha256 = dataset.content_sha256
     dataset, unknown_dir, directions = _directions(dataset, [spec], args)
     if directions:
@@ -273,6 +286,9 @@ def _fit(args: argparse.Namespace) -> int:
     rows = dataset.fit_rows()
     if len(rows) < 3:
         raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
+    still = still_axes_note(dataset, rows)
+    if still:
+        print(f"{dataset.source}: {still}")
     with progress(f"fitting {spec.name} on {len(rows)} rows"):
         fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
     fit_info = dict(fitted.info)
@@ -301,6 +317,9 @@ def _fit(args: argparse.Namespace) -> int:
     line = selection_line(fitted.info)
     if line:
         print(f"{args.model}: {line} (out of fold on the fit rows)")
+    for warning in ("frame_warning", "mass_warning"):
+        if warning in fitted.info:
+            print(f"{args.model}: {fitted.info[warning]}")
     return 0
 
 
@@ -322,25 +341,43 @@ def _evaluate(args: argparse.Namespace) -> int:
         return evaluate_solvers(args, load_robot_cached(args))
     parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
-    min_rows = max(max_parameters(spec) for _, spec in parsed)
-    dataset = _read(args.data, robot, min_rows, "measurement")
+    dataset = _read(args.data, robot, 0, "measurement")
     if len(dataset) < 2:
         raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
     data_sha256 = dataset.content_sha256
+    # a model the rows cannot determine is left out by name; the evaluation goes on with the rest
+    skipped = {
+        t: reason
+        for t, spec in parsed
+        if (reason := undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)) is not None
+    }
+    parsed = [(t, spec) for t, spec in parsed if t not in skipped]
+    if not parsed:
+        reasons = "; ".join(f"{t}: {r}" for t, r in skipped.items())
+        raise UserError(f"{dataset.source}: {len(dataset)} data rows; no model can be evaluated ({reasons})")
+    for token, reason in skipped.items():
+        print(f"{dataset.source}: left out {token}: {reason}")
     dataset, unknown_dir, directions = _directions(dataset, [spec for _, spec in parsed], args)
     if directions:
         print(f"{dataset.source}: {directions}")
-    skipped: dict[str, str] = {}
     if args.models.strip() == "all" and dataset.dir is None:
-        skipped = {t: "no dir1..dir6 columns (--no-infer-dir)" for t, spec in parsed if uses_directions(spec)}
-        parsed = [(t, spec) for t, spec in parsed if t not in skipped]
-        if skipped:
-            print(f"{dataset.source}: left out (no dir columns): {', '.join(skipped)}", file=sys.stderr)
+        no_dir = {t: "no dir1..dir6 columns (--no-infer-dir)" for t, spec in parsed if uses_directions(spec)}
+        parsed = [(t, spec) for t, spec in parsed if t not in no_dir]
+        if no_dir:
+            print(f"{dataset.source}: left out (no dir columns): {', '.join(no_dir)}", file=sys.stderr)
+        skipped.update(no_dir)
     split = dataset.split_or_draw()
     if split.drawn:
         print(split.message, file=sys.stderr)
     if len(split.check_rows) == 0:
-        raise UserError(f"{dataset.source}: no check rows to evaluate on")
+        why = "one pose (repeats): none left to hold out" if split.drawn else "the split marks no row 'check'"
+        raise UserError(f"{dataset.source}: no check rows to evaluate on ({why})")
+    if len(split.fit_rows) < 3:
+        how = "drawn" if split.drawn else "the split column marks them 'fit'"
+        raise UserError(f"{dataset.source}: {len(split.fit_rows)} fit rows ({how}); a fit needs at least 3")
+    still = still_axes_note(dataset, split.fit_rows)
+    if still:
+        print(f"{dataset.source}: {still}")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
     check = split.check_rows
     dir_check = None if dataset.dir is None else directions_of(dataset, check, unknown_dir)
@@ -348,11 +385,19 @@ def _evaluate(args: argparse.Namespace) -> int:
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
+    frame_warned = False
     for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
         steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
         t0 = time.perf_counter()
         fitted = _fit_rows(dataset, spec, args, split.fit_rows, unknown_dir)
         t1 = time.perf_counter()
+        identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
+        if len(split.fit_rows) < identifiable:
+            skipped[token] = (
+                f"{len(split.fit_rows)} fit rows for {identifiable} identifiable parameters: not determined"
+            )
+            print(f"{dataset.source}: left out {token}: {skipped[token]}")
+            continue
         pred = fitted.model.predict_tcp_mm(
             dataset.a_deg[check], dir_check, dataset.payload_kg[check], temp_check
         )
@@ -360,6 +405,11 @@ def _evaluate(args: argparse.Namespace) -> int:
         table[token] = error_statistics(dataset.xyz_mm[check], pred)
         timing[token] = {"fit_s": t1 - t0, "predict_s": t2 - t1, "predict_rows": len(check)}
         fits[token] = {"frame": fitted.frame, **fitted.info}
+        if "frame_warning" in fitted.info and not frame_warned:  # the same for every model: once
+            print(f"{dataset.source}: {fitted.info['frame_warning']}")
+            frame_warned = True
+        if "mass_warning" in fitted.info:
+            print(f"{dataset.source}: {token}: {fitted.info['mass_warning']}")
         if isinstance(fitted.model, ChebyshevModel):
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()
@@ -393,7 +443,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     ref = "; ".join(
         f"{k} " + "/".join(f"{s} {v:.2f}" for s, v in row.items()) for k, row in SEED000_TABLE2_MM.items()
     )
-    print(f"seed 000 Table 2 (3-D, KR210, 104 points): {ref}")
+    print(f"for reference, seed 000's published Table 2 (its own KR210 campaign of 104 points, 3-D): {ref}")
     if args.json:
         doc = {
             "data": dataset.source,
@@ -451,6 +501,11 @@ def _compensate(args: argparse.Namespace) -> int:
     n = len(targets)
     wanted, result, limits = compensate_targets(model, targets, args)
     dir_ = None if targets.dir is None else targets.dir.astype(float)
+    if dir_ is None and uses_approach_directions(model):
+        print(
+            f"{targets.source}: no dir1..dir6 columns: the model's backlash is not applied (approach "
+            "directions unknown); give the direction each axis will approach its target from"
+        )
     extra = dict(targets.extra)
     for k in range(6):
         extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
@@ -536,7 +591,12 @@ def compensate_targets(
             mapping=args.mapping,
         )
     except UnreachableTargetError as exc:
-        raise UserError(f"{targets.source}: {exc}") from None
+        rows = ", ".join(
+            f"row {int(targets.row_numbers[i])} (left {e:.3f} mm)"
+            for i, e in zip(exc.indices[:5], exc.position_error_mm[:5], strict=False)
+        )
+        more = f" and {len(exc.indices) - 5} more" if len(exc.indices) > 5 else ""
+        raise UserError(f"{targets.source}: unreachable within joint limits: {rows}{more}") from None
     except CompensationRefused as exc:
         rows = "; ".join(f"row {int(targets.row_numbers[r.index])}: {r.reason}" for r in exc.refusals[:5])
         more = f"; and {len(exc.refusals) - 5} more" if len(exc.refusals) > 5 else ""

@@ -117,13 +117,24 @@ def _number_fault(cell: str) -> str:
     return f"not a plain decimal number: {cell!r} (use digits, '.', and an optional exponent)"
 
 
+_FURTHER_TARGET = re.compile(r"[xyz]([2-9]|[1-9][0-9]+)")
+_UNSEEN_TARGET = (
+    "; a target the tracker did not see at a pose has no number: leave out that pose's row, "
+    "or that target's columns"
+)
+
+
 def parse_numbers(table: CellTable, faults: CellFaults, name: str) -> FloatArray | None:
-    """The column as floats, or None after recording its first fault."""
+    """The column as floats, or None after recording its first fault (for a further target's
+    column, a missing or non-finite value says how to leave out an unseen target)."""
     cells = table.columns[name]
     if not all(map(_NUMBER.fullmatch, map(str.strip, cells))):
         for i, cell in enumerate(cells):
             if not _NUMBER.fullmatch(cell.strip()):
-                faults.add(name, i, _number_fault(cell))
+                problem = _number_fault(cell)
+                if _FURTHER_TARGET.fullmatch(name) and (not cell.strip() or "non-finite" in problem):
+                    problem += _UNSEEN_TARGET
+                faults.add(name, i, problem)
                 break
         return None
     values = np.fromiter(map(float, cells), dtype=np.float64, count=len(cells))
@@ -146,11 +157,24 @@ def _parse_dir(table: CellTable, faults: CellFaults, name: str) -> NDArray[np.in
     return values.astype(np.int8)
 
 
+# what other tools call the two sides of a split
+_SPLIT_SYNONYMS = {
+    "train": "fit",
+    "training": "fit",
+    "calibration": "fit",
+    "test": "check",
+    "testing": "check",
+    "validation": "check",
+    "verification": "check",
+}
+
+
 def _parse_split(table: CellTable, faults: CellFaults) -> NDArray[np.str_] | None:
     cells = [c.strip() for c in table.columns["split"]]
     for i, cell in enumerate(cells):
         if cell not in SPLIT_VALUES:
-            hint = f"; did you mean '{cell.lower()}'?" if cell.lower() in SPLIT_VALUES else ""
+            meant = _SPLIT_SYNONYMS.get(cell.lower(), cell.lower())
+            hint = f"; did you mean '{meant}'?" if meant in SPLIT_VALUES else ""
             faults.add("split", i, f"split must be 'fit' or 'check', got {table.columns['split'][i]!r}{hint}")
             return None
     return np.array(cells, dtype="<U5")
@@ -172,6 +196,14 @@ def _check_header(table: CellTable, kind: DatasetKind) -> None:
     def refuse(problem: str, column: str | None) -> DatasetError:
         return DatasetError(problem, source=table.source, row=1, column=column, row_label=table.row_label)
 
+    if len(header) == 1:
+        for sep, what in ((";", "semicolons"), ("\t", "tabs")):
+            if sep in header[0]:
+                raise refuse(
+                    f"the header is one column holding {what}; this format separates columns with commas "
+                    "(and writes decimals with '.')",
+                    None,
+                )
     seen: dict[str, int] = {}
     known = set(KNOWN_COLUMNS)
     for k, name in enumerate(header, start=1):

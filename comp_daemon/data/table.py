@@ -407,6 +407,11 @@ class Dataset:
             f"rows, drawn with seed {seed} (check fraction {check_fraction:g}): "
             f"{self.row_label}s {held or 'none'}"
         )
+        if n_groups < n:
+            by = "pose_id" if self.pose_id is not None else "identical axis values"
+            message += (
+                f" (drawn by pose: {n} rows are {n_groups} poses by {by}; a pose's repeats stay together)"
+            )
         return SplitChoice(fit, check, drawn=True, seed=seed, message=message)
 
     # ---- summary -------------------------------------------------------------------------------

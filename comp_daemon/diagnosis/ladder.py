@@ -84,7 +84,7 @@ from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
-from comp_daemon.models.registration import detect_frame, rigid_registration
+from comp_daemon.models.registration import detect_frame, rigid_registration, scale_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -163,17 +163,34 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     split = dataset.split_or_draw(seed=options.seed, check_fraction=options.check_fraction)
     fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
     if len(check_rows) == 0:
+        if split.drawn:
+            raise ValueError(
+                f"{dataset.source}: the {len(dataset)} rows are one pose (repeats of the same axis "
+                "values): no pose is left to hold out as check rows; the diagnosis needs poses spread "
+                "over the workspace"
+            )
         raise ValueError(
             f"{dataset.source}: the split column marks no row 'check'; the diagnosis needs check rows"
-        )
-    if len(fit_rows) < N_PARAMS:
-        raise ValueError(
-            f"{dataset.source}: {len(fit_rows)} fit rows, fewer than the {N_PARAMS} parameters "
-            "of the geometric step"
         )
     mass = MassModel.from_robot(robot)
     nominal = KinematicParams.from_robot(robot)
     effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
+    scale = scale_problem(predict_mm(mass, nominal, effects0, obs), obs.xyz_mm)
+    if scale is not None:
+        raise ValueError(f"{dataset.source}: {scale}")
+    if len(fit_rows) < N_PARAMS:
+        if split.drawn:
+            need = int(np.ceil(N_PARAMS / (1.0 - options.check_fraction)))
+            how = (
+                f"{len(check_rows)} of the {len(dataset)} rows are held out as check rows; give at least "
+                f"{need} rows, or a split column with at least {N_PARAMS} 'fit' rows"
+            )
+        else:
+            how = f"the split column marks {len(fit_rows)} rows 'fit'; at least {N_PARAMS} are needed"
+        raise ValueError(
+            f"{dataset.source}: {len(fit_rows)} fit rows, fewer than the {N_PARAMS} parameters "
+            f"of the geometric step ({how})"
+        )
 
     # 1. frame
     obs_fit = obs.take(fit_rows)

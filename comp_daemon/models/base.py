@@ -33,7 +33,28 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["ErrorModel", "NominalModel", "PredictionUncertainty", "as_axes", "finite_array"]
+__all__ = [
+    "ErrorModel",
+    "NominalModel",
+    "PredictionUncertainty",
+    "as_axes",
+    "finite_array",
+    "uses_approach_directions",
+]
+
+
+def uses_approach_directions(model: object) -> bool:
+    """Whether ``model``'s prediction depends on the approach directions ``dir``: a backlash it
+    kept (non-zero), or a direction-aware kriging distance, on the model or the base it stacks on."""
+    m: object | None = model
+    while m is not None:
+        effects = getattr(m, "effects", None)
+        if effects is not None and np.any(getattr(effects, "backlash_deg", 0.0)):
+            return True
+        if getattr(m, "sample_dir", None) is not None:
+            return True
+        m = getattr(m, "base", None)
+    return False
 
 
 def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:

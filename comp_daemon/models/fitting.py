@@ -239,6 +239,12 @@ def infer_fit_directions(dataset: Dataset) -> tuple[Dataset, NDArray[np.bool_] |
     if per_axis.any():
         counts = ", ".join(f"A{k + 1} {int(c)}" for k, c in enumerate(per_axis) if c)
         note += f"; unknown (0) before an axis first moved, rows of {len(inferred.dir)}: {counts}"
+    if inferred.order == "row order":
+        note += (
+            "; assumed: the file lists the poses in the order the robot visited them (no t_s column); "
+            "if it does not, these directions are wrong and a backlash fitted on them means nothing "
+            "(give dir1..dir6 or t_s to make them certain)"
+        )
     return out, inferred.assumed, note
 
 

@@ -19,9 +19,20 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-__all__ = ["BASE_FRAME_MAX_RMS_MM", "detect_frame", "rigid_registration", "transform_points"]
+__all__ = [
+    "BASE_FRAME_MAX_RMS_MM",
+    "SCALE_RANGE",
+    "detect_frame",
+    "rigid_registration",
+    "scale_problem",
+    "transform_points",
+]
 
 BASE_FRAME_MAX_RMS_MM = 50.0
+#: the measured positions' spread over the nominal ones' outside this range is not a robot in mm
+SCALE_RANGE = (0.5, 2.0)
+#: below this nominal spread (mm, RMS about the centroid) the ratio says too little to refuse on
+SCALE_MIN_SPREAD_MM = 20.0
 
 
 def rigid_registration(p_src_mm: NDArray[np.float64], p_dst_mm: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -36,7 +47,10 @@ def rigid_registration(p_src_mm: NDArray[np.float64], p_dst_mm: NDArray[np.float
     cov = (dst - c_dst).T @ (src - c_src)
     u, sv, vt = np.linalg.svd(cov)
     if sv[1] <= 1e-12 * max(sv[0], 1e-300):
-        raise ValueError("the points are (nearly) collinear: the rotation is not determined")
+        raise ValueError(
+            "the TCP positions lie (nearly) on a line (collinear) or at one point: the rotation between the "
+            "tracker's frame and the robot's is not determined (measure poses spread over the workspace)"
+        )
     d = np.sign(np.linalg.det(u @ vt)) or 1.0
     rot = u @ np.diag([1.0, 1.0, d]) @ vt
     out = np.eye(4)
@@ -57,3 +71,34 @@ def detect_frame(
     diff = np.asarray(p_measured_mm, dtype=float) - np.asarray(p_nominal_base_mm, dtype=float)
     rms = float(np.sqrt(np.mean(np.sum(diff**2, axis=1))))
     return "base" if rms <= BASE_FRAME_MAX_RMS_MM else "tracker"
+
+
+def _spread_mm(p: NDArray[np.float64]) -> float:
+    """RMS distance of the points from their centroid (invariant under a rigid motion)."""
+    q = np.asarray(p, dtype=float)
+    return float(np.sqrt(np.mean(np.sum((q - q.mean(axis=0)) ** 2, axis=1))))
+
+
+def scale_problem(p_nominal_base_mm: NDArray[np.float64], p_measured_mm: NDArray[np.float64]) -> str | None:
+    """A sentence when the measured positions cannot be millimetres of this robot, else None.
+
+    A rigid motion (any tracker frame) keeps the spread of the points about their centroid, and a
+    calibration changes it by far less than a factor of two; positions in metres (1/1000),
+    centimetres (1/10) or inches (1/25.4) do not. The calibration could otherwise absorb the scale
+    in its link lengths and report a perfect fit of a robot a thousand times too small. Not judged
+    when the nominal positions spread less than :data:`SCALE_MIN_SPREAD_MM`.
+    """
+    nominal, measured = _spread_mm(p_nominal_base_mm), _spread_mm(p_measured_mm)
+    if nominal < SCALE_MIN_SPREAD_MM:
+        return None
+    ratio = measured / nominal
+    if SCALE_RANGE[0] <= ratio <= SCALE_RANGE[1]:
+        return None
+    guesses = {"metres": 1e-3, "centimetres": 0.1, "inches": 1 / 25.4, "micrometres": 1e3}
+    unit, factor = min(guesses.items(), key=lambda kv: abs(np.log(ratio / kv[1])))
+    hint = f" (in {unit}?)" if abs(np.log(ratio / factor)) < np.log(1.5) else ""
+    return (
+        f"the measured x, y, z spread {ratio:.3g} times as far as the nominal TCP positions of the same "
+        f"axis values ({measured:.4g} mm against {nominal:.4g} mm RMS about their centroids): they are "
+        f"not millimetres of this robot{hint}; the data set spec asks for positions in mm"
+    )

@@ -39,6 +39,8 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
 from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
@@ -61,6 +63,7 @@ from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.poe_model import PoeErrorModel
 from comp_daemon.models.poe_twist import N_TWIST_PARAMS
+from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM, detect_frame, scale_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -72,6 +75,7 @@ __all__ = [
     "MissingColumnError",
     "ModelKind",
     "ModelSpec",
+    "UndeterminedModelError",
     "UnknownModelError",
     "fit_model",
     "fit_spec",
@@ -80,11 +84,13 @@ __all__ = [
     "max_parameters",
     "model_from_payload",
     "parse_model_name",
+    "undetermined_reason",
     "uses_directions",
     "with_order",
 ]
 
 MAX_ORDER = 8
+MIN_POSES = 3  # distinct axis-value rows below which no model but the nominal one is fitted
 KRIGING_OPTIONS = ("k=N", "aniso", "all")
 OPTION_ORDER = ("aniso", "all", "paper")  # canonical order of the option words after k=N
 KINEMATIC_PARAMETERS = 39  # 30 MDH + 6 base + 3 tool
@@ -99,6 +105,11 @@ class UnknownModelError(ValueError):
 
 class MissingColumnError(ValueError):
     """The data lack a column the model needs (``dir`` for backlash, …)."""
+
+
+class UndeterminedModelError(ValueError):
+    """The rows (with the robot description) cannot determine the model: too few rows for its
+    parameters, or a compliance with nothing that loads the joints."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -383,15 +394,82 @@ def max_parameters(spec: ModelSpec) -> int:
     return get_kind(spec.kind).parameters(spec)
 
 
+def uses_compliance(spec: ModelSpec) -> bool:
+    """Whether the model ``spec`` fits a joint compliance (it needs gravity or payload torques)."""
+    return spec.kind == "compliance" or "compliance" in spec.effects
+
+
+def undetermined_reason(
+    spec: ModelSpec, robot: RobotDescription, n_rows: int, payload_kg: Any = 0.0
+) -> str | None:
+    """Why ``n_rows`` rows with these payloads cannot determine ``spec`` on ``robot``, as a sentence
+    naming the model; None when they can.
+
+    - fewer rows than the model has parameters before the identifiability analysis
+      (:func:`max_parameters`, the data set spec's floor);
+    - a compliance (``compliance``, ``+compliance``) on a robot description without link masses
+      and rows without a payload: no torque loads the joints, so C2, C3 would be fitted on nothing.
+    """
+    needed = max_parameters(spec)
+    if n_rows < needed:
+        return (
+            f"the {spec.name} model has {needed} parameters; {n_rows} rows leave it undetermined "
+            f"(it needs at least {needed} rows)"
+        )
+    if (
+        uses_compliance(spec)
+        and not np.any(robot.link_mass_kg > 0)
+        and not np.any(np.asarray(payload_kg) > 0)
+    ):
+        return (
+            f"the {spec.name} model needs link masses in the robot description ({robot.name} has none) "
+            "or rows measured with a payload (payload_kg > 0): nothing loads the joints, so the "
+            "compliance is not determined"
+        )
+    return None
+
+
 def fit_spec(
     spec: ModelSpec, robot: RobotDescription, rows: FitRows, options: FitOptions | None = None
 ) -> FittedModel:
-    """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack."""
+    """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack,
+    :class:`UndeterminedModelError` when a compliance has no masses and no payload to load the joints
+    (:func:`undetermined_reason`; the row floor is the doors' to apply, on the data set), or when the
+    measured positions are not millimetres of this robot
+    (:func:`comp_daemon.models.registration.scale_problem`)."""
     kind = get_kind(spec.kind)
     for column in kind.needed_columns(spec):
         if getattr(rows, column) is None:
             raise MissingColumnError(f"the {spec.name} model needs the {_column_label(column)} column(s)")
-    return kind.fit(robot, rows, spec, options or FitOptions())
+    reason = undetermined_reason(spec, robot, max_parameters(spec), rows.payload_kg)
+    if reason is not None:
+        raise UndeterminedModelError(reason)
+    nominal = KinematicParams.from_robot(robot)
+    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
+    scale = scale_problem(p_nominal, rows.xyz_mm)
+    if scale is not None:
+        raise UndeterminedModelError(scale)
+    poses = len(np.unique(rows.a_deg, axis=0))
+    if poses < MIN_POSES and spec.kind != "nominal":
+        raise UndeterminedModelError(
+            f"the fit rows hold {poses} distinct pose(s) (repeats of one pose add no geometry); "
+            f"the {spec.name} model needs at least {MIN_POSES} poses spread over the workspace"
+        )
+    options = options or FitOptions()
+    fitted = kind.fit(robot, rows, spec, options)
+    if uses_compliance(spec) and not np.any(robot.link_mass_kg > 0):
+        fitted.info["mass_warning"] = (
+            f"{robot.name} has no link masses: the compliance sees the payload's torque only, not the "
+            "links' own weight"
+        )
+    if options.frame == "base" and detect_frame(p_nominal, rows.xyz_mm) == "tracker":
+        off = float(np.sqrt(np.mean(np.sum((rows.xyz_mm - p_nominal) ** 2, axis=1))))
+        fitted.info["frame_warning"] = (
+            f"--frame base, but the measured positions lie {off:.1f} mm RMS from the nominal TCPs "
+            f"(more than {BASE_FRAME_MAX_RMS_MM:g} mm): they look like a tracker's frame; --frame auto "
+            "or tracker registers it first"
+        )
+    return fitted
 
 
 def _column_label(column: str) -> str:

@@ -234,9 +234,13 @@ def selection_line(info: dict[str, Any]) -> str | None:
         return None
     if sel.get("note"):
         return str(sel["note"])
-    dropped = [
-        f"{d['part']} ({d['rms_without_mm']:.4f} mm held out without, {d['rms_with_mm']:.4f} with)"
-        for d in sel["decisions"]
-        if not d["kept"]
-    ]
+    dropped = [f"{d['part']} ({_held_out(d)})" for d in sel["decisions"] if not d["kept"]]
     return f"kept {', '.join(sel['kept']) or 'no effect'}; dropped {', '.join(dropped) or 'none'}"
+
+
+def _held_out(d: dict[str, Any]) -> str:
+    """A dropped part's held-out RMS without and with it, and why a lower RMS with it did not keep it."""
+    text = f"{d['rms_without_mm']:.4f} mm held out without, {d['rms_with_mm']:.4f} with"
+    if d["rms_with_mm"] < d["rms_without_mm"]:
+        text += f": a gain within {Z_KEEP:g} standard errors, not kept"
+    return text

@@ -189,6 +189,11 @@ def _compliance_basis(x: TwinInputs, n_harmonics: int) -> tuple[FloatArray, ...]
 def _compliance_data(data: EffectData, joint: int | None) -> str | None:
     j = int(joint or 1)
     tau_j = data.tau_nm[:, j - 1]
+    if not np.any(data.tau_nm):
+        return (
+            "no gravity torque on any joint: the robot description has no link masses and no row "
+            "carries a payload (payload_kg)"
+        )
     if np.abs(tau_j).max() < 1e-9 * data.tau_scale_nm:
         return f"no gravity torque on joint {j} in these poses (its axis is vertical)"
     if np.ptp(tau_j) < 1e-6 * data.tau_scale_nm:
