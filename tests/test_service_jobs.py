@@ -73,7 +73,9 @@ async def test_runner_outcomes(tmp_path: Path) -> None:
     store = Store(tmp_path / "s.sqlite3")
     heard: list[EventRecord] = []
     store.add_listener(heard.append)
-    runner = JobRunner(store, JobSettings(workers=2, max_runtime_s=2.0))
+    runner = JobRunner(
+        store, JobSettings(workers=2, max_runtime_s=6.0)
+    )  # a worker start fits on a loaded machine
     for kind in (
         JobKind("primes", count_primes, on_done=_draft),
         JobKind("refuse", refuse_input),
@@ -120,7 +122,7 @@ async def test_runner_outcomes(tmp_path: Path) -> None:
         assert store.get_job(long.id).state == "cancelled" and store.get_job(long.id).result is None
 
         slow = store.create_job("spin", {})
-        runner.launch(slow, (30.0,))  # over max_runtime_s = 2
+        runner.launch(slow, (30.0,))  # over max_runtime_s = 6
         timed_out = await _until(store, slow.id, ("failed", "done"))
         assert timed_out.state == "failed" and "max_runtime_s" in (timed_out.error or "")
 
