@@ -486,3 +486,27 @@ def test_compensating_with_a_backlash_model_without_dir_says_the_backlash_is_not
     )
     assert main(["compensate", str(model), str(with_dir), "--out", str(tmp_path / "o.csv")]) == 0
     assert "backlash is not applied" not in capsys.readouterr().out
+
+
+def _no_progress(*_: Any, **__: Any) -> None:
+    return None
+
+
+def test_the_http_fit_job_names_the_model_the_rows_cannot_determine(
+    kr_campaign: Path, mh6_campaign: Path, tmp_path: Path
+) -> None:
+    from comp_daemon.service.job_kinds import run_fit
+
+    few = _subset(kr_campaign, tmp_path / "few.csv", None, rows=20).read_text()
+    with pytest.raises(
+        ValueError, match="the chebyshev model has 150 parameters; 20 rows leave it undetermined"
+    ):
+        run_fit(few, "kr210", "chebyshev", None, 7, progress=_no_progress)
+    massless = mh6_campaign.read_text()
+    with pytest.raises(ValueError, match="needs link masses in the robot description"):
+        run_fit(massless, "motoman_mh6", "compliance", None, 8, progress=_no_progress)
+    done = run_fit(few, "kr210", "nominal", None, 7, progress=_no_progress)
+    assert (
+        done["stats"]["kind"] == "nominal"
+        and done["stats"]["rows"]["fit"] + done["stats"]["rows"]["check"] == 20
+    )

@@ -84,8 +84,8 @@ def run_fit(
     from comp_daemon.models.fitting import FitRows, ModelSpec, infer_fit_directions
     from comp_daemon.models.registry import (
         fit_spec,
-        max_parameters,
         parse_model_name,
+        undetermined_reason,
         uses_directions,
         with_order,
     )
@@ -101,9 +101,12 @@ def run_fit(
         csv_text,
         source=source,
         limits_deg=robot.axis_limits_deg,
-        min_rows=max_parameters(spec),
+        min_rows=1,
         kind="measurement",
     )
+    reason = undetermined_reason(spec, robot, len(ds), ds.payload_kg)
+    if reason is not None:  # the same sentence as the command line's, naming the model
+        raise ValueError(f"{source}: {len(ds)} data rows; {reason}")
     data_sha256 = ds.content_sha256
     directions = unknown_dir = None
     if infer_dir and uses_directions(spec):
