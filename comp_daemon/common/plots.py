@@ -29,6 +29,7 @@ import re
 import threading
 from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from typing import Any, ParamSpec, TypeVar
 
 import numpy as np
@@ -149,30 +150,35 @@ def new_figure(
     return fig, [ax for row in axes for ax in row]
 
 
+# text sizes (points) by (text, font size, weight, dpi): tick labels repeat across figures
+_SIZES: dict[tuple[str, float, str, float], tuple[float, float]] = {}
+_SIZES_MAX = 8192
+
+
 class _Measure:
-    """Text sizes in points from one renderer, remembered per (text, font size, weight)."""
+    """Text sizes in points, measured by the figure's Agg renderer and remembered."""
 
     def __init__(self, renderer: RendererBase, dpi: float) -> None:
         self.renderer = renderer
+        self.dpi = dpi
         self.scale = 72.0 / dpi
-        self.sizes: dict[tuple[str, float, str], tuple[float, float]] = {}
 
     def size(self, text: str, fontsize: float, weight: str = "normal") -> tuple[float, float]:
         """Width and height (points) of ``text``: every line measured, lines one font height apart."""
-        key = (text, fontsize, weight)
-        got = self.sizes.get(key)
+        key = (text, fontsize, weight, self.dpi)
+        got = _SIZES.get(key)
         if got is None:
             prop = FontProperties(size=fontsize, weight=weight)
             _, line_h, _ = self.renderer.get_text_width_height_descent("lp", prop, ismath=False)
-            width = 0.0
-            lines = text.split("\n") if not is_math_text(text) else [text]
-            height = 0.0
-            for line in lines:
+            width = height = 0.0
+            for line in [text] if is_math_text(text) else text.split("\n"):
                 w, h, _ = self.renderer.get_text_width_height_descent(line, prop, ismath=is_math_text(line))
                 width = max(width, w)
                 height += max(h, line_h) * (1.2 if height else 1.0)
             got = (width * self.scale, height * self.scale)
-            self.sizes[key] = got
+            if len(_SIZES) >= _SIZES_MAX:
+                _SIZES.clear()
+            _SIZES[key] = got
         return got
 
     def text(self, t: Text) -> tuple[float, float]:
@@ -221,21 +227,46 @@ def _tick_style(axis: Axis) -> tuple[float, float, float, bool]:
     return float(label.get_fontsize()), float(label.get_rotation()), float(space), bool(label.get_visible())
 
 
-def _axes_extent(ax: Axes, m: _Measure, ax_w_pt: float) -> tuple[float, float, float, float, float]:
-    """How far the decorations of ``ax`` reach beyond its frame (points): left, bottom, right,
-    top; and how far its title must be raised over the y offset text."""
-    left = bottom = right = top = raise_title = 0.0
+@dataclass
+class _Frame:
+    """What the decorations of one axes need around its frame (points)."""
+
+    y_ticks: float  # y tick labels and their spacing from the frame, left of it
+    left: float  # the y tick labels and the y label
+    x_ticks: float  # x tick labels and their spacing, below the frame
+    bottom: float  # the x tick labels and the x label (or x offset text)
+    top: float  # the title (and the y offset text under it)
+    raise_title: float  # the y offset text the title must clear
+    right: float  # a legend anchored right of the frame
+    # x tick labels: position (fraction of the axis), reach left and right of their tick
+    x_reach: list[tuple[float, float, float]]
+
+    def sides(self, ax_w_pt: float) -> tuple[float, float]:
+        """Left and right reach beyond the frame for an axes ``ax_w_pt`` wide (x tick labels at
+        the ends may stick out)."""
+        left, right = self.left, self.right
+        for pos, lo, hi in self.x_reach:
+            left = max(left, lo - pos * ax_w_pt)
+            right = max(right, pos * ax_w_pt + hi - ax_w_pt)
+        return left, right
+
+
+def _frame(ax: Axes, m: _Measure) -> _Frame:
+    """Measure the decorations of ``ax``: tick labels, axis labels, offset texts, title, legend."""
+    frame = _Frame(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, [])
     if not ax.axison:
-        return left, bottom, right, top, raise_title
+        return frame
+    labelpad = float(rcParams["axes.labelpad"])
     # y axis: tick labels left of the frame, the label left of them, the offset text above
     size, rot, space, on = _tick_style(ax.yaxis)
     ylabels, yoffset = _tick_labels(ax.yaxis)
     if on and ylabels:
-        left = space + max(_rotated(*m.size(t, size), rot)[0] for _, t in ylabels)
+        frame.y_ticks = space + max(_rotated(*m.size(t, size), rot)[0] for _, t in ylabels)
+    frame.left = frame.y_ticks
     if ax.yaxis.label.get_text():
-        left += rcParams["axes.labelpad"] + m.text(ax.yaxis.label)[0]
+        frame.left += labelpad + m.text(ax.yaxis.label)[0]
     if yoffset:
-        raise_title = 3.0 + m.size(yoffset, float(ax.yaxis.offsetText.get_fontsize()))[1]
+        frame.raise_title = 3.0 + m.size(yoffset, float(ax.yaxis.offsetText.get_fontsize()))[1]
     # x axis: tick labels below (they may reach past either side), the label or offset below them
     size, rot, space, on = _tick_style(ax.xaxis)
     xlabels, xoffset = _tick_labels(ax.xaxis)
@@ -245,35 +276,35 @@ def _axes_extent(ax: Axes, m: _Measure, ax_w_pt: float) -> tuple[float, float, f
         for pos, t in xlabels:
             w, h = _rotated(*m.size(t, size), rot)
             heights.append(h)
-            x0 = pos * ax_w_pt - (w if ha == "right" else w / 2 if ha == "center" else 0.0)
-            left = max(left, -x0)
-            right = max(right, x0 + w - ax_w_pt)
-        bottom = space + max(heights)
+            lo = w if ha == "right" else w / 2 if ha == "center" else 0.0
+            frame.x_reach.append((pos, lo, w - lo))
+        frame.x_ticks = space + max(heights)
+    frame.bottom = frame.x_ticks
     below = max(m.text(ax.xaxis.label)[1], m.size(xoffset, size)[1] if xoffset else 0.0)
     if below:
-        bottom += rcParams["axes.labelpad"] + below
+        frame.bottom += labelpad + below
     # the title above the frame, raised over the y offset text
+    frame.top = frame.raise_title
     if ax.title.get_text():
-        top = raise_title + rcParams["axes.titlepad"] + m.text(ax.title)[1]
-    else:
-        top = raise_title
-    # a legend anchored right of the frame (``bbox_to_anchor=(1, 1)``) takes its width there
+        frame.top += float(rcParams["axes.titlepad"]) + m.text(ax.title)[1]
+    # a legend anchored at the right edge of the frame (``bbox_to_anchor=(1, 1)``, ``loc="upper
+    # left"``) takes its width there
     legend = ax.get_legend()
     if legend is not None and legend.get_visible():
         anchor = ax.transAxes.inverted().transform_bbox(legend.get_bbox_to_anchor())
         if anchor.x0 >= 1.0 - 1e-9:
             width = legend.get_window_extent(m.renderer).width * m.scale
-            spare = legend.borderaxespad * legend.prop.get_size_in_points()
-            right = max(right, (anchor.x0 - 1.0) * ax_w_pt + spare + width)
-    return left, bottom, right, top, raise_title
+            frame.right = legend.borderaxespad * legend.prop.get_size_in_points() + width
+    return frame
 
 
 def fit_layout(fig: Figure) -> None:
     """Set the figure's margins and the space between its panels so that every tick label, axis
     label, title and figure legend fits, with :data:`PAD_IN` to spare; no draw needed.
 
-    The axes must come from one grid (:func:`new_figure`); hidden axes take no space. A title
-    is raised over its axes' offset text (``1e-5`` above the y axis) when there is one."""
+    The axes must come from one grid (:func:`new_figure`); hidden axes take no space. The axis
+    labels are placed beside the measured tick labels, and a title is raised over its axes'
+    offset text (``1e-5`` above the y axis) when there is one."""
     axes = [ax for ax in fig.axes if ax.get_visible() and ax.get_subplotspec() is not None]
     if not axes:
         return
@@ -287,20 +318,18 @@ def fit_layout(fig: Figure) -> None:
     legend_h = 0.0
     for leg in fig.legends:
         legend_h = max(legend_h, leg.get_window_extent(m.renderer).height * m.scale + pad)
+    frames = [(ax, _frame(ax, m)) for ax in axes]
     ax_w = (fig_w - 2 * pad) / ncols * 0.85
     for _ in range(2):  # the overhang of x tick labels depends on the axes' width
         lefts, rights = [0.0] * ncols, [0.0] * ncols
         bottoms, tops = [0.0] * nrows, [0.0] * nrows
-        titles: list[tuple[Axes, float]] = []
-        for ax in axes:
+        for ax, f in frames:
             sp = ax.get_subplotspec()
             assert sp is not None
-            left, bottom, right, top, raise_title = _axes_extent(ax, m, ax_w)
-            lefts[sp.colspan.start] = max(lefts[sp.colspan.start], left)
-            rights[sp.colspan.stop - 1] = max(rights[sp.colspan.stop - 1], right)
-            bottoms[sp.rowspan.stop - 1] = max(bottoms[sp.rowspan.stop - 1], bottom)
-            tops[sp.rowspan.start] = max(tops[sp.rowspan.start], top)
-            titles.append((ax, raise_title))
+            left, right = f.sides(ax_w)
+            c0, c1, r0, r1 = sp.colspan.start, sp.colspan.stop - 1, sp.rowspan.start, sp.rowspan.stop - 1
+            lefts[c0], rights[c1] = max(lefts[c0], left), max(rights[c1], right)
+            bottoms[r1], tops[r0] = max(bottoms[r1], f.bottom), max(tops[r0], f.top)
         gap_w = max((rights[c] + lefts[c + 1] + pad for c in range(ncols - 1)), default=0.0)
         gap_h = max((bottoms[r] + tops[r + 1] + pad for r in range(nrows - 1)), default=0.0)
         left_pt, right_pt = pad + lefts[0], pad + rights[-1]
@@ -315,9 +344,15 @@ def fit_layout(fig: Figure) -> None:
         wspace=gap_w / ax_w,
         hspace=gap_h / ax_h,
     )
-    for ax, raise_title in titles:
-        if raise_title:
-            ax.title.set_y(1.0 + raise_title / ax_h)
+    labelpad = float(rcParams["axes.labelpad"])
+    for ax, f in frames:
+        if not ax.axison:
+            continue
+        # where matplotlib would put them after measuring the drawn tick labels once more
+        ax.yaxis.set_label_coords(-(f.y_ticks + labelpad) / ax_w, 0.5)
+        ax.xaxis.set_label_coords(0.5, -(f.x_ticks + labelpad) / ax_h)
+        if f.raise_title:
+            ax.title.set_y(1.0 + f.raise_title / ax_h)
 
 
 def finite_xy(x: ArrayLike, y: ArrayLike) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
