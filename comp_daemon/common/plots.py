@@ -87,7 +87,7 @@ STYLE: dict[Any, Any] = {  # rc keys (matplotlib types them as literals)
 #: scatter layers with more points than this are embedded as pixels (PNG inside the SVG), so a
 #: report of thousands of poses stays small; axes, lines and text stay vector
 RASTER_ABOVE = 150
-RASTER_DPI = 120
+RASTER_DPI = 100  # about one pixel per CSS pixel at the figure's size on the page
 
 _ID = re.compile(r"[^A-Za-z0-9_-]")
 # matplotlib's rcParams are global: figures are drawn one at a time, whichever thread asks
