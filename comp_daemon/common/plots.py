@@ -22,6 +22,7 @@ A panel that has nothing finite to draw says so (:func:`no_data`) instead of fai
 from __future__ import annotations
 
 import functools
+import gc
 import html
 import io
 import math
@@ -104,7 +105,10 @@ def plot_style(plot_id: str | None = None) -> Iterator[None]:
     """The report style (SVG ids salted by ``plot_id`` for repeatable output), held by one thread.
 
     Only the outermost call copies and restores matplotlib's rcParams; a nested call (a figure
-    drawn inside :func:`report_figures`-like loops) reuses that context and only sets the salt."""
+    drawn by a function that draws several) reuses that context and only sets the salt. The
+    outermost call also pauses the cyclic garbage collector: matplotlib makes thousands of
+    short-lived artists that refer to each other, and collecting them generation by generation
+    while a page of figures is drawn costs about a tenth of the time; they are collected after."""
     depth = getattr(_HELD, "depth", 0)
     with _LOCK:
         if depth:
@@ -119,12 +123,18 @@ def plot_style(plot_id: str | None = None) -> Iterator[None]:
                 _HELD.depth = depth
             return
         extra: dict[Any, Any] = {} if plot_id is None else {"svg.hashsalt": plot_id}
-        with rc_context({**STYLE, **extra}):
-            _HELD.depth = 1
-            try:
-                yield
-            finally:
-                _HELD.depth = 0
+        collecting = gc.isenabled()
+        gc.disable()
+        try:
+            with rc_context({**STYLE, **extra}):
+                _HELD.depth = 1
+                try:
+                    yield
+                finally:
+                    _HELD.depth = 0
+        finally:
+            if collecting:
+                gc.enable()
 
 
 def styled(draw: Callable[P, R]) -> Callable[P, R]:
