@@ -43,6 +43,7 @@ from matplotlib.cbook import is_math_text
 from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.text import Text
+from matplotlib.textpath import text_to_path
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
@@ -160,32 +161,42 @@ def new_figure(
     return fig, [ax for row in axes for ax in row]
 
 
-# text sizes (points) by (text, font size, weight, dpi): tick labels repeat across figures
-_SIZES: dict[tuple[str, float, str, float], tuple[float, float]] = {}
+# text sizes (points) by (text, font size, weight, family): tick labels repeat across figures
+_SIZES: dict[tuple[str, float, str, str], tuple[float, float]] = {}
 _SIZES_MAX = 8192
 
 
 class _Measure:
-    """Text sizes in points, measured by the figure's Agg renderer and remembered."""
+    """Text sizes in points, measured as the SVG writer measures them (matplotlib's text-to-path
+    metrics, whose mathtext cache lives as long as the process) and remembered; legends are
+    measured by the figure's renderer."""
 
-    def __init__(self, renderer: RendererBase, dpi: float) -> None:
-        self.renderer = renderer
-        self.dpi = dpi
-        self.scale = 72.0 / dpi
+    def __init__(self, fig: Figure) -> None:
+        self.fig = fig
+        self.scale = 72.0 / fig.dpi
+        self._renderer: RendererBase | None = None
+
+    @property
+    def renderer(self) -> RendererBase:
+        """The figure's Agg renderer (made on first use: only legends need it)."""
+        if self._renderer is None:
+            self._renderer = self.fig.canvas.get_renderer()  # type: ignore[attr-defined]
+        return self._renderer
 
     def size(self, text: str, fontsize: float, weight: str = "normal") -> tuple[float, float]:
         """Width and height (points) of ``text``: every line measured, lines one font height apart."""
-        key = (text, fontsize, weight, self.dpi)
+        family = str(rcParams["font.family"])
+        key = (text, fontsize, weight, family)
         got = _SIZES.get(key)
         if got is None:
             prop = FontProperties(size=fontsize, weight=weight)
-            _, line_h, _ = self.renderer.get_text_width_height_descent("lp", prop, ismath=False)
+            _, line_h, _ = text_to_path.get_text_width_height_descent("lp", prop, ismath=False)
             width = height = 0.0
             for line in [text] if is_math_text(text) else text.split("\n"):
-                w, h, _ = self.renderer.get_text_width_height_descent(line, prop, ismath=is_math_text(line))
+                w, h, _ = text_to_path.get_text_width_height_descent(line, prop, ismath=is_math_text(line))
                 width = max(width, w)
                 height += max(h, line_h) * (1.2 if height else 1.0)
-            got = (width * self.scale, height * self.scale)
+            got = (width, height)
             if len(_SIZES) >= _SIZES_MAX:
                 _SIZES.clear()
             _SIZES[key] = got
@@ -323,7 +334,7 @@ def fit_layout(fig: Figure) -> None:
     nrows, ncols = spec.get_gridspec().get_geometry()
     fig_w, fig_h = (float(v) * 72.0 for v in fig.get_size_inches())
     pad = PAD_IN * 72.0
-    m = _Measure(fig.canvas.get_renderer(), fig.dpi)  # type: ignore[attr-defined]
+    m = _Measure(fig)
     # figure legends (``loc="outside lower center"``) take a band at the bottom
     legend_h = 0.0
     for leg in fig.legends:
