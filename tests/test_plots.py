@@ -8,6 +8,8 @@ import re
 
 import numpy as np
 import pytest
+from matplotlib.axis import Axis
+from matplotlib.backend_bases import RendererBase
 from matplotlib.figure import Figure
 from matplotlib.transforms import Bbox
 
@@ -84,7 +86,8 @@ def test_no_data_panel_says_why() -> None:
 
 def _crowded_figure() -> Figure:
     """Six panels whose decorations vary: wide, negative and tiny (offset text) tick values,
-    rotated tick labels, a two-line title, a legend right of the last column, a figure legend."""
+    rotated tick labels, a two-line title, a title wider than its panel, legends right of the last
+    column, a figure legend."""
     fig, axes = new_figure(10.5, 5.6, 2, 3)
     x = np.linspace(0.0, 1.0, 50)
     values = [-123456.75 + 0.5 * x, 3e-6 * x, x, 1000.0 * x - 600.0, x**2, 7.0 * x]
@@ -93,12 +96,25 @@ def _crowded_figure() -> Figure:
         ax.set_title(f"panel {k}: y against x" + ("\nsecond line" if k == 2 else ""))
         ax.set_xlabel("x (mm)")
         ax.set_ylabel("a long quantity (mm²)")
+    axes[5].set_title("panel 5: a title wider than its panel, which the panels make room for")
     axes[3].set_xticks([0.0, 0.5, 1.0], ["nominal", "geometric J1,2,3", "ratio J2"], rotation=20, ha="right")
     axes[5].legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     axes[2].legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center")
     return fig
+
+
+def _drawn_tick_labels(axis: Axis, kind: str, renderer: RendererBase) -> dict[str, Bbox]:
+    """The extents of the tick labels ``axis`` draws (those of ticks inside its view)."""
+    lo, hi = sorted(axis.get_view_interval())
+    tol = 1e-9 * (hi - lo)
+    pairs = zip(axis.get_majorticklocs(), axis.get_majorticklabels(), strict=True)
+    return {
+        f"{kind} {t.get_text()}": t.get_window_extent(renderer)
+        for loc, t in pairs
+        if t.get_text() and lo - tol <= loc <= hi + tol
+    }
 
 
 def test_figure_is_drawn_once_with_every_label_inside_and_clear_of_the_others() -> None:
@@ -125,16 +141,8 @@ def test_figure_is_drawn_once_with_every_label_inside_and_clear_of_the_others() 
                 "title": ax.title.get_window_extent(r),
                 "ylabel": ax.yaxis.label.get_window_extent(r),
                 "xlabel": ax.xaxis.label.get_window_extent(r),
-                **{
-                    f"ytick {t.get_text()}": t.get_window_extent(r)
-                    for t in ax.get_yticklabels()
-                    if t.get_text()
-                },
-                **{
-                    f"xtick {t.get_text()}": t.get_window_extent(r)
-                    for t in ax.get_xticklabels()
-                    if t.get_text()
-                },
+                **_drawn_tick_labels(ax.yaxis, "ytick", r),
+                **_drawn_tick_labels(ax.xaxis, "xtick", r),
             }
             if ax.yaxis.offsetText.get_text():
                 parts["offset"] = ax.yaxis.offsetText.get_window_extent(r)

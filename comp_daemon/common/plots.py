@@ -164,6 +164,8 @@ def new_figure(
 # text sizes (points) by (text, font size, weight, family): tick labels repeat across figures
 _SIZES: dict[tuple[str, float, str, str], tuple[float, float]] = {}
 _SIZES_MAX = 8192
+# a browser hints small text, which can make it a few per cent wider than its outline metrics
+_WIDTH_SPARE = 1.06
 
 
 class _Measure:
@@ -196,7 +198,7 @@ class _Measure:
                 w, h, _ = text_to_path.get_text_width_height_descent(line, prop, ismath=is_math_text(line))
                 width = max(width, w)
                 height += max(h, line_h) * (1.2 if height else 1.0)
-            got = (width, height)
+            got = (width * _WIDTH_SPARE, height)
             if len(_SIZES) >= _SIZES_MAX:
                 _SIZES.clear()
             _SIZES[key] = got
@@ -259,13 +261,15 @@ class _Frame:
     top: float  # the title (and the y offset text under it)
     raise_title: float  # the y offset text the title must clear
     right: float  # a legend anchored right of the frame
+    title_w: float  # the title's width, centred over the frame
     # x tick labels: position (fraction of the axis), reach left and right of their tick
     x_reach: list[tuple[float, float, float]]
 
     def sides(self, ax_w_pt: float) -> tuple[float, float]:
         """Left and right reach beyond the frame for an axes ``ax_w_pt`` wide (x tick labels at
-        the ends may stick out)."""
-        left, right = self.left, self.right
+        the ends and a title wider than the frame may stick out)."""
+        over = max(0.0, (self.title_w - ax_w_pt) / 2)
+        left, right = max(self.left, over), max(self.right, over)
         for pos, lo, hi in self.x_reach:
             left = max(left, lo - pos * ax_w_pt)
             right = max(right, pos * ax_w_pt + hi - ax_w_pt)
@@ -274,7 +278,7 @@ class _Frame:
 
 def _frame(ax: Axes, m: _Measure) -> _Frame:
     """Measure the decorations of ``ax``: tick labels, axis labels, offset texts, title, legend."""
-    frame = _Frame(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, [])
+    frame = _Frame(0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, [])
     if not ax.axison:
         return frame
     labelpad = float(rcParams["axes.labelpad"])
@@ -307,7 +311,8 @@ def _frame(ax: Axes, m: _Measure) -> _Frame:
     # the title above the frame, raised over the y offset text
     frame.top = frame.raise_title
     if ax.title.get_text():
-        frame.top += float(rcParams["axes.titlepad"]) + m.text(ax.title)[1]
+        frame.title_w, title_h = m.text(ax.title)
+        frame.top += float(rcParams["axes.titlepad"]) + title_h
     # a legend anchored at the right edge of the frame (``bbox_to_anchor=(1, 1)``, ``loc="upper
     # left"``) takes its width there
     legend = ax.get_legend()
@@ -341,7 +346,7 @@ def fit_layout(fig: Figure) -> None:
         legend_h = max(legend_h, leg.get_window_extent(m.renderer).height * m.scale + pad)
     frames = [(ax, _frame(ax, m)) for ax in axes]
     ax_w = (fig_w - 2 * pad) / ncols * 0.85
-    for _ in range(2):  # the overhang of x tick labels depends on the axes' width
+    for _ in range(4):  # what sticks out (end tick labels, wide titles) depends on the axes' width
         lefts, rights = [0.0] * ncols, [0.0] * ncols
         bottoms, tops = [0.0] * nrows, [0.0] * nrows
         for ax, f in frames:
