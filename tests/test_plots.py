@@ -1,5 +1,6 @@
-"""The report figures (matplotlib, inline SVG): self-contained, repeatable, and a "no data" panel
-instead of a crash when a plot has nothing finite to draw."""
+"""The report figures (matplotlib, inline SVG): self-contained, repeatable, drawn once with every
+label inside the figure and clear of its neighbours, and a "no data" panel instead of a crash when
+a plot has nothing finite to draw."""
 
 from __future__ import annotations
 
@@ -7,8 +8,12 @@ import re
 
 import numpy as np
 import pytest
+from matplotlib.axis import Axis
+from matplotlib.backend_bases import RendererBase
+from matplotlib.figure import Figure
+from matplotlib.transforms import Bbox
 
-from comp_daemon.common.plots import RASTER_ABOVE, figure_html, new_figure, no_data
+from comp_daemon.common.plots import RASTER_ABOVE, figure_html, new_figure, no_data, plot_style
 from comp_daemon.diagnosis.plots import (
     check_histogram_figure,
     effect_figure,
@@ -77,6 +82,92 @@ def test_no_data_panel_says_why() -> None:
     no_data(ax, "nothing was measured", "title")
     out = figure_html(fig, "empty", "empty")
     assert "no data: nothing was measured" in out and ">title<" in out
+
+
+def _crowded_figure() -> Figure:
+    """Six panels whose decorations vary: wide, negative and tiny (offset text) tick values,
+    rotated tick labels, a two-line title, a title wider than its panel, legends right of the last
+    column, a figure legend."""
+    fig, axes = new_figure(10.5, 5.6, 2, 3)
+    x = np.linspace(0.0, 1.0, 50)
+    values = [-123456.75 + 0.5 * x, 3e-6 * x, x, 1000.0 * x - 600.0, x**2, 7.0 * x]
+    for k, (ax, y) in enumerate(zip(axes, values, strict=True)):
+        ax.plot(1e4 * x if k == 4 else x, y, label=f"series {k}")
+        ax.set_title(f"panel {k}: y against x" + ("\nsecond line" if k == 2 else ""))
+        ax.set_xlabel("x (mm)")
+        ax.set_ylabel("a long quantity (mm²)")
+    axes[5].set_title("panel 5: a title wider than its panel, which the panels make room for")
+    axes[3].set_xticks([0.0, 0.5, 1.0], ["nominal", "geometric J1,2,3", "ratio J2"], rotation=20, ha="right")
+    axes[5].legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    axes[2].legend(loc="upper left", bbox_to_anchor=(1.0, 1.0))
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center")
+    return fig
+
+
+def _drawn_tick_labels(axis: Axis, kind: str, renderer: RendererBase) -> dict[str, Bbox]:
+    """The extents of the tick labels ``axis`` draws (those of ticks inside its view)."""
+    lo, hi = sorted(axis.get_view_interval())
+    tol = 1e-9 * (hi - lo)
+    pairs = zip(axis.get_majorticklocs(), axis.get_majorticklabels(), strict=True)
+    return {
+        f"{kind} {t.get_text()}": t.get_window_extent(renderer)
+        for loc, t in pairs
+        if t.get_text() and lo - tol <= loc <= hi + tol
+    }
+
+
+def test_figure_is_drawn_once_with_every_label_inside_and_clear_of_the_others() -> None:
+    with plot_style():
+        fig = _crowded_figure()
+        draws: list[object] = []
+        draw = fig.draw
+
+        def counted(renderer: object) -> None:
+            draws.append(renderer)
+            draw(renderer)  # type: ignore[arg-type]
+
+        fig.draw = counted  # type: ignore[method-assign]
+        out = figure_html(fig, "crowded", "six panels")
+        assert len(draws) == 1 and fig.get_layout_engine() is None
+        assert "1e" in out  # the offset text of the tiny values is drawn
+        del fig.draw
+        fig.draw_without_rendering()
+        r = fig.canvas.get_renderer()  # type: ignore[attr-defined]
+        page = Bbox.from_bounds(-1.0, -1.0, fig.bbox.width + 2.0, fig.bbox.height + 2.0)
+        boxes = []
+        for ax in fig.axes:
+            parts = {
+                "title": ax.title.get_window_extent(r),
+                "ylabel": ax.yaxis.label.get_window_extent(r),
+                "xlabel": ax.xaxis.label.get_window_extent(r),
+                **_drawn_tick_labels(ax.yaxis, "ytick", r),
+                **_drawn_tick_labels(ax.xaxis, "xtick", r),
+            }
+            if ax.yaxis.offsetText.get_text():
+                parts["offset"] = ax.yaxis.offsetText.get_window_extent(r)
+            legend = ax.get_legend()
+            if legend is not None:
+                parts["legend"] = legend.get_window_extent(r)
+            for name, box in parts.items():
+                assert page.containsx(box.x0) and page.containsx(box.x1), (ax.get_title(), name)
+                assert page.containsy(box.y0) and page.containsy(box.y1), (ax.get_title(), name)
+            # the labels clear of the tick labels, the title clear of the offset text
+            ticks = [b for n, b in parts.items() if n.startswith(("ytick", "xtick"))]
+            for name in ("ylabel", "xlabel", "title"):
+                assert not any(parts[name].overlaps(b) for b in ticks), (ax.get_title(), name)
+            if "offset" in parts:
+                assert not parts["title"].overlaps(parts["offset"]), ax.get_title()
+            tight = ax.get_tightbbox(r)
+            assert tight is not None
+            boxes.append(tight)
+        assert len(fig.axes) == 6 and any(ax.yaxis.offsetText.get_text() for ax in fig.axes)
+        # no panel's decorations reach into another panel's, nor into the figure legend
+        for i, a in enumerate(boxes):
+            assert page.containsx(a.x0) and page.containsx(a.x1) and page.containsy(a.y0)
+            assert not a.overlaps(fig.legends[0].get_window_extent(r))
+            for b in boxes[i + 1 :]:
+                assert not a.overlaps(b)
 
 
 @pytest.mark.parametrize(

@@ -144,8 +144,9 @@ def effect_figure(
     """Residual before step ``k`` per axis against the effect's driver, the effect's contribution over it."""
     fig, axes = new_figure(10.5, 2.9, 1, 3)
     order = np.argsort(np.where(np.isfinite(x), x, np.inf), kind="stable")
+    driver = xlabel.split(" (")[0]  # the unit and any note stay in the axis label
     for axis, (ax, name) in enumerate(zip(axes, "xyz", strict=True)):
-        title = f"{name}: residual vs {xlabel}"
+        title = f"{name}: residual vs {driver}"
         if not _scatter(
             ax, x, before[:, axis], color=GREY, alpha=0.55, label=f"residual before the step ({name})"
         ):
