@@ -510,3 +510,10 @@ def test_the_http_fit_job_names_the_model_the_rows_cannot_determine(
         done["stats"]["kind"] == "nominal"
         and done["stats"]["rows"]["fit"] + done["stats"]["rows"]["check"] == 20
     )
+
+
+def test_diagnose_with_an_empty_effects_list_is_refused(
+    kr_campaign: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert main(["diagnose", str(kr_campaign), "--robot", "kr210", "--effects", " , "]) == 2
+    assert "--effects names no effect" in capsys.readouterr().err

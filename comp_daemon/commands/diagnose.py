@@ -16,6 +16,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset, read_dataset_json
@@ -87,6 +88,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     effects = None if args.effects is None else tuple(e.strip() for e in args.effects.split(",") if e.strip())
+    if effects == ():
+        raise UserError(
+            f"--effects names no effect; give one or more of {', '.join(EFFECTS)}, or leave it out to try all"
+        )
     options = DiagnoseOptions(
         frame=args.frame,
         harmonics=args.harmonics,

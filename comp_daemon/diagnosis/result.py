@@ -223,7 +223,7 @@ class Diagnosis:
                 "folds": self.options.folds,
                 "cyclic_harmonics": self.options.harmonics,
                 "t_ref_c": self.options.t_ref_c,
-                "effects_tried": list(self.options.effects or EFFECTS),
+                "effects_tried": list(EFFECTS if self.options.effects is None else self.options.effects),
                 "time_nuisance": self.time_nuisance,
                 "noise_floor": "repeated poses, else the declared tracker uncertainty; not the fit residual",
                 "residual_structure": "binned means out of fold, permutation test, Holm over the variables",
