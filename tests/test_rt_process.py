@@ -289,6 +289,34 @@ async def test_commands_reach_the_loop_and_a_refused_target_comes_back_faulted(r
     await until(lambda: runtime.core.state is SafetyState.IDLE)
 
 
+async def test_the_mirror_shows_the_fault_when_its_event_arrives(rtp: RealtimeProcess) -> None:
+    """The executor acts on a ``Faulted`` event at once (finishes the target, checks readiness,
+    claims the next): when the daemon reads the event, its mirror must already show the state the
+    event came from, not the one before it (the report used to follow the event, and a busy
+    machine could hold it back long enough for the next target to be claimed)."""
+    runtime = rtp.runtime
+    assert isinstance(runtime, RemoteRuntime)
+    seen: list[tuple[object, SafetyState, FaultKind | None]] = []
+
+    def on_event(event: object) -> None:
+        core = runtime.core
+        seen.append((event, core.state, None if core.fault is None else core.fault.kind))
+        RemoteRuntime.on_event(runtime, event)  # type: ignore[arg-type]
+
+    runtime.on_event = on_event  # type: ignore[method-assign]
+    # armed with no telegrams coming: the loop's own timer faults the target (RSI lost) in the
+    # child, behind the mirror's back
+    runtime.arm("t1", HOME, (HOME[0],))
+    async with asyncio.timeout(5):
+        event = await runtime.next_event()
+    assert isinstance(event, Faulted) and event.target_id == "t1"
+    assert event.fault.kind is FaultKind.RSI_LOST
+    assert seen[0][1:] == (SafetyState.FAULT, FaultKind.RSI_LOST), seen
+    runtime.release()
+    runtime.reset()
+    await until(lambda: runtime.core.state is SafetyState.IDLE)
+
+
 async def test_close_waits_for_stop_replies_counted_in_the_child(rtp: RealtimeProcess) -> None:
     """A slow controller (a telegram every 40 ms, as on a loaded machine): the endpoint stays open
     until the grace replies with ``Stop = 1`` have gone out, and the daemon has the final state
