@@ -348,6 +348,52 @@ async def test_close_waits_for_stop_replies_counted_in_the_child(rtp: RealtimePr
     assert len(replies) < 40  # the endpoint closed after them
 
 
+async def test_a_frozen_child_still_gives_the_controller_its_stop_replies(rtp: RealtimeProcess) -> None:
+    """The real-time process is not scheduled for 0.8 s right after the close began (a loaded
+    machine) while the controller keeps sending every 12 ms: when it runs again it goes on
+    answering ``Stop = 1`` until the grace replies are out, rather than closing because a clock
+    ran out while it could not answer."""
+    runtime = rtp.runtime
+    assert runtime is not None and rtp.proc is not None
+    ctl = controller_of(rtp)
+    ctl.sock.setblocking(False)
+    replies: list[SenReply] = []
+    sending = threading.Event()
+    sending.set()
+
+    def controller() -> None:  # sends on its own schedule, whether replies come or not
+        while sending.is_set():
+            ctl.ipoc += 12
+            with contextlib.suppress(OSError):
+                ctl.sock.sendto(build_rob(ctl.ipoc, HOME, HOME), ctl.address)
+            time.sleep(0.012)
+            with contextlib.suppress(BlockingIOError, OSError):
+                while True:
+                    replies.append(parse_sen(ctl.sock.recv(65536)))
+
+    client = threading.Thread(target=controller)
+    client.start()
+    grace = 10
+    try:
+        await until(lambda: runtime.telegrams >= 2 and runtime.rsi_alive())
+        runtime.shutdown()
+        closing = asyncio.create_task(rtp.close_rsi(grace))
+        await asyncio.sleep(0.02)
+        os.kill(rtp.proc.pid, signal.SIGSTOP)
+        await asyncio.sleep(0.8)
+        os.kill(rtp.proc.pid, signal.SIGCONT)
+        await closing
+        assert runtime.last_stop is True and runtime.replies_after_shutdown >= grace
+    finally:
+        os.kill(rtp.proc.pid, signal.SIGCONT)
+        await asyncio.sleep(0.2)
+        sending.clear()
+        await asyncio.to_thread(client.join, 10.0)
+        ctl.close()
+    stops = [r for r in replies if r.stop]
+    assert len(stops) >= grace and all(r.ak_deg == (0.0,) * 6 for r in stops)
+
+
 async def test_child_logs_reach_the_daemon_loggers(
     rtp: RealtimeProcess, caplog: pytest.LogCaptureFixture
 ) -> None:

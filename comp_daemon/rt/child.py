@@ -304,7 +304,7 @@ class RtChild:
         if name == "close_rsi":
             (grace_cycles,) = args
             runtime, cfg = self.runtime, self.start_cfg
-            if runtime is not None and cfg is not None and runtime.rsi_alive():
+            if runtime is not None and cfg is not None:
                 await runtime.wait_stop_replies(grace_cycles, cfg.rsi.cycle_ms / 1000.0)
             self.push()  # before the reply: the daemon reads the final state from it
             if self.rsi_transport is not None:
@@ -379,8 +379,7 @@ class RtChild:
         runtime, cfg = self.runtime, self.start_cfg
         if runtime is not None and cfg is not None:
             runtime.shutdown()
-            if runtime.rsi_alive():
-                await runtime.wait_stop_replies(cfg.grace_cycles, cfg.rsi.cycle_ms / 1000.0)
+            await runtime.wait_stop_replies(cfg.grace_cycles, cfg.rsi.cycle_ms / 1000.0)
         if self.rsi_transport is not None:
             self.rsi_transport.close()
         await self._stop_readers()
