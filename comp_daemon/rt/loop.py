@@ -171,9 +171,10 @@ class LoopView:
         self, n: int, cycle_s: float, quiet_s: float = 0.5, limit_s: float = 3.0
     ) -> None:
         """Wait until ``n`` replies with ``Stop = 1`` have gone out since the shutdown, or until the
-        controller has sent nothing for ``max(n + 2 cycles, quiet_s)`` (it stopped RSI, as a
-        controller does on the first ``Stop = 1``, or RSI was not running), at most ``limit_s``
-        (how the shutdown lets the controller see ``Stop = 1`` before the endpoint closes).
+        controller has sent nothing for ``max(n + 2 cycles, quiet_s)`` since the wait began or its
+        last telegram, whichever is later (it stopped RSI, as a controller does on the first
+        ``Stop = 1``, or RSI was not running), at most ``limit_s`` (how the shutdown lets the
+        controller see ``Stop = 1`` before the endpoint closes).
 
         Replies and silence are both counted where the telegrams are handled, and the wait ends
         only when two looks half a cycle apart agree: telegrams that waited in the socket while
@@ -185,7 +186,7 @@ class LoopView:
         ending = False
         while self.replies_after_shutdown < n:
             now, last = self.clock_ns(), self._last_rx_ns
-            if now >= end or last is None or now - last >= quiet_ns:
+            if now >= end or now - (start if last is None else max(start, last)) >= quiet_ns:
                 if ending:
                     return
                 ending = True
