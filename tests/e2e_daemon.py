@@ -39,10 +39,21 @@ def free_port(kind: socket.SocketKind = socket.SOCK_STREAM) -> int:
         return int(sock.getsockname()[1])
 
 
-def config_text(data_dir: Path, http_port: int, rsi_port: int, extra: str = "", http_extra: str = "") -> str:
+def config_text(
+    data_dir: Path,
+    http_port: int,
+    rsi_port: int,
+    extra: str = "",
+    http_extra: str = "",
+    *,
+    stale_after_ms: float = 400.0,
+) -> str:
     """A configuration for the simulated cell: tokens for the three roles, a loaded-machine margin.
 
     ``extra`` is appended as tables of its own; ``http_extra`` goes into the ``[http]`` table.
+    ``stale_after_ms``: when a grating reading counts as stale (400 ms: a loaded 2-core test machine
+    leaves the simulated cell unscheduled for 150 ms and more now and then, and its gratings answer
+    late meanwhile; staleness itself is test_rt_encoder_reader.py's test).
     """
     tokens = "".join(
         f'[[auth.tokens]]\nname = "{name}"\nrole = "{role}"\ntoken = "{TOKENS[role]}"\n'
@@ -63,7 +74,7 @@ listen_port = {rsi_port}
 # a loaded test machine may answer late now and then; the late-reply stop is the controller's own test
 timeout_count = 1000
 [encoders]
-stale_after_ms = 150
+stale_after_ms = {stale_after_ms:g}
 [jobs]
 workers = 1
 [log]

@@ -47,7 +47,9 @@ listen_port = 0
 # simulated controller's own test
 timeout_count = 1000
 [encoders]
-stale_after_ms = 150
+# a loaded 2-core test machine leaves the simulated cell unscheduled for 150 ms and more now and
+# then, and its gratings answer late meanwhile; staleness itself is test_rt_encoder_reader.py's test
+stale_after_ms = 400
 [log]
 level = "WARNING"
 [[auth.tokens]]
@@ -187,7 +189,7 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
 
             # target 3 runs again once the grating is back (a freeze does not latch)
             third = await until_state(client, ids[2], {"done", "failed"}, 30)
-            assert third["state"] == "done", third
+            assert third["state"] == "done", (third["state"], third["reason"])
             out = floats(await sim.command("joints"))
             info = daemon.sim_info
             slope = math.degrees(info.resolution_nm * 1e-6 / info.radius_mm)

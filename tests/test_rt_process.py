@@ -289,6 +289,34 @@ async def test_commands_reach_the_loop_and_a_refused_target_comes_back_faulted(r
     await until(lambda: runtime.core.state is SafetyState.IDLE)
 
 
+async def test_the_mirror_shows_the_fault_when_its_event_arrives(rtp: RealtimeProcess) -> None:
+    """The executor acts on a ``Faulted`` event at once (finishes the target, checks readiness,
+    claims the next): when the daemon reads the event, its mirror must already show the state the
+    event came from, not the one before it (the report used to follow the event, and a busy
+    machine could hold it back long enough for the next target to be claimed)."""
+    runtime = rtp.runtime
+    assert isinstance(runtime, RemoteRuntime)
+    seen: list[tuple[object, SafetyState, FaultKind | None]] = []
+
+    def on_event(event: object) -> None:
+        core = runtime.core
+        seen.append((event, core.state, None if core.fault is None else core.fault.kind))
+        RemoteRuntime.on_event(runtime, event)  # type: ignore[arg-type]
+
+    runtime.on_event = on_event  # type: ignore[method-assign]
+    # armed with no telegrams coming: the loop's own timer faults the target (RSI lost) in the
+    # child, behind the mirror's back
+    runtime.arm("t1", HOME, (HOME[0],))
+    async with asyncio.timeout(5):
+        event = await runtime.next_event()
+    assert isinstance(event, Faulted) and event.target_id == "t1"
+    assert event.fault.kind is FaultKind.RSI_LOST
+    assert seen[0][1:] == (SafetyState.FAULT, FaultKind.RSI_LOST), seen
+    runtime.release()
+    runtime.reset()
+    await until(lambda: runtime.core.state is SafetyState.IDLE)
+
+
 async def test_close_waits_for_stop_replies_counted_in_the_child(rtp: RealtimeProcess) -> None:
     """A slow controller (a telegram every 40 ms, as on a loaded machine): the endpoint stays open
     until the grace replies with ``Stop = 1`` have gone out, and the daemon has the final state
@@ -318,6 +346,52 @@ async def test_close_waits_for_stop_replies_counted_in_the_child(rtp: RealtimePr
     stops = [r for r in replies if r.stop]
     assert len(stops) >= 3 and all(r.ak_deg == (0.0,) * 6 for r in stops)
     assert len(replies) < 40  # the endpoint closed after them
+
+
+async def test_a_frozen_child_still_gives_the_controller_its_stop_replies(rtp: RealtimeProcess) -> None:
+    """The real-time process is not scheduled for 0.8 s right after the close began (a loaded
+    machine) while the controller keeps sending every 12 ms: when it runs again it goes on
+    answering ``Stop = 1`` until the grace replies are out, rather than closing because a clock
+    ran out while it could not answer."""
+    runtime = rtp.runtime
+    assert runtime is not None and rtp.proc is not None
+    ctl = controller_of(rtp)
+    ctl.sock.setblocking(False)
+    replies: list[SenReply] = []
+    sending = threading.Event()
+    sending.set()
+
+    def controller() -> None:  # sends on its own schedule, whether replies come or not
+        while sending.is_set():
+            ctl.ipoc += 12
+            with contextlib.suppress(OSError):
+                ctl.sock.sendto(build_rob(ctl.ipoc, HOME, HOME), ctl.address)
+            time.sleep(0.012)
+            with contextlib.suppress(BlockingIOError, OSError):
+                while True:
+                    replies.append(parse_sen(ctl.sock.recv(65536)))
+
+    client = threading.Thread(target=controller)
+    client.start()
+    grace = 10
+    try:
+        await until(lambda: runtime.telegrams >= 2 and runtime.rsi_alive())
+        runtime.shutdown()
+        closing = asyncio.create_task(rtp.close_rsi(grace))
+        await asyncio.sleep(0.02)
+        os.kill(rtp.proc.pid, signal.SIGSTOP)
+        await asyncio.sleep(0.8)
+        os.kill(rtp.proc.pid, signal.SIGCONT)
+        await closing
+        assert runtime.last_stop is True and runtime.replies_after_shutdown >= grace
+    finally:
+        os.kill(rtp.proc.pid, signal.SIGCONT)
+        await asyncio.sleep(0.2)
+        sending.clear()
+        await asyncio.to_thread(client.join, 10.0)
+        ctl.close()
+    stops = [r for r in replies if r.stop]
+    assert len(stops) >= grace and all(r.ak_deg == (0.0,) * 6 for r in stops)
 
 
 async def test_child_logs_reach_the_daemon_loggers(

@@ -208,6 +208,22 @@ async def test_garbage_behind_a_valid_telegram_does_not_displace_it(
     assert (stats.received, stats.answered, stats.superseded, stats.garbled) == (5, 1, 1, 3)
 
 
+async def test_a_telegram_behind_a_burst_of_garbage_is_not_dropped_by_the_kernel(
+    make_server: MakeServer, controller_sock: socket.socket
+) -> None:
+    """While the process is not scheduled (here: before the loop runs again), 600 KB of garbage
+    from the controller's address queue up, then a telegram: the socket's receive buffer keeps
+    them all (with the system's default of 208 KiB the kernel kept 25 and dropped the rest, and
+    anything arriving while it was full), every one is counted and the telegram answered."""
+    _, proto, addr = await make_server()
+    junk = b"<Rob><IPOC>" + b"7" * 5000 + b"</IPOC></Rob>"
+    for _ in range(120):
+        controller_sock.sendto(junk, addr)
+    controller_sock.sendto(telegram(36), addr)
+    assert parse_sen(await recv(controller_sock)).ipoc == 36
+    assert (proto.stats.garbled, proto.stats.answered) == (120, 1)
+
+
 class _StillPlant:
     """The robot standing still at one pose; actual = setpoint + correction."""
 

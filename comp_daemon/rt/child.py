@@ -15,9 +15,11 @@ the daemon's side is :mod:`comp_daemon.daemon.rt_process`). The child:
   objects out of the collector's sight;
 - runs the loop's timers itself (``tick``), so a stalled daemon cannot keep a move timeout or a lost
   RSI connection from faulting the loop;
-- reports to the daemon over the socket pair (:mod:`comp_daemon.rt.link`): every safety event at
-  once, a state report (core state, last cycle, grating readings, RSI counters and the latency of
-  every reply since the last report) after a reply every ``push_period_s``, and its log records;
+- reports to the daemon over the socket pair (:mod:`comp_daemon.rt.link`): a state report (core
+  state, last cycle, grating readings, RSI counters and the latency of every reply since the last
+  report) after a reply every ``push_period_s``; every safety event at once, right behind a state
+  report (the daemon's mirror shows the state the event came from when the daemon reads the
+  event); and its log records;
 - goes safe on its own when the daemon has gone (the socket closes, whatever killed the daemon) or
   on SIGTERM: zero steps and ``Stop = 1`` for the grace cycles, then it closes the endpoint and
   exits. SIGINT is left to the daemon, which orders the shutdown.
@@ -59,7 +61,7 @@ from comp_daemon.rt.link import (
 from comp_daemon.rt.loop import CycleSample, LoopRuntime
 from comp_daemon.rt.rsi_codec import RobTelegram, SenReply
 from comp_daemon.rt.rsi_server import RsiServerProtocol, start_rsi_server
-from comp_daemon.rt.safety import Fault, Faulted, FaultKind, Reaction, SafetyState
+from comp_daemon.rt.safety import Event, Fault, Faulted, FaultKind, Reaction, SafetyState
 from comp_daemon.rt.scheduling import apply_scheduling, request_wakeup_latency
 
 __all__ = ["RtChild", "main"]
@@ -216,8 +218,16 @@ class RtChild:
     async def _forward_events(self, runtime: LoopRuntime) -> None:
         while True:
             event = await runtime.next_event()
-            self.link.send(("event", event))
-            self.push_soon()
+            self.send_event(event)
+
+    def send_event(self, event: Event) -> None:
+        """A state report, then the event: the daemon acts on an event (the executor finishes the
+        target, claims the next one after the readiness check) as soon as it reads it, so its mirror
+        must already show the state the event came from (the fault latched, the grating gone). Sent
+        the other way round, a report delayed behind the event (this process not scheduled between
+        the two) let the daemon decide on the state before the event."""
+        self.push()
+        self.link.send(("event", event))
 
     async def _tick(self, runtime: LoopRuntime, tick_s: float) -> None:
         while True:
@@ -241,6 +251,7 @@ class RtChild:
 
     def _command(self, seq: int, name: str, args: tuple[Any, ...]) -> None:
         runtime = self.runtime
+        refused: Faulted | None = None
         try:
             if runtime is None:
                 raise RtProcessError("the loop is not started")
@@ -251,12 +262,15 @@ class RtChild:
             reason = f"{type(exc).__name__}: {exc}"
             log.error(f"rt: command {name} refused: {reason}")
             if name == "arm" and runtime is not None:
-                self._refuse_target(runtime, str(args[0]), reason)
+                refused = self._refused_target(runtime, str(args[0]), reason)
         finally:
             self.applied = seq
-            self.push_soon()
+            if refused is not None:
+                self.send_event(refused)  # the report (this command applied) goes first
+            else:
+                self.push_soon()
 
-    def _refuse_target(self, runtime: LoopRuntime, target_id: str, reason: str) -> None:
+    def _refused_target(self, runtime: LoopRuntime, target_id: str, reason: str) -> Faulted:
         core = runtime.core
         f = core.fault
         if f is None:
@@ -266,7 +280,7 @@ class RtChild:
             )
         else:
             f = replace(f, detail=f"the loop refused the target: {reason}", target_id=target_id)
-        self.link.send(("event", Faulted(target_id, f, core.errors_deg)))
+        return Faulted(target_id, f, core.errors_deg)
 
     async def _request(self, req: int, name: str, args: tuple[Any, ...]) -> None:
         try:
@@ -290,7 +304,7 @@ class RtChild:
         if name == "close_rsi":
             (grace_cycles,) = args
             runtime, cfg = self.runtime, self.start_cfg
-            if runtime is not None and cfg is not None and runtime.rsi_alive():
+            if runtime is not None and cfg is not None:
                 await runtime.wait_stop_replies(grace_cycles, cfg.rsi.cycle_ms / 1000.0)
             self.push()  # before the reply: the daemon reads the final state from it
             if self.rsi_transport is not None:
@@ -365,8 +379,7 @@ class RtChild:
         runtime, cfg = self.runtime, self.start_cfg
         if runtime is not None and cfg is not None:
             runtime.shutdown()
-            if runtime.rsi_alive():
-                await runtime.wait_stop_replies(cfg.grace_cycles, cfg.rsi.cycle_ms / 1000.0)
+            await runtime.wait_stop_replies(cfg.grace_cycles, cfg.rsi.cycle_ms / 1000.0)
         if self.rsi_transport is not None:
             self.rsi_transport.close()
         await self._stop_readers()

@@ -167,13 +167,31 @@ class LoopView:
             return None
         return last + max(1, -(-elapsed // cycle_ns)) * cycle_ns
 
-    async def wait_stop_replies(self, n: int, cycle_s: float, floor_s: float = 0.5) -> None:
-        """Wait until ``n`` replies with ``Stop = 1`` have gone out since the shutdown, or until
-        ``max(n + 2 cycles, floor_s)`` has passed (how the shutdown lets the controller see
-        ``Stop = 1`` before the endpoint closes). Counted where the telegrams are handled, so a
-        busy machine delays the wait, never the count."""
-        deadline = time.monotonic() + max((n + 2) * cycle_s, floor_s)
-        while self.replies_after_shutdown < n and time.monotonic() < deadline:
+    async def wait_stop_replies(
+        self, n: int, cycle_s: float, quiet_s: float = 0.5, limit_s: float = 3.0
+    ) -> None:
+        """Wait until ``n`` replies with ``Stop = 1`` have gone out since the shutdown, or until the
+        controller has sent nothing for ``max(n + 2 cycles, quiet_s)`` since the wait began or its
+        last telegram, whichever is later (it stopped RSI, as a controller does on the first
+        ``Stop = 1``, or RSI was not running), at most ``limit_s`` (how the shutdown lets the
+        controller see ``Stop = 1`` before the endpoint closes).
+
+        Replies and silence are both counted where the telegrams are handled, and the wait ends
+        only when two looks half a cycle apart agree: telegrams that waited in the socket while
+        this process was not scheduled (or stopped) are read in between, so a busy machine delays
+        the wait and does not end it before the controller had its replies."""
+        start = self.clock_ns()
+        quiet_ns = int(max((n + 2) * cycle_s, quiet_s) * 1e9)
+        end = start + int(limit_s * 1e9)
+        ending = False
+        while self.replies_after_shutdown < n:
+            now, last = self.clock_ns(), self._last_rx_ns
+            if now >= end or now - (start if last is None else max(start, last)) >= quiet_ns:
+                if ending:
+                    return
+                ending = True
+            else:
+                ending = False
             await asyncio.sleep(cycle_s / 2)
 
     def telegram_age_s(self) -> float | None:

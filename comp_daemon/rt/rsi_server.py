@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import asyncio
 import bisect
+import contextlib
 import socket
 import time
 from array import array
@@ -84,6 +85,11 @@ class RsiServerConfig:
     stop_on_handler_error: bool = True
     log_every: int = 1000  # after the first, log every n-th foreign/garbled datagram
     samples: int = 65536  # ring size for latency/jitter percentiles
+    #: receive buffer asked of the kernel (SO_RCVBUF, capped by ``net.core.rmem_max``): room for a
+    #: burst of garbage from the controller's address while this process is not scheduled, so that
+    #: the kernel does not drop the valid telegrams arriving meanwhile (the usual default, 208 KiB,
+    #: holds 25 datagrams of 5 KB)
+    receive_buffer_bytes: int = 1 << 20
 
 
 class SampleStats:
@@ -218,6 +224,8 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
         self.transport = cast(asyncio.DatagramTransport, transport)
         trsock = transport.get_extra_info("socket")
         if trsock is not None:
+            with contextlib.suppress(OSError):  # a refusal leaves the system's default
+                trsock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.config.receive_buffer_bytes)
             self._drain_sock = trsock.dup()  # same kernel receive queue; already non-blocking
             self._drain_sock.setblocking(False)
 
