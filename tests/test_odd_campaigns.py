@@ -56,6 +56,15 @@ def mh6_campaign(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return out
 
 
+@pytest.fixture(scope="module")
+def repeats_required(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """30 poses measured twice each, only the required columns."""
+    folder = tmp_path_factory.mktemp("odd")
+    full = folder / "rep.csv"
+    assert main(["sim", "sample", "--n", "30", "--repeats", "2", "--seed", "5", "--out", str(full)]) == 0
+    return _subset(full, folder / "req.csv", REQUIRED)
+
+
 def test_evaluate_all_on_few_rows_leaves_out_the_undetermined_models_by_name(
     kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -173,11 +182,9 @@ def test_a_dropped_part_with_a_lower_held_out_rms_says_why() -> None:
 
 
 def test_diagnose_without_dir_says_what_it_did_not_test_and_that_the_remainder_is_not_noise(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    repeats_required: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    full = tmp_path / "rep.csv"
-    assert main(["sim", "sample", "--n", "30", "--repeats", "2", "--seed", "5", "--out", str(full)]) == 0
-    data = _subset(full, tmp_path / "req.csv", REQUIRED)
+    data = repeats_required
     assert main(["diagnose", str(data), "--robot", "kr210", "--json", str(tmp_path / "d.json")]) == 0
     out, err = capsys.readouterr()
     doc = json.loads((tmp_path / "d.json").read_text())
@@ -229,11 +236,9 @@ def test_scale_problem_passes_a_rigidly_moved_campaign_and_names_inches() -> Non
 
 
 def test_diagnose_says_a_declared_sigma_is_not_used_when_repeats_measure_the_noise(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+    repeats_required: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    full = tmp_path / "rep.csv"
-    assert main(["sim", "sample", "--n", "30", "--repeats", "2", "--seed", "5", "--out", str(full)]) == 0
-    data = _subset(full, tmp_path / "req.csv", REQUIRED)
+    data = repeats_required
     args = [
         "diagnose",
         str(data),
@@ -405,15 +410,6 @@ def test_an_unreachable_target_is_named_by_its_row(
     assert "unreachable within joint limits: row 3 (left" in err and "target 2" not in err
 
 
-def test_a_split_column_without_fit_rows_is_refused_by_name(
-    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
-) -> None:
-    data = tmp_path / "allcheck.csv"
-    data.write_text(kr_campaign.read_text().replace(",fit,", ",check,"))
-    assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal"]) == 2
-    assert "0 fit rows (the split column marks them 'fit'); a fit needs at least 3" in capsys.readouterr().err
-
-
 def test_compliance_on_a_massless_robot_with_payloads_fits_and_says_what_it_sees(
     mh6_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
@@ -457,13 +453,21 @@ def test_fold_counts_that_cannot_cross_validate_are_refused(
     assert "expected 2..20 folds" in capsys.readouterr().err
 
 
-def test_a_split_column_without_check_rows_is_refused_by_name(
-    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+@pytest.mark.parametrize(
+    ("old", "new", "message"),
+    [
+        (",fit,", ",check,", "0 fit rows (the split column marks them 'fit'); a fit needs at least 3"),
+        (",check,", ",fit,", "no check rows to evaluate on (the split marks no row 'check')"),
+    ],
+    ids=["no-fit-rows", "no-check-rows"],
+)
+def test_a_split_column_without_fit_or_check_rows_is_refused_by_name(
+    old: str, new: str, message: str, kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    data = tmp_path / "allfit.csv"
-    data.write_text(kr_campaign.read_text().replace(",check,", ",fit,"))
+    data = tmp_path / "one-sided.csv"
+    data.write_text(kr_campaign.read_text().replace(old, new))
     assert main(["evaluate", str(data), "--robot", "kr210", "--models", "nominal"]) == 2
-    assert "no check rows to evaluate on (the split marks no row 'check')" in capsys.readouterr().err
+    assert message in capsys.readouterr().err
 
 
 def test_compensating_with_a_backlash_model_without_dir_says_the_backlash_is_not_applied(
