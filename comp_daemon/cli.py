@@ -25,6 +25,7 @@ COMMAND_MODULES: dict[str, str] = {
     "run": "comp_daemon.commands.run",
     "diagnose": "comp_daemon.commands.diagnose",
     "fit": "comp_daemon.commands.fit",
+    "compensate": "comp_daemon.commands.compensate",
     "plan": "comp_daemon.commands.plan",
     "trial": "comp_daemon.commands.trial",
     "export": "comp_daemon.commands.export",

@@ -23,8 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from comp_daemon.commands.compensate import compensate_targets, compensation_options
 from comp_daemon.commands.errors import UserError
-from comp_daemon.commands.fit import compensate_targets, compensation_options
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import DatasetError, read_dataset, read_dataset_json
 from comp_daemon.models.artifact import LoadedModel, ModelArtifactError, load_model

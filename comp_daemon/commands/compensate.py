@@ -1,0 +1,203 @@
+"""``comp-daemon compensate``: compensated axis values for targets, by a fitted model.
+
+``compensate MODEL.json TARGETS.csv --out CORRECTED.csv`` writes, for every target, the axis values
+whose predicted TCP (by the model) is the wanted one, and, where the model has one, the 3-D 1-σ
+uncertainty of that prediction (``sigma_mm``, :meth:`ErrorModel.predict_std_mm`). Targets are
+``a1..a6`` (the nominal program) or ``tx, ty, tz[, ta, tb, tc]`` (robot base frame). The options
+(:func:`compensation_options`) and :func:`compensate_targets` are shared with ``export targets``.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+from comp_daemon.commands.errors import UserError
+from comp_daemon.commands.fit import read_data
+from comp_daemon.data.dataset import Dataset, write_dataset
+from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
+from comp_daemon.models.artifact import ModelArtifactError, load_model
+from comp_daemon.models.base import ErrorModel, uses_approach_directions
+from comp_daemon.models.chebyshev import ChebyshevModel
+from comp_daemon.models.compensation import (
+    DEFAULT_LIMITS,
+    MAPPINGS,
+    CompensationLimits,
+    CompensationRefused,
+    CompensationResult,
+    compensate,
+    nominal_targets,
+)
+from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, load_robot
+
+__all__ = ["compensate_targets", "compensation_options", "register"]
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    comp = subparsers.add_parser("compensate", help="compensated axis values for targets, by a model")
+    comp.add_argument("model", metavar="MODEL.json", help="model artifact written by 'fit'")
+    comp.add_argument(
+        "targets",
+        metavar="TARGETS.csv",
+        help="targets: a1..a6 (nominal program) or tx,ty,tz[,ta,tb,tc] (robot base frame, mm / KUKA deg)",
+    )
+    comp.add_argument("--out", required=True, metavar="CORRECTED.csv", help="data set of compensated targets")
+    comp.add_argument("--robot", default=None, help="refuse the model unless it belongs to this robot")
+    compensation_options(comp)
+    comp.set_defaults(func=_compensate)
+
+
+def compensation_options(parser: argparse.ArgumentParser) -> None:
+    """The options of ``compensate`` (tolerance, limits, joint mapping), also taken by ``export targets``."""
+    parser.add_argument(
+        "--tol-mm", type=float, default=1e-6, help="predicted-position tolerance (default 1e-6 mm)"
+    )
+    parser.add_argument(
+        "--max-axis-change-deg",
+        type=float,
+        default=DEFAULT_LIMITS.max_axis_change_deg,
+        help="refuse a target whose compensation changes an axis by more than this from the nominal "
+        f"solution (default {DEFAULT_LIMITS.max_axis_change_deg:g})",
+    )
+    parser.add_argument(
+        "--wrist-singularity-deg",
+        type=float,
+        default=DEFAULT_LIMITS.wrist_singularity_deg,
+        help="refuse a target whose axes 4 and 6 are nearer than this to in line, |A5| on a KUKA wrist "
+        f"(default {DEFAULT_LIMITS.wrist_singularity_deg:g})",
+    )
+    parser.add_argument(
+        "--hull-margin-deg",
+        type=float,
+        default=DEFAULT_LIMITS.hull_margin_deg,
+        help="refuse a target this far beyond the model's sampled axis ranges "
+        f"(default {DEFAULT_LIMITS.hull_margin_deg:g})",
+    )
+    parser.add_argument(
+        "--mapping",
+        choices=MAPPINGS,
+        default="six-axis",
+        help="six-axis: inverse kinematics of every axis (default); seed000: seed 000's mapping of the "
+        "predicted error onto joints 1-3, the wrist from the nominal solution",
+    )
+
+
+def _compensate(args: argparse.Namespace) -> int:
+    robot = load_robot(args.robot) if args.robot else None
+    try:
+        loaded = load_model(args.model, robot)
+    except ModelArtifactError as exc:
+        raise UserError(str(exc)) from None
+    model = loaded.model
+    targets = read_data(args.targets, model.robot, 0, "targets")
+    n = len(targets)
+    wanted, result, limits = compensate_targets(model, targets, args)
+    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    if dir_ is None and uses_approach_directions(model):
+        print(
+            f"{targets.source}: no dir1..dir6 columns: the model's backlash is not applied (approach "
+            "directions unknown); give the direction each axis will approach its target from"
+        )
+    extra = dict(targets.extra)
+    for k in range(6):
+        extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
+    extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
+    sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
+    if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
+        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
+    extra["model_kind"] = (model.kind,) * n
+    out = Dataset(
+        a_deg=result.a_deg,
+        dir=targets.dir,
+        payload_kg=targets.payload_kg,
+        temp_c=targets.temp_c,
+        pose_id=targets.pose_id,
+        target_xyz_mm=wanted,
+        target_abc_deg=targets.target_abc_deg,
+        extra=extra,
+        source=args.out,
+    )
+    write_dataset(out, args.out)
+    outside = ""
+    if isinstance(model, ChebyshevModel) and model.order > 0:
+        n_out = int(model.outside_range(result.a_deg).sum())
+        if n_out:
+            outside = f"; {n_out} outside the fitted joint ranges (error held at the range edge)"
+    da = np.abs(result.da_deg)
+    worst_axis = int(np.argmax(da.max(axis=0)))
+    region = (
+        f"within {limits.hull_margin_deg:g} deg of the model's sampled axis ranges"
+        if result.region_deg is not None
+        else f"the {model.kind} model has no sampled region to keep to"
+    )
+    print(
+        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
+        f"in {result.iterations} iterations "
+        f"(max predicted error {result.residual_mm.max():.2e} mm, "
+        f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
+        f"{outside} -> {args.out}"
+    )
+    return 0
+
+
+def compensate_targets(
+    model: ErrorModel, targets: Dataset, args: argparse.Namespace
+) -> tuple[np.ndarray, CompensationResult, CompensationLimits]:
+    """The wanted TCPs (robot base frame), the compensation and its limits of a target file's rows
+    (``a1..a6`` nominal program, or ``tx, ty, tz[, ta, tb, tc]``) by :func:`compensate`, with the
+    options of :func:`compensation_options`; refusals, unreachable and unconverged targets as
+    :class:`UserError` naming the rows."""
+    n = len(targets)
+    if n == 0:
+        raise UserError(f"{targets.source}: no targets")
+    if targets.target_xyz_mm is not None:
+        wanted = np.asarray(targets.target_xyz_mm)
+        rot = None
+        if targets.target_abc_deg is not None:
+            rot = rotation_kuka_abc_deg(targets.target_abc_deg) @ FLANGE_R_KUKA_TOOL.T
+        seed = targets.a_deg
+        if seed is None:
+            seed = np.broadcast_to(model.robot.axis_limits_deg.mean(axis=1), (n, 6))
+    else:
+        assert targets.a_deg is not None
+        wanted, rot = nominal_targets(model, targets.a_deg)
+        seed = targets.a_deg
+    try:
+        limits = CompensationLimits(
+            args.max_axis_change_deg, args.wrist_singularity_deg, args.hull_margin_deg
+        )
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    try:
+        result = compensate(
+            model,
+            wanted,
+            rot,
+            a_seed_deg=seed,
+            dir=dir_,
+            payload_kg=targets.payload_kg,
+            temp_c=targets.temp_c,
+            tol_mm=args.tol_mm,
+            limits=limits,
+            mapping=args.mapping,
+        )
+    except UnreachableTargetError as exc:
+        rows = ", ".join(
+            f"row {int(targets.row_numbers[i])} (left {e:.3f} mm)"
+            for i, e in zip(exc.indices[:5], exc.position_error_mm[:5], strict=False)
+        )
+        more = f" and {len(exc.indices) - 5} more" if len(exc.indices) > 5 else ""
+        raise UserError(f"{targets.source}: unreachable within joint limits: {rows}{more}") from None
+    except CompensationRefused as exc:
+        rows = "; ".join(f"row {int(targets.row_numbers[r.index])}: {r.reason}" for r in exc.refusals[:5])
+        more = f"; and {len(exc.refusals) - 5} more" if len(exc.refusals) > 5 else ""
+        raise UserError(f"{targets.source}: compensation refused: {rows}{more}") from None
+    if not result.converged:
+        worst = int(np.argmax(result.residual_mm))
+        raise UserError(
+            f"{targets.source}: compensation did not converge (row {int(targets.row_numbers[worst])}: "
+            f"{result.residual_mm[worst]:.3g} mm left after {result.iterations} iterations)"
+        )
+    return wanted, result, limits
