@@ -3,9 +3,7 @@ HTTP service, and the simulated campaign judged on tracker data of the same robo
 
 from __future__ import annotations
 
-import asyncio
 import json
-import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -13,6 +11,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from service_client import in_process_service, job_done
 from test_service_api import auth, make_settings
 
 from comp_daemon.cli import main
@@ -25,7 +24,6 @@ from comp_daemon.models.artifact import load_model
 from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, PAPER_PIVOT_MM, ballbar_lengths_mm, to_canonical
 from comp_daemon.models.ballbar_plan import TABLE5_ERRORS, ballbar_plan
 from comp_daemon.robot.description import load_robot
-from comp_daemon.service.api import create_app, open_store
 
 ROBOT = load_robot("irb120")
 PLAN = ballbar_plan(ROBOT, 3)
@@ -194,22 +192,8 @@ def test_simulated_campaign_improves_the_tracker_check_rows(tmp_path: Path) -> N
 @pytest.fixture
 async def client(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
     settings = make_settings(tmp_path, jobs={"workers": 1}, robot={"name": "irb120"})
-    store = open_store(settings)
-    app = create_app(settings, store)
-    async with app.router.lifespan_context(app):
-        async with httpx.AsyncClient(transport=httpx.ASGITransport(app=app), base_url="http://cell") as c:
-            yield c
-    store.close()
-
-
-async def _done(client: httpx.AsyncClient, job_id: int) -> dict[str, Any]:
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline:
-        job = (await client.get(f"/api/jobs/{job_id}", headers=auth("viewer"))).json()
-        if job["state"] in ("done", "failed", "cancelled"):
-            return dict(job)
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"job {job_id} did not finish")
+    async with in_process_service(settings) as (c, _):
+        yield c
 
 
 async def test_http_upload_and_fit_job_of_a_ballbar_campaign(client: httpx.AsyncClient) -> None:
@@ -236,7 +220,7 @@ async def test_http_upload_and_fit_job_of_a_ballbar_campaign(client: httpx.Async
         "/api/fits", json={"dataset_id": up.json()["id"], "model": "poe"}, headers=auth("engineer")
     )
     assert r.status_code == 202, r.text
-    job = await _done(client, r.json()["id"])
+    job = await job_done(client, r.json()["id"])
     assert job["state"] == "done", job["error"]
     stats = job["result"]["stats"]
     assert stats["campaign"] == "ballbar" and stats["kind"] == "poe" and stats["rank"] == 11
@@ -281,7 +265,7 @@ async def test_http_fit_job_of_a_repeated_ballbar_campaign_reports_its_uncertain
     r = await client.post(
         "/api/fits", json={"dataset_id": up.json()["id"], "model": "poe"}, headers=auth("engineer")
     )
-    job = await _done(client, r.json()["id"])
+    job = await job_done(client, r.json()["id"])
     assert job["state"] == "done", job["error"]
     unc = job["result"]["stats"]["uncertainty"]
     assert unc["poses"] == n and unc["repeats"] == {"min": repeats, "max": repeats}

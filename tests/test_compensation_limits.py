@@ -16,6 +16,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from service_client import in_process_service
 
 from comp_daemon.cli import main
 from comp_daemon.daemon.compensation import ActiveModelCompensator
@@ -279,14 +280,8 @@ def _settings(tmp_path: Path, **overrides: Any) -> Settings:
 
 @pytest.fixture
 async def api(tmp_path: Path) -> AsyncIterator[tuple[httpx.AsyncClient, Store]]:
-    settings = _settings(tmp_path)
-    store = open_store(settings)
-    app = create_app(settings, store)
-    async with app.router.lifespan_context(app):
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://cell") as client:
-            yield client, store
-    store.close()
+    async with in_process_service(_settings(tmp_path)) as service:
+        yield service
 
 
 def _axes(a: Sequence[float]) -> dict[str, float]:

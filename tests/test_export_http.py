@@ -8,6 +8,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 import pytest
+from service_client import in_process_service
 from test_service_api import auth, make_settings
 
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
@@ -18,7 +19,6 @@ from comp_daemon.models.export.formats import PARAM_FORMATS
 from comp_daemon.models.export.params import model_of
 from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import load_robot
-from comp_daemon.service.api import create_app, open_store
 from comp_daemon.service.store import ModelDraft, Store
 
 KR = load_robot("kr210")
@@ -26,14 +26,8 @@ KR = load_robot("kr210")
 
 @pytest.fixture
 async def api(tmp_path: Path) -> AsyncIterator[tuple[httpx.AsyncClient, Store]]:
-    settings = make_settings(tmp_path)
-    store = open_store(settings)
-    app = create_app(settings, store)
-    async with app.router.lifespan_context(app):
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://cell") as client:
-            yield client, store
-    store.close()
+    async with in_process_service(make_settings(tmp_path)) as service:
+        yield service
 
 
 def _data() -> tuple[np.ndarray, np.ndarray, np.ndarray]:

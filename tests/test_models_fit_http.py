@@ -2,20 +2,17 @@
 
 from __future__ import annotations
 
-import asyncio
 import dataclasses
-import time
 from collections.abc import AsyncIterator
 from pathlib import Path
-from typing import Any
 
 import httpx
 import pytest
+from service_client import in_process_service, job_done
 from test_service_api import auth, make_settings
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset, write_dataset
-from comp_daemon.service.api import create_app, open_store
 
 SCENARIOS = Path(__file__).resolve().parents[1] / "comp_daemon" / "sim" / "scenarios"
 
@@ -23,23 +20,8 @@ SCENARIOS = Path(__file__).resolve().parents[1] / "comp_daemon" / "sim" / "scena
 @pytest.fixture
 async def client(tmp_path: Path) -> AsyncIterator[httpx.AsyncClient]:
     settings = make_settings(tmp_path, jobs={"workers": 1})
-    store = open_store(settings)
-    app = create_app(settings, store)
-    async with app.router.lifespan_context(app):
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://cell") as c:
-            yield c
-    store.close()
-
-
-async def _done(client: httpx.AsyncClient, job_id: int) -> dict[str, Any]:
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline:
-        job = (await client.get(f"/api/jobs/{job_id}", headers=auth("viewer"))).json()
-        if job["state"] in ("done", "failed", "cancelled"):
-            return dict(job)
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"job {job_id} did not finish")
+    async with in_process_service(settings) as (c, _):
+        yield c
 
 
 async def test_fit_job_infers_directions_and_can_be_told_not_to(
@@ -75,10 +57,10 @@ async def test_fit_job_infers_directions_and_can_be_told_not_to(
         )
         assert r.status_code == 202, r.text
         jobs[infer] = r.json()["id"]
-    inferred = await _done(client, jobs[True])
+    inferred = await job_done(client, jobs[True])
     assert inferred["state"] == "done", inferred["error"]
     stats = inferred["result"]["stats"]
     assert "inferred from the sign of each axis' last motion" in stats["directions"]
     assert stats["table2"]["model"]["3d"]["rms"] < 0.1
-    refused = await _done(client, jobs[False])
+    refused = await job_done(client, jobs[False])
     assert refused["state"] == "failed" and "dir1..dir6" in (refused["error"] or "")

@@ -5,7 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 import httpx
-from test_models_fit_http import _done, client  # noqa: F401  (client: a fixture, used by name)
+from service_client import job_done
+from test_models_fit_http import client  # noqa: F401  (client: a fixture, used by name)
 from test_service_api import auth
 
 from comp_daemon.cli import main
@@ -29,7 +30,7 @@ async def test_three_target_campaign_is_accepted_and_fitted(
         "/api/fits", json={"dataset_id": up.json()["id"], "model": "kinematic"}, headers=auth("engineer")
     )
     assert r.status_code == 202, r.text
-    job = await _done(client, r.json()["id"])
+    job = await job_done(client, r.json()["id"])
     assert job["state"] == "done", job["error"]
     assert job["result"]["stats"]["table2"]["model"]["3d"]["rms"] < 0.1
     fit = job["result"]["stats"]["fit"]

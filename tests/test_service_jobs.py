@@ -14,6 +14,7 @@ from typing import Any
 import httpx
 import numpy as np
 import pytest
+from service_client import in_process_service, job_done
 from test_service_api import auth, campaign_csv, make_settings
 
 from comp_daemon.daemon.compensation import ActiveModelCompensator
@@ -21,7 +22,6 @@ from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.artifact import parse_model
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.robot.description import load_robot
-from comp_daemon.service.api import create_app, open_store
 from comp_daemon.service.config import JobSettings
 from comp_daemon.service.jobs import JobKind, JobRunner
 from comp_daemon.service.store import EventRecord, JobRecord, ModelDraft, Store
@@ -150,23 +150,8 @@ async def test_runner_outcomes(tmp_path: Path) -> None:
 @pytest.fixture
 async def service(tmp_path: Path) -> AsyncIterator[tuple[httpx.AsyncClient, Store]]:
     settings = make_settings(tmp_path, jobs={"workers": 1})
-    store = open_store(settings)
-    app = create_app(settings, store)
-    async with app.router.lifespan_context(app):
-        transport = httpx.ASGITransport(app=app)
-        async with httpx.AsyncClient(transport=transport, base_url="http://cell") as client:
-            yield client, store
-    store.close()
-
-
-async def _job_done(client: httpx.AsyncClient, job_id: int) -> dict[str, Any]:
-    deadline = time.monotonic() + 90
-    while time.monotonic() < deadline:
-        job = (await client.get(f"/api/jobs/{job_id}", headers=auth("viewer"))).json()
-        if job["state"] in ("done", "failed", "cancelled"):
-            return dict(job)
-        await asyncio.sleep(0.1)
-    raise AssertionError(f"job {job_id} did not finish")
+    async with in_process_service(settings) as service:
+        yield service
 
 
 async def test_fit_compare_activate_and_diagnose_over_http(service: Any) -> None:
@@ -197,7 +182,7 @@ async def test_fit_compare_activate_and_diagnose_over_http(service: Any) -> None
     early = await client.get(f"/api/diagnoses/{diag.json()['id']}", headers=auth("viewer"))
     assert early.status_code == 409 and early.json()["error"] == "not_ready"
 
-    results = [await _job_done(client, job_id) for job_id in started]
+    results = [await job_done(client, job_id) for job_id in started]
     for job in results:
         assert job["state"] == "done", job["error"]
         t2 = job["result"]["stats"]["table2"]
@@ -233,7 +218,7 @@ async def test_fit_compare_activate_and_diagnose_over_http(service: Any) -> None
     assert r.status_code == 200 and r.json()["active"]
     assert "no model is active" not in (await client.get("/ready")).json()["reasons"]
     # a data set in use by a finished job may go; its models stay
-    report_job = await _job_done(client, diag.json()["id"])
+    report_job = await job_done(client, diag.json()["id"])
     assert report_job["state"] == "done", report_job["error"]
     assert report_job["result"] is None  # the report is fetched on its own, not with the job
     report = (await client.get(f"/api/diagnoses/{report_job['id']}", headers=auth("viewer"))).json()
@@ -324,7 +309,7 @@ async def test_every_kind_fits_over_http_and_compensates_once_active(service: An
     robot = load_robot("kr210")
     home = (5.0, -85.0, 120.0, 3.0, -40.0, 10.0)
     for name, job_id in started.items():
-        job = await _job_done(client, job_id)
+        job = await job_done(client, job_id)
         assert job["state"] == "done", (name, job["error"])
         stats = job["result"]["stats"]
         assert stats["fit"]["model"] == name and stats["rows"] == {"fit": 120, "check": 40}
