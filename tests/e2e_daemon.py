@@ -304,6 +304,17 @@ def sample_campaign(path: Path, n: int = 60, seed: int = 1) -> Path:
     return path
 
 
+def upload_campaign(client: httpx.Client, path: Path, name: str | None = None) -> dict[str, Any]:
+    """Upload a campaign CSV as the engineer; returns the stored data set's document (201 asserted)."""
+    params = None if name is None else {"name": name}
+    r = client.post(
+        "/api/datasets", params=params, content=path.read_bytes(), headers={"Content-Type": "text/csv"}
+    )
+    assert r.status_code == 201, r.text
+    doc: dict[str, Any] = r.json()
+    return doc
+
+
 def fit_and_activate(client: httpx.Client, dataset_id: int, model: str = "kinematic") -> dict[str, Any]:
     """Start a fit as the engineer, follow the job to done, activate its model; returns the job."""
     r = client.post("/api/fits", json={"dataset_id": dataset_id, "model": model})

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from e2e_daemon import TOKENS, DaemonProcess, fit_and_activate, sample_campaign, wait_until
+from e2e_daemon import TOKENS, DaemonProcess, fit_and_activate, sample_campaign, upload_campaign, wait_until
 
 from comp_daemon.sim.scenario import load_scenario
 
@@ -69,14 +69,7 @@ def test_dashboard_goes_live_in_chromium(daemon: DaemonProcess, tmp_path: Path) 
     daemon.wait_http()
     daemon.wait_ready(60, allow=["no model is active"])
     with daemon.client("engineer") as eng:
-        r = eng.post(
-            "/api/datasets",
-            params={"name": "cell-campaign-2026-11"},
-            content=campaign.read_bytes(),
-            headers={"Content-Type": "text/csv"},
-        )
-        assert r.status_code == 201, r.text
-        fit_and_activate(eng, r.json()["id"], "kinematic")
+        fit_and_activate(eng, upload_campaign(eng, campaign, "cell-campaign-2026-11")["id"], "kinematic")
     daemon.wait_ready(10)
 
     console_errors: list[str] = []

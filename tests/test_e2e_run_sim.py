@@ -30,6 +30,7 @@ from e2e_daemon import (
     fit_and_activate,
     sample_campaign,
     target_rows,
+    upload_campaign,
     wait_until,
 )
 
@@ -121,14 +122,7 @@ def test_campaign_fit_activate_and_a_batch_of_targets_over_http(
             == 403
         )
 
-        r = eng.post(
-            "/api/datasets",
-            params={"name": "cell-campaign"},
-            content=campaign.read_bytes(),
-            headers={"Content-Type": "text/csv"},
-        )
-        assert r.status_code == 201, r.text
-        dataset = r.json()
+        dataset = upload_campaign(eng, campaign, "cell-campaign")
         assert dataset["rows"] == 60 and dataset["summary"]["split"]["fit"] > 0
 
         job = fit_and_activate(eng, dataset["id"], "kinematic")
@@ -204,9 +198,7 @@ def test_kill_9_during_a_batch_loses_and_repeats_nothing(daemon: DaemonProcess, 
         ]
     }
     with daemon.client("engineer") as eng, daemon.client("operator") as mes:
-        r = eng.post("/api/datasets", content=campaign.read_bytes(), headers={"Content-Type": "text/csv"})
-        assert r.status_code == 201, r.text
-        fit_and_activate(eng, r.json()["id"], "nominal")
+        fit_and_activate(eng, upload_campaign(eng, campaign)["id"], "nominal")
         r = mes.post("/api/batches", json=body, headers={"Idempotency-Key": key})
         assert r.status_code == 201, r.text
         batch_id = r.json()["id"]

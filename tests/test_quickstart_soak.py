@@ -32,7 +32,16 @@ from typing import Any
 
 import httpx
 import pytest
-from e2e_daemon import TOKENS, DaemonProcess, cmdline, descendants, free_port, sample_campaign, wait_until
+from e2e_daemon import (
+    TOKENS,
+    DaemonProcess,
+    cmdline,
+    descendants,
+    free_port,
+    sample_campaign,
+    upload_campaign,
+    wait_until,
+)
 
 from comp_daemon.commands.run import QUICK_START_TIMEOUT_COUNT
 
@@ -142,9 +151,7 @@ def test_quick_start_keeps_running_on_busy_cores_and_states_each_stop(
     daemon.wait_http(90)
 
     with daemon.client("engineer", timeout_s=30.0) as eng:
-        r = eng.post("/api/datasets", content=campaign.read_bytes(), headers={"Content-Type": "text/csv"})
-        assert r.status_code == 201, r.text
-        dataset_id = r.json()["id"]
+        dataset_id = upload_campaign(eng, campaign)["id"]
 
         def status() -> dict[str, Any]:
             r = eng.get("/api/status")

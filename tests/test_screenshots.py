@@ -19,7 +19,7 @@ from typing import Any
 
 import pytest
 from diagnosis_campaigns import NOISE_FLOOR_MM, make_campaign
-from e2e_daemon import TOKENS, DaemonProcess, fit_and_activate, sample_campaign, wait_until
+from e2e_daemon import TOKENS, DaemonProcess, fit_and_activate, sample_campaign, upload_campaign, wait_until
 from test_e2e_dashboard import CHROMIUM, CHROMIUM_ARGS, _need_chromium
 
 from comp_daemon.diagnosis import diagnose
@@ -145,14 +145,7 @@ def test_dashboard_screenshot(browser: Any, out_dir: Path, tmp_path: Path) -> No
         daemon.wait_http()
         daemon.wait_ready(60, allow=["no model is active"])
         with daemon.client("engineer") as eng:
-            r = eng.post(
-                "/api/datasets",
-                params={"name": "cell-campaign-2026-11"},
-                content=campaign.read_bytes(),
-                headers={"Content-Type": "text/csv"},
-            )
-            assert r.status_code == 201, r.text
-            dataset_id = r.json()["id"]
+            dataset_id = upload_campaign(eng, campaign, "cell-campaign-2026-11")["id"]
             fit_and_activate(eng, dataset_id, "kinematic")
             r = eng.post("/api/diagnoses", json={"dataset_id": dataset_id})
             assert r.status_code == 202, r.text
