@@ -2,6 +2,10 @@
 
 The text goes to a temporary file in the destination's folder, is flushed and fsynced, then
 ``os.replace`` puts it in place (atomic on POSIX within one file system).
+
+The finished file gets the mode an ordinary ``open(path, "w")`` would give it: ``0666`` less the
+process's umask (``0644`` under the usual ``022``), not the ``0600`` of the temporary file. Secrets
+(tokens, keys) pass ``mode=SECRET_MODE``, which no umask widens.
 """
 
 from __future__ import annotations
@@ -13,7 +17,28 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-__all__ = ["write_json_atomic", "write_text_atomic"]
+__all__ = ["SECRET_MODE", "current_umask", "write_json_atomic", "write_text_atomic"]
+
+#: The mode of a file only its owner may read: tokens, keys.
+SECRET_MODE = 0o600
+
+
+def current_umask() -> int:
+    """The process's umask, read without changing it where the system allows.
+
+    Linux reports it in ``/proc/self/status``; elsewhere it is read by setting it and putting it
+    back at once (``os.umask`` has no read-only form).
+    """
+    try:
+        with open("/proc/self/status", encoding="ascii") as fh:
+            for line in fh:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError, IndexError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def write_text_atomic(
@@ -21,6 +46,8 @@ def write_text_atomic(
 ) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically; the folder must exist. Returns the path.
 
+    ``mode``: the file's permission bits; by default ``0666`` less the umask (see the module's note),
+    :data:`SECRET_MODE` for secrets.
     ``exclusive``: never replace an existing file — :class:`FileExistsError` if ``path`` exists,
     also when another writer creates it meanwhile (the finished file is hard-linked into place).
     """
@@ -32,8 +59,7 @@ def write_text_atomic(
             fh.write(text)
             fh.flush()
             os.fsync(fh.fileno())
-        if mode is not None:
-            os.chmod(tmp, mode)
+        os.chmod(tmp, mode if mode is not None else 0o666 & ~current_umask())
         if exclusive:
             os.link(tmp, dest)
             os.unlink(tmp)
@@ -54,10 +80,11 @@ def write_json_atomic(
     sort_keys: bool = False,
     default: Any = None,
     allow_nan: bool = False,
+    mode: int | None = None,
 ) -> Path:
     """Write ``doc`` as JSON (UTF-8, trailing newline) to ``path`` atomically; NaN refused unless allowed."""
     text = json.dumps(doc, indent=indent, sort_keys=sort_keys, default=default, allow_nan=allow_nan)
-    return write_text_atomic(path, text + "\n")
+    return write_text_atomic(path, text + "\n", mode=mode)
 
 
 class _suppress_oserror:
