@@ -223,6 +223,27 @@ def test_positions_in_metres_are_refused_not_fitted_to_zero(
     assert "not millimetres of this robot (in metres?)" in capsys.readouterr().err
 
 
+def test_data_check_refuses_metres_by_the_rule_fit_and_diagnose_apply(
+    kr_campaign: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """``data check`` used to say ``ok: true`` on a campaign in metres that fit and diagnose refuse."""
+    mm = _scaled(kr_campaign, tmp_path / "mm.csv", 1.0, rows=30)
+    assert main(["data", "check", str(mm), "--robot", "kr210"]) == 0
+    assert json.loads(capsys.readouterr().out)["ok"] is True
+    for name, factor, unit in (("metres", 1e-3, "metres"), ("inches", 1 / 25.4, "inches")):
+        data = _scaled(kr_campaign, tmp_path / f"{name}.csv", factor, rows=30)
+        assert main(["data", "check", str(data), "--robot", "kr210"]) == 2
+        captured = capsys.readouterr()
+        refusal = json.loads(captured.out)
+        assert refusal["ok"] is False and refusal["column"] == "x, y, z"
+        assert f"not millimetres of this robot (in {unit}?)" in refusal["error"]
+        sentence = refusal["error"].split(": ", 1)[1]
+        assert main(["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(tmp_path / "m")]) == 2
+        assert sentence in capsys.readouterr().err
+        assert main(["diagnose", str(data), "--robot", "kr210"]) == 2
+        assert sentence in capsys.readouterr().err
+
+
 def test_scale_problem_passes_a_rigidly_moved_campaign_and_names_inches() -> None:
     rng = np.random.default_rng(1)
     p = rng.normal(size=(40, 3)) * 400.0

@@ -1,7 +1,9 @@
 """``comp-daemon data check``: validate a data set file against a robot and summarise it as JSON.
 
 Exit 0 with a JSON summary on stdout when the file is accepted; exit 2 when it is refused, with
-the reason (row, column, fault) on stderr and as JSON (``"ok": false``) on stdout. Files ending
+the reason (row, column, fault) on stderr and as JSON (``"ok": false``) on stdout. Measured
+positions that cannot be millimetres of the robot (metres, inches …) are refused by the same rule
+as ``fit`` and ``diagnose`` (:func:`comp_daemon.models.units.millimetre_problem`). Files ending
 in ``.json`` are read as JSON records, anything else as CSV.
 """
 
@@ -14,6 +16,7 @@ from pathlib import Path
 from typing import Any
 
 from comp_daemon.data.dataset import DatasetError, read_dataset, read_dataset_json
+from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -49,10 +52,11 @@ def _check(args: argparse.Namespace) -> int:
     try:
         dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=args.min_rows, kind=args.kind)
     except DatasetError as exc:
-        refusal = {"ok": False, "error": str(exc), "row": exc.row, "column": exc.column}
-        print(json.dumps(refusal, indent=2))
-        print(f"comp-daemon data check: error: {exc}", file=sys.stderr)
-        return 2
+        return _refuse(str(exc), exc.row, exc.column)
+    if dataset.a_deg is not None and dataset.xyz_mm is not None:
+        units = millimetre_problem(robot, dataset.a_deg, dataset.xyz_mm)
+        if units is not None:  # the rule fit and diagnose refuse by
+            return _refuse(f"{dataset.source}: {units}", None, "x, y, z")
     summary: dict[str, Any] = {"ok": True, "robot": robot.name, "kind": args.kind, **dataset.summary()}
     if dataset.split is None and len(dataset) >= 2:
         choice = dataset.split_or_draw()
@@ -64,3 +68,9 @@ def _check(args: argparse.Namespace) -> int:
         }
     print(json.dumps(summary, indent=2))
     return 0
+
+
+def _refuse(error: str, row: int | None, column: str | None) -> int:
+    print(json.dumps({"ok": False, "error": error, "row": row, "column": column}, indent=2))
+    print(f"comp-daemon data check: error: {error}", file=sys.stderr)
+    return 2

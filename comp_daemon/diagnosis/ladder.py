@@ -84,7 +84,8 @@ from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
-from comp_daemon.models.registration import detect_frame, rigid_registration, scale_problem
+from comp_daemon.models.registration import detect_frame, rigid_registration
+from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -175,7 +176,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     mass = MassModel.from_robot(robot)
     nominal = KinematicParams.from_robot(robot)
     effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
-    scale = scale_problem(predict_mm(mass, nominal, effects0, obs), obs.xyz_mm)
+    scale = millimetre_problem(robot, obs.a_deg, obs.xyz_mm)
     if scale is not None:
         raise ValueError(f"{dataset.source}: {scale}")
     if len(fit_rows) < N_PARAMS:

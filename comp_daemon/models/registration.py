@@ -100,5 +100,5 @@ def scale_problem(p_nominal_base_mm: NDArray[np.float64], p_measured_mm: NDArray
     return (
         f"the measured x, y, z spread {ratio:.3g} times as far as the nominal TCP positions of the same "
         f"axis values ({measured:.4g} mm against {nominal:.4g} mm RMS about their centroids): they are "
-        f"not millimetres of this robot{hint}; the data set spec asks for positions in mm"
+        f"not millimetres of this robot{hint}; the campaign format (docs/data-format.md) asks for mm"
     )

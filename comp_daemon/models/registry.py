@@ -63,7 +63,8 @@ from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.poe_model import PoeErrorModel
 from comp_daemon.models.poe_twist import N_TWIST_PARAMS
-from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM, detect_frame, scale_problem
+from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM, detect_frame
+from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -436,7 +437,7 @@ def fit_spec(
     :class:`UndeterminedModelError` when a compliance has no masses and no payload to load the joints
     (:func:`undetermined_reason`; the row floor is the doors' to apply, on the data set), or when the
     measured positions are not millimetres of this robot
-    (:func:`comp_daemon.models.registration.scale_problem`)."""
+    (:func:`comp_daemon.models.units.millimetre_problem`, the rule ``data check`` applies too)."""
     kind = get_kind(spec.kind)
     for column in kind.needed_columns(spec):
         if getattr(rows, column) is None:
@@ -444,11 +445,11 @@ def fit_spec(
     reason = undetermined_reason(spec, robot, max_parameters(spec), rows.payload_kg)
     if reason is not None:
         raise UndeterminedModelError(reason)
-    nominal = KinematicParams.from_robot(robot)
-    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
-    scale = scale_problem(p_nominal, rows.xyz_mm)
+    scale = millimetre_problem(robot, rows.a_deg, rows.xyz_mm)
     if scale is not None:
         raise UndeterminedModelError(scale)
+    nominal = KinematicParams.from_robot(robot)
+    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
     poses = len(np.unique(rows.a_deg, axis=0))
     if poses < MIN_POSES and spec.kind != "nominal":
         raise UndeterminedModelError(

@@ -1,0 +1,29 @@
+"""Whether a campaign's measured positions can be millimetres of its robot: the one rule.
+
+``data check``, ``fit`` (every model kind) and ``diagnose`` all ask :func:`millimetre_problem`, so a
+file that one of them refuses for its units is refused by the others with the same sentence. The
+test itself (the spread of the measured points against the nominal TCP's at the same axis values)
+is :func:`comp_daemon.models.registration.scale_problem`.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from numpy.typing import NDArray
+
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
+from comp_daemon.models.registration import scale_problem
+from comp_daemon.robot.description import RobotDescription
+
+__all__ = ["millimetre_problem"]
+
+
+def millimetre_problem(
+    robot: RobotDescription, a_deg: NDArray[np.float64], xyz_mm: NDArray[np.float64]
+) -> str | None:
+    """A sentence when the measured ``xyz_mm`` (n, 3) at axis values ``a_deg`` (n, 6) cannot be
+    millimetres of ``robot`` (metres, centimetres, inches …), else None."""
+    nominal = KinematicParams.from_robot(robot)
+    p_nominal_mm = tcp_position_mm(nominal, axes_deg_to_q_rad(np.asarray(a_deg, dtype=float), nominal.sign))
+    return scale_problem(p_nominal_mm, np.asarray(xyz_mm, dtype=float))
