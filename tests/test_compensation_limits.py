@@ -251,10 +251,12 @@ def test_compensate_refuses_a_singular_target_by_row(
     program = np.vstack([_program(2, 9), SINGULAR])
     write_dataset(Dataset(a_deg=program), tmp_path / "program.csv")
     out = tmp_path / "out.csv"
-    assert main(["compensate", str(model_path), str(tmp_path / "program.csv"), "--out", str(out)]) == 2
+    # the other rows are compensated; the singular one is listed and the exit status says so
+    assert main(["compensate", str(model_path), str(tmp_path / "program.csv"), "--out", str(out)]) == 3
     err = capsys.readouterr().err
     assert "row 4: near wrist singularity: A5 = 0.0°" in err
-    assert not out.exists()
+    assert [int(r) for r in read_dataset(out, kind="targets").extra["target_row"]] == [2, 3]
+    out.unlink()
     # the limits are options of the command
     args = ["compensate", str(model_path), str(tmp_path / "program.csv"), "--out", str(out)]
     assert main([*args, "--wrist-singularity-deg", "0", "--max-axis-change-deg", "0.001"]) == 2

@@ -426,9 +426,9 @@ def test_an_unreachable_target_is_named_by_its_row(
     assert main(["fit", str(kr_campaign), "--robot", "kr210", "--model", "nominal", "--out", str(model)]) == 0
     targets = tmp_path / "t.csv"
     targets.write_text("tx,ty,tz\n1800,0,800\n9000,0,800\n1900,50,900\n")
-    assert main(["compensate", str(model), str(targets), "--out", str(tmp_path / "c.csv")]) == 2
+    assert main(["compensate", str(model), str(targets), "--out", str(tmp_path / "c.csv")]) == 3
     err = capsys.readouterr().err
-    assert "unreachable within joint limits: row 3 (left" in err and "target 2" not in err
+    assert "refused row 3: unreachable within joint limits (left" in err and "target 2" not in err
 
 
 def test_compliance_on_a_massless_robot_with_payloads_fits_and_says_what_it_sees(

@@ -5,17 +5,29 @@ whose predicted TCP (by the model) is the wanted one, and, where the model has o
 uncertainty of that prediction (``sigma_mm``, :meth:`ErrorModel.predict_std_mm`). Targets are
 ``a1..a6`` (the nominal program) or ``tx, ty, tz[, ta, tb, tc]`` (robot base frame). The options
 (:func:`compensation_options`) and :func:`compensate_targets` are shared with ``export targets``.
+
+A program of a thousand holes is not thrown away for one bad row: :func:`compensate_rows` compensates
+every row it can and lists each refused one (its row in the file, the column when one is at fault,
+what is wrong) on stderr and, with ``--refused``, in a CSV file. The output holds the compensated
+rows, each with its ``target_row`` in the target file. Exit status: 0 when every row was compensated,
+:data:`SOME_REFUSED` (3) when some were refused, 2 when none could be (or the file itself is refused:
+its header, a missing column, not CSV).
 """
 
 from __future__ import annotations
 
 import argparse
+import csv
+import io
+import sys
+from dataclasses import dataclass
 
 import numpy as np
 
 from comp_daemon.commands.errors import UserError
-from comp_daemon.commands.fit import read_data
-from comp_daemon.data.dataset import Dataset, write_dataset
+from comp_daemon.common.atomic import write_text_atomic
+from comp_daemon.data.dataset import Dataset, DatasetError, write_dataset
+from comp_daemon.data.rowwise import RowRefusal, read_rows
 from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
 from comp_daemon.models.artifact import ModelArtifactError, load_model
 from comp_daemon.models.base import ErrorModel, uses_approach_directions
@@ -31,7 +43,17 @@ from comp_daemon.models.compensation import (
 )
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, load_robot
 
-__all__ = ["compensate_targets", "compensation_options", "register"]
+__all__ = [
+    "SOME_REFUSED",
+    "CompensatedRows",
+    "compensate_rows",
+    "compensate_targets",
+    "compensation_options",
+    "register",
+]
+
+#: exit status when some rows were compensated and others refused (0: all; 2: none, or a bad file)
+SOME_REFUSED = 3
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -44,6 +66,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     comp.add_argument("--out", required=True, metavar="CORRECTED.csv", help="data set of compensated targets")
     comp.add_argument("--robot", default=None, help="refuse the model unless it belongs to this robot")
+    comp.add_argument(
+        "--refused",
+        default=None,
+        metavar="REFUSED.csv",
+        help="also write the refused rows here (row, column, reason); they are always listed on stderr",
+    )
     compensation_options(comp)
     comp.set_defaults(func=_compensate)
 
@@ -90,9 +118,16 @@ def _compensate(args: argparse.Namespace) -> int:
     except ModelArtifactError as exc:
         raise UserError(str(exc)) from None
     model = loaded.model
-    targets = read_data(args.targets, model.robot, 0, "targets")
+    done = compensate_rows(model, args.targets, args)
+    if args.refused is not None:
+        _write_refusals(args.refused, done.refused)
+    for refusal in done.refused:
+        print(f"{args.targets}: refused {refusal}", file=sys.stderr)
+    if done.targets is None:
+        raise UserError(f"{args.targets}: no target could be compensated ({len(done.refused)} refused)")
+    targets, result, limits = done.targets, done.result, done.limits
+    assert result is not None and limits is not None
     n = len(targets)
-    wanted, result, limits = compensate_targets(model, targets, args)
     dir_ = None if targets.dir is None else targets.dir.astype(float)
     if dir_ is None and uses_approach_directions(model):
         print(
@@ -100,6 +135,7 @@ def _compensate(args: argparse.Namespace) -> int:
             "directions unknown); give the direction each axis will approach its target from"
         )
     extra = dict(targets.extra)
+    extra["target_row"] = tuple(str(int(r)) for r in targets.row_numbers)
     for k in range(6):
         extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
     extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
@@ -113,7 +149,7 @@ def _compensate(args: argparse.Namespace) -> int:
         payload_kg=targets.payload_kg,
         temp_c=targets.temp_c,
         pose_id=targets.pose_id,
-        target_xyz_mm=wanted,
+        target_xyz_mm=done.wanted,
         target_abc_deg=targets.target_abc_deg,
         extra=extra,
         source=args.out,
@@ -131,14 +167,133 @@ def _compensate(args: argparse.Namespace) -> int:
         if result.region_deg is not None
         else f"the {model.kind} model has no sampled region to keep to"
     )
+    refused = f"; {len(done.refused)} refused (listed on stderr)" if done.refused else ""
     print(
         f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
         f"in {result.iterations} iterations "
         f"(max predicted error {result.residual_mm.max():.2e} mm, "
         f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
-        f"{outside} -> {args.out}"
+        f"{outside}{refused} -> {args.out}"
     )
-    return 0
+    return SOME_REFUSED if done.refused else 0
+
+
+@dataclass(frozen=True)
+class CompensatedRows:
+    """A target file's compensated rows and its refused ones (reading and compensation), by row.
+
+    ``targets`` holds the compensated rows only (``row_numbers`` those of the file), ``wanted`` their
+    wanted TCPs (robot base frame) and ``result`` their compensation; all three are None when no row
+    could be compensated.
+    """
+
+    targets: Dataset | None
+    wanted: np.ndarray | None
+    result: CompensationResult | None
+    limits: CompensationLimits | None
+    refused: tuple[RowRefusal, ...]
+
+
+def compensate_rows(model: ErrorModel, path: str, args: argparse.Namespace) -> CompensatedRows:
+    """Read the target file at ``path`` row by row (:func:`comp_daemon.data.rowwise.read_rows`) and
+    compensate every row the reader accepts, with the options of :func:`compensation_options`.
+
+    A row the reader refuses, an unreachable one, one the limits refuse and one whose compensation
+    does not converge within ``--tol-mm`` are set aside with the reason; the others are compensated
+    (each target's compensation is independent of the others'). A fault that is not one row's (the
+    header, a missing column) refuses the file: :class:`UserError`.
+    """
+    try:
+        read = read_rows(path, limits_deg=model.robot.axis_limits_deg, kind="targets")
+    except DatasetError as exc:
+        raise UserError(str(exc)) from None
+    limits = _limits(args)
+    refused = {r.row: r for r in read.refused}
+    if read.dataset is None:
+        return CompensatedRows(None, None, None, None, read.refused)
+    targets = read.dataset
+    wanted, rot, seed = _wanted(model, targets)
+    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    keep = np.arange(len(targets))
+    while keep.size:
+        try:
+            result = compensate(
+                model,
+                wanted[keep],
+                _take(rot, keep),
+                a_seed_deg=_take(seed, keep),
+                dir=_take(dir_, keep),
+                payload_kg=_take(targets.payload_kg, keep),
+                temp_c=_take(targets.temp_c, keep),
+                tol_mm=args.tol_mm,
+                limits=limits,
+                mapping=args.mapping,
+            )
+        except UnreachableTargetError as exc:
+            out = {
+                int(i): f"unreachable within joint limits (left {e:.3f} mm)"
+                for i, e in zip(exc.indices, exc.position_error_mm, strict=True)
+            }
+        except CompensationRefused as exc:
+            out = {r.index: r.reason for r in exc.refusals}
+        else:
+            out = {}
+            if not result.converged:
+                out = {
+                    int(i): f"compensation did not converge ({result.residual_mm[i]:.3g} mm left after "
+                    f"{result.iterations} iterations; --tol-mm {args.tol_mm:g})"
+                    for i in np.flatnonzero(result.residual_mm > args.tol_mm)
+                }
+            if not out:
+                done = targets.subset(keep)
+                return CompensatedRows(done, wanted[keep], result, limits, _by_row(refused))
+        for i, reason in out.items():
+            row = int(targets.row_numbers[keep[i]])
+            refused[row] = RowRefusal(row, None, reason, read.row_label)
+        keep = np.delete(keep, sorted(out))
+    return CompensatedRows(None, None, None, None, _by_row(refused))
+
+
+def _take(a: np.ndarray | None, keep: np.ndarray) -> np.ndarray | None:
+    return None if a is None else np.asarray(a)[keep]
+
+
+def _by_row(refused: dict[int, RowRefusal]) -> tuple[RowRefusal, ...]:
+    return tuple(refused[row] for row in sorted(refused))
+
+
+def _write_refusals(path: str, refused: tuple[RowRefusal, ...]) -> None:
+    """The refused rows as CSV: ``row, column, reason`` (column empty when the row as a whole is)."""
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, lineterminator="\n")
+    writer.writerow(("row", "column", "reason"))
+    writer.writerows((r.row, r.column or "", r.problem) for r in refused)
+    write_text_atomic(path, buffer.getvalue())
+
+
+def _limits(args: argparse.Namespace) -> CompensationLimits:
+    try:
+        return CompensationLimits(args.max_axis_change_deg, args.wrist_singularity_deg, args.hull_margin_deg)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def _wanted(model: ErrorModel, targets: Dataset) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """The wanted TCPs (n, 3), orientations (n, 3, 3) or None, and the inverse kinematics' seeds
+    (n, 6) of a target file's rows: ``tx, ty, tz[, ta, tb, tc]``, or ``a1..a6`` (nominal program)."""
+    n = len(targets)
+    if targets.target_xyz_mm is not None:
+        wanted = np.asarray(targets.target_xyz_mm)
+        rot = None
+        if targets.target_abc_deg is not None:
+            rot = rotation_kuka_abc_deg(targets.target_abc_deg) @ FLANGE_R_KUKA_TOOL.T
+        seed = targets.a_deg
+        if seed is None:
+            seed = np.broadcast_to(model.robot.axis_limits_deg.mean(axis=1), (n, 6))
+        return wanted, rot, np.asarray(seed)
+    assert targets.a_deg is not None
+    wanted, rot = nominal_targets(model, targets.a_deg)
+    return wanted, rot, targets.a_deg
 
 
 def compensate_targets(
@@ -148,27 +303,10 @@ def compensate_targets(
     (``a1..a6`` nominal program, or ``tx, ty, tz[, ta, tb, tc]``) by :func:`compensate`, with the
     options of :func:`compensation_options`; refusals, unreachable and unconverged targets as
     :class:`UserError` naming the rows."""
-    n = len(targets)
-    if n == 0:
+    if len(targets) == 0:
         raise UserError(f"{targets.source}: no targets")
-    if targets.target_xyz_mm is not None:
-        wanted = np.asarray(targets.target_xyz_mm)
-        rot = None
-        if targets.target_abc_deg is not None:
-            rot = rotation_kuka_abc_deg(targets.target_abc_deg) @ FLANGE_R_KUKA_TOOL.T
-        seed = targets.a_deg
-        if seed is None:
-            seed = np.broadcast_to(model.robot.axis_limits_deg.mean(axis=1), (n, 6))
-    else:
-        assert targets.a_deg is not None
-        wanted, rot = nominal_targets(model, targets.a_deg)
-        seed = targets.a_deg
-    try:
-        limits = CompensationLimits(
-            args.max_axis_change_deg, args.wrist_singularity_deg, args.hull_margin_deg
-        )
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
+    wanted, rot, seed = _wanted(model, targets)
+    limits = _limits(args)
     dir_ = None if targets.dir is None else targets.dir.astype(float)
     try:
         result = compensate(
