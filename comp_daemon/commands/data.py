@@ -28,7 +28,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "check",
         help="validate a data set (CSV, or JSON records if FILE ends in .json) and print a JSON summary",
     )
-    check.add_argument("file", metavar="FILE", help="data set file (CSV per the data set spec, or .json)")
+    check.add_argument("file", metavar="FILE", help="data set file (CSV per docs/data-format.md, or .json)")
     check.add_argument(
         "--robot", required=True, help=f"preset ({', '.join(PRESETS)}) or path to a TOML file (axis limits)"
     )

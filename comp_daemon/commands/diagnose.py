@@ -1,7 +1,7 @@
 """``comp-daemon diagnose DATA --robot ROBOT [--json OUT.json] [--report OUT.html]``: the gap diagnosis.
 
 Reads a measurement data set (CSV, or JSON records when the file name ends in ``.json``), runs the
-diagnosis of ``shared/spec/diagnose.md`` against the robot's nominal twin, and writes the JSON
+diagnosis of ``docs/diagnosis-output.md`` against the robot's nominal twin, and writes the JSON
 document (to ``--json``, else to stdout) and, with ``--report``, the self-contained HTML report.
 Outputs are written only when the whole diagnosis succeeded, each through a temporary file that is
 renamed into place. On a terminal, stderr shows a spinner with the elapsed time while it runs
@@ -37,7 +37,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         f"({', '.join(EFFECTS)}), chosen on fit rows by cross-validation and judged on check rows.",
     )
     p.add_argument(
-        "data", metavar="DATA", help="measurement data set (CSV per the data set spec, or .json records)"
+        "data", metavar="DATA", help="measurement data set (CSV per docs/data-format.md, or .json records)"
     )
     p.add_argument("--robot", required=True, help=f"preset ({', '.join(PRESETS)}) or path to a TOML file")
     p.add_argument(

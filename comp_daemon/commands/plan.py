@@ -1,7 +1,7 @@
 """``comp-daemon plan ballbar``: the poses of a ballbar campaign (seed 002, spec A.5–A.6).
 
 Writes the plan as a ballbar campaign without ``bar_mm`` (``a1..a6``, ``pose_id``, ``cx, cy, cz``,
-``arc``: ``shared/spec/seeds-002-003.md``, "Data forms"): ``--arcs k`` circular arcs through three
+``arc``: ``docs/data-format.md``, "Ballbar and cross-bar campaigns"): ``--arcs k`` circular arcs through three
 points on the pivot sphere, sampled every ``--step`` degrees, the flange at one orientation per
 arc, axis values by the nominal inverse kinematics. The instrument fills in ``bar_mm``.
 

@@ -1,6 +1,6 @@
 """Target compensation by the store's active model, for the executor (runs in a worker thread).
 
-A target request (a row of a target file, ``shared/spec/dataset.md``) gives either the axis values
+A target request (a row of a target file, ``docs/data-format.md``) gives either the axis values
 ``a1..a6`` of the nominal program (deg) or the wanted TCP ``tx, ty, tz`` (mm, robot base frame) with
 an optional orientation ``ta, tb, tc`` (deg, KUKA A, B, C of the tool frame), and optionally
 ``payload_kg``. The wanted TCP of an axis-value request is its nominal forward kinematics.

@@ -1,4 +1,4 @@
-"""Ballbar campaigns (``kind = ballbar``, ``shared/spec/seeds-002-003.md``, "Data forms").
+"""Ballbar campaigns (``kind = ballbar``, ``docs/data-format.md``, "Ballbar and cross-bar campaigns").
 
 Columns (free order, unknown columns kept, names lower case):
 

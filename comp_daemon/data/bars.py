@@ -1,5 +1,5 @@
-"""Common ground of the ballbar and cross-bar campaign readers (``shared/spec/seeds-002-003.md``,
-"Data forms"): the table is read by the data set reader (:mod:`comp_daemon.data.readers`, with
+"""Common ground of the ballbar and cross-bar campaign readers (``docs/data-format.md``, "Ballbar
+and cross-bar campaigns"): the table is read by the data set reader (:mod:`comp_daemon.data.readers`, with
 ``kind="any"``: its header, cell, axis-limit, ``split``, ``repeat`` and ``pose_id`` rules), and the
 campaign's own columns, which that reader keeps as unknown text columns, are parsed here with the
 same cell rules (:mod:`comp_daemon.data.cells`) and the same errors naming row and column.

@@ -1,4 +1,4 @@
-"""Column names of the measurement data set (``shared/spec/dataset.md``) and the error a reader raises.
+"""Column names of the measurement data set (``docs/data-format.md``) and the error a reader raises.
 
 Column names are case-sensitive and lower case, exactly as the spec writes them; surrounding
 whitespace in a header cell is ignored. Further targets (reflectors) on the flange have the

@@ -1,4 +1,4 @@
-"""Cross-bar campaigns (``kind = crossbar``, ``shared/spec/seeds-002-003.md``, "Data forms").
+"""Cross-bar campaigns (``kind = crossbar``, ``docs/data-format.md``, "Ballbar and cross-bar campaigns").
 
 Columns (free order, unknown columns kept, names lower case):
 

@@ -1,4 +1,4 @@
-"""The measurement data set (``shared/spec/dataset.md``): one import for the type, readers and writer.
+"""The measurement data set (``docs/data-format.md``): one import for the type, readers and writer.
 
 The :class:`Dataset` and its writer live in :mod:`comp_daemon.data.table` (units and equality are
 described there); the CSV and JSON readers and their refusal rules in

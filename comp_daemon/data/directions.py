@@ -1,7 +1,7 @@
 """Approach directions from the pose order, for campaigns that record only axis values.
 
 Backlash makes a joint stop on one flank or the other depending on the sign of its last motion
-(the ``dir`` columns of shared/spec/dataset.md). Most real campaigns do not record it, but the rows
+(the ``dir`` columns of docs/data-format.md). Most real campaigns do not record it, but the rows
 are in the order the robot visited them, so each axis' last motion before row ``i`` is the last
 non-zero change of that axis up to row ``i``. An axis that has not moved since the first row has
 no known approach: its direction is taken as +1 and counted as assumed, so a caller can say so or

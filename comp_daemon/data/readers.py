@@ -1,4 +1,4 @@
-"""Readers of the data set format (``shared/spec/dataset.md``): CSV files and JSON records.
+"""Readers of the data set format (``docs/data-format.md``): CSV files and JSON records.
 
 Both build a table of text cells and leave the checks to :func:`comp_daemon.data.cells.build_dataset`.
 Every reader refuses its input as a whole with a :class:`~comp_daemon.data.columns.DatasetError`

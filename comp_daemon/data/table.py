@@ -1,4 +1,4 @@
-"""The :class:`Dataset` of ``shared/spec/dataset.md`` and its canonical CSV form (the writer).
+"""The :class:`Dataset` of ``docs/data-format.md`` and its canonical CSV form (the writer).
 
 Units are those of the spec and are carried in the field names: axis values ``a_deg`` (controller
 convention, KUKA A1..A6, degrees), measured TCP ``xyz_mm`` (mm), grating readings ``g_deg`` (deg),

@@ -1,4 +1,4 @@
-"""Sim-to-real gap diagnosis (``shared/spec/diagnose.md``): the ladder, effect selection, where, report.
+"""Sim-to-real gap diagnosis (``docs/diagnosis-output.md``): the ladder, effect selection, where, report.
 
 Modules, lowest first: ``fitting`` and ``stats`` (the numerics), ``result`` (options, steps and the
 document), ``candidates`` (the effect catalogue as selection candidates), ``selection``, ``where``,

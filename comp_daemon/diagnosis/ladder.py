@@ -1,4 +1,4 @@
-"""The sim-to-real gap diagnosis of ``shared/spec/diagnose.md``: the ladder from the nominal twin.
+"""The sim-to-real gap diagnosis of ``docs/diagnosis-output.md``: the ladder from the nominal twin.
 
 Units: mm for positions and errors, deg for axis values, the effect parameters in the units of
 :mod:`comp_daemon.models.effects`. Joints are numbered 1..6 in every output. Errors are

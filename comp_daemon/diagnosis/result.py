@@ -1,4 +1,4 @@
-"""The result of a diagnosis: its settings, the rungs of the ladder and the document of diagnose.md.
+"""A diagnosis: its settings, the rungs of the ladder and its document (docs/diagnosis-output.md).
 
 Units: mm for positions and errors, the effect parameters in the units of the effect catalogue
 (:mod:`comp_daemon.models.effects`). Joints are numbered 1..6 in every output.
@@ -135,7 +135,7 @@ def final_step(steps: Sequence[Step]) -> Step:
 
 @dataclass(frozen=True)
 class Diagnosis:
-    """The result: ``to_json()`` is the document of diagnose.md; the arrays feed the report."""
+    """The result: ``to_json()`` is the document of docs/diagnosis-output.md; the arrays feed the report."""
 
     robot: RobotDescription
     dataset: Dataset

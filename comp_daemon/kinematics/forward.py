@@ -161,7 +161,7 @@ def gravity_torques_nm(
     """(n, 6) static gravity torques (N m) about each joint axis z_{i-1}, in DH sign.
 
     The torque that gravity exerts on the links beyond the joint (the motor holds the opposite);
-    this is the sign of ``shared/spec/kr210_fk_vectors.csv``.
+    this is the sign of ``tests/spec/kr210_fk_vectors.csv``.
 
     Gravity is −z of the robot base frame (frame 0). Link i's mass sits at ``link_com_mm[i]`` in
     frame i; the payload (scalar or per pose, kg) sits at the TCP.

@@ -407,7 +407,7 @@ def undetermined_reason(
     naming the model; None when they can.
 
     - fewer rows than the model has parameters before the identifiability analysis
-      (:func:`max_parameters`, the data set spec's floor);
+      (:func:`max_parameters`, the campaign format's floor);
     - a compliance (``compliance``, ``+compliance``) on a robot description without link masses
       and rows without a payload: no torque loads the joints, so C2, C3 would be fitted on nothing.
     """

@@ -1,4 +1,4 @@
-"""Robot descriptions: the TOML form of ``shared/spec/kr210_r2700_extra.toml``, loaded and validated.
+"""Robot descriptions: the TOML form of ``docs/robot-description.md``, loaded and validated.
 
 A description is read once, at the edge, and turned into arrays for the numerics one layer up
 (``comp_daemon.kinematics.params.KinematicParams.from_robot``; this package imports no kinematics).

@@ -1,6 +1,6 @@
 """BiSS-C frames and the grating converter's line protocol, without I/O.
 
-Conventions (see ``shared/spec/encoder-link.md``):
+Conventions (the converters' use in the cell: ``docs/daemon.md``, "Grating calibration"):
 
 - A BiSS-C frame as the converter reports it: position (26 or 32 bits, MSB first), nE, nW, CRC6,
   left-aligned in 64 bits and written as 16 hex digits. nE and nW are active low (1 = no error /

@@ -1,6 +1,6 @@
 """KUKA RSI (Ethernet) telegram codec, without I/O.
 
-Conventions (see ``shared/spec/rsi.md``):
+Conventions (the loop that uses them: ``docs/daemon.md``, "The loop, per telegram"):
 
 - Robot → daemon: one ``<Rob …>`` telegram per UDP datagram. ``AIPos``/``ASPos`` are axis values in
   degrees (``A1``..``A6``), ``RIst``/``RSol`` Cartesian poses (``X``, ``Y``, ``Z`` in mm; ``A``, ``B``,

@@ -246,7 +246,7 @@ def run_diagnosis(
     *,
     progress: Progress,
 ) -> dict[str, Any]:
-    """The diagnosis of ``shared/spec/diagnose.md`` on the data set: JSON report and HTML report.
+    """The diagnosis of ``docs/diagnosis-output.md`` on the data set: JSON report and HTML report.
 
     ``tracker_sigma_mm`` is the tracker uncertainty the engineer declares (σ per axis, mm): the
     noise floor when the data have no repeated poses.

@@ -245,7 +245,7 @@ _FORMS = ((_AXES, "axis values need"), (_TCP, "a TCP needs"), (_ABC, "an orienta
 class TargetIn(BaseModel):
     """One drilling point in exactly one form: axis values ``a1..a6`` (deg), or the wanted TCP
     ``tx, ty, tz`` (mm, robot base frame) with optional orientation ``ta, tb, tc`` (deg, KUKA A, B,
-    C), as in a target file of the data set spec. Values are JSON numbers (``true`` or ``"20"`` are
+    C), as in a target file (docs/data-format.md). Values are JSON numbers (``true`` or ``"20"`` are
     refused, not converted). Whether the robot reaches the point is checked when the batch is posted."""
 
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=True)

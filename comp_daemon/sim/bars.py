@@ -13,7 +13,7 @@ socket: the axis values that put the hidden robot's TCP on the socket centre plu
 (σ per axis), found on its geometry and then corrected once for what the plant adds (backlash,
 joint repeatability), read back as the controller shows them.
 
-Both write their form (``shared/spec/seeds-002-003.md``, "Data forms"), with a ``split`` of whole
+Both write their form (``docs/data-format.md``, "Ballbar and cross-bar campaigns"), with a ``split`` of whole
 arcs or placements when ``check`` asks for some.
 """
 

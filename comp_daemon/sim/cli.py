@@ -2,7 +2,7 @@
 
 The command line (:mod:`comp_daemon.cli`) imports this module only when the ``sim`` command runs.
 
-``sim sample`` writes a data set (``shared/spec/dataset.md``) measured on a scenario's hidden robot;
+``sim sample`` writes a data set (``docs/data-format.md``) measured on a scenario's hidden robot;
 ``sim report`` measures the scenario's raw error figures (nominal twin vs tracker, robot base
 frame) and its ISO 9283 multi-directional pose accuracy variation against the pose repeatability.
 """

@@ -1,4 +1,4 @@
-"""Simulated BiSS-C-to-USB converters on pseudo-terminals (``shared/spec/encoder-link.md``).
+"""Simulated BiSS-C-to-USB converters on pseudo-terminals (the line protocol of :mod:`comp_daemon.rt.biss`).
 
 Each :class:`SimulatedConverter` owns a pty pair (``os.openpty``, raw mode) and answers the
 converter line protocol on the master side; the daemon opens the slave side as its serial port,

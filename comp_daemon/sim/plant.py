@@ -16,7 +16,7 @@ physics). Axis values are in the controller's convention (deg, KUKA A1..A6). Per
 * **Play** (backlash, half-width ``|h|``): a play operator ``b ← clip(b − Δmotor, −|h|, |h|)`` with
   the output at ``motor + b``: inside the play the output stands still while the motor turns, and
   after a motion longer than the play the output trails the motor, ``b = −|h|·dir``. In the twin's
-  terms (:mod:`comp_daemon.models.effects`, diagnose.md: the axis sits at ``A + h·dir``) this is
+  terms (:mod:`comp_daemon.models.effects`, docs/diagnosis-output.md: the axis sits at ``A + h·dir``) this is
   ``h = −|h|``: a play always lags. A short reversal leaves the output in between.
 * **Repeatability**: every motion draws a fresh joint offset (σ ``joint_repeatability_deg``) that
   the output keeps until the next motion.
@@ -111,7 +111,7 @@ class TrapezoidProfile:
 
 
 class RobotPlant:
-    """A hidden robot with every effect of diagnose.md, moved in explicit time steps.
+    """A hidden robot with every effect of docs/diagnosis-output.md, moved in explicit time steps.
 
     Build one from a scenario with :meth:`from_scenario`, or from parts (tests: nominal parameters
     and :class:`EffectParams` zeros give a plant that is the nominal forward kinematics).

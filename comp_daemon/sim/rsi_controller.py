@@ -1,4 +1,4 @@
-"""A simulated KUKA robot controller speaking RSI over UDP (``shared/spec/rsi.md``).
+"""A simulated KUKA robot controller speaking RSI over UDP (the exchange of :mod:`comp_daemon.rt.rsi_codec`).
 
 The controller is the UDP client. Its interpolation cycle (``cycle_ms``: 12 with ``#IPO``, 4 with
 ``#IPO_FAST``) runs on an absolute schedule (``loop.call_at(t0 + k·cycle)``; a late wake-up skips

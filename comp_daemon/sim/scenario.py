@@ -11,7 +11,7 @@ sampled and the noise. Units are in the field names (mm, deg, kg, °C, s, N m). 
                  base_deg, tool_mm;  [geometric.values] sets any PARAM_NAMES entry exactly
                  (rad / mm, as in comp_daemon.kinematics.params)
     [effects]    backlash_deg (6), ratio (6), cyclic_sin_deg / cyclic_cos_deg (6 × K),
-                 compliance_rad_per_nm (6), thermal_per_k, t_ref_c   (diagnose.md definitions);
+                 compliance_rad_per_nm (6), thermal_per_k, t_ref_c   (docs/diagnosis-output.md definitions);
                  drift_mm_per_h (3), drift_mm_per_h2 (3): the TCP drifts by v·t + w·t² (t: plant
                  time in h, robot base frame), step_deg (6), step_at_s: each joint's zero changes
                  by step_deg from plant time step_at_s on (the catalogue's drift and step; no data

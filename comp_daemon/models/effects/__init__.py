@@ -1,4 +1,4 @@
-"""Non-geometric effects of the twin (``shared/spec/diagnose.md``): catalogue, sizes, TCP and Jacobians.
+"""Non-geometric effects of the twin (``docs/diagnosis-output.md``): catalogue, sizes, TCP and Jacobians.
 
 One batch numerics package shared by the simulated plant, the calibration core and the diagnosis.
 

@@ -5,7 +5,7 @@ The parameter store (:class:`~comp_daemon.models.effects.params.EffectParams`), 
 Jacobians (:mod:`comp_daemon.models.effects.twin`), the diagnosis's candidates, data checks and
 fitted-value JSON, and the report's drivers and advice all iterate :data:`EFFECT_CATALOGUE`;
 none of them names an effect. The order of the catalogue is the order of the vocabulary of
-``shared/spec/diagnose.md`` (and of the diagnosis's candidates and skip list).
+``docs/diagnosis-output.md`` (and of the diagnosis's candidates and skip list).
 
 The effects, for pose r and joint i (1..6), with the controller's axis value ``A_i`` (deg), the
 approach direction ``dir_i`` (−1 / +1, 0 = unknown), the payload (kg), the temperature
@@ -21,7 +21,7 @@ has no times), composed by stage (:mod:`comp_daemon.models.effects.twin`)::
     TCP     = forward kinematics of theta with the grown a, d (base frame and tool unchanged)
               + (vx, vy, vz)·t + (wx, wy, wz)·t²                   (drift, measurement frame)
 
-``drift`` and ``step`` extend the vocabulary of ``shared/spec/diagnose.md``: effects that real
+``drift`` and ``step`` extend the vocabulary of ``docs/diagnosis-output.md``: effects that real
 campaigns show and that no column names (thermal growth without a temperature sensor, a base or
 tracker settling; a joint re-mastered or knocked mid-campaign). ``step_at`` (a setting, in clock
 units) is the moment of the step; the diagnosis searches it on the fit rows.
@@ -455,7 +455,7 @@ STEP = Effect(
 
 # ------------------------------------------------------------------------------------ catalogue
 EFFECT_CATALOGUE: tuple[Effect, ...] = (BACKLASH, RATIO, CYCLIC, COMPLIANCE, THERMAL, DRIFT, STEP)
-#: the effect names (the vocabulary of diagnose.md), in catalogue order
+#: the effect names (the vocabulary of docs/diagnosis-output.md), in catalogue order
 EFFECTS: tuple[str, ...] = tuple(e.name for e in EFFECT_CATALOGUE)
 _BY_NAME = {e.name: e for e in EFFECT_CATALOGUE}
 

@@ -244,7 +244,7 @@ def _element(value: Any, ref: ParamRef) -> float:
 def effect_param_names(
     effects: str | Sequence[str], joints: Sequence[int] = (1, 2, 3, 4, 5, 6), n_harmonics: int = 0
 ) -> list[str]:
-    """Parameter names of the given effect(s) (diagnose.md vocabulary) on the given joints (1-based).
+    """Parameter names of the given effect(s) (docs/diagnosis-output.md) on the given joints (1-based).
 
     A scalar parameter (``kappa`` of ``thermal``) has one name whatever the joints; an effect with
     several arrays gives, per joint, each array's names in turn (``cyclic``: ``c{j}_{k}`` then

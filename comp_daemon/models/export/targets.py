@@ -5,7 +5,7 @@ robot is to be moved to) and the nominal Cartesian target (the TCP position in t
 frame, mm, and the flange's orientation there — the one asked for, or where none was, that of the
 nominal solution). The KRL and RAPID lists are in :mod:`~comp_daemon.models.export.krl` and
 :mod:`~comp_daemon.models.export.rapid`; the CSV one is here (:func:`format_csv_targets` /
-:func:`parse_csv_targets`): the columns of the data set spec's target files, ``pose_id, a1..a6,
+:func:`parse_csv_targets`): the columns of a target file (``docs/data-format.md``), ``pose_id, a1..a6,
 tx, ty, tz, ta, tb, tc`` (``ta, tb, tc``: KUKA A, B, C of the tool frame, deg), so that comp-daemon
 reads it back as a target file too. Numbers are the shortest decimal that reads back to the same
 double.

@@ -1,4 +1,4 @@
-"""Diagnoses of the sim-to-real gap (``shared/spec/diagnose.md``): start one, fetch its reports.
+"""Diagnoses of the sim-to-real gap (``docs/diagnosis-output.md``): start one, fetch its reports.
 
 A diagnosis is a job of kind ``diagnosis``; its JSON report is the document of the spec, its HTML
 report the pictures. Both are kept with the job.
@@ -84,7 +84,9 @@ async def _finished(svc: ServiceState, job_id: int) -> JobRecord:
     return job
 
 
-@router.get("/diagnoses/{job_id}", summary="The JSON report (diagnose.md)", responses=_REPORT_ERRORS)
+@router.get(
+    "/diagnoses/{job_id}", summary="The JSON report (docs/diagnosis-output.md)", responses=_REPORT_ERRORS
+)
 async def get_report(job_id: JobId, svc: State, who: Viewer) -> dict[str, Any]:
     job = await _finished(svc, job_id)
     assert job.result is not None

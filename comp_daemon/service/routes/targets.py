@@ -5,7 +5,7 @@ the batch (201); the same key with the same body returns that batch (200) withou
 anything again; the same key with another body is refused (409). Bodies are compared after
 validation (same targets, same values: same body, whatever the spacing or key order).
 
-Each target is validated like a row of a target file (``shared/spec/dataset.md``), in exactly one
+Each target is validated like a row of a target file (``docs/data-format.md``), in exactly one
 form (axis values ``a1..a6`` within the robot's limits, or a wanted TCP ``tx, ty, tz`` with an
 optional orientation), JSON numbers only. Then the robot must reach it: a TCP may not lie inside
 the robot's base and needs a nominal inverse-kinematics solution inside the axis limits, and a
