@@ -62,19 +62,8 @@ def test_the_diagnosis_example_is_the_example_campaigns_with_the_documented_fiel
     assert doc["robot"] == KR.name and doc["robot_sha256"] == KR.sha256
     assert doc["rows"]["fit"] + doc["rows"]["check"] == len(campaign)
     assert doc["baseline"]["effect"] == "nominal"
-    before = doc["baseline"]["check_rms_mm"]
-    for step in doc["steps"]:
-        assert {
-            "effect",
-            "joints",
-            "significant",
-            "check_rms_mm",
-            "check_max_mm",
-            "shrink_pct",
-            "params",
-        } <= set(step)
-        assert step["shrink_pct"] == pytest.approx(100 * (1 - step["check_rms_mm"] / before), abs=0.01)
-        before = step["check_rms_mm"] if step["significant"] else before
+    step_fields = {"effect", "joints", "significant", "check_rms_mm", "check_max_mm", "shrink_pct", "params"}
+    assert all(step_fields <= set(step) for step in doc["steps"])
     significant = [s["effect"] for s in doc["steps"] if s["significant"] and s["effect"] != "geometric"]
     assert doc["unmodelled"] == significant
     assert doc["noise_floor_source"] in ("repeats", "targets", "declared", None)
