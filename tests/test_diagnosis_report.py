@@ -88,6 +88,40 @@ def test_report_is_self_contained_and_draws_every_section(campaign) -> None:
     assert diag.where["summary"][:60].replace("'", "&#x27;") in page
 
 
+def test_fitted_values_and_rounds_are_tables_and_the_page_prints(campaign) -> None:
+    diag = diagnose(campaign.dataset, campaign.robot)
+    page = render_report_html(diag)
+    text = re.sub(r"<svg.*?</svg>", "", page, flags=re.S)
+    assert '{"' not in text and "<code>{" not in text  # no raw JSON left
+    values = re.findall(r"<h3 id=values-(\d+)>.*?</h3><table class=values>(.*?)</table>", page, re.S)
+    assert [int(k) for k, _ in values] == list(range(1, len(diag.steps) + 1))
+    header = "<th class=l>parameter</th><th class=l>meaning</th><th class=l>joint / axis</th>"
+    assert all(header in body and "<th>σ</th>" in body for _, body in values)
+    backlash = next(body for k, body in values if diag.steps[int(k) - 1].effect == "backlash")
+    assert "<code>h2</code>" in backlash and "<td class=l>joint 2</td><td class=l>deg</td>" in backlash
+    sigmas = [
+        float(v)
+        for v in re.findall(r"<td>(-?[\d.e+-]+)</td><td>([\d.e+-]+)</td><td>[\d.]+</td>", backlash)[0]
+    ]
+    assert sigmas[1] > 0 and abs(sigmas[0]) / sigmas[1] > 3  # the backlash put in is well determined
+    geometric = values[0][1]
+    assert "link length a" in geometric and "base frame rotation" in geometric
+    rounds = re.search(r"<table class=rounds>(.*?)</table>", page, re.S)
+    assert rounds is not None and rounds.group(1).count("<tr>") > len(diag.selection)
+    accepted = [r["accepted"] for r in diag.selection if r.get("accepted")]
+    assert all(f"accepted {a}" in rounds.group(1) for a in accepted)
+    assert "@media print" in page and "@page" in page and "break-inside:avoid" in page
+
+
+def test_the_ladders_log_axis_reads_as_plain_numbers(campaign) -> None:
+    page = render_report_html(diagnose(campaign.dataset, campaign.robot))
+    ladder = re.search(r'<figure class=plot id="plot-ladder">(.*?)</figure>', page, re.S)
+    assert ladder is not None
+    ticks = re.findall(r">(\d+(?:\.\d+)?)</text>", ladder.group(1))
+    assert {"0.1", "0.2", "0.5"} & set(ticks), ticks
+    assert "×" not in ladder.group(1) and "10^" not in ladder.group(1) and "−1" not in ladder.group(1)
+
+
 def test_cli_writes_json_and_report(tmp_path: Path, campaign, capsys) -> None:
     data = tmp_path / "campaign.csv"
     write_dataset(campaign.dataset, data)

@@ -238,7 +238,8 @@ def test_data_check_refuses_metres_by_the_rule_fit_and_diagnose_apply(
         assert refusal["ok"] is False and refusal["column"] == "x, y, z"
         assert f"not millimetres of this robot (in {unit}?)" in refusal["error"]
         sentence = refusal["error"].split(": ", 1)[1]
-        assert main(["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(tmp_path / "m")]) == 2
+        fit = ["fit", str(data), "--robot", "kr210", "--model", "nominal", "--out", str(tmp_path / "m")]
+        assert main(fit) == 2
         assert sentence in capsys.readouterr().err
         assert main(["diagnose", str(data), "--robot", "kr210"]) == 2
         assert sentence in capsys.readouterr().err

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from comp_daemon.trial.report import render_html
-from comp_daemon.trial.report_data import figure_rows, table_rows
+from comp_daemon.trial.report_data import table_rows
 from comp_daemon.trial.result import TrialResult
 
 STORED = Path(__file__).resolve().parents[1] / "docs" / "trial-result.json"
@@ -32,10 +32,11 @@ def test_report_has_every_figure_with_data(result: TrialResult) -> None:
     assert "<script" not in page and "data:" not in page
     ids = re.findall(r'\bid="([^"]+)"', page)
     assert len(ids) == len(set(ids))
-    # one histogram panel per row of Table 2, the methods of seed 000's figures in the others
+    # every method run is in every figure: the frequency chart and the per-point plots too, not
+    # only seed 000's three
+    assert len(table_rows(result)) == len(result.runs) == 5
     for k in table_rows(result):
         assert result.runs[k].label in figures["error-histogram-per-method"]
-    for k in figure_rows(result):
         assert result.runs[k].label in figures["error-histogram"]
         assert all(result.runs[k].label in figures[p] for p in POINT_ERRORS)
     for name, plot in zip(("x", "y", "z", "3-D"), POINT_ERRORS, strict=True):
@@ -50,3 +51,11 @@ def test_report_of_a_trial_without_iso_or_runs_says_no_data(result: TrialResult)
     page = render_html(result)
     assert page.count("no data:") >= 7
     assert "ISO 9283 test did not run" in page
+
+
+def test_a_model_without_an_order_shows_a_dash_not_none(result: TrialResult) -> None:
+    page = render_html(result)
+    assert "None" not in re.sub(r"<svg.*?</svg>", "", page, flags=re.S)
+    orders = [m.get("order") for m in result.models.values()]
+    assert None in orders and 3 in orders  # the stored trial has both kinds
+    assert "<td>3</td>" in page and "<td>–</td>" in page

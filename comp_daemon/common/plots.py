@@ -44,12 +44,14 @@ from matplotlib.figure import Figure
 from matplotlib.font_manager import FontProperties
 from matplotlib.text import Text
 from matplotlib.textpath import text_to_path
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 from numpy.typing import ArrayLike, NDArray
 
 __all__ = [
     "PALETTE",
     "RASTER_ABOVE",
     "figure_html",
+    "figure_legend",
     "finite_xy",
     "fit_layout",
     "has_finite",
@@ -57,9 +59,13 @@ __all__ = [
     "new_figure",
     "no_data",
     "plot_style",
+    "readable_log_axis",
     "shared_limits",
     "styled",
 ]
+
+#: room for a legend right of the frame, over its measured width (browser fonts differ)
+LEGEND_SLACK = 1.12
 
 PALETTE = ("#1f77b4", "#d62728", "#2ca02c", "#ff7f0e", "#9467bd", "#8c564b", "#17becf", "#7f7f7f")
 
@@ -319,7 +325,8 @@ def _frame(ax: Axes, m: _Measure) -> _Frame:
     if legend is not None and legend.get_visible():
         anchor = ax.transAxes.inverted().transform_bbox(legend.get_bbox_to_anchor())
         if anchor.x0 >= 1.0 - 1e-9:
-            width = legend.get_window_extent(m.renderer).width * m.scale
+            # text stays text in the SVG, and a browser's sans-serif runs up to a tenth wider
+            width = legend.get_window_extent(m.renderer).width * m.scale * LEGEND_SLACK
             frame.right = legend.borderaxespad * legend.prop.get_size_in_points() + width
     return frame
 
@@ -446,10 +453,39 @@ def figure_html(fig: Figure, plot_id: str, caption: str, *, label: str | None = 
 
 
 def legend_if_labelled(ax: Axes, **kwargs: Any) -> None:
-    """A legend when ``ax`` has labelled artists (none otherwise)."""
+    """A legend when ``ax`` has labelled artists (none otherwise), right of the frame, off the data.
+
+    :func:`fit_layout` makes room for it; ``kwargs`` go to :meth:`Axes.legend` (``ncols`` …)."""
     handles, labels = ax.get_legend_handles_labels()
     if labels:
-        ax.legend(handles, labels, **kwargs)
+        ax.legend(handles, labels, **{"loc": "upper left", "bbox_to_anchor": (1.0, 1.0), **kwargs})
+
+
+def figure_legend(fig: Figure, *, ncols: int = 4) -> None:
+    """One legend for all the panels of ``fig``, below them, off the data: every labelled artist,
+    each label once (the panels of one figure share their labels). None when nothing is labelled."""
+    entries: dict[str, Any] = {}
+    for ax in fig.axes:
+        for handle, label in zip(*ax.get_legend_handles_labels(), strict=True):
+            entries.setdefault(label, handle)
+    if entries:
+        fig.legend(
+            list(entries.values()), list(entries), loc="outside lower center", ncols=min(ncols, len(entries))
+        )
+
+
+def _plain_number(value: float, _position: object = None) -> str:
+    return f"{value:g}"
+
+
+def readable_log_axis(ax: Axes, which: str = "y") -> None:
+    """A log axis whose ticks read as plain numbers (0.02, 0.05, 0.1, 0.2 …) at 1, 2 and 5 per
+    decade, instead of matplotlib's ``4×10⁻¹`` minor labels."""
+    axis = ax.yaxis if which == "y" else ax.xaxis
+    axis.set_major_locator(LogLocator(base=10.0, subs=(1.0, 2.0, 5.0)))
+    axis.set_major_formatter(FuncFormatter(_plain_number))
+    axis.set_minor_locator(LogLocator(base=10.0, subs="auto"))
+    axis.set_minor_formatter(NullFormatter())
 
 
 def shared_limits(values: Sequence[NDArray[np.float64]]) -> tuple[float, float] | None:

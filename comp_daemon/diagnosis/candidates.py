@@ -36,6 +36,7 @@ __all__ = [
     "all_candidates",
     "data_reasons",
     "effect_params_json",
+    "geometric_json_key",
     "geometric_params_json",
     "group_skips",
     "unidentifiable_candidates",
@@ -134,33 +135,40 @@ def group_skips(reasons: dict[Candidate, str]) -> list[dict[str, Any]]:
     return [{"effect": e, "joints": sorted(js), "reason": why} for (e, why), js in items]
 
 
+_GEOMETRIC_KEYS = {
+    "theta": ("theta_deg", True),
+    "d": ("d_mm", False),
+    "a": ("a_mm", False),
+    "alpha": ("alpha_deg", True),
+    "beta": ("beta_deg", True),
+}
+
+
+def geometric_json_key(k: int) -> tuple[str, str, bool]:
+    """Where parameter ``k`` (layout of :data:`PARAM_NAMES`) sits in a geometric step's ``params``:
+    its group (``a_mm``, ``base_deg`` …), its key there (the joint, or the axis) and whether it is an
+    angle (radians inside, degrees in the document)."""
+    name = PARAM_NAMES[k]
+    if k < 30:
+        group, is_angle = _GEOMETRIC_KEYS[name[:-1]]
+        return group, name[-1], is_angle
+    if k < 33:
+        return "base_mm", name[-1], False
+    if k < 36:
+        return "base_deg", name[-2:], True
+    return "tool_mm", name[-1], False
+
+
 def geometric_params_json(
     fitted: KinematicParams, start: KinematicParams, free: NDArray[np.bool_]
 ) -> dict[str, Any]:
     """The fitted geometric increments of the free parameters (deg for angles, mm for lengths)."""
     dx = fitted.difference(start)
     out: dict[str, Any] = {}
-    units = {
-        "theta": ("theta_deg", True),
-        "d": ("d_mm", False),
-        "a": ("a_mm", False),
-        "alpha": ("alpha_deg", True),
-        "beta": ("beta_deg", True),
-    }
-    for k, name in enumerate(PARAM_NAMES):
-        if not free[k]:
-            continue
+    for k in np.flatnonzero(free):
+        group, key, is_angle = geometric_json_key(int(k))
         value = float(dx[k])
-        if k < 30:
-            kind, joint = name[:-1], name[-1]
-            key, is_angle = units[kind]
-            out.setdefault(key, {})[joint] = rounded(math.degrees(value) if is_angle else value)
-        elif k < 33:
-            out.setdefault("base_mm", {})[name[-1]] = rounded(value)
-        elif k < 36:
-            out.setdefault("base_deg", {})[name[-2:]] = rounded(math.degrees(value))
-        else:
-            out.setdefault("tool_mm", {})[name[-1]] = rounded(value)
+        out.setdefault(group, {})[key] = rounded(math.degrees(value) if is_angle else value)
     return out
 
 

@@ -41,10 +41,12 @@ from numpy.typing import NDArray
 from comp_daemon.common.plots import (
     RASTER_ABOVE,
     figure_html,
+    figure_legend,
     finite_xy,
     legend_if_labelled,
     new_figure,
     no_data,
+    readable_log_axis,
     shared_limits,
     styled,
 )
@@ -116,7 +118,8 @@ def ladder_figure(
             ax.axhline(
                 floor_mm, color=RED, ls="--", lw=1.2, label=f"noise floor {floor_mm:.4f} mm ({floor_source})"
             )
-            legend_if_labelled(ax, loc="upper right")
+            legend_if_labelled(ax)
+        readable_log_axis(ax)
         ax.set_ylabel("check RMS (mm, log)")
         ax.set_title(title)
     floor = (
@@ -147,9 +150,7 @@ def effect_figure(
     driver = xlabel.split(" (")[0]  # the unit and any note stay in the axis label
     for axis, (ax, name) in enumerate(zip(axes, "xyz", strict=True)):
         title = f"{name}: residual vs {driver}"
-        if not _scatter(
-            ax, x, before[:, axis], color=GREY, alpha=0.55, label=f"residual before the step ({name})"
-        ):
+        if not _scatter(ax, x, before[:, axis], color=GREY, alpha=0.55, label="residual before the step"):
             no_data(ax, "no finite residual against this driver", title)
             continue
         xs, ys = finite_xy(x[order], added[order, axis])
@@ -160,7 +161,7 @@ def effect_figure(
         ax.set_title(title)
         ax.set_xlabel(xlabel)
         ax.set_ylabel(f"{name} (mm)")
-        legend_if_labelled(ax, loc="best")
+    figure_legend(fig)
     return figure_html(
         fig,
         f"effect-step-{k}",
@@ -203,7 +204,7 @@ def joint_error_figure(
             no_data(ax, f"joint {j}'s error is not identifiable from these poses", title)
             continue
         if dirs is not None:
-            for sign, color, label in ((1.0, RED, f"dir{j} = +1"), (-1.0, BLUE, f"dir{j} = −1")):
+            for sign, color, label in ((1.0, RED, "approach +1"), (-1.0, BLUE, "approach −1")):
                 sel = dirs[:, j - 1] == sign
                 _scatter(ax, a[sel], e[sel], color=color, alpha=0.45, label=label)
         else:
@@ -213,7 +214,7 @@ def joint_error_figure(
         ax.set_title(title, fontsize=8)
         ax.set_xlabel(f"A{j} (deg)")
         ax.set_ylabel("equivalent joint error (deg)")
-        legend_if_labelled(ax, loc="best")
+    figure_legend(fig)
     return figure_html(
         fig,
         "joint-error",
@@ -247,7 +248,7 @@ def check_histogram_figure(panels: Sequence[tuple[str, Sequence[tuple[str, Float
         ax.set_title(title)
         ax.set_xlabel("3-D error (mm)")
         ax.set_ylabel("poses")
-        legend_if_labelled(ax, loc="upper right")
+        legend_if_labelled(ax)
     return figure_html(
         fig,
         "check-histogram",
@@ -276,7 +277,7 @@ def residual_pose_figure(resid: FloatArray, check: NDArray[np.bool_], after: str
         ax.set_xlabel("pose (row)")
         ax.set_ylabel("3-D residual (mm)")
         ax.set_ylim(bottom=0.0)
-        legend_if_labelled(ax, loc="upper right")
+        legend_if_labelled(ax)
     return figure_html(fig, "residual-pose", f"Remaining 3-D error of every pose after {after} (mm).")
 
 
@@ -301,8 +302,7 @@ def residual_joint_figure(a_deg: FloatArray, resid: FloatArray, after: str) -> s
         if lim is not None:
             pad = 0.05 * (lim[1] - lim[0] or 1.0)
             ax.set_ylim(lim[0] - pad, lim[1] + pad)
-        if j == 1:
-            legend_if_labelled(ax, loc="upper right", ncols=3)
+    figure_legend(fig)
     return figure_html(
         fig,
         "residual-joint",
@@ -340,7 +340,7 @@ def variogram_figure(a_deg: FloatArray, resid: FloatArray, after: str, *, n_bins
         ax.set_ylabel("semivariance (mm²)")
         ax.set_ylim(bottom=0.0)
         ax.set_title(title)
-        legend_if_labelled(ax, loc="lower right")
+        legend_if_labelled(ax)
     return figure_html(
         fig,
         "variogram",
@@ -377,7 +377,7 @@ def remainder_time_figure(clock: FloatArray | None, clock_name: str, resid: Floa
         ax.set_title(title)
         ax.set_xlabel(xlabel)
         ax.set_ylabel("residual (mm)")
-        legend_if_labelled(ax, loc="upper right", ncols=4)
+        legend_if_labelled(ax)
     return figure_html(fig, "remainder-time", f"Remaining error after {after} against {xlabel} (mm).")
 
 
@@ -404,7 +404,7 @@ def predicted_measured_figure(
         ax.set_title(title)
         ax.set_xlabel(f"predicted {name} − nominal (mm)")
         ax.set_ylabel(f"measured {name} − nominal (mm)")
-        legend_if_labelled(ax, loc="upper left")
+    figure_legend(fig)
     return figure_html(
         fig,
         "predicted-measured",

@@ -8,15 +8,19 @@ residual against the axis value, by approach direction, with the fitted effects'
 over it; histograms of the 3-D check error before and after; the remaining error per pose, per
 joint angle, as a variogram over joint distance, against time, and measured against predicted;
 the ``where`` tables; what was skipped and why, and the parameters geometry could not identify.
-The figures are drawn by matplotlib in :mod:`comp_daemon.diagnosis.plots`.
+The fitted values of every step are tables (name, meaning, joint, unit, value, standard error:
+:mod:`comp_daemon.diagnosis.param_table`), the selection rounds a table of the best candidates per
+round. The figures are drawn by matplotlib in :mod:`comp_daemon.diagnosis.plots`; a print style
+lays the page out for paper (A4 landscape, no figure or table split across pages), so that a
+browser's "print to PDF" gives the report as a document.
 """
 
 from __future__ import annotations
 
 import html
-import json
 from typing import Any
 
+from comp_daemon.diagnosis.param_table import ParamRow, parameter_rows
 from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.diagnosis.structure import describe_structure
 
@@ -32,7 +36,18 @@ td.l,th.l{text-align:left}.sig{color:#1a7f37;font-weight:bold}.nsig{color:#999}
 .grid{display:flex;flex-wrap:wrap;gap:8px}
 figure.plot{margin:10px 0}figcaption{font-size:12px;color:#555;max-width:1000px}
 .summary{background:#f7f7f2;padding:10px;border-left:4px solid #2ca02c}
-code{font-size:11px}
+code{font-size:11px}h3{font-size:13px;margin:14px 0 4px}
+table.values td:nth-child(n+5),table.rounds td{font-variant-numeric:tabular-nums}
+td[rowspan]{vertical-align:top}
+figure.plot svg{max-width:100%;height:auto}
+@page{size:A4 landscape;margin:12mm}
+@media print{
+body{margin:0;max-width:none;font-size:10px}
+h2{break-after:avoid;page-break-after:avoid}h3{break-after:avoid}
+figure.plot,table,tr,.summary{break-inside:avoid;page-break-inside:avoid}
+a{color:inherit;text-decoration:none}
+.summary{border-left-color:#000;background:none}
+}
 """
 
 
@@ -51,7 +66,7 @@ def _ladder_table(diag: Diagnosis) -> str:
         "<tr><th class=l>step</th><th class=l>effect</th><th class=l>joints</th><th>significant</th>"
         "<th>parameters (total)</th><th>p-value</th><th>CV RMS (fit rows)</th><th>check RMS</th>"
         "<th>check max</th>"
-        "<th>shrink</th><th class=l>fitted values</th></tr>",
+        "<th>shrink</th><th class=l>note</th></tr>",
         "<tr><td class=l>0</td><td class=l>nominal</td><td class=l>–</td><td>–</td><td>0</td><td>–</td>"
         f"<td>–</td>"
         f"<td>{diag.baseline_check_rms_mm:.4f}</td><td>{diag.baseline_check_max_mm:.4f}</td><td>–</td>"
@@ -59,17 +74,97 @@ def _ladder_table(diag: Diagnosis) -> str:
     ]
     for k, s in enumerate(diag.steps, start=1):
         sig = "<span class=sig>yes</span>" if s.significant else "<span class=nsig>no</span>"
-        params = json.dumps(s.params, ensure_ascii=False)
-        if len(params) > 400:
-            params = params[:400] + " …"
         rows.append(
             f"<tr><td class=l>{k}</td><td class=l>{_e(s.effect)}</td>"
             f"<td class=l>{_e(', '.join(str(j) for j in s.joints) or '–')}</td><td>{sig}</td>"
             f"<td>{s.n_params}</td><td>{_num(s.p_value, 3)}</td><td>{_num(s.cv_rms_mm)}</td>"
             f"<td>{s.check_rms_mm:.4f}</td><td>{s.check_max_mm:.4f}</td><td>{s.shrink_pct:.1f} %</td>"
-            f"<td class=l><code>{_e(params)}</code></td></tr>"
+            f'<td class=l><a href="#values-{k}">fitted values</a></td></tr>'
         )
     return "<table>" + "".join(rows) + "</table>"
+
+
+def _sigma_text(row: ParamRow) -> tuple[str, str]:
+    """σ and |value| / σ of a fitted value, as table cells."""
+    if row.sigma is None or row.sigma <= 0.0:
+        return "–", "–"
+    return f"{row.sigma:.2g}", f"{abs(row.value) / row.sigma:.1f}"
+
+
+def _values_tables(diag: Diagnosis) -> str:
+    """The fitted values of every step: name, where, unit, value, σ (cluster-robust) and value/σ."""
+    rows = parameter_rows(diag)
+    out = [
+        "<p>Changes from the nominal twin (geometric step) and the effects' parameters, each with its "
+        "cluster-robust standard error σ (poses as clusters) at the step's fit on the fit rows. "
+        "|value| / σ below 2 means the data barely tell the value from zero.</p>"
+    ]
+    for k, step in enumerate(diag.steps, start=1):
+        mine = [r for r in rows if r.step == k]
+        sig = "significant" if step.significant else "not significant"
+        out.append(
+            f"<h3 id=values-{k}>Step {k}: {_e(step.effect)} ({sig})</h3>"
+            "<table class=values><tr><th class=l>parameter</th><th class=l>meaning</th>"
+            "<th class=l>joint / axis</th><th class=l>unit</th><th>value</th><th>σ</th>"
+            "<th>|value| / σ</th></tr>"
+        )
+        for r in mine:
+            sigma, ratio = _sigma_text(r)
+            unit = "–" if r.unit == "1" else r.unit
+            out.append(
+                f"<tr><td class=l><code>{_e(r.name)}</code></td><td class=l>{_e(r.what)}</td>"
+                f"<td class=l>{_e(r.where)}</td><td class=l>{_e(unit)}</td>"
+                f"<td>{r.value:.4g}</td><td>{sigma}</td><td>{ratio}</td></tr>"
+            )
+        settings = {k2: v for k2, v in step.params.items() if not isinstance(v, dict) and k2 != "harmonics"}
+        if settings:
+            words = ", ".join(f"{_e(k2)} = {_e(v)}" for k2, v in settings.items())
+            out.append(f"<tr><td class=l colspan=7>settings: {words}</td></tr>")
+        out.append("</table>")
+    return "".join(out)
+
+
+def _selection_table(diag: Diagnosis) -> str:
+    """Every selection round: the error before it, the best candidates, what was accepted."""
+    if not diag.selection:
+        return "<p>No selection round (no effect was tested).</p>"
+    out = [
+        "<table class=rounds><tr><th>round</th><th>CV RMS before (mm)</th><th>candidates</th>"
+        "<th>p threshold</th><th class=l>candidate</th><th>CV RMS with it (mm)</th><th>p-value</th>"
+        "<th class=l>outcome</th></tr>"
+    ]
+    for r in diag.selection:
+        best = r.get("best") or [{}]
+        outcome = f"accepted {r['accepted']}" if r.get("accepted") else "none accepted: stop"
+        if r.get("preferred_simpler"):
+            outcome += f" (simpler {r['preferred_simpler']} preferred)"
+        extra = {k: v for k, v in r.items() if k not in _ROUND_KEYS}
+        if extra:
+            outcome += "; " + ", ".join(f"{k} {v}" for k, v in extra.items())
+        span = len(best)
+        for i, b in enumerate(best):
+            chosen = b.get("candidate") is not None and b.get("candidate") == r.get("accepted")
+            cand = f"<b>{_e(b.get('candidate', '–'))}</b>" if chosen else _e(b.get("candidate", "–"))
+            head = (
+                f"<td rowspan={span}>{_e(r.get('round', ''))}</td>"
+                f"<td rowspan={span}>{_num(r.get('cv_rms_mm_before'))}</td>"
+                f"<td rowspan={span}>{_e(r.get('candidates', ''))}</td>"
+                f"<td rowspan={span}>{_num(r.get('p_threshold'), 2)}</td>"
+                if i == 0
+                else ""
+            )
+            tail = f"<td class=l rowspan={span}>{_e(outcome)}</td>" if i == 0 else ""
+            out.append(
+                f"<tr>{head}<td class=l>{cand}</td><td>{_num(b.get('cv_rms_mm'))}</td>"
+                f"<td>{_num(b.get('p_value'), 2)}</td>{tail}</tr>"
+            )
+    out.append("</table>")
+    return "".join(out)
+
+
+_ROUND_KEYS = frozenset(
+    ("round", "cv_rms_mm_before", "candidates", "p_threshold", "best", "preferred_simpler", "accepted")
+)
 
 
 def _floor_html(diag: Diagnosis) -> str:
@@ -185,7 +280,6 @@ def render_report_html(diag: Diagnosis) -> str:
         or "<li>none</li>"
     )
     unident = "".join(f"<li><code>{_e(u)}</code></li>" for u in diag.unidentifiable) or "<li>none</li>"
-    rounds = "".join(f"<li><code>{_e(json.dumps(r, ensure_ascii=False))}</code></li>" for r in diag.selection)
     unmodelled = ", ".join(doc["unmodelled"]) or "none"
     body = [
         "<!DOCTYPE html><html lang=en><head><meta charset=utf-8>",
@@ -201,6 +295,8 @@ def render_report_html(diag: Diagnosis) -> str:
         "<h2>The ladder</h2>",
         _ladder_table(diag),
         figures["ladder"],
+        "<h2>Fitted values</h2>",
+        _values_tables(diag),
         "<h2>Residuals per axis, with each added effect</h2>",
         figures["effects"],
         "<h2>Per joint: equivalent joint error after the geometric step</h2>",
@@ -221,9 +317,8 @@ def render_report_html(diag: Diagnosis) -> str:
         "<h2>Geometric parameters not identifiable from these poses</h2><ul>",
         unident,
         "</ul>",
-        "<h2>Selection rounds</h2><ol>",
-        rounds,
-        "</ol>",
+        "<h2>Selection rounds</h2>",
+        _selection_table(diag),
         "</body></html>",
     ]
     return "".join(body)

@@ -153,16 +153,8 @@ class LinearProblem:
         return float(np.sqrt(max(self.cv_sse(cols), 0.0) / max(self.n, 1)))
 
     # ---- significance ----------------------------------------------------------------------
-    def wald(self, cols: Sequence[int], tested: Sequence[int], at: FloatArray | None = None) -> WaldResult:
-        """Cluster-robust Wald test that the ``tested`` parameters (a subset of ``cols``) are zero.
-
-        ``at`` (m,) holds the parameters' values at the linearisation point in their own units (the
-        problem's residual is measured from there); omitted, they are zero.
-        """
-        idx = np.asarray(cols, dtype=np.int64)
-        pos = np.array([int(np.flatnonzero(idx == t)[0]) for t in tested], dtype=np.int64)
-        q = len(pos)
-        g = self.n_clusters
+    def _robust_fit(self, idx: IntArray) -> tuple[FloatArray, FloatArray]:
+        """Scaled step and its cluster-robust covariance of the model ``idx``."""
         gram = self.gram[np.ix_(idx, idx)]
         bread = np.linalg.pinv(gram, hermitian=True)
         step = bread @ self.jtr[idx]
@@ -174,10 +166,29 @@ class LinearProblem:
         eye = np.eye(3)
         e_adj = np.linalg.solve(eye - h + 1e-12 * eye, e[:, :, None])[:, :, 0]
         score = np.einsum("nkp,nk->np", js, e_adj)  # (n, p)
-        per_cluster = np.zeros((g, len(idx)))
+        per_cluster = np.zeros((self.n_clusters, len(idx)))
         np.add.at(per_cluster, self.cluster, score)
         meat = per_cluster.T @ per_cluster
-        cov = bread @ meat @ bread
+        return step, bread @ meat @ bread
+
+    def standard_errors(self, cols: Sequence[int]) -> FloatArray:
+        """Cluster-robust (pose-clustered) standard errors of the model ``cols``'s parameters, in
+        their own units (the covariance of :meth:`wald`)."""
+        idx = np.asarray(cols, dtype=np.int64)
+        _, cov = self._robust_fit(idx)
+        return np.sqrt(np.clip(np.diag(cov), 0.0, None)) / self.col_norm[idx]
+
+    def wald(self, cols: Sequence[int], tested: Sequence[int], at: FloatArray | None = None) -> WaldResult:
+        """Cluster-robust Wald test that the ``tested`` parameters (a subset of ``cols``) are zero.
+
+        ``at`` (m,) holds the parameters' values at the linearisation point in their own units (the
+        problem's residual is measured from there); omitted, they are zero.
+        """
+        idx = np.asarray(cols, dtype=np.int64)
+        pos = np.array([int(np.flatnonzero(idx == t)[0]) for t in tested], dtype=np.int64)
+        q = len(pos)
+        g = self.n_clusters
+        step, cov = self._robust_fit(idx)
         sub = cov[np.ix_(pos, pos)]
         beta = step[pos]
         if at is not None:

@@ -21,7 +21,15 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from comp_daemon.common.plots import figure_html, finite_xy, legend_if_labelled, new_figure, no_data, styled
+from comp_daemon.common.plots import (
+    figure_html,
+    figure_legend,
+    finite_xy,
+    legend_if_labelled,
+    new_figure,
+    no_data,
+    styled,
+)
 from comp_daemon.trial.result import TrialResult
 from comp_daemon.trial.stats import histogram
 
@@ -77,7 +85,7 @@ def error_histogram_figure(result: TrialResult, keys: Sequence[str]) -> str:
         ax.set_ylabel("share of target points (%)")
         ax.grid(axis="x", visible=False)
         ax.set_title(title)
-        legend_if_labelled(ax, loc="upper right")
+        legend_if_labelled(ax)
     return figure_html(
         fig,
         "error-histogram",
@@ -150,8 +158,7 @@ def point_error_figures(result: TrialResult, keys: Sequence[str]) -> str:
             ax.set_ylabel("mm")
             if col is not None:
                 ax.axhline(0.0, color="#bbbbbb", lw=0.8)
-            handles, labels = ax.get_legend_handles_labels()
-            fig.legend(handles, labels, loc="outside lower center", ncols=len(labels))
+            figure_legend(fig, ncols=3)
         out.append(
             figure_html(
                 fig,
@@ -196,7 +203,7 @@ def iso_figure(result: TrialResult) -> str:
         ax.grid(axis="x", visible=False)
         ax.set_title(title)
         ax.margins(y=0.15)
-        legend_if_labelled(ax, loc="upper left", bbox_to_anchor=(1.0, 1.0))
+        legend_if_labelled(ax)
     return figure_html(
         fig,
         "iso9283",

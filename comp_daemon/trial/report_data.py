@@ -9,7 +9,7 @@ import numpy as np
 from comp_daemon.trial.result import TrialResult
 from comp_daemon.trial.verdict import SEED000, TABLE_ROWS
 
-__all__ = ["COMPARISONS", "figure_rows", "grating_scale", "iso_retried", "seed_figure", "table_rows"]
+__all__ = ["COMPARISONS", "grating_scale", "iso_retried", "seed_figure", "table_rows"]
 
 COMPARISONS = (
     ("open", "open-loop data"),
@@ -19,12 +19,9 @@ COMPARISONS = (
 
 
 def table_rows(result: TrialResult) -> list[str]:
+    """Every method run with a measured target point, in the order of Table 2: the rows of the
+    tables and the series of every figure (seed 000's three and the trial's further ones)."""
     return [k for k in TABLE_ROWS if k in result.runs and result.runs[k].ok.any()]
-
-
-def figure_rows(result: TrialResult) -> list[str]:
-    """The three methods of seed 000's figures (the tables show every run)."""
-    return [k for k in table_rows(result) if k in SEED000]
 
 
 def grating_scale(m: dict[str, Any]) -> float:

@@ -20,7 +20,6 @@ from comp_daemon.trial.plots import (
 )
 from comp_daemon.trial.report_data import (
     COMPARISONS,
-    figure_rows,
     grating_scale,
     iso_retried,
     seed_figure,
@@ -110,7 +109,7 @@ def _html_comparison(result: TrialResult) -> str:
             t = m["table2"]
             d = t["3d"]
             extra = []
-            if "order" in m:
+            if m.get("order") is not None:
                 extra.append(f"order {m['order']}")
             if "dir_separation_deg" in m:
                 extra.append(f"ρ = {m['dir_separation_deg']:g}°")
@@ -131,12 +130,18 @@ def _html_comparison(result: TrialResult) -> str:
     return "".join(out)
 
 
+def _order(model: dict[str, Any]) -> str:
+    """A model's Chebyshev order, or a dash for a kind that has none."""
+    order = model.get("order")
+    return "–" if order is None else str(order)
+
+
 def _html_models(result: TrialResult) -> str:
     rows = []
     for label, m in result.models.items():
         st = m.get("server_table2", {}).get("model", {}).get("3d", {})
         rows.append(
-            f"<tr><td>{_e(label)}</td><td>{m['id']}</td><td>{_e(m['kind'])}</td><td>{_e(m.get('order'))}</td>"
+            f"<tr><td>{_e(label)}</td><td>{m['id']}</td><td>{_e(m['kind'])}</td><td>{_e(_order(m))}</td>"
             f"<td>{m['dataset_id']}</td><td>{_e(m.get('fit_rows'))}</td><td>{_f(st.get('mean'))}</td>"
             f"<td>{_f(st.get('max'))}</td></tr>"
         )
@@ -193,7 +198,7 @@ def render_html(result: TrialResult, *, command: str | None = None) -> str:
             f"(−{100 * t['reduction']:.0f} %; −{100 * t['vs_kinematic']:.0f} % against kinematic "
             f"calibration), every axis within ±{t['axis_max_abs']:.3f} mm.</p>"
         )
-    hist = error_histogram_figure(result, figure_rows(result)) + method_histograms_figure(
+    hist = error_histogram_figure(result, table_rows(result)) + method_histograms_figure(
         result, table_rows(result)
     )
     grat = ""
@@ -240,7 +245,7 @@ Seed 000 gives only the 3-D figures quoted in its text.</p>
 {_html_table2(result)}
 <div class=fig>{hist}</div>
 <h2>Per target point (seed 000 Figs 7–10)</h2>
-<div class=fig>{point_error_figures(result, figure_rows(result))}</div>
+<div class=fig>{point_error_figures(result, table_rows(result))}</div>
 <h2>ISO 9283 multi-directional pose accuracy (seed 000 Figs 5–6)</h2>
 <p>Each test point approached from +x, +y and +z ({_e(result.iso.get("approach_mm"))} mm moves),
 {_e(result.iso.get("cycles"))} cycles after {_e(result.iso.get("warmup_cycles"))} warm-up cycle(s);
