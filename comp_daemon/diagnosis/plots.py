@@ -94,7 +94,9 @@ def ladder_figure(
 ) -> str:
     """Check RMS per ladder step on a log scale; grey bars: not significant; dashed: noise floor."""
     vals = np.asarray(values, dtype=float)
-    fig, (ax,) = new_figure(max(6.0, 1.1 * len(labels)), 2.9)
+    fig, (ax,) = new_figure(max(7.5, 1.3 * len(labels)), 2.9)
+    # long step names ("geometric J1,2,3,4,5") stand slanted so that they do not run into each other
+    slanted = len(labels) > 5 or sum(len(label) for label in labels) > 6 * len(labels)
     title = "Check RMS after each step"
     ok = np.isfinite(vals) & (vals > 0)
     if not ok.any():
@@ -110,8 +112,8 @@ def ladder_figure(
         ax.set_xticks(
             pos,
             list(labels),
-            rotation=20 if len(labels) > 5 else 0,
-            ha="right" if len(labels) > 5 else "center",
+            rotation=20 if slanted else 0,
+            ha="right" if slanted else "center",
         )
         ax.grid(axis="x", visible=False)
         if floor_mm is not None and floor_mm > 0:
