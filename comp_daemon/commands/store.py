@@ -86,6 +86,7 @@ def _when(t: float) -> str:
 def _check(args: argparse.Namespace) -> int:
     from comp_daemon.service.store import StoreDamagedError
     from comp_daemon.service.store import files as store_files
+    from comp_daemon.service.store.base import one_line
 
     db_path, backup_dir, _ = _paths(args)
     report: dict[str, Any] = {"database": str(db_path), "backup_dir": str(backup_dir)}
@@ -109,7 +110,7 @@ def _check(args: argparse.Namespace) -> int:
         report["check_s"] = round(time.perf_counter() - started, 3)
         if found:
             hint = store_files.recovery_hint(db_path, backup_dir)
-            problems.append(f"store {db_path} is damaged: {'; '.join(found[:3])}; {hint}")
+            problems.append(f"store {db_path} is damaged: {one_line(found)}; {hint}")
         else:
             report["bytes"] = db_path.stat().st_size
             report["rows"] = _counts(db_path)

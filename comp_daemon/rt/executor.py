@@ -211,7 +211,7 @@ class TargetExecutor:
         self._event_loop = asyncio.get_running_loop()
         while not self._stopping:
             reason = self.readiness()
-            self.blocked_reason = reason
+            self.blocked_reason = reason or self._queue_fault  # a queue fault stands until a claim works
             if reason is None:
                 with contextlib.suppress(QueueWriteError):  # kept; the claim shows if the store writes
                     await self._save_unsaved()

@@ -28,7 +28,7 @@ from comp_daemon.service.store.records import (
 )
 from comp_daemon.service.store.schema import MIGRATIONS, SCHEMA_VERSION
 
-__all__ = ["StoreBase", "disk_full_error", "free_bytes"]
+__all__ = ["StoreBase", "check_rows", "disk_full_error", "free_bytes", "one_line"]
 
 _log = get_logger("comp_daemon.store")
 
@@ -93,6 +93,19 @@ def disk_full_error(exc: BaseException, path: Path) -> StoreFullError | None:
     return None
 
 
+def check_rows(rows: Sequence[object]) -> list[str]:
+    """The problems in the rows of ``PRAGMA quick_check`` / ``integrity_check``: one per line of text."""
+    lines = [line.strip() for row in rows for line in str(row).splitlines()]
+    found = [line for line in lines if line and not line.startswith("*** in database")]
+    return [] if found == ["ok"] else found
+
+
+def one_line(problems: Sequence[str], first: int = 3) -> str:
+    """The first ``first`` problems on one line, and how many more there are."""
+    more = len(problems) - first
+    return "; ".join(problems[:first]) + (f" (and {more} more)" if more > 0 else "")
+
+
 class StoreBase:
     """The SQLite connection. Open with ``Store(path)``; close with :meth:`close` (or use ``with``)."""
 
@@ -133,7 +146,7 @@ class StoreBase:
             if check:
                 problems = self.quick_check()
                 if problems:
-                    raise StoreDamagedError(f"store {self.path} is damaged: {'; '.join(problems[:3])}")
+                    raise StoreDamagedError(f"store {self.path} is damaged: {one_line(problems)}")
             self._conn.execute("PRAGMA foreign_keys=ON")
             self._conn.execute(f"PRAGMA synchronous={'FULL' if synchronous == 'full' else 'NORMAL'}")
             self._conn.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
@@ -160,8 +173,7 @@ class StoreBase:
             rows = self._read("PRAGMA quick_check")
         except sqlite3.DatabaseError as exc:
             return [str(exc)]
-        found = [str(r[0]) for r in rows]
-        return [] if found == ["ok"] else found
+        return check_rows([r[0] for r in rows])
 
     # ------------------------------------------------------------------------------- plumbing
 

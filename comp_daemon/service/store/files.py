@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import IO
 
 from comp_daemon.common.atomic import write_json_atomic
-from comp_daemon.service.store.base import disk_full_error
+from comp_daemon.service.store.base import check_rows, disk_full_error, one_line
 from comp_daemon.service.store.records import StoreDamagedError, StoreError
 
 __all__ = [
@@ -162,8 +162,7 @@ def check_file(path: Path, *, full: bool = False) -> list[str]:
         return [str(exc)]
     finally:
         conn.close()
-    found = [str(r[0]) for r in rows]
-    problems = [] if found == ["ok"] else found
+    problems = check_rows([r[0] for r in rows])
     if not problems and "schema_version" not in tables:
         problems.append(f"{path} is an SQLite file but not a comp-daemon store")
     return problems
@@ -202,7 +201,7 @@ def make_backup(db_path: Path, backup_dir: Path, *, keep: int) -> Backup:
             os.fsync(fh.fileno())
         problems = check_file(part)
         if problems:
-            raise StoreError(f"the backup of {db_path} failed its check: {'; '.join(problems[:3])}")
+            raise StoreError(f"the backup of {db_path} failed its check: {one_line(problems)}")
         os.replace(part, dest)
         _fsync_dir(backup_dir)
     except (OSError, sqlite3.Error) as exc:
@@ -273,7 +272,7 @@ def restore(db_path: Path, backup_dir: Path, backup: Path | None = None) -> tupl
         chosen = Backup(backup, st.st_size, st.st_mtime)
     problems = check_file(chosen.path)
     if problems:
-        raise StoreDamagedError(f"backup {chosen.path} is damaged: {'; '.join(problems[:3])}; pick another")
+        raise StoreDamagedError(f"backup {chosen.path} is damaged: {one_line(problems)}; pick another")
     with StoreLock(db_path):
         present = [p for p in [db_path, *(Path(f"{db_path}{s}") for s in _SIDE_FILES)] if p.exists()]
         aside: Path | None = None
