@@ -12,6 +12,7 @@ import os
 import sqlite3
 from pathlib import Path
 
+import httpx
 import pytest
 from service_client import in_process_service
 from test_service_api import auth, campaign_csv, make_settings
@@ -55,20 +56,18 @@ def test_a_write_on_a_full_store_is_store_full_error_and_nothing_is_lost(tmp_pat
 async def test_a_write_on_a_full_disk_is_answered_507_naming_the_file(tmp_path: Path) -> None:
     settings = make_settings(tmp_path)
     async with in_process_service(settings) as (client, store):
-        r = await client.post(
-            "/api/datasets",
-            params={"name": "first"},
-            content=campaign_csv(40),
-            headers={**auth("engineer"), "Content-Type": "text/csv"},
-        )
-        assert r.status_code == 201, r.text
+
+        async def upload(name: str, seed: int) -> httpx.Response:
+            return await client.post(
+                "/api/datasets",
+                params={"name": name},
+                content=campaign_csv(40, seed=seed),
+                headers={**auth("engineer"), "Content-Type": "text/csv"},
+            )
+
+        assert (await upload("first", 0)).status_code == 201
         _fill_pages(store)
-        r = await client.post(
-            "/api/datasets",
-            params={"name": "second"},
-            content=campaign_csv(40, seed=1),
-            headers={**auth("engineer"), "Content-Type": "text/csv"},
-        )
+        r = await upload("second", 1)
         assert r.status_code == 507, r.text
         body = r.json()
         assert body["error"] == "insufficient_storage"
@@ -78,12 +77,7 @@ async def test_a_write_on_a_full_disk_is_answered_507_naming_the_file(tmp_path: 
         listed = await client.get("/api/datasets", headers=auth("viewer"))
         assert [d["name"] for d in listed.json()] == ["first"]
         _lift(store)
-        r = await client.post(
-            "/api/datasets",
-            params={"name": "second"},
-            content=campaign_csv(40, seed=1),
-            headers={**auth("engineer"), "Content-Type": "text/csv"},
-        )
+        r = await upload("second", 1)
         assert r.status_code == 201, r.text
 
 
