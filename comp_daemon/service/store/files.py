@@ -197,6 +197,7 @@ def make_backup(db_path: Path, backup_dir: Path, *, keep: int) -> Backup:
                 dst.close()
         finally:
             src.close()
+        os.chmod(part, 0o600)  # the store's data, private whatever the umask of the caller
         with open(part, "rb+") as fh:
             os.fsync(fh.fileno())
         problems = check_file(part)
@@ -225,7 +226,8 @@ class StoreLock:
         self._fh: IO[str] | None = None
 
     def acquire(self) -> StoreLock:
-        fh = open(self.path, "a+", encoding="utf-8")  # held until release()
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT | os.O_CLOEXEC, 0o600)
+        fh = open(fd, "r+", encoding="utf-8")  # held until release()
         try:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:
