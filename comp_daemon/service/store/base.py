@@ -140,13 +140,13 @@ class StoreBase:
             raise self._open_error(exc) from exc
         try:
             self._conn.row_factory = sqlite3.Row
-            mode = self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
-            if str(path) != ":memory:" and str(mode).lower() != "wal":
-                raise StoreError(f"cannot put {self.path} in WAL mode (got {mode})")
             if check:
                 problems = self.quick_check()
                 if problems:
                     raise StoreDamagedError(f"store {self.path} is damaged: {one_line(problems)}")
+            mode = self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+            if str(path) != ":memory:" and str(mode).lower() != "wal":
+                raise StoreError(f"cannot put {self.path} in WAL mode (got {mode})")
             self._conn.execute("PRAGMA foreign_keys=ON")
             self._conn.execute(f"PRAGMA synchronous={'FULL' if synchronous == 'full' else 'NORMAL'}")
             self._conn.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
