@@ -29,6 +29,7 @@ COMMAND_MODULES: dict[str, str] = {
     "plan": "comp_daemon.commands.plan",
     "trial": "comp_daemon.commands.trial",
     "export": "comp_daemon.commands.export",
+    "store": "comp_daemon.commands.store",
 }
 #: commands whose module is imported only to run them, with the help line of the command listing
 ON_DEMAND: dict[str, str] = {"sim": "the simulated drilling cell: measurement campaigns, figures"}

@@ -28,7 +28,7 @@ from comp_daemon.rt.grating_cal import GratingCalibration, JointGratingMap
 from comp_daemon.rt.loop import LoopRuntime
 from comp_daemon.rt.rsi_codec import RobTelegram
 from comp_daemon.rt.safety import SafetySettings, SafetyState
-from comp_daemon.service.store import Store
+from comp_daemon.service.store import Store, StoreFullError
 
 CYCLE_NS = 12_000_000
 SLOPE = 7.16e-6  # deg per count (50 nm on a 400 mm arc)
@@ -112,6 +112,31 @@ def compensate(request: Mapping[str, Any]) -> CompensatedTarget:
     return CompensatedTarget(commanded, tuple(commanded[j - 1] for j in JOINTS), model_id=1)
 
 
+class FullDisk:
+    """The store's queue with a disk that can be made full: every write is then refused as the
+    store refuses it on ENOSPC (:class:`StoreFullError`), before anything is changed."""
+
+    def __init__(self, store: Store) -> None:
+        self.store = store
+        self.full = False
+        self.full_at: str | None = None  # the disk fills just before a move to this state is written
+        self.refused = 0
+
+    def _check(self) -> None:
+        if self.full:
+            self.refused += 1
+            raise StoreFullError(self.store.path, 0)
+
+    def claim_next_target(self) -> Any:
+        self._check()
+        return self.store.claim_next_target()
+
+    def advance_target(self, target_id: int, state: str, **kwargs: Any) -> Any:
+        self.full = self.full or state == self.full_at
+        self._check()
+        return self.store.advance_target(target_id, state, **kwargs)
+
+
 class Cell:
     def __init__(self, tmp_path: Path) -> None:
         self.clock = Clock()
@@ -131,8 +156,9 @@ class Cell:
         )
         self.ready_reason: str | None = None
         self.outcomes: list[TargetOutcome] = []
+        self.disk = FullDisk(self.store)
         self.executor = TargetExecutor(
-            self.store,
+            self.disk,
             compensate,
             Motion(self.robot),
             self.runtime,
@@ -281,3 +307,44 @@ async def test_shutdown_mid_target_marks_it_interrupted(tmp_path: Path) -> None:
     assert reply.ak_deg == (0.0,) * 6 and reply.stop
     assert not math.isnan(cell.runtime.core.total_correction_deg[0])
     cell.store.close()
+
+
+async def test_a_full_disk_fails_the_target_safely_and_the_executor_goes_on(tmp_path: Path) -> None:
+    cell = Cell(tmp_path)
+    await cell.cycles(5)
+    ids = submit(cell.store, "b", [{"axes_deg": axes(i)} for i in (1, 2, 3)])
+    cell.start()
+    # 1. the disk fills while the first target settles: its final state cannot be written
+    cell.disk.full_at = "done"
+    await cell.until(lambda: len(cell.outcomes) == 1)
+    assert cell.outcomes[0].state == "done"
+    assert cell.store.get_target(ids[0]).state == "settling"  # not yet recorded ...
+    assert [u[:2] for u in cell.executor.unsaved] == [(ids[0], "done")]  # ... but kept
+    # nothing more is claimed while the disk is full, and the executor keeps running
+    await cell.until(lambda: cell.disk.refused >= 3)
+    assert not cell.executor_task.done()
+    assert cell.store.get_target(ids[1]).state == "queued"
+    assert cell.executor.blocked_reason is not None and "disk full" in cell.executor.blocked_reason
+    assert str(cell.store.path) in cell.executor.blocked_reason
+    assert cell.runtime.core.state is SafetyState.IDLE and cell.runtime.core.target_id is None
+    # 2. space again: the kept state is written first, then the queue goes on
+    cell.disk.full, cell.disk.full_at = False, None
+    cell.executor.wake()
+    await cell.until(lambda: len(cell.outcomes) == 2)
+    assert cell.store.get_target(ids[0]).state == "done"
+    assert cell.store.get_target(ids[0]).final_joint_errors_deg is not None
+    assert cell.executor.unsaved == []
+    assert cell.outcomes[1].target_id == ids[1] and cell.outcomes[1].state == "done"
+    # 3. full again when the next target's move is to be recorded: it is failed, never commanded
+    moves = len(cell.robot.moves)
+    cell.disk.full_at = "moving"
+    await cell.until(lambda: len(cell.outcomes) == 3)
+    assert cell.outcomes[2].state == "failed"
+    assert "the store could not record the target: disk full" in (cell.outcomes[2].reason or "")
+    assert len(cell.robot.moves) == moves  # the robot was not commanded
+    assert cell.runtime.core.target_id is None
+    cell.disk.full, cell.disk.full_at = False, None
+    cell.executor.wake()
+    await cell.until(lambda: cell.store.get_target(ids[2]).state == "failed")
+    assert not cell.executor_task.done()
+    await cell.stop()

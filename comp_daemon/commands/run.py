@@ -1,7 +1,10 @@
 """``comp-daemon run --config FILE [--sim]``: the real-time daemon with its HTTP service.
 
 Runs until SIGTERM or SIGINT and exits 0 after a clean shutdown (corrections zeroed, state
-persisted); 1 if one of its tasks failed; 2 for a configuration the user must fix. Under systemd
+persisted); 1 if one of its tasks failed; 2 for a configuration the user must fix; 3
+(:data:`EXIT_STORE`) when the store cannot be used — damaged, missing or empty where a store
+existed, on a full disk, or in use by another daemon — with one line that says what, where and what
+to do (the unit in ``deploy/`` does not restart on 3: the operator must act first). Under systemd
 (``Type=notify``) it reports readiness and sends watchdog pings (see ``deploy/``).
 """
 
@@ -72,6 +75,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 QUICK_START_TIMEOUT_COUNT = 100
+#: the exit code for a store that cannot be used (``RestartPreventExitStatus=3`` in the unit)
+EXIT_STORE = 3
 
 
 def _quick_start_settings(data_dir: Path) -> Any:
@@ -156,7 +161,13 @@ def _run(args: argparse.Namespace) -> int:
                 with contextlib.suppress(asyncio.CancelledError):
                     await calibration
 
-    return asyncio.run(main())
+    from comp_daemon.service.store import StoreError
+
+    try:
+        return asyncio.run(main())
+    except StoreError as exc:
+        print(f"comp-daemon run: cannot start: {exc}", file=sys.stderr, flush=True)
+        return EXIT_STORE
 
 
 async def _calibrate_when_running(daemon: object) -> None:

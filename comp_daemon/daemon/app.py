@@ -13,12 +13,17 @@ process pool. What it is made of:
 - the view the HTTP service reads (:mod:`comp_daemon.daemon.view`);
 - the HTTP service: uvicorn serving :func:`comp_daemon.service.api.create_app`.
 
-Start-up: the store; the real-time process with the RSI endpoint (the controller must find it
+Start-up: the store (locked against a second daemon or a restore, refused with one line when it is
+damaged, missing or empty where a store existed, or on a full disk: :func:`open_store`); the
+real-time process with the RSI endpoint (the controller must find it
 listening before RSI_ON; the job workers are kept off its CPU); the HTTP service (heavy imports and
 the job pool, before any cycle runs); the cell (simulated child or the configured ports, then the
 grating readers and the loop); the executor and the supervisor; RSI_ON for the simulated cell.
-The **supervisor** pings the systemd watchdog every ``telemetry_s`` only while every task is alive,
-the real-time process reports and this loop keeps its schedule.
+The **backup** task copies the store into its backup folder every ``store.backup_interval_h`` (the
+first copy at start when the newest is older), keeping ``store.backup_keep``; a failed backup is
+logged and recorded, and never stops the daemon. The **supervisor** pings the systemd watchdog
+every ``telemetry_s`` only while every task is alive, the real-time process reports and this loop
+keeps its schedule.
 
 Shutdown (SIGTERM/SIGINT): from the next telegram every reply carries ``AK`` = 0 and ``Stop`` = 1;
 the active target is marked ``interrupted``; after ``stop_grace_cycles`` more cycles the RSI socket
@@ -55,6 +60,7 @@ from comp_daemon.rt.rsi_server import RsiServerStats
 from comp_daemon.service.config import Settings
 from comp_daemon.service.events import EventBus
 from comp_daemon.service.store import Store
+from comp_daemon.service.store import files as store_files
 
 __all__ = ["Daemon", "SimOptions"]
 
@@ -105,6 +111,8 @@ class Daemon:
         self._stop_reason = ""
         self._tasks: dict[str, asyncio.Task[Any]] = {}
         self._uvicorn: Any = None
+        self._store_lock: store_files.StoreLock | None = None
+        self._backup_task: asyncio.Task[None] | None = None
 
     # ------------------------------------------------------------------------------ the cell's parts
 
@@ -199,6 +207,7 @@ class Daemon:
 
         cell = self.cell
         self.data_dir.mkdir(parents=True, exist_ok=True)
+        self._store_lock = store_files.StoreLock(self.settings.store.db_path).acquire()
         store = self.store = await asyncio.to_thread(open_store, self.settings)
         cell.attach_store(store)
         active = await asyncio.to_thread(store.active_model, with_artifact=False)
@@ -217,6 +226,8 @@ class Daemon:
         if executor is not None:
             self._tasks["executor"] = executor
         self._tasks["supervisor"] = asyncio.create_task(self._supervise(), name="supervisor")
+        if self.settings.store.backup_interval_h > 0:
+            self._backup_task = asyncio.create_task(self._backups(), name="store-backup")
         if cell.sim is not None:
             await cell.sim.rsi_on()  # the robot program's RSI_ON, once the daemon listens and runs
         await asyncio.to_thread(
@@ -288,11 +299,11 @@ class Daemon:
             except Exception:
                 log.exception("daemon: could not persist the final state")
         # 4. stop the rest: supervisor, the real-time process, HTTP, the simulated cell, the store
-        sup = self._tasks.pop("supervisor", None)
-        if sup is not None:
-            sup.cancel()
-            with contextlib.suppress(asyncio.CancelledError, Exception):
-                await sup
+        for task in (self._tasks.pop("supervisor", None), self._backup_task):
+            if task is not None:
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, Exception):
+                    await task
         await cell.stop_realtime()
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
@@ -308,8 +319,42 @@ class Daemon:
         cell.detach_store()
         if self.store is not None:
             await asyncio.to_thread(self.store.close)
+        if self._store_lock is not None:
+            self._store_lock.release()
         self.notifier.close()
         log.info("daemon: stopped")
+
+    # ------------------------------------------------------------------------------ backups
+
+    async def _backups(self) -> None:
+        """Back the store up every ``backup_interval_h``; the first one now if the newest is older."""
+        conf = self.settings.store
+        interval_s = conf.backup_interval_h * 3600.0
+        backups = await asyncio.to_thread(store_files.list_backups, conf.backup_path, conf.db_path)
+        wait_s = 0.0 if not backups else max(0.0, backups[-1].created_at + interval_s - time.time())
+        while True:
+            await asyncio.sleep(wait_s)
+            wait_s = interval_s
+            started = time.perf_counter()
+            try:
+                backup = await asyncio.to_thread(
+                    store_files.make_backup, conf.db_path, conf.backup_path, keep=conf.backup_keep
+                )
+            except Exception as exc:  # a full backup disk must not stop the daemon
+                log.error(f"store: backup failed: {exc}")
+                with contextlib.suppress(Exception):
+                    assert self.store is not None
+                    await asyncio.to_thread(self.store.add_event, "store.backup_failed", {"error": str(exc)})
+                continue
+            took_s = round(time.perf_counter() - started, 3)
+            log.info(f"store: backed up to {backup.path} ({backup.size_bytes} bytes, {took_s} s)")
+            with contextlib.suppress(Exception):
+                assert self.store is not None
+                await asyncio.to_thread(
+                    self.store.add_event,
+                    "store.backup",
+                    {"path": str(backup.path), "bytes": backup.size_bytes, "seconds": took_s},
+                )
 
     # ------------------------------------------------------------------------------ supervisor
 

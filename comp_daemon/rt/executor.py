@@ -20,6 +20,12 @@ Lifecycle of a target (the store's states)::
    final joint errors (grating − target, deg, per joint ``A1``…); *failed* with the fault's reason
    otherwise. A target active at shutdown is marked *interrupted* for the operator.
 
+A store that cannot be written (a full disk) never ends the executor. If a target's move cannot be
+recorded, the target is failed at once (the loop released with its correction frozen; the robot
+is not commanded if the move to *moving* could not be stored) and its final state is kept here
+and written when the store takes writes again; no target is claimed meanwhile, and the reason is
+shown as the executor's ``blocked_reason``.
+
 Targets are only claimed while the daemon is ready for them (``readiness()`` returns None): RSI
 telegrams arriving, a grating calibration, an active model, no latched stop. Otherwise they stay
 queued and the reason is shown. The executor never blocks the event loop: store calls and the
@@ -50,6 +56,7 @@ __all__ = [
     "ModelMissingError",
     "MotionError",
     "MotionPort",
+    "QueueWriteError",
     "TargetExecutor",
     "TargetOutcome",
     "TargetQueue",
@@ -68,6 +75,10 @@ class ModelMissingError(CompensationError):
 
 class MotionError(RuntimeError):
     """The robot refused or could not take the motion command."""
+
+
+class QueueWriteError(RuntimeError):
+    """The target queue (the store) could not record a move of a target; ``__cause__`` says why."""
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,6 +177,9 @@ class TargetExecutor:
         self.blocked_reason: str | None = None
         #: the latest outcomes (the store keeps them all; this is bounded for a daemon running for months)
         self.outcomes: deque[TargetOutcome] = deque(maxlen=256)
+        #: final states the store could not take yet: (target id, state, reason, errors), oldest first
+        self.unsaved: list[tuple[int, str, str | None, Mapping[str, float | None] | None]] = []
+        self._queue_fault: str | None = None
         self._wakeup = asyncio.Event()
         self._stopping = False
         self._event_loop: asyncio.AbstractEventLoop | None = None
@@ -197,9 +211,23 @@ class TargetExecutor:
         self._event_loop = asyncio.get_running_loop()
         while not self._stopping:
             reason = self.readiness()
-            self.blocked_reason = reason
+            self.blocked_reason = reason or self._queue_fault  # a queue fault stands until a claim works
             if reason is None:
-                target = await asyncio.to_thread(self.queue.claim_next_target)
+                with contextlib.suppress(QueueWriteError):  # kept; the claim shows if the store writes
+                    await self._save_unsaved()
+                try:
+                    target = await self._write(self.queue.claim_next_target)
+                except QueueWriteError as exc:
+                    self.blocked_reason = f"the target queue cannot be written: {exc.__cause__}"
+                    if self._queue_fault != self.blocked_reason:  # once, not every recheck
+                        log.error(f"executor: no target claimed: {self.blocked_reason}")
+                    self._queue_fault = self.blocked_reason
+                    target = None
+                else:
+                    if self._queue_fault is not None:
+                        log.info("executor: the target queue takes writes again")
+                        self._queue_fault = None
+                    self._drop_unsaved()
                 if target is not None:
                     outcome = await self.execute(target)
                     self.outcomes.append(outcome)
@@ -220,9 +248,52 @@ class TargetExecutor:
         self.phase = "compensating"
         try:
             return await self._execute(tid, target.request)
+        except QueueWriteError as exc:
+            reason = f"the store could not record the target: {exc.__cause__}; check the part"
+            log.error(f"target {tid} failed: {reason}", target_id=tid)
+            await self._save(tid, "failed", reason, None)
+            return TargetOutcome(tid, "failed", reason, None)
         finally:
             self.current_target_id = None
             self.phase = None
+
+    # ------------------------------------------------------------------------------ store writes
+
+    async def _write(self, func: Callable[..., Any], *args: Any, **kwargs: Any) -> Any:
+        """``func(*args, **kwargs)`` of the queue in a worker thread; failures as :class:`QueueWriteError`."""
+        try:
+            return await asyncio.to_thread(functools.partial(func, *args, **kwargs))
+        except Exception as exc:
+            raise QueueWriteError(str(exc)) from exc
+
+    async def _save(
+        self, tid: int, state: str, reason: str | None, errors: Mapping[str, float | None] | None
+    ) -> None:
+        """Record a final state; kept in :attr:`unsaved` if the store cannot take it now."""
+        try:
+            await self._write(
+                self.queue.advance_target, tid, state, reason=reason, final_joint_errors_deg=errors
+            )
+        except QueueWriteError as exc:
+            log.error(f"target {tid}: final state {state} kept until the store takes writes: {exc}")
+            self.unsaved.append((tid, state, reason, errors))
+
+    async def _save_unsaved(self) -> None:
+        """Write the kept final states, oldest first; QueueWriteError at the first that still fails."""
+        while self.unsaved:
+            tid, state, reason, errors = self.unsaved[0]
+            await self._write(
+                self.queue.advance_target, tid, state, reason=reason, final_joint_errors_deg=errors
+            )
+            self.unsaved.pop(0)
+            log.info(f"target {tid}: final state {state} recorded")
+
+    def _drop_unsaved(self) -> None:
+        """The store took a claim but refused a kept state: the target moved on meanwhile (e.g. it
+        was marked interrupted); the store's state stands."""
+        for tid, state, _reason, _errors in self.unsaved:
+            log.error(f"target {tid}: the kept final state {state} could not be recorded; the store's stands")
+        self.unsaved.clear()
 
     async def _finish(
         self,
@@ -231,9 +302,7 @@ class TargetExecutor:
         reason: str | None,
         errors: Mapping[str, float | None] | None = None,
     ) -> TargetOutcome:
-        await asyncio.to_thread(
-            self.queue.advance_target, tid, state, reason=reason, final_joint_errors_deg=errors
-        )
+        await self._save(tid, state, reason, errors)
         words = f"target {tid} {state}" + (f": {reason}" if reason else "")
         log.info(words, target_id=tid, state=state, reason=reason)
         return TargetOutcome(tid, state, reason, errors)
@@ -254,14 +323,12 @@ class TargetExecutor:
             return await self._finish(tid, "interrupted", "the daemon shut down before the target started")
 
         self.phase = "moving"
-        await asyncio.to_thread(
-            functools.partial(
-                self.queue.advance_target,
-                tid,
-                "moving",
-                commanded_axes_deg=list(comp.commanded_deg),
-                compensation={"model_id": comp.model_id, **(comp.info or {})},
-            )
+        await self._write(
+            self.queue.advance_target,
+            tid,
+            "moving",
+            commanded_axes_deg=list(comp.commanded_deg),
+            compensation={"model_id": comp.model_id, **(comp.info or {})},
         )
         key = str(tid)
         try:
@@ -316,7 +383,7 @@ class TargetExecutor:
             return None  # an event of an earlier target
         if isinstance(event, Arrived):
             self.phase = "settling"
-            await asyncio.to_thread(self.queue.advance_target, tid, "settling")
+            await self._write(self.queue.advance_target, tid, "settling")
             return None
         errors = self._errors(event.errors_deg)
         if isinstance(event, Settled):

@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import time
 import uuid
 from collections.abc import AsyncIterator, Sequence
 from contextlib import asynccontextmanager
@@ -55,7 +56,10 @@ from comp_daemon.service.store import (
     IdempotencyConflict,
     NotFoundError,
     Store,
+    StoreDamagedError,
+    StoreFullError,
 )
+from comp_daemon.service.store import files as store_files
 from comp_daemon.service.uploads import UploadChecker
 
 __all__ = ["ApiError", "create_app", "open_store"]
@@ -66,13 +70,33 @@ _MULTIPART_OVERHEAD_BYTES = 64 * 1024
 
 
 def open_store(settings: Settings) -> Store:
-    """Open the configured store, apply migrations, run the recovery and prune old events."""
-    store = Store(
-        settings.store.db_path,
-        synchronous=settings.store.synchronous,
-        busy_timeout_ms=settings.store.busy_timeout_ms,
-    )
-    report = store.recover()
+    """Open the configured store, apply migrations, run the recovery and prune old events.
+
+    Refused with :class:`~comp_daemon.service.store.StoreDamagedError` (one line: what, where, how
+    to recover) when the database is damaged (``PRAGMA quick_check``), or missing or empty where a
+    store existed (:mod:`comp_daemon.service.store.files`); a full disk is
+    :class:`~comp_daemon.service.store.StoreFullError`."""
+    db_path, backup_dir = settings.store.db_path, settings.store.backup_path
+    store_files.refuse_if_lost(db_path, backup_dir)
+    started = time.perf_counter()
+    try:
+        store = Store(
+            db_path,
+            synchronous=settings.store.synchronous,
+            busy_timeout_ms=settings.store.busy_timeout_ms,
+            check=True,
+        )
+    except StoreDamagedError as exc:
+        raise StoreDamagedError(
+            f"{exc}; nothing was changed; {store_files.recovery_hint(db_path, backup_dir)}"
+        ) from exc
+    checked_s = time.perf_counter() - started
+    try:
+        store_files.write_marker(db_path)
+        report = store.recover()
+    except BaseException:
+        store.close()
+        raise
     pruned = store.prune_events(settings.store.event_retention_days * 86400.0)
     _log.info(
         "store opened",
@@ -82,6 +106,7 @@ def open_store(settings: Settings) -> Store:
         queued_targets=report.queued_targets,
         failed_jobs=report.failed_jobs,
         pruned_events=pruned,
+        quick_check_s=round(checked_s, 3),
     )
     return store
 
@@ -217,6 +242,12 @@ def _install_error_handlers(app: FastAPI) -> None:
     async def idempotency(request: Request, exc: IdempotencyConflict) -> JSONResponse:
         return _error(409, "idempotency_conflict", str(exc))
 
+    @app.exception_handler(StoreFullError)
+    async def storage_full(request: Request, exc: StoreFullError) -> JSONResponse:
+        _log.error("store: disk full, request refused", path=exc.path, free_bytes=exc.free_bytes)
+        details = [{"path": exc.path, "free_bytes": exc.free_bytes}]
+        return _error(507, "insufficient_storage", str(exc), details=details)
+
     @app.exception_handler(ConflictError)
     async def conflict(request: Request, exc: ConflictError) -> JSONResponse:
         return _error(409, "conflict", str(exc))
@@ -277,6 +308,7 @@ _COMMON_ANSWERS: tuple[tuple[str, int, str], ...] = (
     ("security", 403, "the token's role is too low for this operation"),
     ("requestBody", 400, "invalid Content-Length"),
     ("requestBody", 413, "request body over http.max_upload_bytes"),
+    ("requestBody", 507, "the disk that holds the store is full; details name the file and the free bytes"),
     ("", 500, "internal error; error_id names the log record"),
 )
 

@@ -102,11 +102,23 @@ class StoreSettings(_Section):
     synchronous: Literal["full", "normal"] = "full"
     busy_timeout_ms: int = Field(default=5000, ge=0)
     event_retention_days: float = Field(default=90.0, gt=0)
+    backup_dir: Path | None = None  # None: <data_dir>/backups
+    backup_interval_h: float = Field(default=24.0, ge=0)  # 0: no scheduled backups
+    backup_keep: int = Field(default=7, ge=1)
 
     @field_validator("data_dir")
     @classmethod
     def _relative_to_config(cls, value: Path) -> Path:
         return _resolve(value)
+
+    @field_validator("backup_dir")
+    @classmethod
+    def _backup_relative_to_config(cls, value: Path | None) -> Path | None:
+        return None if value is None else _resolve(value)
+
+    @property
+    def backup_path(self) -> Path:
+        return self.backup_dir if self.backup_dir is not None else self.data_dir / "backups"
 
     @field_validator("db_filename")
     @classmethod

@@ -24,6 +24,12 @@ their order; jobs that were queued or running fail with "interrupted by a restar
 Modules: :mod:`~.records` (states, errors, records), :mod:`~.schema` (migrations), :mod:`~.base`
 (connection, transactions), :mod:`~.artifacts` (data sets, models), :mod:`~.jobs`, :mod:`~.targets`
 (batches and the target queue), :mod:`~.events`; :class:`Store` is all of them with recovery.
+:mod:`~.files` keeps the files beside the database: the marker, the online backups, the restore
+and the daemon's lock.
+
+Faults: a write on a full disk is :class:`StoreFullError` (naming the file and the free space; the
+transaction is rolled back whole, nothing stored is lost); a damaged file, or a missing or empty
+one where a store existed, is :class:`StoreDamagedError` at open.
 """
 
 from __future__ import annotations
@@ -49,7 +55,9 @@ from comp_daemon.service.store.records import (
     ModelRecord,
     NotFoundError,
     RecoveryReport,
+    StoreDamagedError,
     StoreError,
+    StoreFullError,
     TargetRecord,
     without_details,
 )
@@ -76,7 +84,9 @@ __all__ = [
     "NotFoundError",
     "RecoveryReport",
     "Store",
+    "StoreDamagedError",
     "StoreError",
+    "StoreFullError",
     "TargetRecord",
     "without_details",
 ]

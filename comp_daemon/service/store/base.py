@@ -6,6 +6,7 @@ The tables' operations are in the modules beside this one, each a subclass of :c
 
 from __future__ import annotations
 
+import errno
 import os
 import sqlite3
 import threading
@@ -16,10 +17,18 @@ from pathlib import Path
 from typing import Any, Literal, Self
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.service.store.records import EventListener, EventRecord, NotFoundError, StoreError, dumps
+from comp_daemon.service.store.records import (
+    EventListener,
+    EventRecord,
+    NotFoundError,
+    StoreDamagedError,
+    StoreError,
+    StoreFullError,
+    dumps,
+)
 from comp_daemon.service.store.schema import MIGRATIONS, SCHEMA_VERSION
 
-__all__ = ["StoreBase"]
+__all__ = ["StoreBase", "check_rows", "disk_full_error", "free_bytes", "one_line"]
 
 _log = get_logger("comp_daemon.store")
 
@@ -52,6 +61,51 @@ def _create_private(path: Path) -> None:
     os.close(fd)
 
 
+def free_bytes(path: Path) -> int | None:
+    """Bytes an unprivileged writer may still use on the disk that holds ``path`` (None if unknown)."""
+    folder = path if path.is_dir() else path.parent
+    try:
+        st = os.statvfs(folder)
+    except OSError:
+        return None
+    return int(st.f_bavail * st.f_frsize)
+
+
+#: SQLite's primary result codes that mean "the file could not be written": full, or an I/O error
+#: (SQLite reports some ENOSPC failures, e.g. growing the -shm file, as I/O errors)
+_SQLITE_FULL = 13
+_SQLITE_IOERR = 10
+_SQLITE_DAMAGED = frozenset({11, 26})  # SQLITE_CORRUPT, SQLITE_NOTADB
+
+
+def disk_full_error(exc: BaseException, path: Path) -> StoreFullError | None:
+    """``exc`` as a :class:`StoreFullError` naming ``path`` if it means the disk is full; else None."""
+    if isinstance(exc, StoreFullError):
+        return exc
+    if isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return StoreFullError(path, free_bytes(path))
+    code = getattr(exc, "sqlite_errorcode", None)
+    if not isinstance(exc, sqlite3.Error) or code is None:
+        return None
+    free = free_bytes(path)
+    if code & 0xFF == _SQLITE_FULL or (code & 0xFF == _SQLITE_IOERR and free == 0):
+        return StoreFullError(path, free)
+    return None
+
+
+def check_rows(rows: Sequence[object]) -> list[str]:
+    """The problems in the rows of ``PRAGMA quick_check`` / ``integrity_check``: one per line of text."""
+    lines = [line.strip() for row in rows for line in str(row).splitlines()]
+    found = [line for line in lines if line and not line.startswith("*** in database")]
+    return [] if found == ["ok"] else found
+
+
+def one_line(problems: Sequence[str], first: int = 3) -> str:
+    """The first ``first`` problems on one line, and how many more there are."""
+    more = len(problems) - first
+    return "; ".join(problems[:first]) + (f" (and {more} more)" if more > 0 else "")
+
+
 class StoreBase:
     """The SQLite connection. Open with ``Store(path)``; close with :meth:`close` (or use ``with``)."""
 
@@ -62,25 +116,64 @@ class StoreBase:
         synchronous: Literal["full", "normal"] = "full",
         busy_timeout_ms: int = 5000,
         clock: Callable[[], float] = time.time,
+        check: bool = False,
     ) -> None:
+        """Open (or create) the store at ``path``.
+
+        ``check``: run ``PRAGMA quick_check`` before anything is written, and refuse a damaged file
+        with :class:`StoreDamagedError`. Whatever the check, a file SQLite cannot read as a database
+        is refused with that error, a full disk with :class:`StoreFullError`, any other failure to
+        open with :class:`StoreError` — each naming the file.
+        """
         self.path = Path(path)
-        if str(path) != ":memory:":
-            _create_private(self.path)
         self._clock = clock
         self._lock = threading.RLock()
         self._listeners: list[EventListener] = []
         self._pending: list[EventRecord] = []
-        self._conn = sqlite3.connect(
-            str(path), isolation_level=None, check_same_thread=False, timeout=busy_timeout_ms / 1000
-        )
-        self._conn.row_factory = sqlite3.Row
-        mode = self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
-        if str(path) != ":memory:" and str(mode).lower() != "wal":
-            raise StoreError(f"cannot put {self.path} in WAL mode (got {mode})")
-        self._conn.execute("PRAGMA foreign_keys=ON")
-        self._conn.execute(f"PRAGMA synchronous={'FULL' if synchronous == 'full' else 'NORMAL'}")
-        self._conn.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
-        self._migrate()
+        try:
+            if str(path) != ":memory:":
+                _create_private(self.path)
+            self._conn = sqlite3.connect(
+                str(path), isolation_level=None, check_same_thread=False, timeout=busy_timeout_ms / 1000
+            )
+        except (OSError, sqlite3.Error) as exc:
+            raise self._open_error(exc) from exc
+        try:
+            self._conn.row_factory = sqlite3.Row
+            if check:
+                problems = self.quick_check()
+                if problems:
+                    raise StoreDamagedError(f"store {self.path} is damaged: {one_line(problems)}")
+            mode = self._conn.execute("PRAGMA journal_mode=WAL").fetchone()[0]
+            if str(path) != ":memory:" and str(mode).lower() != "wal":
+                raise StoreError(f"cannot put {self.path} in WAL mode (got {mode})")
+            self._conn.execute("PRAGMA foreign_keys=ON")
+            self._conn.execute(f"PRAGMA synchronous={'FULL' if synchronous == 'full' else 'NORMAL'}")
+            self._conn.execute(f"PRAGMA busy_timeout={int(busy_timeout_ms)}")
+            self._migrate()
+        except BaseException as exc:
+            self._conn.close()
+            if isinstance(exc, OSError | sqlite3.Error):
+                raise self._open_error(exc) from exc
+            raise
+
+    def _open_error(self, exc: OSError | sqlite3.Error) -> StoreError:
+        full = disk_full_error(exc, self.path)
+        if full is not None:
+            return full
+        if getattr(exc, "sqlite_errorcode", 0) & 0xFF in _SQLITE_DAMAGED:
+            return StoreDamagedError(f"store {self.path} is damaged: {exc}")
+        return StoreError(f"cannot open the store {self.path}: {exc}")
+
+    def quick_check(self) -> list[str]:
+        """SQLite's ``PRAGMA quick_check``: the problems it finds (empty if the file is sound).
+
+        It reads every page of the file (O(size)); a file SQLite cannot read at all is one problem."""
+        try:
+            rows = self._read("PRAGMA quick_check")
+        except sqlite3.DatabaseError as exc:
+            return [str(exc)]
+        return check_rows([r[0] for r in rows])
 
     # ------------------------------------------------------------------------------- plumbing
 
@@ -106,19 +199,39 @@ class StoreBase:
 
     @contextmanager
     def _tx(self) -> Iterator[sqlite3.Connection]:
+        """One ``BEGIN IMMEDIATE`` … ``COMMIT``; rolled back whole on any error.
+
+        A full disk is raised as :class:`StoreFullError` (the cause chained); SQLite may already
+        have rolled the transaction back itself (a failed ``COMMIT``), so the rollback here is only
+        issued while a transaction is open and can never hide the error that caused it.
+        """
         with self._lock:
             self._pending = []
-            self._conn.execute("BEGIN IMMEDIATE")
             try:
-                yield self._conn
-                self._conn.execute("COMMIT")
-            except BaseException:
-                self._conn.execute("ROLLBACK")
-                self._pending = []
-                raise
+                self._conn.execute("BEGIN IMMEDIATE")
+                try:
+                    yield self._conn
+                    self._conn.execute("COMMIT")
+                except BaseException:
+                    self._pending = []
+                    self._rollback()
+                    raise
+            except (OSError, sqlite3.Error) as exc:
+                full = disk_full_error(exc, self.path)
+                if full is None:
+                    raise
+                raise full from exc
             events, self._pending = self._pending, []
             listeners = list(self._listeners)
         self._notify(listeners, events)
+
+    def _rollback(self) -> None:
+        if not self._conn.in_transaction:
+            return  # SQLite ended it already (e.g. a COMMIT that failed on a full disk)
+        try:
+            self._conn.execute("ROLLBACK")
+        except sqlite3.Error:  # the error being raised is the one that matters
+            _log.exception("store: rollback failed", path=str(self.path))
 
     @staticmethod
     def _notify(listeners: Sequence[EventListener], events: Sequence[EventRecord]) -> None:
@@ -167,22 +280,16 @@ class StoreBase:
                 " (version INTEGER PRIMARY KEY, applied_at REAL NOT NULL)"
             )
             for version, statements in MIGRATIONS:
-                self._conn.execute("BEGIN IMMEDIATE")
-                try:
-                    done = self._conn.execute(
-                        "SELECT 1 FROM schema_version WHERE version = ?", (version,)
-                    ).fetchone()
+                with self._tx() as conn:
+                    sql = "SELECT 1 FROM schema_version WHERE version = ?"
+                    done = conn.execute(sql, (version,)).fetchone()
                     if done is None:
                         for statement in statements:
-                            self._conn.execute(statement)
-                        self._conn.execute(
+                            conn.execute(statement)
+                        conn.execute(
                             "INSERT INTO schema_version (version, applied_at) VALUES (?, ?)",
                             (version, self._clock()),
                         )
-                    self._conn.execute("COMMIT")
-                except BaseException:
-                    self._conn.execute("ROLLBACK")
-                    raise
             newest = self._conn.execute("SELECT MAX(version) FROM schema_version").fetchone()[0]
             if newest is not None and newest > SCHEMA_VERSION:
                 raise StoreError(

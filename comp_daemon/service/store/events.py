@@ -62,12 +62,6 @@ class EventStore(StoreBase):
     def prune_events(self, older_than_s: float) -> int:
         """Delete events older than ``older_than_s`` seconds; returns how many."""
         cutoff = self._clock() - older_than_s
-        with self._lock:
-            self._conn.execute("BEGIN IMMEDIATE")
-            try:
-                n = self._conn.execute("DELETE FROM events WHERE time < ?", (cutoff,)).rowcount
-                self._conn.execute("COMMIT")
-            except BaseException:
-                self._conn.execute("ROLLBACK")
-                raise
+        with self._tx() as conn:
+            n = conn.execute("DELETE FROM events WHERE time < ?", (cutoff,)).rowcount
         return int(n)

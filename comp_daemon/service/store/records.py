@@ -27,7 +27,9 @@ __all__ = [
     "ModelRecord",
     "NotFoundError",
     "RecoveryReport",
+    "StoreDamagedError",
     "StoreError",
+    "StoreFullError",
     "TargetRecord",
     "dumps",
     "finite",
@@ -65,6 +67,25 @@ TARGET_TRANSITIONS: dict[str, frozenset[str]] = {
 
 class StoreError(Exception):
     """Base of the errors a caller can act on."""
+
+
+class StoreFullError(StoreError):
+    """A write could not be stored: the disk that holds ``path`` is full. Nothing stored is lost:
+    the transaction that failed was rolled back whole."""
+
+    def __init__(self, path: object, free_bytes: int | None) -> None:
+        self.path = str(path)
+        self.free_bytes = free_bytes
+        free = "unknown" if free_bytes is None else f"{free_bytes} bytes"
+        super().__init__(
+            f"disk full: cannot write {self.path} ({free} free on its disk); nothing stored was lost; "
+            "free space on that disk"
+        )
+
+
+class StoreDamagedError(StoreError):
+    """The store's file is damaged, or empty or missing where a store existed; the message says
+    what, where and how to recover. Nothing was changed."""
 
 
 class NotFoundError(StoreError):
