@@ -23,12 +23,14 @@ from fastapi import APIRouter, Depends, Path, Query, Request, Response
 from fastapi.responses import PlainTextResponse
 from starlette.datastructures import UploadFile
 from starlette.requests import ClientDisconnect
+from starlette.types import Receive, Scope, Send
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.schemas import DatasetOut, ErrorOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.store.artifacts import DatasetContent
 from comp_daemon.service.uploads import Spool, UploadChecker, UploadRefused
 
 router = APIRouter(tags=["datasets"])
@@ -39,6 +41,8 @@ Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 DatasetId = Annotated[int, Path(ge=1, le=2**62, description="data set id")]
 
+#: a download's chunk: what one connection holds at most, beside the socket's buffer
+CONTENT_CHUNK_BYTES = 256 * 1024
 _CSV_TYPES = ("text/csv", "application/csv", "text/plain")
 _UPLOAD_BODY: dict[str, Any] = {
     "requestBody": {
@@ -211,20 +215,58 @@ async def get_dataset(dataset_id: DatasetId, svc: State, who: Viewer) -> Dataset
     return DatasetOut.of(await svc.run(svc.store.get_dataset, dataset_id))
 
 
+class _StoredContent(Response):
+    """A stored data set's CSV sent :data:`CONTENT_CHUNK_BYTES` at a time, read from the store chunk
+    by chunk (never whole in memory); ends early when the client goes away. A client that stops
+    reading is dropped by the server's write time limit (``http.write_timeout_s``)."""
+
+    def __init__(self, content: DatasetContent, filename: str) -> None:
+        self.content = content
+        self.status_code = 200
+        self.background = None
+        self.media_type = "text/csv; charset=utf-8"
+        self.init_headers(
+            {
+                "content-length": str(content.size),
+                "content-disposition": f'attachment; filename="{filename}"',
+            }
+        )
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        gone = asyncio.Event()
+
+        async def watch() -> None:
+            while (await receive())["type"] != "http.disconnect":
+                pass
+            gone.set()
+
+        watcher = asyncio.create_task(watch())
+        try:
+            await send({"type": "http.response.start", "status": 200, "headers": self.raw_headers})
+            left = self.content.size
+            while left > 0 and not gone.is_set():
+                chunk = await asyncio.to_thread(self.content.read, min(CONTENT_CHUNK_BYTES, left))
+                if not chunk:
+                    break
+                left -= len(chunk)
+                await send({"type": "http.response.body", "body": chunk, "more_body": left > 0})
+            if left > 0 and not gone.is_set():  # the row changed under us: end the body short
+                _log.warning("dataset content ended early", missing_bytes=left)
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+        finally:
+            watcher.cancel()
+            await asyncio.to_thread(self.content.close)
+
+
 @router.get(
     "/datasets/{dataset_id}/content",
     response_class=PlainTextResponse,
-    summary="The stored data set as CSV",
+    summary="The stored data set as CSV (streamed)",
     responses={200: {"content": {"text/csv": {}}}, 404: {"model": ErrorOut}},
 )
 async def get_dataset_content(dataset_id: DatasetId, svc: State, who: Viewer) -> Response:
-    record = await svc.run(svc.store.get_dataset, dataset_id, with_content=True)
-    filename = f"dataset-{record.id}.csv"
-    return Response(
-        record.content or "",
-        media_type="text/csv; charset=utf-8",
-        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
-    )
+    content = await svc.run(svc.store.open_dataset_content, dataset_id)
+    return _StoredContent(content, f"dataset-{dataset_id}.csv")
 
 
 @router.delete(
