@@ -48,6 +48,7 @@ from comp_daemon.service.daemon_view import DaemonView, DetachedDaemonView
 from comp_daemon.service.events import EventBus
 from comp_daemon.service.jobs import JobKind, JobRunner
 from comp_daemon.service.state import ApiError, ServiceState
+from comp_daemon.service.status import StatusBoard
 from comp_daemon.service.store import (
     TARGET_FINAL_STATES,
     ConflictError,
@@ -314,10 +315,11 @@ def _document_common_answers(app: FastAPI) -> None:
 # ------------------------------------------------------------------------------------- the app
 
 
-def _forward_store_events(state: ServiceState) -> Any:
+def _forward_store_events(state: ServiceState, board: StatusBoard) -> Any:
     bus = state.bus
 
     def listener(event: EventRecord) -> None:
+        board.changed()
         data = {"id": event.id, "target_id": event.target_id, "job_id": event.job_id, **event.message}
         bus.publish(event.kind, data)
         if event.kind.startswith("target."):
@@ -358,8 +360,9 @@ def create_app(
     )
     for kind in job_kinds if job_kinds is not None else default_kinds.default_job_kinds():
         state.runner.register(kind)
-    listener = _forward_store_events(state)
     uploads = UploadChecker(settings.http.max_concurrent_uploads)
+    board = StatusBoard(state, settings.http.status_interval_s)
+    listener = _forward_store_events(state, board)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -367,10 +370,12 @@ def create_app(
         store.add_listener(listener)
         metrics.set_queue_depth_source(store.queue_depth)
         state.runner.start()
+        status_task = asyncio.create_task(board.run(), name="status snapshot")
         _log.info("http service started", robot=robot.name, job_kinds=state.runner.kinds())
         try:
             yield
         finally:
+            await board.stop(status_task)
             state.bus.close()
             await state.runner.drain()
             await asyncio.to_thread(state.runner.shutdown)
@@ -394,6 +399,7 @@ def create_app(
     app.state.svc = state
     app.state.tokens = state.tokens
     app.state.uploads = uploads
+    app.state.status = board
     _install_error_handlers(app)
     _document_common_answers(app)
     app.add_middleware(
