@@ -246,3 +246,20 @@ async def test_status_under_50_clients_is_a_snapshot(serve: Serve) -> None:
     print(f"status: {calls} snapshot builds")
     assert requests > 100
     assert calls <= elapsed / 0.25 + 4, f"{calls} store reads for {requests} requests"
+
+
+async def test_thirty_small_uploads_at_once_all_fit(serve: Serve) -> None:
+    """30 clients upload an 80 KB campaign at the same moment: the limit is on bytes in flight, not on
+    the number of uploads, so none is refused."""
+    from test_service_hostile import big_csv
+
+    body = big_csv(80_000)
+    _, store, url = await serve(max_connections=256)
+    headers = {**auth("engineer"), "Content-Type": "text/csv"}
+    async with httpx.AsyncClient(base_url=url, timeout=60, limits=httpx.Limits(max_connections=40)) as client:
+        answers = await asyncio.gather(
+            *(client.post(f"/api/datasets?name=u{i}", content=body, headers=headers) for i in range(30))
+        )
+    codes = [r.status_code for r in answers]
+    assert codes == [201] * 30, codes
+    assert len(store.list_datasets()) == 30

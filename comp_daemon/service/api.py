@@ -360,7 +360,7 @@ def create_app(
     )
     for kind in job_kinds if job_kinds is not None else default_kinds.default_job_kinds():
         state.runner.register(kind)
-    uploads = UploadChecker(settings.http.max_concurrent_uploads)
+    uploads = UploadChecker(settings.http.max_concurrent_uploads, settings.http.max_upload_bytes_in_flight)
     board = StatusBoard(state, settings.http.status_interval_s)
     listener = _forward_store_events(state, board)
 

@@ -95,7 +95,8 @@ class HttpSettings(_Section):
     status_interval_s: float = Field(default=0.25, gt=0, le=10)
     keep_alive_s: int = Field(default=5, ge=1)
     listen_backlog: int = Field(default=128, ge=1)
-    max_concurrent_uploads: int = Field(default=2, ge=1)
+    max_concurrent_uploads: int = Field(default=2, ge=1)  # checking processes (bodies over 1 MiB)
+    max_upload_bytes_in_flight: int = Field(default=40_000_000, ge=1024)
 
 
 class StoreSettings(_Section):

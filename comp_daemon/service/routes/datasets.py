@@ -6,12 +6,14 @@ nothing is stored. What is stored is the canonical CSV of the data set (exact fl
 columns kept), whatever the upload format; ``sha256`` is the hash of that text.
 
 An upload never runs on the event loop: its body is streamed to a temporary file (in memory up to
-1 MiB), then parsed, validated, rendered and summarised in a worker thread. At most
-``http.max_concurrent_uploads`` are checked at once (each may take a few hundred MB and seconds of
-CPU at the size limit); one more is answered 503 with ``Retry-After``. JSON follows the file
-reader's rules (a key given twice is refused) and more: a lone surrogate or a NUL in a string and
-an integer beyond any double are refused 422 with the value's path (``$[3].a1``); a NUL in a CSV
-field is refused with its row and column.
+1 MiB), then parsed, validated, rendered and summarised in a worker thread (over 1 MiB: in a
+process of its own, at most ``http.max_concurrent_uploads`` such processes at once). The bytes of
+uploads in flight are bounded by ``http.max_upload_bytes_in_flight`` (40 MB: two at the 20 MB limit,
+or hundreds of small ones; a check takes memory and CPU in proportion to the size); an upload whose
+declared length does not fit beside those in flight is answered 503 with ``Retry-After``.
+JSON follows the file reader's rules (a key given twice is refused) and more: a lone surrogate or a
+NUL in a string and an integer beyond any double are refused 422 with the value's path
+(``$[3].a1``); a NUL in a CSV field is refused with its row and column.
 """
 
 from __future__ import annotations
@@ -84,7 +86,7 @@ _REFUSED: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorOut, "description": "body over http.max_upload_bytes"},
     415: {"model": ErrorOut, "description": "not CSV, JSON or multipart"},
     422: {"model": ErrorOut, "description": "refused data set; row/column (JSON: path) name the fault"},
-    503: {"model": ErrorOut, "description": "http.max_concurrent_uploads uploads are being checked"},
+    503: {"model": ErrorOut, "description": "http.max_upload_bytes_in_flight bytes of uploads are in flight"},
 }
 
 
@@ -131,21 +133,28 @@ async def upload_dataset(
             415, "unsupported_media_type", "send text/csv, application/json or multipart/form-data"
         )
     checker: UploadChecker = request.app.state.uploads
-    if checker.busy():
+    limit = svc.settings.http.max_upload_bytes
+    declared = request.headers.get("content-length", "")
+    size = min(int(declared), limit) if declared.isdigit() else limit
+    budget = checker.budget
+    if not budget.take(size):
         raise ApiError(
             503,
             "busy",
-            f"{checker.concurrency} uploads are being checked (http.max_concurrent_uploads); try again",
+            f"{budget.in_flight} bytes of {budget.uploads} uploads are in flight; {size} more do not fit "
+            f"under http.max_upload_bytes_in_flight ({budget.limit_bytes}); try again",
             retry_after_s=2,
         )
-    async with checker.slots:
-        fmt, source, spool = await _receive(request, svc.settings.http.max_upload_bytes, name, ctype)
+    try:
+        fmt, source, spool = await _receive(request, limit, name, ctype)
         try:
             checked = await checker.check(spool, fmt, source, svc.robot.axis_limits_deg, kind)
         except UploadRefused as exc:
             raise ApiError(422, "invalid_dataset", exc.message, **exc.where) from None
         finally:
             await asyncio.to_thread(spool.close)
+    finally:
+        budget.give(size)
     record = await svc.run(
         svc.store.add_dataset,
         name=checked.name,
