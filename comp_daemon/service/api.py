@@ -32,6 +32,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
@@ -247,8 +248,12 @@ def _install_error_handlers(app: FastAPI) -> None:
         where = ".".join(first_loc)
         row: int | None = None
         column: str | None = None
-        if len(first_loc) >= 4 and first_loc[:2] == ["body", "targets"] and first_loc[2].isdigit():
-            row, column = int(first_loc[2]) + 1, first_loc[3]
+        row_label = None
+        if len(first_loc) >= 3 and first_loc[:2] in (["body", "targets"], ["body", "poses"]):
+            if first_loc[2].isdigit():
+                row, row_label = int(first_loc[2]) + 1, first_loc[1][:-1]  # target, pose
+                if len(first_loc) > 3:  # a target's field; a pose's value by its index
+                    column = first_loc[3] if first_loc[1] == "targets" else f"a{int(first_loc[3]) + 1}"
         elif first_loc and first_loc[0] in ("query", "header", "path") and len(first_loc) > 1:
             column = first_loc[1]
         return _error(
@@ -257,7 +262,7 @@ def _install_error_handlers(app: FastAPI) -> None:
             f"{where}: {first_message}" if where else first_message,
             row=row,
             column=column,
-            row_label="target" if row is not None else None,
+            row_label=row_label,
             details=details,
         )
 
@@ -267,7 +272,19 @@ def _install_error_handlers(app: FastAPI) -> None:
         response = _error(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail))
         if exc.headers:
             response.headers.update(exc.headers)
+        if exc.status_code == 405:  # Starlette names the first matching route's methods only
+            response.headers["Allow"] = ", ".join(_allowed_methods(request))
         return response
+
+
+def _allowed_methods(request: Request) -> list[str]:
+    """Every method some route of the app takes on the request's path (for a 405's ``Allow``)."""
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        if isinstance(route, APIRoute) and route.path_regex.match(request.url.path):
+            methods |= route.methods or set()
+    order = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+    return sorted(methods, key=lambda m: (order.index(m) if m in order else len(order), m))
 
 
 # ------------------------------------------------------------------------------- the OpenAPI
@@ -307,6 +324,31 @@ def _document_common_answers(app: FastAPI) -> None:
                         answer["content"] = {"application/json": {"schema": error}}
                     responses.setdefault(str(status), answer)
         app.openapi_schema = schema
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
+def _document_axis_limits(app: FastAPI, limits_deg: Any) -> None:
+    """Put the configured robot's axis limits (deg) into the OpenAPI description of the bodies that
+    take axis values (a target's ``a1..a6``, a calibration pose), as the server checks them."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        fresh = app.openapi_schema is None
+        schema = build()
+        if not fresh:
+            return schema
+        bounds = [{"minimum": float(lo), "maximum": float(hi)} for lo, hi in limits_deg]
+        models = schema.get("components", {}).get("schemas", {})
+        target = models.get("TargetIn", {}).get("properties", {})
+        for j, bound in enumerate(bounds):
+            if f"a{j + 1}" in target:
+                target[f"a{j + 1}"].update(bound)
+        poses = models.get("GratingCalibrationIn", {}).get("properties", {}).get("poses", {})
+        for form in poses.get("anyOf", [poses]):
+            if form.get("type") == "array" and isinstance(form.get("items"), dict):
+                form["items"]["prefixItems"] = [{"type": "number", **b} for b in bounds]
         return schema
 
     app.openapi = openapi  # type: ignore[method-assign]
@@ -402,6 +444,7 @@ def create_app(
     app.state.status = board
     _install_error_handlers(app)
     _document_common_answers(app)
+    _document_axis_limits(app, robot.axis_limits_deg)
     app.add_middleware(
         BodyLimitMiddleware, limit_bytes=settings.http.max_upload_bytes + _MULTIPART_OVERHEAD_BYTES
     )

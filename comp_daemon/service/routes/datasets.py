@@ -22,7 +22,6 @@ import asyncio
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
-from fastapi.responses import PlainTextResponse
 from starlette.datastructures import UploadFile
 from starlette.requests import ClientDisconnect
 from starlette.types import Receive, Scope, Send
@@ -30,7 +29,7 @@ from starlette.types import Receive, Scope, Send
 from comp_daemon.common.logs import get_logger
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
-from comp_daemon.service.schemas import DatasetOut, ErrorOut, json_array
+from comp_daemon.service.schemas import MAX_ID, DatasetOut, ErrorOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 from comp_daemon.service.store.artifacts import DatasetContent
 from comp_daemon.service.uploads import Spool, UploadChecker, UploadRefused
@@ -41,7 +40,7 @@ _log = get_logger("comp_daemon.api.datasets")
 State = Annotated[ServiceState, Depends(get_state)]
 Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 Engineer = Annotated[Principal, Depends(require(Role.engineer))]
-DatasetId = Annotated[int, Path(ge=1, le=2**62, description="data set id")]
+DatasetId = Annotated[int, Path(ge=1, le=MAX_ID, description="data set id")]
 
 #: a download's chunk: what one connection holds at most, beside the socket's buffer
 CONTENT_CHUNK_BYTES = 256 * 1024
@@ -60,6 +59,7 @@ _UPLOAD_BODY: dict[str, Any] = {
                         "file": {"type": "string", "format": "binary"},
                         "name": {"type": "string", "maxLength": 200},
                     },
+                    "additionalProperties": False,  # the form takes these two parts only
                 }
             },
             "text/csv": {"schema": {"type": "string"}},
@@ -269,9 +269,9 @@ class _StoredContent(Response):
 
 @router.get(
     "/datasets/{dataset_id}/content",
-    response_class=PlainTextResponse,
+    response_class=Response,  # errors are JSON (ErrorOut), the data set text/csv
     summary="The stored data set as CSV (streamed)",
-    responses={200: {"content": {"text/csv": {}}}, 404: {"model": ErrorOut}},
+    responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}}}, 404: {"model": ErrorOut}},
 )
 async def get_dataset_content(dataset_id: DatasetId, svc: State, who: Viewer) -> Response:
     content = await svc.run(svc.store.open_dataset_content, dataset_id)

@@ -32,6 +32,7 @@ from comp_daemon.service.config import Role
 from comp_daemon.service.daemon_view import DaemonControl
 from comp_daemon.service.events import CLOSING
 from comp_daemon.service.schemas import (
+    MAX_ID,
     ErrorOut,
     EventOut,
     GratingCalibrationIn,
@@ -149,10 +150,10 @@ async def events(
 async def event_log(
     svc: State,
     who: Viewer,
-    after_id: Annotated[int, Query(ge=0, le=2**62)] = 0,
+    after_id: Annotated[int, Query(ge=0, le=MAX_ID)] = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    target_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
-    job_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+    target_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
+    job_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
     newest_first: bool = False,
 ) -> Response:
     rows = await svc.run(
