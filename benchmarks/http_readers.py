@@ -1,13 +1,15 @@
 """The HTTP service under readers and small writers, in a process of its own: memory and latency.
 
-Measures, against the service alone (no daemon) serving a store filled beforehand:
+Measures, against the service alone (no daemon) serving a store filled beforehand (the data sets
+and an active model with a 3 MB artifact, as a kriging model's):
 
 1. ``lists``: the server's resident memory (RSS, and its peak VmHWM) around 10 parallel
    ``GET /api/datasets`` over ``--datasets`` data sets of ``--dataset-mb`` MB each;
 2. ``downloads``: RSS with 30 clients that ask for a 20 MB data set and stop reading, then again
    after the server's write time limit (``http.write_timeout_s``, 30 s) has passed;
-3. ``status``: ``/api/status`` and ``/health`` latencies (p50, p99) with 50 clients polling
-   ``/api/status`` for ``--seconds``;
+3. ``status``: with 50 clients (two processes of 25) polling ``/api/status`` without pause for
+   ``--seconds``, the latencies (p50, p99) of a probe of ``/api/status`` and one of ``/health``
+   every 50 ms from this process, and the server's CPU time per request;
 4. ``uploads``: the share of 503 answers when 20 and then 50 clients each upload an 80 KB campaign
    at once;
 5. ``upload``: the time from sending a 19.9 MB CSV to its 201.
@@ -66,6 +68,29 @@ def _settings(data_dir: Path) -> dict[str, Any]:
     }
 
 
+#: clients in a process of their own, each polling /api/status without pause; prints the answers
+_POLLERS = """
+import asyncio, sys, time
+import httpx
+
+async def main(url, token, clients, seconds):
+    until = time.monotonic() + seconds
+    done = 0
+    limits = httpx.Limits(max_connections=clients, max_keepalive_connections=clients)
+    async with httpx.AsyncClient(base_url=url, timeout=60, limits=limits,
+                                 headers={"Authorization": f"Bearer {token}"}) as c:
+        async def poll():
+            nonlocal done
+            while time.monotonic() < until:
+                await c.get("/api/status")
+                done += 1
+        await asyncio.gather(*(poll() for _ in range(clients)))
+    print(done)
+
+asyncio.run(main(sys.argv[1], sys.argv[2], int(sys.argv[3]), float(sys.argv[4])))
+"""
+
+
 def _memory_kb(pid: int) -> tuple[int, int]:
     """(VmRSS, VmHWM) of a process, in kB."""
     fields = {}
@@ -74,6 +99,12 @@ def _memory_kb(pid: int) -> tuple[int, int]:
         if key in ("VmRSS", "VmHWM"):
             fields[key] = int(value.split()[0])
     return fields["VmRSS"], fields["VmHWM"]
+
+
+def _cpu_s(pid: int) -> float:
+    """CPU time (user + system) a process has used, in seconds."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def _fill(src: Path, data_dir: Path, count: int, size_mb: float) -> list[int]:
@@ -91,6 +122,11 @@ def _fill(src: Path, data_dir: Path, count: int, size_mb: float) -> list[int]:
         "    ids.append(store.add_dataset(name=f'set-{i}', format='csv', content=text,\n"
         "        sha256=hashlib.sha256(text.encode()).hexdigest(), rows=text.count('\\n') - 1,\n"
         "        summary={'rows': text.count('\\n') - 1}).id)\n"
+        "from comp_daemon.service.store import ModelDraft\n"
+        "artifact = {'points': [[i * 0.001] * 9 for i in range(20000)]}\n"
+        "model = store.add_model(ModelDraft(kind='kriging', order=None, artifact=artifact,\n"
+        "    stats={'table2': {}}, dataset_id=ids[0]))\n"
+        "store.activate_model(model.id)\n"
         "print(json.dumps(ids))\n"
     )
     sizes = [int(size_mb * MB)] * count + [20 * MB]
@@ -100,6 +136,7 @@ def _fill(src: Path, data_dir: Path, count: int, size_mb: float) -> list[int]:
         capture_output=True,
         text=True,
         env={**os.environ, "PYTHONPATH": str(src)},
+        cwd=src,  # "python -c" puts the working folder first on the path
     )
     ids: list[int] = json.loads(out.stdout)
     return ids
@@ -128,7 +165,7 @@ async def run(src: Path, datasets: int, dataset_mb: float, seconds: float) -> No
         proc = await asyncio.create_subprocess_exec(
             sys.executable, "-c", _SERVER, json.dumps(_settings(data_dir)),
             stdout=asyncio.subprocess.PIPE, stderr=asyncio.subprocess.DEVNULL,
-            env={**os.environ, "PYTHONPATH": str(src)},
+            env={**os.environ, "PYTHONPATH": str(src)}, cwd=src,
         )  # fmt: skip
         assert proc.stdout is not None
         port = int(await asyncio.wait_for(proc.stdout.readline(), 60))
@@ -160,21 +197,39 @@ async def run(src: Path, datasets: int, dataset_mb: float, seconds: float) -> No
 
                 status: list[float] = []
                 health: list[float] = []
-                until = time.monotonic() + seconds
+                until = 0.0
 
-                async def poll(path: str, into: list[float], pause: float) -> None:
+                async def probe(path: str, into: list[float]) -> None:
                     while time.monotonic() < until:
                         t0 = time.perf_counter()
                         r = await c.get(path)
                         into.append(time.perf_counter() - t0)
                         assert r.status_code == 200, r.text
-                        await asyncio.sleep(pause)
+                        await asyncio.sleep(0.05)
 
-                await asyncio.gather(
-                    *(poll("/api/status", status, 0.0) for _ in range(50)), poll("/health", health, 0.05)
-                )
-                print(f"status: 50 clients, {len(status)} requests in {seconds:g} s: {_percentiles(status)}")
-                print(f"status: /health meanwhile: {_percentiles(health)}")
+                cpu0 = _cpu_s(proc.pid)
+                load = [
+                    await asyncio.create_subprocess_exec(
+                        sys.executable,
+                        "-c",
+                        _POLLERS,
+                        url,
+                        TOKEN,
+                        "25",
+                        str(seconds),
+                        stdout=asyncio.subprocess.PIPE,
+                    )
+                    for _ in range(2)
+                ]
+                await asyncio.sleep(2.0)  # the pollers start (imports) before the probes do
+                until = time.monotonic() + seconds - 3.0  # and end after them
+                await asyncio.gather(probe("/api/status", status), probe("/health", health))
+                polled = sum([int((await p.communicate())[0]) for p in load])
+                cpu = (_cpu_s(proc.pid) - cpu0) / (polled + len(status) + len(health))
+                print(f"status: 50 clients polling /api/status answered {polled} in {seconds:g} s")
+                print(f"status: a probe meanwhile: /api/status {_percentiles(status)}")
+                print(f"status: a probe meanwhile: /health {_percentiles(health)}")
+                print(f"status: server CPU per request {cpu * 1e3:.1f} ms")
 
                 small = big_csv(80_000)
                 for clients in (20, 50):

@@ -153,8 +153,7 @@ async def test_unread_downloads_hold_little_and_are_dropped(serve: Serve) -> Non
         held, _ = tracemalloc.get_traced_memory()
         print(f"downloads: {(held - base) / MB:.1f} MB held by 10 unread downloads")
         assert (held - base) < 8 * MB, f"{(held - base) / MB:.1f} MB held by 10 unread downloads"
-        assert server.guard.write_timeouts == 0  # not yet: within the limit
-        deadline = time.monotonic() + 6.0
+        deadline = time.monotonic() + 10.0
         while server.guard.write_timeouts < 10 and time.monotonic() < deadline:
             await asyncio.sleep(0.1)
         dropped = [await asyncio.to_thread(_dropped, s) for s in socks]

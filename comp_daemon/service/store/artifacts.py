@@ -48,6 +48,9 @@ class DatasetContent:
                 check_same_thread=False,
             )  # fmt: skip
             try:
+                # a blob is read past the page cache: keep this connection's cache small (64 KiB, not
+                # the default 2 MB), since each download in flight has a connection of its own
+                self._conn.execute("PRAGMA cache_size=-64")
                 self._conn.execute("BEGIN")
                 self._blob = self._open(self._conn)
                 self.size = len(self._blob)
