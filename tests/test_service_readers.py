@@ -243,8 +243,9 @@ async def test_status_under_50_clients_is_a_snapshot(serve: Serve) -> None:
     p99 = sorted(latencies)[int(0.99 * (len(latencies) - 1))]
     print(f"status: {requests} requests in {elapsed:.1f} s, p50 {p50 * 1e3:.0f} ms, p99 {p99 * 1e3:.0f} ms")
     print(f"status: {calls} snapshot builds")
-    assert requests > 100
-    assert calls <= elapsed / 0.25 + 4, f"{calls} store reads for {requests} requests"
+    bound = elapsed / 0.25 + 4  # a build every 0.25 s, and a few on demand
+    assert requests >= 2 * bound, f"only {requests} requests: too few to tell (a loaded machine?)"
+    assert calls <= bound, f"{calls} store reads for {requests} requests"
 
 
 async def test_thirty_small_uploads_at_once_all_fit(serve: Serve) -> None:
@@ -262,3 +263,24 @@ async def test_thirty_small_uploads_at_once_all_fit(serve: Serve) -> None:
     codes = [r.status_code for r in answers]
     assert codes == [201] * 30, codes
     assert len(store.list_datasets()) == 30
+
+
+def test_a_download_reads_the_content_as_it_was_when_it_started(tmp_path: Path) -> None:
+    """The chunks come from a read transaction of their own: a data set deleted mid-download is
+    still sent whole; one that is gone before is NotFoundError (404)."""
+    from comp_daemon.service.store import NotFoundError
+
+    store = Store(tmp_path / "store.sqlite3")
+    try:
+        content = csv_text(3 * MB, 1)
+        ident = add_dataset(store, content, "one")
+        reader = store.open_dataset_content(ident)
+        first = reader.read(MB)
+        store.delete_dataset(ident)
+        rest = b"".join(iter(lambda: reader.read(MB), b""))
+        reader.close()
+        assert first + rest == content.encode() and reader.size == len(content)
+        with pytest.raises(NotFoundError):
+            store.open_dataset_content(ident)
+    finally:
+        store.close()
