@@ -374,14 +374,19 @@ async def test_a_valid_json_upload_is_still_stored(api: Any) -> None:
     assert r.json()["rows"] == 3 and r.json()["name"] == "ok"
 
 
-async def test_uploads_beyond_the_concurrency_bound_are_answered_503(api: Any) -> None:
-    slots: asyncio.Semaphore = api.app.state.uploads.slots
+async def test_uploads_beyond_the_bytes_in_flight_are_answered_503(api: Any) -> None:
+    budget = api.app.state.uploads.budget
     body = "[" + record_text() + "]"
-    async with slots:  # the one slot is taken by an upload being checked
+    assert budget.take(budget.limit_bytes - len(body) + 1)  # an upload in flight leaves too little room
+    try:
         r = await api.post("/api/datasets", content=body, headers={"Content-Type": "application/json"})
+    finally:
+        budget.give(budget.limit_bytes - len(body) + 1)
     assert r.status_code == 503 and r.headers["retry-after"] == "2" and r.json()["error"] == "busy"
+    assert "max_upload_bytes_in_flight" in r.json()["message"]
     r = await api.post("/api/datasets", content=body, headers={"Content-Type": "application/json"})
     assert r.status_code == 201, r.text
+    assert budget.in_flight == 0 and budget.uploads == 0
 
 
 def big_csv(target_bytes: int) -> bytes:

@@ -34,7 +34,7 @@ async def test_a_spooled_json_upload_is_refused_with_path_row_and_column(last: s
     body = (
         '{"name": "big", "records": [' + ", ".join([json.dumps(RECORD)] * 20000) + ", " + last + "]}"
     ).encode()
-    checker, spool = UploadChecker(1), Spool()
+    checker, spool = UploadChecker(1, 40_000_000), Spool()
     try:
         await spool.write(body)
         assert not spool.in_memory  # checked in a process of its own

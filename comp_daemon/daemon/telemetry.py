@@ -7,6 +7,15 @@ metrics (:mod:`comp_daemon.service.metrics`: every reply's latency and every cyc
 their histograms, late replies, rejected telegrams, grating faults and reading ages, per-joint
 errors and corrections in radians), and publishes the
 ``loop`` and ``joints`` events on the bus the dashboard's event stream reads.
+
+**Late replies** are counted once, here: :attr:`Telemetry.late_replies` is the number of telegrams
+the daemon did not answer within the cycle since it started, i.e. replies sent later than
+``late_after_ms`` (the cycle) plus telegrams never answered because a newer one was already queued
+(the controller counts both as late). It adds up across restarts of the real-time process. The same
+figure is ``late_replies`` in :class:`LoopStats` (``/api/status`` → ``daemon.loop``, the dashboard,
+the ``loop`` event) and ``comp_daemon_rsi_late_replies_total`` in ``/metrics``. The controller's own
+count (``Delay``) restarts with each RSI session and also counts replies delayed on the network; it is
+kept per stop in the RSI report.
 """
 
 from __future__ import annotations
@@ -53,6 +62,7 @@ class Telemetry:
         self.bus = bus
         self.cycle_ms = cycle_ms
         self.loop_stats = LoopStats(running=False)
+        self.late_replies = 0  # see the module docstring: the one late-reply count
         self._marks: dict[str, int] = {}
 
     async def update(
@@ -68,11 +78,15 @@ class Telemetry:
         lat = stats.latency.recent()  # copies: the reports append to the rings
         jit = stats.jitter.recent()
         p50, p99, j99 = await asyncio.to_thread(_percentiles, lat, jit)
+        late = self._delta("late", stats.late) + self._delta("superseded", stats.superseded)
+        if late:
+            self.late_replies += late
+            metrics.RSI_LATE_REPLIES.inc(late)
         self.loop_stats = LoopStats(
             running=runtime.rsi_alive(),
             cycle_ms=self.cycle_ms,
             cycles=stats.answered,
-            late_replies=stats.late,
+            late_replies=self.late_replies,
             rejected=stats.foreign + stats.garbled,
             latency_p50_ms=p50,
             latency_p99_ms=p99,
@@ -88,9 +102,11 @@ class Telemetry:
         return self.loop_stats
 
     def _delta(self, key: str, value: int) -> int:
+        """What ``value`` (a counter of the real-time process) grew by since the last update; a value
+        below the last one is a new real-time process counting from zero: all of it is new."""
         before = self._marks.get(key, 0)
         self._marks[key] = value
-        return max(0, value - before)
+        return value - before if value >= before else value
 
     def _update_metrics(
         self,
@@ -109,9 +125,6 @@ class Telemetry:
         new_jitter = self._delta("jitter", stats.jitter.count)
         for v in jitters_ns[-min(new_jitter, jitters_ns.size) :] if new_jitter else ():
             metrics.LOOP_CYCLE_JITTER.observe(abs(float(v)) / 1e9)
-        late = self._delta("late", stats.late) + self._delta("superseded", stats.superseded)
-        if late:
-            metrics.RSI_LATE_REPLIES.inc(late)
         for reason, value in (("garbled", stats.garbled), ("foreign_address", stats.foreign)):
             d = self._delta(f"rejected.{reason}", value)
             if d:

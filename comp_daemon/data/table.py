@@ -20,6 +20,7 @@ bit-exact), ``payload_kg`` only when some payload is non-zero.
 
 from __future__ import annotations
 
+import csv
 import dataclasses
 import hashlib
 import os
@@ -254,12 +255,14 @@ class Dataset:
 
     @property
     def columns(self) -> tuple[str, ...]:
-        """The columns this data set writes, in the writer's order."""
-        return tuple(name for name, _ in self._text_columns())
+        """The columns this data set writes, in the writer's order (the canonical CSV's header)."""
+        text = self._canonical_csv
+        return tuple(next(csv.reader([text[: text.index("\n")]])))
 
     @cached_property
     def _canonical_csv(self) -> str:
-        return dataset_to_csv(self)
+        """The CSV text, rendered once (the data set is immutable)."""
+        return _render_csv(self)
 
     @property
     def content_sha256(self) -> str:
@@ -497,10 +500,21 @@ def _describe_numbers(numbers: Iterable[int]) -> str:
 # Writing
 # ---------------------------------------------------------------------------------------------
 def dataset_to_csv(dataset: Dataset) -> str:
-    """The data set as CSV text: header, then one line per row; floats as ``repr`` (exact round trip)."""
+    """The data set as CSV text: header, then one line per row; floats as ``repr`` (exact round trip).
+
+    Rendered once per data set and kept (its hash, its columns and the stored text are the same text).
+    """
+    return dataset._canonical_csv
+
+
+def _render_csv(dataset: Dataset) -> str:
     columns = dataset._text_columns()
     lines = [",".join(_quote(name) for name, _ in columns)]
-    lines.extend(",".join(map(_quote, row)) for row in zip(*(cells for _, cells in columns), strict=True))
+    cells = [
+        [_quote(c) for c in column] if _NEEDS_QUOTES.search("".join(column)) else column
+        for _, column in columns
+    ]  # one search per column: numeric columns (most of them) never need quotes
+    lines.extend(map(",".join, zip(*cells, strict=True)))
     return "\n".join(lines) + "\n"
 
 

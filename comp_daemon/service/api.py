@@ -33,6 +33,7 @@ from typing import Any
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, RedirectResponse
+from fastapi.routing import APIRoute
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
@@ -49,6 +50,7 @@ from comp_daemon.service.daemon_view import DaemonView, DetachedDaemonView
 from comp_daemon.service.events import EventBus
 from comp_daemon.service.jobs import JobKind, JobRunner
 from comp_daemon.service.state import ApiError, ServiceState
+from comp_daemon.service.status import StatusBoard
 from comp_daemon.service.store import (
     TARGET_FINAL_STATES,
     ConflictError,
@@ -277,8 +279,12 @@ def _install_error_handlers(app: FastAPI) -> None:
         where = ".".join(first_loc)
         row: int | None = None
         column: str | None = None
-        if len(first_loc) >= 4 and first_loc[:2] == ["body", "targets"] and first_loc[2].isdigit():
-            row, column = int(first_loc[2]) + 1, first_loc[3]
+        row_label = None
+        if len(first_loc) >= 3 and first_loc[:2] in (["body", "targets"], ["body", "poses"]):
+            if first_loc[2].isdigit():
+                row, row_label = int(first_loc[2]) + 1, first_loc[1][:-1]  # target, pose
+                if len(first_loc) > 3:  # a target's field; a pose's value by its index
+                    column = first_loc[3] if first_loc[1] == "targets" else f"a{int(first_loc[3]) + 1}"
         elif first_loc and first_loc[0] in ("query", "header", "path") and len(first_loc) > 1:
             column = first_loc[1]
         return _error(
@@ -287,7 +293,7 @@ def _install_error_handlers(app: FastAPI) -> None:
             f"{where}: {first_message}" if where else first_message,
             row=row,
             column=column,
-            row_label="target" if row is not None else None,
+            row_label=row_label,
             details=details,
         )
 
@@ -297,7 +303,19 @@ def _install_error_handlers(app: FastAPI) -> None:
         response = _error(exc.status_code, codes.get(exc.status_code, "http_error"), str(exc.detail))
         if exc.headers:
             response.headers.update(exc.headers)
+        if exc.status_code == 405:  # Starlette names the first matching route's methods only
+            response.headers["Allow"] = ", ".join(_allowed_methods(request))
         return response
+
+
+def _allowed_methods(request: Request) -> list[str]:
+    """Every method some route of the app takes on the request's path (for a 405's ``Allow``)."""
+    methods: set[str] = set()
+    for route in request.app.router.routes:
+        if isinstance(route, APIRoute) and route.path_regex.match(request.url.path):
+            methods |= route.methods or set()
+    order = ("GET", "HEAD", "POST", "PUT", "PATCH", "DELETE", "OPTIONS")
+    return sorted(methods, key=lambda m: (order.index(m) if m in order else len(order), m))
 
 
 # ------------------------------------------------------------------------------- the OpenAPI
@@ -343,13 +361,39 @@ def _document_common_answers(app: FastAPI) -> None:
     app.openapi = openapi  # type: ignore[method-assign]
 
 
+def _document_axis_limits(app: FastAPI, limits_deg: Any) -> None:
+    """Put the configured robot's axis limits (deg) into the OpenAPI description of the bodies that
+    take axis values (a target's ``a1..a6``, a calibration pose), as the server checks them."""
+    build = app.openapi
+
+    def openapi() -> dict[str, Any]:
+        fresh = app.openapi_schema is None
+        schema = build()
+        if not fresh:
+            return schema
+        bounds = [{"minimum": float(lo), "maximum": float(hi)} for lo, hi in limits_deg]
+        models = schema.get("components", {}).get("schemas", {})
+        target = models.get("TargetIn", {}).get("properties", {})
+        for j, bound in enumerate(bounds):
+            if f"a{j + 1}" in target:
+                target[f"a{j + 1}"].update(bound)
+        poses = models.get("GratingCalibrationIn", {}).get("properties", {}).get("poses", {})
+        for form in poses.get("anyOf", [poses]):
+            if form.get("type") == "array" and isinstance(form.get("items"), dict):
+                form["items"]["prefixItems"] = [{"type": "number", **b} for b in bounds]
+        return schema
+
+    app.openapi = openapi  # type: ignore[method-assign]
+
+
 # ------------------------------------------------------------------------------------- the app
 
 
-def _forward_store_events(state: ServiceState) -> Any:
+def _forward_store_events(state: ServiceState, board: StatusBoard) -> Any:
     bus = state.bus
 
     def listener(event: EventRecord) -> None:
+        board.changed()
         data = {"id": event.id, "target_id": event.target_id, "job_id": event.job_id, **event.message}
         bus.publish(event.kind, data)
         if event.kind.startswith("target."):
@@ -390,8 +434,9 @@ def create_app(
     )
     for kind in job_kinds if job_kinds is not None else default_kinds.default_job_kinds():
         state.runner.register(kind)
-    listener = _forward_store_events(state)
-    uploads = UploadChecker(settings.http.max_concurrent_uploads)
+    uploads = UploadChecker(settings.http.max_concurrent_uploads, settings.http.max_upload_bytes_in_flight)
+    board = StatusBoard(state, settings.http.status_interval_s)
+    listener = _forward_store_events(state, board)
 
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
@@ -399,10 +444,12 @@ def create_app(
         store.add_listener(listener)
         metrics.set_queue_depth_source(store.queue_depth)
         state.runner.start()
+        status_task = asyncio.create_task(board.run(), name="status snapshot")
         _log.info("http service started", robot=robot.name, job_kinds=state.runner.kinds())
         try:
             yield
         finally:
+            await board.stop(status_task)
             state.bus.close()
             await state.runner.drain()
             await asyncio.to_thread(state.runner.shutdown)
@@ -426,8 +473,10 @@ def create_app(
     app.state.svc = state
     app.state.tokens = state.tokens
     app.state.uploads = uploads
+    app.state.status = board
     _install_error_handlers(app)
     _document_common_answers(app)
+    _document_axis_limits(app, robot.axis_limits_deg)
     app.add_middleware(
         BodyLimitMiddleware, limit_bytes=settings.http.max_upload_bytes + _MULTIPART_OVERHEAD_BYTES
     )

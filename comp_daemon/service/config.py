@@ -91,9 +91,12 @@ class HttpSettings(_Section):
     max_connections: int = Field(default=256, ge=2)
     header_timeout_s: float = Field(default=10.0, gt=0)
     body_timeout_s: float = Field(default=60.0, gt=0)
+    write_timeout_s: float = Field(default=30.0, gt=0)
+    status_interval_s: float = Field(default=0.25, gt=0, le=10)
     keep_alive_s: int = Field(default=5, ge=1)
     listen_backlog: int = Field(default=128, ge=1)
-    max_concurrent_uploads: int = Field(default=2, ge=1)
+    max_concurrent_uploads: int = Field(default=2, ge=1)  # checking processes (bodies over 1 MiB)
+    max_upload_bytes_in_flight: int = Field(default=40_000_000, ge=1024)
 
 
 class StoreSettings(_Section):

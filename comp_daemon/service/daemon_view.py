@@ -33,7 +33,9 @@ class LoopStats:
     running: bool
     cycle_ms: float | None = None
     cycles: int = 0
-    late_replies: int = 0
+    late_replies: int = 0  # telegrams not answered within the cycle since the daemon started (late
+    # replies plus telegrams superseded by a newer one); the same figure as the metric
+    # comp_daemon_rsi_late_replies_total (see comp_daemon.daemon.telemetry)
     rejected: int = 0
     latency_p50_ms: float | None = None
     latency_p99_ms: float | None = None

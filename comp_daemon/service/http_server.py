@@ -122,6 +122,7 @@ class GuardStats:
     body_timeouts: int = 0  # connections closed: body not complete in time
     evicted: int = 0  # connections closed to make room for a new one (they were sending headers)
     refused: int = 0  # new connections answered 503: every connection was busy with a request
+    write_timeouts: int = 0  # connections aborted: the client stopped reading its answer
     max_open: int = 0  # most connections open at once
     logged_at: float = -float("inf")
 
@@ -136,6 +137,7 @@ class GuardStats:
                 body_timeouts=self.body_timeouts,
                 evicted=self.evicted,
                 refused=self.refused,
+                write_timeouts=self.write_timeouts,
                 max_open=self.max_open,
             )
 
@@ -147,6 +149,7 @@ def _guarded_protocol(settings: HttpSettings, stats: GuardStats) -> type[H11Prot
         _phase = ""
         _phase_since = 0.0
         _deadline: asyncio.TimerHandle | None = None
+        _stalled: asyncio.TimerHandle | None = None
 
         def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
             super().connection_made(transport)
@@ -158,6 +161,7 @@ def _guarded_protocol(settings: HttpSettings, stats: GuardStats) -> type[H11Prot
 
         def connection_lost(self, exc: Exception | None) -> None:
             self._disarm()
+            self._writable()
             self._phase = ""
             super().connection_lost(exc)
 
@@ -217,6 +221,32 @@ def _guarded_protocol(settings: HttpSettings, stats: GuardStats) -> type[H11Prot
                 with contextlib.suppress(Exception):
                     self.transport.write(answer)
             self.transport.close()
+
+        # ---- the write time limit
+
+        def pause_writing(self) -> None:
+            super().pause_writing()
+            if self._stalled is None:
+                self._stalled = self.loop.call_later(settings.write_timeout_s, self._write_expired)
+
+        def resume_writing(self) -> None:
+            super().resume_writing()
+            self._writable()
+
+        def _writable(self) -> None:
+            if self._stalled is not None:
+                self._stalled.cancel()
+                self._stalled = None
+
+        def _write_expired(self) -> None:
+            self._stalled = None
+            if self.transport.is_closing() and not self.transport.get_write_buffer_size():
+                return
+            stats.write_timeouts += 1
+            stats.note()
+            self._disarm()
+            self._phase = ""
+            self.transport.abort()  # close() would wait for the unsent bytes; abort frees them
 
         # ---- the cap
 

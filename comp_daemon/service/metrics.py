@@ -88,7 +88,8 @@ LOOP_CYCLE_JITTER = Histogram(
 RSI_TELEGRAMS = Counter("comp_daemon_rsi_telegrams_total", "RSI telegrams answered", registry=REGISTRY)
 RSI_LATE_REPLIES = Counter(
     "comp_daemon_rsi_late_replies_total",
-    "Replies sent after the cycle deadline or telegrams skipped because a newer one was queued",
+    "Telegrams not answered within the cycle: replies sent after the cycle deadline plus telegrams "
+    "never answered because a newer one was queued (the same count as late_replies in /api/status)",
     registry=REGISTRY,
 )
 RSI_REJECTED = Counter(

@@ -9,12 +9,15 @@ value in a JSON upload).
 from __future__ import annotations
 
 import datetime as dt
+import re
 from collections.abc import Iterable, Mapping
 from typing import Annotated, Any, Literal
 
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
+from comp_daemon.models.effects import EFFECTS, effect_by_name
+from comp_daemon.models.registry import KINDS, MAX_ORDER
 from comp_daemon.service.store import (
     STATS_DETAIL_PATHS,
     BatchRecord,
@@ -26,6 +29,7 @@ from comp_daemon.service.store import (
 )
 
 __all__ = [
+    "MAX_ID",
     "BatchIn",
     "BatchOut",
     "DatasetOut",
@@ -41,6 +45,11 @@ __all__ = [
     "TargetOut",
     "iso",
 ]
+
+
+#: The largest id the API takes: 2**53 - 1, the largest integer a JSON number (an IEEE double) holds
+#: exactly, so that a schema bound and the server's check agree for every client.
+MAX_ID = 2**53 - 1
 
 
 def iso(t: float | None) -> str | None:
@@ -191,18 +200,53 @@ class ModelOut(_Out):
         )
 
 
+#: one pose: the six axis values A1..A6 (deg)
+Pose = Annotated[list[float], Field(min_length=6, max_length=6)]
+
+
 class GratingCalibrationIn(BaseModel):
     """Poses for the grating calibration (axis values A1..A6, deg); omitted: the daemon's own
     (six poses sweeping every grating joint ±20° around the robot's position)."""
 
-    model_config = ConfigDict(extra="forbid")
-    poses: list[list[float]] | None = Field(None, min_length=3, max_length=50)
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+    poses: list[Pose] | None = Field(None, min_length=3, max_length=50)
+
+
+_NEIGHBOURS = r"k=(?:[4-9]|[1-9][0-9]{1,4}|100000)"  # k=N, N in 4..100000 (registry.MAX_NEIGHBOURS)
+
+
+def _model_name_pattern() -> str:
+    """A regular expression of the model names the registry takes, for the OpenAPI description: a
+    kind; its order (``:0``..``:8``, ``:cv``) or its options (each once, in the registry's order);
+    then the robot's joint effects it offers (each once, ``ratio`` first, then the registry's order).
+    It is documentation only: the server also takes other orders of options and effects, and blanks
+    around the parts (:func:`~comp_daemon.models.registry.parse_model_name` decides)."""
+    effects = sorted(
+        (e for e in EFFECTS if effect_by_name(e).of_the_robot), key=lambda e: e != "ratio"
+    )  # seed 001's order: kinematic+ratio+backlash
+    words = [k.name for k in KINDS.values()] + effects + [w for k in KINDS.values() for w in k.option_words]
+    assert all(re.fullmatch(r"[a-z0-9=-]+|k=N", w) for w in words), words  # nothing to escape
+    forms = []
+    for kind in KINDS.values():
+        form = kind.name
+        if kind.takes_order:
+            form += rf"(?::(?:[0-{MAX_ORDER}]|cv))?"
+        for word in kind.option_words:
+            form += "(?::" + (_NEIGHBOURS if word == "k=N" else word) + ")?"
+        if kind.takes_effects:
+            form += "".join(rf"(?:\+{e})?" for e in effects)
+        forms.append(form)
+    return "^(?:" + "|".join(forms) + ")$"
+
+
+MODEL_NAME_PATTERN = _model_name_pattern()
 
 
 class FitIn(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    dataset_id: int = Field(ge=1, le=2**62)
+    dataset_id: int = Field(ge=1, le=MAX_ID)
     model: str = Field(
+        json_schema_extra={"pattern": MODEL_NAME_PATTERN},
         description="a model kind of GET /api/fits/kinds (nominal, kinematic, chebyshev, kriging, "
         "kriging-backlash, compliance); kinematic+ratio+backlash adds seed 001's joint effects; "
         "chebyshev:m or chebyshev:cv; kriging:k=64 (local neighbourhoods), kriging:aniso (per-joint "
@@ -219,10 +263,18 @@ class FitIn(BaseModel):
         "order when the model needs them (backlash); false: such models refuse the data",
     )
 
+    model_config = ConfigDict(
+        extra="forbid",
+        json_schema_extra={  # an order apart from the name goes with a plain 'chebyshev' only
+            "if": {"required": ["order"], "properties": {"order": {"type": "integer"}}},
+            "then": {"properties": {"model": {"const": "chebyshev"}}},
+        },
+    )
+
 
 class DiagnosisIn(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
-    dataset_id: int = Field(ge=1, le=2**62)
+    dataset_id: int = Field(ge=1, le=MAX_ID)
     tracker_sigma_mm: float | None = Field(
         None,
         gt=0.0,
@@ -237,9 +289,39 @@ _TCP = ("tx", "ty", "tz")
 _ABC = ("ta", "tb", "tc")
 #: a JSON number, never a bool or a string (strict); finite (the model's allow_inf_nan)
 Number = Annotated[float, Field(strict=True)]
+#: a TCP coordinate (mm): no robot reaches 100 m; bounded so that a huge number is refused by name
+#: instead of overflowing the inverse kinematics
+Millimetres = Annotated[float, Field(strict=True, ge=-100_000.0, le=100_000.0)]
+#: an orientation angle (deg, KUKA A, B, C)
+Degrees = Annotated[float, Field(strict=True, ge=-360.0, le=360.0)]
 
 
 _FORMS = ((_AXES, "axis values need"), (_TCP, "a TCP needs"), (_ABC, "an orientation needs"))
+
+
+def _target_schema(schema: dict[str, Any]) -> None:
+    """The JSON schema of :class:`TargetIn` as tight as its validation: exactly one form, axis
+    values (all six, nothing of a TCP) or a TCP (tx, ty, tz, no axis value; ta, tb, tc all or none).
+    A value given as ``null`` counts as absent for the server; the schema simply asks for numbers."""
+    properties = schema["properties"]
+    for name in (*_AXES, *_TCP, *_ABC):
+        given: dict[str, Any] = next(
+            (f for f in properties[name].get("anyOf", []) if f.get("type") == "number"), {}
+        )
+        bounds = {k: v for k, v in given.items() if k in ("minimum", "maximum")}
+        properties[name] = {"type": "number", "title": properties[name].get("title", name), **bounds}
+
+    def none_of(names: tuple[str, ...]) -> dict[str, Any]:
+        return {"not": {"anyOf": [{"required": [n]} for n in names]}}
+
+    schema["oneOf"] = [
+        {"required": list(_AXES), **none_of((*_TCP, *_ABC))},
+        {
+            "required": list(_TCP),
+            **none_of(_AXES),
+            "dependentRequired": {n: [m for m in _ABC if m != n] for n in _ABC},
+        },
+    ]
 
 
 class TargetIn(BaseModel):
@@ -248,7 +330,9 @@ class TargetIn(BaseModel):
     C), as in a target file (docs/data-format.md). Values are JSON numbers (``true`` or ``"20"`` are
     refused, not converted). Whether the robot reaches the point is checked when the batch is posted."""
 
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False, validate_default=True)
+    model_config = ConfigDict(
+        extra="forbid", allow_inf_nan=False, validate_default=True, json_schema_extra=_target_schema
+    )
     pose_id: str | None = Field(None, min_length=1, max_length=64, strict=True)
     a1: Number | None = None
     a2: Number | None = None
@@ -256,12 +340,12 @@ class TargetIn(BaseModel):
     a4: Number | None = None
     a5: Number | None = None
     a6: Number | None = None
-    tx: Number | None = None
-    ty: Number | None = None
-    tz: Number | None = None
-    ta: Number | None = None
-    tb: Number | None = None
-    tc: Number | None = None
+    tx: Millimetres | None = None
+    ty: Millimetres | None = None
+    tz: Millimetres | None = None
+    ta: Degrees | None = None
+    tb: Degrees | None = None
+    tc: Degrees | None = None
     payload_kg: Number | None = Field(None, ge=0, le=10000)
 
     @field_validator(*_AXES, *_TCP, *_ABC, mode="after")

@@ -5,8 +5,12 @@
 - :func:`check_upload` parses, validates, renders (canonical CSV) and summarises it: seconds of CPU
   and a few hundred MB at the 20 MB limit. :class:`UploadChecker` runs it in a worker thread for a
   body held in memory and, for a spooled one, in a process of its own (spawned per upload, so its
-  memory goes back to the system and its CPU time never competes with the loop for the GIL); at
-  most ``concurrency`` at once.
+  memory goes back to the system and its CPU time never competes with the loop for the GIL), at
+  most ``processes`` such processes at once.
+- :class:`UploadBudget` bounds the bytes of upload bodies being received or checked at once
+  (``http.max_upload_bytes_in_flight``): the memory and CPU an upload takes grow with its size, so a
+  burst of small uploads (80 KB each from 50 clients) all fit, while a third upload at the 20 MB
+  limit beside two others is refused 503.
 - The rules are the file readers' (:mod:`comp_daemon.data.readers`, :mod:`comp_daemon.data.jsontext`):
   CSV as :func:`~comp_daemon.data.dataset.parse_dataset` reads it, JSON as
   :func:`~comp_daemon.data.dataset.read_dataset_json` does (a key given twice, a NUL or a lone
@@ -37,7 +41,15 @@ from comp_daemon.data.dataset import DatasetError, dataset_from_json, dataset_to
 from comp_daemon.data.jsontext import load_json_records
 from comp_daemon.service.orphans import exit_with_parent
 
-__all__ = ["SPOOL_MEMORY_BYTES", "CheckedUpload", "Spool", "UploadChecker", "UploadRefused", "check_upload"]
+__all__ = [
+    "SPOOL_MEMORY_BYTES",
+    "CheckedUpload",
+    "Spool",
+    "UploadBudget",
+    "UploadChecker",
+    "UploadRefused",
+    "check_upload",
+]
 
 SPOOL_MEMORY_BYTES = 1 << 20  # a body beyond this goes to a temporary file (and its check to a process)
 UploadFormat = Literal["csv", "json"]
@@ -188,18 +200,41 @@ class Spool:
             self._file = None
 
 
+class UploadBudget:
+    """Bytes of upload bodies in flight (being received or checked), at most ``limit_bytes``.
+
+    An upload takes its declared ``Content-Length`` (the body limit when it declares none) before
+    its body is read and gives it back once checked. One upload always fits when nothing else is
+    in flight, so the limit never refuses a body the size limit allows.
+    """
+
+    def __init__(self, limit_bytes: int) -> None:
+        self.limit_bytes = limit_bytes
+        self.in_flight = 0
+        self.uploads = 0
+
+    def take(self, size: int) -> bool:
+        """Count ``size`` bytes in flight, or False (nothing counted) when they do not fit."""
+        if self.uploads and self.in_flight + size > self.limit_bytes:
+            return False
+        self.in_flight += size
+        self.uploads += 1
+        return True
+
+    def give(self, size: int) -> None:
+        self.in_flight -= size
+        self.uploads -= 1
+
+
 class UploadChecker:
     """Runs :func:`check_upload`: small bodies in a worker thread, spooled ones in a fresh process
-    each. An upload holds one of the ``concurrency`` :attr:`slots` from before its body is read
-    until it is checked; :meth:`busy` says whether one more would have to wait."""
+    each (at most ``processes`` at once; more wait for one). :attr:`budget` bounds the bytes in
+    flight."""
 
-    def __init__(self, concurrency: int) -> None:
-        self.concurrency = concurrency
-        self.slots = asyncio.Semaphore(concurrency)
+    def __init__(self, processes: int, bytes_in_flight: int) -> None:
+        self.processes = processes
+        self.budget = UploadBudget(bytes_in_flight)
         self._pool: ProcessPoolExecutor | None = None
-
-    def busy(self) -> bool:
-        return self.slots.locked()
 
     async def check(
         self, spool: Spool, fmt: UploadFormat, name: str, limits: Any, kind: UploadKind
@@ -209,7 +244,7 @@ class UploadChecker:
         path = await asyncio.to_thread(spool.path)
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
-                max_workers=self.concurrency,
+                max_workers=self.processes,
                 mp_context=multiprocessing.get_context("spawn"),
                 max_tasks_per_child=1,
                 initializer=exit_with_parent,

@@ -6,12 +6,14 @@ nothing is stored. What is stored is the canonical CSV of the data set (exact fl
 columns kept), whatever the upload format; ``sha256`` is the hash of that text.
 
 An upload never runs on the event loop: its body is streamed to a temporary file (in memory up to
-1 MiB), then parsed, validated, rendered and summarised in a worker thread. At most
-``http.max_concurrent_uploads`` are checked at once (each may take a few hundred MB and seconds of
-CPU at the size limit); one more is answered 503 with ``Retry-After``. JSON follows the file
-reader's rules (a key given twice is refused) and more: a lone surrogate or a NUL in a string and
-an integer beyond any double are refused 422 with the value's path (``$[3].a1``); a NUL in a CSV
-field is refused with its row and column.
+1 MiB), then parsed, validated, rendered and summarised in a worker thread (over 1 MiB: in a
+process of its own, at most ``http.max_concurrent_uploads`` such processes at once). The bytes of
+uploads in flight are bounded by ``http.max_upload_bytes_in_flight`` (40 MB: two at the 20 MB limit,
+or hundreds of small ones; a check takes memory and CPU in proportion to the size); an upload whose
+declared length does not fit beside those in flight is answered 503 with ``Retry-After``.
+JSON follows the file reader's rules (a key given twice is refused) and more: a lone surrogate or a
+NUL in a string and an integer beyond any double are refused 422 with the value's path
+(``$[3].a1``); a NUL in a CSV field is refused with its row and column.
 """
 
 from __future__ import annotations
@@ -20,15 +22,16 @@ import asyncio
 from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query, Request, Response
-from fastapi.responses import PlainTextResponse
 from starlette.datastructures import UploadFile
 from starlette.requests import ClientDisconnect
+from starlette.types import Receive, Scope, Send
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
-from comp_daemon.service.schemas import DatasetOut, ErrorOut, json_array
+from comp_daemon.service.schemas import MAX_ID, DatasetOut, ErrorOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.store.artifacts import DatasetContent
 from comp_daemon.service.uploads import Spool, UploadChecker, UploadRefused
 
 router = APIRouter(tags=["datasets"])
@@ -37,8 +40,10 @@ _log = get_logger("comp_daemon.api.datasets")
 State = Annotated[ServiceState, Depends(get_state)]
 Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 Engineer = Annotated[Principal, Depends(require(Role.engineer))]
-DatasetId = Annotated[int, Path(ge=1, le=2**62, description="data set id")]
+DatasetId = Annotated[int, Path(ge=1, le=MAX_ID, description="data set id")]
 
+#: a download's chunk: what one connection holds at most, beside the socket's buffer
+CONTENT_CHUNK_BYTES = 256 * 1024
 _CSV_TYPES = ("text/csv", "application/csv", "text/plain")
 _UPLOAD_BODY: dict[str, Any] = {
     "requestBody": {
@@ -54,6 +59,7 @@ _UPLOAD_BODY: dict[str, Any] = {
                         "file": {"type": "string", "format": "binary"},
                         "name": {"type": "string", "maxLength": 200},
                     },
+                    "additionalProperties": False,  # the form takes these two parts only
                 }
             },
             "text/csv": {"schema": {"type": "string"}},
@@ -80,7 +86,7 @@ _REFUSED: dict[int | str, dict[str, Any]] = {
     413: {"model": ErrorOut, "description": "body over http.max_upload_bytes"},
     415: {"model": ErrorOut, "description": "not CSV, JSON or multipart"},
     422: {"model": ErrorOut, "description": "refused data set; row/column (JSON: path) name the fault"},
-    503: {"model": ErrorOut, "description": "http.max_concurrent_uploads uploads are being checked"},
+    503: {"model": ErrorOut, "description": "http.max_upload_bytes_in_flight bytes of uploads are in flight"},
 }
 
 
@@ -127,21 +133,28 @@ async def upload_dataset(
             415, "unsupported_media_type", "send text/csv, application/json or multipart/form-data"
         )
     checker: UploadChecker = request.app.state.uploads
-    if checker.busy():
+    limit = svc.settings.http.max_upload_bytes
+    declared = request.headers.get("content-length", "")
+    size = min(int(declared), limit) if declared.isdigit() else limit
+    budget = checker.budget
+    if not budget.take(size):
         raise ApiError(
             503,
             "busy",
-            f"{checker.concurrency} uploads are being checked (http.max_concurrent_uploads); try again",
+            f"{budget.in_flight} bytes of {budget.uploads} uploads are in flight; {size} more do not fit "
+            f"under http.max_upload_bytes_in_flight ({budget.limit_bytes}); try again",
             retry_after_s=2,
         )
-    async with checker.slots:
-        fmt, source, spool = await _receive(request, svc.settings.http.max_upload_bytes, name, ctype)
+    try:
+        fmt, source, spool = await _receive(request, limit, name, ctype)
         try:
             checked = await checker.check(spool, fmt, source, svc.robot.axis_limits_deg, kind)
         except UploadRefused as exc:
             raise ApiError(422, "invalid_dataset", exc.message, **exc.where) from None
         finally:
             await asyncio.to_thread(spool.close)
+    finally:
+        budget.give(size)
     record = await svc.run(
         svc.store.add_dataset,
         name=checked.name,
@@ -211,20 +224,58 @@ async def get_dataset(dataset_id: DatasetId, svc: State, who: Viewer) -> Dataset
     return DatasetOut.of(await svc.run(svc.store.get_dataset, dataset_id))
 
 
+class _StoredContent(Response):
+    """A stored data set's CSV sent :data:`CONTENT_CHUNK_BYTES` at a time, read from the store chunk
+    by chunk (never whole in memory); ends early when the client goes away. A client that stops
+    reading is dropped by the server's write time limit (``http.write_timeout_s``)."""
+
+    def __init__(self, content: DatasetContent, filename: str) -> None:
+        self.content = content
+        self.status_code = 200
+        self.background = None
+        self.media_type = "text/csv; charset=utf-8"
+        self.init_headers(
+            {
+                "content-length": str(content.size),
+                "content-disposition": f'attachment; filename="{filename}"',
+            }
+        )
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        gone = asyncio.Event()
+
+        async def watch() -> None:
+            while (await receive())["type"] != "http.disconnect":
+                pass
+            gone.set()
+
+        watcher = asyncio.create_task(watch())
+        try:
+            await send({"type": "http.response.start", "status": 200, "headers": self.raw_headers})
+            left = self.content.size
+            while left > 0 and not gone.is_set():
+                chunk = await asyncio.to_thread(self.content.read, min(CONTENT_CHUNK_BYTES, left))
+                if not chunk:
+                    break
+                left -= len(chunk)
+                await send({"type": "http.response.body", "body": chunk, "more_body": left > 0})
+            if left > 0 and not gone.is_set():  # the row changed under us: end the body short
+                _log.warning("dataset content ended early", missing_bytes=left)
+                await send({"type": "http.response.body", "body": b"", "more_body": False})
+        finally:
+            watcher.cancel()
+            await asyncio.to_thread(self.content.close)
+
+
 @router.get(
     "/datasets/{dataset_id}/content",
-    response_class=PlainTextResponse,
-    summary="The stored data set as CSV",
-    responses={200: {"content": {"text/csv": {}}}, 404: {"model": ErrorOut}},
+    response_class=Response,  # errors are JSON (ErrorOut), the data set text/csv
+    summary="The stored data set as CSV (streamed)",
+    responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}}}, 404: {"model": ErrorOut}},
 )
 async def get_dataset_content(dataset_id: DatasetId, svc: State, who: Viewer) -> Response:
-    record = await svc.run(svc.store.get_dataset, dataset_id, with_content=True)
-    filename = f"dataset-{record.id}.csv"
-    return Response(
-        record.content or "",
-        media_type="text/csv; charset=utf-8",
-        headers={"Content-Disposition": f'attachment; filename="{filename}"'},
-    )
+    content = await svc.run(svc.store.open_dataset_content, dataset_id)
+    return _StoredContent(content, f"dataset-{dataset_id}.csv")
 
 
 @router.delete(

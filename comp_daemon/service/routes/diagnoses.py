@@ -16,7 +16,7 @@ from comp_daemon.service import job_kinds
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.routes.fits import launch_job
-from comp_daemon.service.schemas import DiagnosisIn, ErrorOut, JobOut, json_array
+from comp_daemon.service.schemas import MAX_ID, DiagnosisIn, ErrorOut, JobOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 from comp_daemon.service.store import JobRecord
 
@@ -26,7 +26,7 @@ _log = get_logger("comp_daemon.api.diagnoses")
 State = Annotated[ServiceState, Depends(get_state)]
 Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 Engineer = Annotated[Principal, Depends(require(Role.engineer))]
-JobId = Annotated[int, Path(ge=1, le=2**62, description="the diagnosis job's id")]
+JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="the diagnosis job's id")]
 
 _REPORT_ERRORS: dict[int | str, dict[str, Any]] = {
     404: {"model": ErrorOut, "description": "no such diagnosis"},
@@ -96,9 +96,9 @@ async def get_report(job_id: JobId, svc: State, who: Viewer) -> dict[str, Any]:
 
 @router.get(
     "/diagnoses/{job_id}/report.html",
-    response_class=HTMLResponse,
+    response_class=Response,  # errors are JSON (ErrorOut), the report text/html
     summary="The HTML report",
-    responses={200: {"content": {"text/html": {}}}, **_REPORT_ERRORS},
+    responses={200: {"content": {"text/html": {"schema": {"type": "string"}}}}, **_REPORT_ERRORS},
 )
 async def get_report_html(job_id: JobId, svc: State, who: Viewer) -> HTMLResponse:
     job = await _finished(svc, job_id)

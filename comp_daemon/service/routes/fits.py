@@ -15,6 +15,7 @@ from typing import Annotated, Any, Literal
 
 from fastapi import APIRouter, Depends, Path, Query
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
+from pydantic import Field
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.models.artifact import ModelArtifactError, parse_model
@@ -25,7 +26,7 @@ from comp_daemon.models.registry import KINDS, UnknownModelError, parse_model_na
 from comp_daemon.service import job_kinds
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
-from comp_daemon.service.schemas import ErrorOut, FitIn, JobOut, ModelOut, json_array
+from comp_daemon.service.schemas import MAX_ID, ErrorOut, FitIn, JobOut, ModelOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 from comp_daemon.service.store import JobRecord
 
@@ -35,8 +36,8 @@ _log = get_logger("comp_daemon.api.fits")
 State = Annotated[ServiceState, Depends(get_state)]
 Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 Engineer = Annotated[Principal, Depends(require(Role.engineer))]
-JobId = Annotated[int, Path(ge=1, le=2**62, description="job id")]
-ModelId = Annotated[int, Path(ge=1, le=2**62, description="model id")]
+JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="job id")]
+ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id")]
 
 _NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
 
@@ -187,13 +188,14 @@ async def list_models(
 async def compare_models(
     svc: State,
     who: Viewer,
-    ids: Annotated[list[int], Query(min_length=1, max_length=20, description="model ids")],
+    ids: Annotated[
+        list[Annotated[int, Field(ge=1, le=MAX_ID)]],
+        Query(min_length=1, max_length=20, description="model ids"),
+    ],
 ) -> dict[str, Any]:
     rows: list[dict[str, Any]] = []
     baselines: dict[str, Any] = {}
     for model_id in ids:
-        if not 1 <= model_id <= 2**62:
-            raise ApiError(422, "invalid_request", f"model id {model_id} is out of range", column="ids")
         model = await svc.run(svc.store.get_model, model_id)
         table = model.stats.get("table2", {})
         rows.append(
@@ -251,9 +253,15 @@ async def get_artifact(model_id: ModelId, svc: State, who: Viewer) -> JSONRespon
     "/models/{model_id}/export",
     tags=["models"],
     summary="A kinematic model's identified parameters as a KUKA, ABB or CSV listing (docs/export.md)",
-    response_class=PlainTextResponse,
+    response_class=Response,  # errors are JSON (ErrorOut), the listing text
     responses={
-        200: {"content": {"text/plain": {}, "text/csv": {}}, "description": "the listing"},
+        200: {
+            "content": {
+                "text/plain": {"schema": {"type": "string"}},
+                "text/csv": {"schema": {"type": "string"}},
+            },
+            "description": "the listing",
+        },
         **_NOT_FOUND,
         409: {"model": ErrorOut},
     },

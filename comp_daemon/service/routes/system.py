@@ -6,7 +6,9 @@ Operator actions (answered 409 ``not_ready`` when no daemon is attached): ``POST
 ``POST /api/loop/reset-fault`` (operator) acknowledges a latched fault (a stop must also be cleared
 on the robot).
 
-``GET /api/status`` carries, under ``rsi``, the RSI sessions of a daemon that tracks them
+``/ready``, ``/api/status`` and the dashboard read one status snapshot with one ready rule
+(:mod:`comp_daemon.service.status`). ``GET /api/status`` carries, under ``rsi``, the RSI sessions
+of a daemon that tracks them
 (:class:`RsiReporter`): each stop with when, why (``late_replies``, ``timeout``, ``fault``,
 ``operator``), the cycles and late replies before it, and what happens next (the simulated
 controller's re-arm, or what the operator must do on the robot); ``null`` without a daemon.
@@ -18,9 +20,9 @@ import asyncio
 import json
 import math
 from collections.abc import AsyncIterator
-from typing import Annotated, Any, Protocol, runtime_checkable
+from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import JSONResponse, Response, StreamingResponse
 
 from comp_daemon import __version__
@@ -30,14 +32,17 @@ from comp_daemon.service.config import Role
 from comp_daemon.service.daemon_view import DaemonControl
 from comp_daemon.service.events import CLOSING
 from comp_daemon.service.schemas import (
+    MAX_ID,
     ErrorOut,
     EventOut,
     GratingCalibrationIn,
-    ModelOut,
     ReadyOut,
     json_array,
 )
 from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.status import RsiReporter, StatusBoard
+
+__all__ = ["RsiReporter", "router"]
 
 router = APIRouter()
 
@@ -47,25 +52,13 @@ MetricsReader = Annotated[Principal, Depends(require(Role.viewer, anonymous_if="
 Operator = Annotated[Principal, Depends(require(Role.operator))]
 Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 
-NO_MODEL = "no model is active"
+
+def _board(request: Request) -> StatusBoard:
+    board: StatusBoard = request.app.state.status
+    return board
 
 
-@runtime_checkable
-class RsiReporter(Protocol):
-    """A daemon view that tracks the RSI sessions (the daemon's ``CellView``)."""
-
-    def rsi_report(self) -> dict[str, Any]:
-        """``running``, ``sessions``, ``stops_total``, ``stops_by_cause``, ``rearms``, ``next`` and
-        ``stops`` (newest first: ``time``, ``cause``, ``detail``, ``cycles``, ``late_replies``, ``next``…)."""
-        ...
-
-
-async def _readiness(svc: ServiceState) -> list[str]:
-    reasons = list(svc.daemon.readiness_reasons())
-    active = await svc.run(svc.store.active_model, with_artifact=False)
-    if active is None:
-        reasons.append(NO_MODEL)
-    return reasons
+Board = Annotated[StatusBoard, Depends(_board)]
 
 
 @router.get("/health", tags=["system"], summary="Liveness: the process answers")
@@ -80,8 +73,8 @@ async def health() -> dict[str, str]:
     response_model=ReadyOut,
     responses={503: {"model": ReadyOut, "description": "not ready; the reasons say why"}},
 )
-async def ready(svc: State) -> JSONResponse:
-    reasons = await _readiness(svc)
+async def ready(board: Board) -> JSONResponse:
+    reasons = list((await board.current())["reasons"])
     body = ReadyOut(ready=not reasons, reasons=reasons)
     return JSONResponse(body.model_dump(), status_code=200 if not reasons else 503)
 
@@ -98,32 +91,17 @@ async def get_metrics(who: MetricsReader) -> Response:
     return Response(body, media_type=metrics.CONTENT_TYPE_LATEST)
 
 
-@router.get("/api/status", tags=["system"], summary="Everything the dashboard shows at a glance")
-async def status(svc: State, who: Viewer) -> dict[str, Any]:
-    snapshot = svc.daemon.snapshot()
-    reasons = await _readiness(svc)
-    counts = await svc.run(svc.store.target_counts)
-    active = await svc.run(svc.store.active_model, with_artifact=False)
-    running = await svc.run(svc.store.list_jobs, state="running", limit=50)
-    queued = await svc.run(svc.store.list_jobs, state="queued", limit=50)
-    return {
-        "version": __version__,
-        "robot": svc.robot.name,
-        "cycle_ms": svc.settings.rsi.cycle_ms,
-        "controller": {
-            "settle_tolerance_deg": svc.settings.controller.settle_tolerance_deg,
-            "rough_threshold_deg": svc.settings.controller.rough_threshold_deg,
-        },
-        "daemon": snapshot.to_dict(),
-        "rsi": svc.daemon.rsi_report() if isinstance(svc.daemon, RsiReporter) else None,
-        "ready": not reasons,
-        "reasons": reasons,
-        "targets": counts,
-        "active_model": ModelOut.of(active, summary=True).model_dump() if active is not None else None,
-        "jobs": {"running": len(running), "queued": len(queued)},
-        "you": {"name": who.name, "role": who.role.name},
-        "job_kinds": svc.runner.kinds(),
-    }
+@router.get(
+    "/api/status",
+    tags=["system"],
+    summary="Everything the dashboard shows at a glance (a snapshot at most http.status_interval_s old)",
+    response_class=Response,
+    responses={200: {"content": {"application/json": {"schema": {"type": "object"}}}}},
+)
+async def status(board: Board, who: Viewer) -> Response:
+    body = await board.current_body()
+    you = json.dumps({"name": who.name, "role": who.role.name}).encode()
+    return Response(body[:-1] + b',"you":' + you + b"}", media_type="application/json")
 
 
 @router.get(
@@ -172,10 +150,10 @@ async def events(
 async def event_log(
     svc: State,
     who: Viewer,
-    after_id: Annotated[int, Query(ge=0, le=2**62)] = 0,
+    after_id: Annotated[int, Query(ge=0, le=MAX_ID)] = 0,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    target_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
-    job_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+    target_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
+    job_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
     newest_first: bool = False,
 ) -> Response:
     rows = await svc.run(

@@ -41,6 +41,7 @@ from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.schemas import (
+    MAX_ID,
     TARGET_MOVING,
     BatchIn,
     BatchOut,
@@ -57,8 +58,8 @@ _log = get_logger("comp_daemon.api.targets")
 State = Annotated[ServiceState, Depends(get_state)]
 Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 Operator = Annotated[Principal, Depends(require(Role.operator))]
-TargetId = Annotated[int, Path(ge=1, le=2**62, description="target id")]
-BatchId = Annotated[int, Path(ge=1, le=2**62, description="batch id")]
+TargetId = Annotated[int, Path(ge=1, le=MAX_ID, description="target id")]
+BatchId = Annotated[int, Path(ge=1, le=MAX_ID, description="batch id")]
 TargetState = Literal[
     "queued", "compensating", "moving", "settling", "done", "failed", "cancelled", "interrupted"
 ]
@@ -247,7 +248,7 @@ async def cancel_batch(batch_id: BatchId, svc: State, who: Operator) -> list[Tar
 async def list_targets(
     svc: State,
     who: Viewer,
-    batch_id: Annotated[int | None, Query(ge=1, le=2**62)] = None,
+    batch_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
     state: Annotated[list[TargetState] | None, Query(description="one or more states")] = None,
     limit: Annotated[int, Query(ge=1, le=1000)] = 100,
     offset: Annotated[int, Query(ge=0, le=2**31)] = 0,

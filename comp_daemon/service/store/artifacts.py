@@ -13,11 +13,80 @@ from comp_daemon.service.store.records import (
     DatasetRecord,
     ModelDraft,
     ModelRecord,
+    NotFoundError,
     dumps,
     without_details,
 )
 
-__all__ = ["DatasetStore", "ModelStore"]
+__all__ = ["DatasetContent", "DatasetStore", "ModelStore"]
+
+#: the columns of a data set without its content (list pages, descriptions)
+_DATASET_META = "id, name, format, sha256, rows, summary, created_at"
+#: the columns of a model without its artifact
+_MODEL_META = 'id, kind, "order", stats, dataset_id, job_id, active, created_at'
+
+
+class DatasetContent:
+    """A stored data set's CSV, read a chunk at a time (``size`` bytes of UTF-8 in all).
+
+    On a database file the chunks come from a read-only connection of its own, in one read
+    transaction: the download is the content as it was when it was opened, even if the data set is
+    deleted meanwhile, and the shared connection's lock is never held for it. On ``:memory:`` each
+    chunk is read under the store's lock. Blocking: call :meth:`read` and :meth:`close` in a worker
+    thread.
+    """
+
+    def __init__(self, store: StoreBase, dataset_id: int) -> None:
+        self._store = store
+        self._id = dataset_id
+        self._pos = 0
+        self._conn: sqlite3.Connection | None = None
+        self._blob: sqlite3.Blob | None = None
+        if str(store.path) != ":memory:":
+            self._conn = sqlite3.connect(
+                f"{store.path.resolve().as_uri()}?mode=ro", uri=True, isolation_level=None,
+                check_same_thread=False,
+            )  # fmt: skip
+            try:
+                # a blob is read past the page cache: keep this connection's cache small (64 KiB, not
+                # the default 2 MB), since each download in flight has a connection of its own
+                self._conn.execute("PRAGMA cache_size=-64")
+                self._conn.execute("BEGIN")
+                self._blob = self._open(self._conn)
+                self.size = len(self._blob)
+            except BaseException:
+                self._conn.close()
+                raise
+        else:
+            with store._lock:
+                blob = self._open(store._conn)
+                with blob:
+                    self.size = len(blob)
+
+    def _open(self, conn: sqlite3.Connection) -> sqlite3.Blob:
+        try:
+            return conn.blobopen("datasets", "content", self._id, readonly=True)
+        except sqlite3.OperationalError:  # no such row
+            raise NotFoundError("dataset", self._id) from None
+
+    def read(self, n: int) -> bytes:
+        """The next ``n`` bytes at most (b"" at the end)."""
+        if self._blob is not None:
+            return self._blob.read(n)
+        with self._store._lock:
+            with self._open(self._store._conn) as blob:
+                blob.seek(self._pos)
+                chunk = blob.read(n)
+        self._pos += len(chunk)
+        return chunk
+
+    def close(self) -> None:
+        if self._blob is not None:
+            self._blob.close()
+            self._blob = None
+        if self._conn is not None:
+            self._conn.close()
+            self._conn = None
 
 
 class DatasetStore(StoreBase):
@@ -33,7 +102,7 @@ class DatasetStore(StoreBase):
             rows=row["rows"],
             summary=json.loads(row["summary"]),
             created_at=row["created_at"],
-            content=row["content"] if with_content else None,
+            content=row["content"] if with_content else None,  # read only when asked for
         )
 
     def add_dataset(
@@ -60,12 +129,20 @@ class DatasetStore(StoreBase):
         return self._dataset(row, with_content=False)
 
     def get_dataset(self, dataset_id: int, *, with_content: bool = False) -> DatasetRecord:
+        columns = "*" if with_content else _DATASET_META
         with self._lock:
-            return self._dataset(self._fetch(self._conn, "dataset", dataset_id), with_content)
+            return self._dataset(self._fetch(self._conn, "dataset", dataset_id, columns), with_content)
 
     def list_datasets(self, *, limit: int = 500, offset: int = 0) -> list[DatasetRecord]:
-        rows = self._read("SELECT * FROM datasets ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset))
+        """Data sets without their content (metadata only), newest first."""
+        rows = self._read(
+            f"SELECT {_DATASET_META} FROM datasets ORDER BY id DESC LIMIT ? OFFSET ?", (limit, offset)
+        )
         return [self._dataset(r, with_content=False) for r in rows]
+
+    def open_dataset_content(self, dataset_id: int) -> DatasetContent:
+        """The data set's stored CSV to read in chunks (NotFoundError if there is none)."""
+        return DatasetContent(self, dataset_id)
 
     def delete_dataset(self, dataset_id: int) -> None:
         """Delete a data set; refused while a queued or running job uses it. Models keep their artifact."""
@@ -100,7 +177,8 @@ class ModelStore(StoreBase):
         )
 
     def _model_row(self, conn: sqlite3.Connection, model_id: int, *, with_artifact: bool) -> ModelRecord:
-        return self._model(self._fetch(conn, "model", model_id), with_artifact)
+        columns = "*" if with_artifact else _MODEL_META
+        return self._model(self._fetch(conn, "model", model_id, columns), with_artifact)
 
     def add_model(self, draft: ModelDraft) -> ModelRecord:
         """Store a model that did not come from a job (an imported artifact)."""
@@ -151,7 +229,8 @@ class ModelStore(StoreBase):
         return [self._model(r, with_artifact=False) for r in rows]
 
     def active_model(self, *, with_artifact: bool = True) -> ModelRecord | None:
-        rows = self._read("SELECT * FROM models WHERE active = 1")
+        columns = "*" if with_artifact else _MODEL_META
+        rows = self._read(f"SELECT {columns} FROM models WHERE active = 1")
         return self._model(rows[0], with_artifact) if rows else None
 
     def activate_model(self, model_id: int, *, by: str | None = None) -> ModelRecord:
