@@ -27,7 +27,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     check.add_argument("file", metavar="FILE", help="data set file (CSV per the data set spec, or .json)")
     check.add_argument(
-        "--robot", required=True, help=f"preset ({', '.join(PRESETS)}) or path to a TOML file (axis limits)"
+        "--robot", required=True, help=f"preset ({', '.join(PRESETS)}) or path to a TOML or URDF file (axis limits)"
     )
     check.add_argument(
         "--kind",

@@ -1,9 +1,10 @@
 """``comp-daemon export params | targets``: a model in the controller's own form.
 
-- ``export params --model MODEL.json --format kuka|abb|csv -o FILE [--data DATA]`` lists a
+- ``export params --model MODEL.json --format kuka|abb|csv|urdf -o FILE [--data DATA]`` lists a
   kinematic model's identified parameters (``kinematic``, ``kinematic+ratio+backlash`` …) for a
   KUKA or ABB engineer to review, or as CSV with the nominal value, the change and the 1-σ of each
-  (:mod:`comp_daemon.models.export.params`); ``--data`` adds the RMS on the data set's check rows
+  (:mod:`comp_daemon.models.export.params`), or writes its calibrated geometry as a URDF
+  (:mod:`comp_daemon.models.export.urdf`); ``--data`` adds the RMS on the data set's check rows
   to the header.
 - ``export targets --model MODEL.json --targets TARGETS.csv --format krl|rapid|csv -o FILE``
   compensates the targets as ``compensate`` does (the same refusals and options; any model kind)
@@ -33,6 +34,7 @@ from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, par
 from comp_daemon.models.export.frames import abc_deg_to_matrix
 from comp_daemon.models.export.params import listing_of
 from comp_daemon.models.export.targets import TargetList, module_name, point_names
+from comp_daemon.models.export.urdf import urdf_text
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, load_robot
 
@@ -48,7 +50,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="a model in the controller's form: KUKA/ABB/CSV parameter listings, KRL/RAPID/CSV target lists",
     )
     sub = export.add_subparsers(dest="export_command", metavar="WHAT", required=True)
-    robot_help = f"refuse the model unless it belongs to this robot (preset: {', '.join(PRESETS)}, or TOML)"
+    robot_help = (
+        f"refuse the model unless it belongs to this robot (preset: {', '.join(PRESETS)}, "
+        "or a TOML or URDF file)"
+    )
 
     params = sub.add_parser(
         "params", help="a kinematic model's identified parameters as a reviewable listing"
@@ -56,7 +61,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     params.add_argument(
         "--model", required=True, metavar="MODEL.json", help="model artifact written by 'fit'"
     )
-    params.add_argument("--format", required=True, choices=tuple(PARAM_FORMATS), help="listing format")
+    params.add_argument(
+        "--format",
+        required=True,
+        choices=(*PARAM_FORMATS, "urdf"),
+        help="listing format; urdf: the calibrated geometry as a URDF (docs/urdf.md)",
+    )
     params.add_argument("-o", "--out", required=True, metavar="FILE", help="listing to write")
     params.add_argument(
         "--data", default=None, metavar="DATA", help="measurement data set: report the RMS on its check rows"
@@ -117,7 +127,10 @@ def _params(args: argparse.Namespace) -> int:
     info = listing.info
     assert isinstance(model, KinematicModel)  # listing_of refused the others
     try:
-        text, diff = params_text(listing, model, args.format)
+        if args.format == "urdf":
+            text, diff = urdf_text(model, listing.info.lines())
+        else:
+            text, diff = params_text(listing, model, args.format)
     except ValueError as exc:
         raise UserError(f"{args.out}: {exc}; not written") from None
     write_text_atomic(args.out, text)
