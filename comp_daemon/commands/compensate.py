@@ -13,6 +13,7 @@ import argparse
 
 import numpy as np
 
+from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.fit import read_data
 from comp_daemon.data.dataset import Dataset, write_dataset
@@ -45,6 +46,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     comp.add_argument("--out", required=True, metavar="CORRECTED.csv", help="data set of compensated targets")
     comp.add_argument("--robot", default=None, help="refuse the model unless it belongs to this robot")
     compensation_options(comp)
+    reader_options(comp)
     comp.set_defaults(func=_compensate)
 
 
@@ -90,7 +92,7 @@ def _compensate(args: argparse.Namespace) -> int:
     except ModelArtifactError as exc:
         raise UserError(str(exc)) from None
     model = loaded.model
-    targets = read_data(args.targets, model.robot, 0, "targets")
+    targets = read_data(args.targets, model.robot, 0, "targets", read_options_of(args))
     n = len(targets)
     wanted, result, limits = compensate_targets(model, targets, args)
     dir_ = None if targets.dir is None else targets.dir.astype(float)

@@ -25,9 +25,10 @@ from pathlib import Path
 import numpy as np
 
 from comp_daemon.commands.compensate import compensate_targets, compensation_options
+from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_text_atomic
-from comp_daemon.data.dataset import DatasetError, read_dataset, read_dataset_json
+from comp_daemon.data.dataset import DatasetError, read_dataset_file
 from comp_daemon.models.artifact import LoadedModel, ModelArtifactError, load_model
 from comp_daemon.models.compensation import nominal_targets
 from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, params_text, write_targets
@@ -72,6 +73,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--data", default=None, metavar="DATA", help="measurement data set: report the RMS on its check rows"
     )
     params.add_argument("--robot", default=None, help=robot_help)
+    reader_options(params)
     params.set_defaults(func=_params)
 
     targets = sub.add_parser("targets", help="compensated targets as a KRL, RAPID or CSV point list")
@@ -88,6 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     targets.add_argument("-o", "--out", required=True, metavar="FILE", help="target list to write")
     targets.add_argument("--robot", default=None, help=robot_help)
     compensation_options(targets)
+    reader_options(targets)
     targets.set_defaults(func=_targets)
 
 
@@ -99,11 +102,12 @@ def _load(args: argparse.Namespace) -> LoadedModel:
         raise UserError(str(exc)) from None
 
 
-def _check_rms_mm(loaded: LoadedModel, path: str) -> float:
+def _check_rms_mm(loaded: LoadedModel, path: str, args: argparse.Namespace) -> float:
     model = loaded.model
-    reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
     try:
-        data = reader(path, limits_deg=model.robot.axis_limits_deg, kind="measurement")
+        data = read_dataset_file(
+            path, limits_deg=model.robot.axis_limits_deg, kind="measurement", options=read_options_of(args)
+        )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
     check = np.asarray(data.split_or_draw().check_rows)
@@ -119,7 +123,7 @@ def _check_rms_mm(loaded: LoadedModel, path: str) -> float:
 def _params(args: argparse.Namespace) -> int:
     loaded = _load(args)
     model = loaded.model
-    check = _check_rms_mm(loaded, args.data) if args.data else None
+    check = _check_rms_mm(loaded, args.data, args) if args.data else None
     try:
         listing = listing_of(model, loaded.document, check)
     except ValueError as exc:
@@ -144,9 +148,13 @@ def _params(args: argparse.Namespace) -> int:
 def _targets(args: argparse.Namespace) -> int:
     loaded = _load(args)
     model = loaded.model
-    reader = read_dataset_json if Path(args.targets).suffix.lower() == ".json" else read_dataset
     try:
-        targets = reader(args.targets, limits_deg=model.robot.axis_limits_deg, kind="targets")
+        targets = read_dataset_file(
+            args.targets,
+            limits_deg=model.robot.axis_limits_deg,
+            kind="targets",
+            options=read_options_of(args),
+        )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
     wanted, result, _ = compensate_targets(model, targets, args)

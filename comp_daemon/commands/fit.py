@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -37,11 +36,13 @@ from comp_daemon.commands.campaigns import (
     fit_campaign_file,
     is_campaign_file,
 )
+from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.coverage import still_axes_note
-from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json
+from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset_file
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.models.artifact import save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
@@ -158,6 +159,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
         help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
         "(models with backlash then refuse the data)",
     )
+    reader_options(parser)
 
 
 def _directions(
@@ -178,12 +180,15 @@ def _parse_model(token: str, order: Order | None) -> ModelSpec:
         raise UserError(str(exc)) from None
 
 
-def read_data(path: str, robot: RobotDescription, min_rows: int, kind: Any) -> Dataset:
-    """A data set or target file (``.json`` records, else CSV) checked against the robot's axis limits;
-    the reader's refusals as :class:`UserError`."""
-    reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
+def read_data(
+    path: str, robot: RobotDescription, min_rows: int, kind: Any, options: ReadOptions | None = None
+) -> Dataset:
+    """A data set or target file (``.json`` records, else CSV) checked against the robot's axis limits,
+    read with ``options`` (separator, decimal comma, units); the reader's refusals as :class:`UserError`."""
     try:
-        return reader(path, limits_deg=robot.axis_limits_deg, min_rows=min_rows, kind=kind)
+        return read_dataset_file(
+            path, limits_deg=robot.axis_limits_deg, min_rows=min_rows, kind=kind, options=options
+        )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
 
@@ -217,7 +222,7 @@ def _fit(args: argparse.Namespace) -> int:
         return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
-    dataset = read_data(args.data, robot, 0, "measurement")
+    dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
     reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
     if reason is not None:
         raise UserError(f"{dataset.source}: {len(dataset)} data rows; {reason}")
@@ -283,7 +288,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         return evaluate_solvers(args, load_robot_cached(args))
     parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
-    dataset = read_data(args.data, robot, 0, "measurement")
+    dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
     if len(dataset) < 2:
         raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
     data_sha256 = dataset.content_sha256

@@ -39,6 +39,7 @@ __all__ = [
     "build_dataset",
     "parse_numbers",
     "printable",
+    "separator_fault",
     "text_fault",
 ]
 
@@ -47,6 +48,7 @@ DatasetKind = Literal["measurement", "targets", "any"]
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 _INTEGER = re.compile(r"[+-]?\d+", re.ASCII)
 _TEXT_FAULT = re.compile("[\x00\ud800-\udfff]")
+_DECIMAL_COMMA = re.compile(r"[+-]?\d*,\d+(?:[eE][+-]?\d+)?", re.ASCII)
 
 
 def text_fault(text: str) -> str | None:
@@ -111,6 +113,8 @@ def _number_fault(cell: str) -> str:
     try:
         value = float(text)
     except ValueError:
+        if _DECIMAL_COMMA.fullmatch(text):
+            return f"not a number: {cell!r} has a decimal comma; read the file with --decimal-comma"
         return f"not a number: {cell!r}"
     if not math.isfinite(value):
         return f"non-finite number {cell!r}"
@@ -190,20 +194,29 @@ def _parse_repeat(table: CellTable, faults: CellFaults) -> IntArray | None:
     return np.array([int(c) for c in cells], dtype=np.int64)
 
 
+def separator_fault(header: Sequence[str]) -> str | None:
+    """Why a header that is one column holding ``;`` or tabs is refused (naming the option that
+    reads it), ``None`` for any other header."""
+    if len(header) == 1:
+        for sep, what, option in ((";", "semicolons", "';'"), ("\t", "tabs", "tab")):
+            if sep in header[0]:
+                return (
+                    f"the header is one column holding {what}; this format separates columns with commas "
+                    f"(and writes decimals with '.'): read the file with --delimiter {option} (and "
+                    "--decimal-comma when its numbers have decimal commas)"
+                )
+    return None
+
+
 def _check_header(table: CellTable, kind: DatasetKind) -> None:
     header = table.header
 
     def refuse(problem: str, column: str | None) -> DatasetError:
         return DatasetError(problem, source=table.source, row=1, column=column, row_label=table.row_label)
 
-    if len(header) == 1:
-        for sep, what in ((";", "semicolons"), ("\t", "tabs")):
-            if sep in header[0]:
-                raise refuse(
-                    f"the header is one column holding {what}; this format separates columns with commas "
-                    "(and writes decimals with '.')",
-                    None,
-                )
+    problem = separator_fault(header)
+    if problem is not None:
+        raise refuse(problem, None)
     seen: dict[str, int] = {}
     known = set(KNOWN_COLUMNS)
     for k, name in enumerate(header, start=1):

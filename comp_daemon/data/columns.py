@@ -13,15 +13,19 @@ import re
 from typing import Any
 
 __all__ = [
+    "ANGLE_COLUMNS",
     "AXIS_COLUMNS",
     "DIR_COLUMNS",
     "GRATING_COLUMNS",
     "KNOWN_COLUMNS",
+    "LENGTH_COLUMNS",
+    "NUMERIC_COLUMNS",
     "SCALAR_NUMBER_COLUMNS",
     "TARGET_ABC_COLUMNS",
     "TARGET_XYZ_COLUMNS",
     "XYZ_COLUMNS",
     "DatasetError",
+    "is_numeric_column",
     "is_reflector_column",
     "reflector_columns",
     "reflector_index",
@@ -49,6 +53,23 @@ KNOWN_COLUMNS: tuple[str, ...] = (
 )
 
 
+#: the columns whose cells are numbers (besides the further targets' ``xK, yK, zK``)
+NUMERIC_COLUMNS: frozenset[str] = frozenset(
+    (
+        *AXIS_COLUMNS,
+        *XYZ_COLUMNS,
+        *DIR_COLUMNS,
+        *GRATING_COLUMNS,
+        *SCALAR_NUMBER_COLUMNS,
+        *TARGET_XYZ_COLUMNS,
+        *TARGET_ABC_COLUMNS,
+        "repeat",
+    )
+)
+#: lengths (mm) and angles (deg) among them, the columns a reader's unit option scales
+LENGTH_COLUMNS: tuple[str, ...] = (*XYZ_COLUMNS, *TARGET_XYZ_COLUMNS)
+ANGLE_COLUMNS: tuple[str, ...] = (*AXIS_COLUMNS, *GRATING_COLUMNS, *TARGET_ABC_COLUMNS)
+
 _REFLECTOR = re.compile(r"([xyz])([1-9][0-9]*)")
 
 
@@ -71,6 +92,11 @@ def reflector_index(name: str) -> int | None:
 def is_reflector_column(name: str) -> bool:
     """Whether ``name`` is a further target's column (``x2`` … ``zK``)."""
     return reflector_index(name) is not None
+
+
+def is_numeric_column(name: str) -> bool:
+    """Whether the cells of column ``name`` are numbers."""
+    return name in NUMERIC_COLUMNS or is_reflector_column(name)
 
 
 class DatasetError(ValueError):
