@@ -2,7 +2,7 @@
 
 ``compensate MODEL.json TARGETS.csv --out CORRECTED.csv`` writes, for every target, the axis values
 whose predicted TCP (by the model) is the wanted one, and, where the model has one, the 3-D 1-σ
-uncertainty of that prediction (``sigma_mm``, :meth:`ErrorModel.predict_std_mm`). Targets are
+uncertainty of that prediction (``predicted_sigma_mm``, :meth:`ErrorModel.predict_std_mm`). Targets are
 ``a1..a6`` (the nominal program) or ``tx, ty, tz[, ta, tb, tc]`` (robot base frame). The options
 (:func:`compensation_options`) and :func:`compensate_targets` are shared with ``export targets``.
 """
@@ -107,7 +107,7 @@ def _compensate(args: argparse.Namespace) -> int:
     extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
     sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
     if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
-        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
+        extra["predicted_sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
     extra["model_kind"] = (model.kind,) * n
     out = Dataset(
         a_deg=result.a_deg,

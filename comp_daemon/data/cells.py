@@ -22,6 +22,8 @@ from comp_daemon.data.columns import (
     DIR_COLUMNS,
     GRATING_COLUMNS,
     KNOWN_COLUMNS,
+    QUATERNION_COLUMNS,
+    QUATERNION_NORM_TOL,
     SCALAR_NUMBER_COLUMNS,
     TARGET_ABC_COLUMNS,
     TARGET_XYZ_COLUMNS,
@@ -208,6 +210,36 @@ def separator_fault(header: Sequence[str]) -> str | None:
     return None
 
 
+def _parse_quaternions(table: CellTable, faults: CellFaults, q: FloatArray | None) -> FloatArray | None:
+    """The (n, 4) probe orientations, each a unit quaternion within :data:`QUATERNION_NORM_TOL`."""
+    if q is None:
+        return None
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_NORM_TOL)
+    if bad.size:
+        i = int(bad[0])
+        cells = [table.columns[c][i].strip() for c in QUATERNION_COLUMNS]
+        faults.add(
+            "qw",
+            i,
+            f"the probe orientation (qw, qx, qy, qz) = ({', '.join(cells)}) has norm {norm[i]:.6g}; "
+            f"a unit quaternion is required (|q| = 1 within {QUATERNION_NORM_TOL:g})",
+        )
+        return None
+    return q
+
+
+def _parse_station(table: CellTable, faults: CellFaults) -> tuple[str, ...] | None:
+    cells = tuple(c.strip() for c in table.columns["station"])
+    empty = [i for i, c in enumerate(cells) if not c]
+    if empty:
+        faults.add(
+            "station", empty[0], "empty station; every row names the tracker set-up it was measured from"
+        )
+        return None
+    return cells
+
+
 def _check_header(table: CellTable, kind: DatasetKind) -> None:
     header = table.header
 
@@ -253,6 +285,8 @@ def _check_header(table: CellTable, kind: DatasetKind) -> None:
     has_abc = group(TARGET_ABC_COLUMNS, "ta, tb, tc")
     if has_abc and not has_targets:
         raise refuse("column missing (ta, tb, tc need the target position tx, ty, tz)", "tx")
+    if group(QUATERNION_COLUMNS, "qw, qx, qy, qz") and not has_xyz:
+        raise refuse("column missing (a probe's orientation qw, qx, qy, qz needs its position x, y, z)", "x")
 
     if kind == "measurement":
         for needed, names in ((has_axes, AXIS_COLUMNS), (has_xyz, XYZ_COLUMNS)):
@@ -373,6 +407,16 @@ def build_dataset(
 
     split = _parse_split(table, faults) if "split" in present else None
     repeat = _parse_repeat(table, faults) if "repeat" in present else None
+    probe_q = _parse_quaternions(table, faults, block(QUATERNION_COLUMNS))
+    sigma = parse_numbers(table, faults, "sigma_mm") if "sigma_mm" in present else None
+    if sigma is not None and (sigma <= 0).any():
+        i = int(np.flatnonzero(sigma <= 0)[0])
+        faults.add(
+            "sigma_mm",
+            i,
+            f"sigma_mm must be > 0 mm (a standard deviation), got {table.columns['sigma_mm'][i]!r}",
+        )
+    station = _parse_station(table, faults) if "station" in present else None
     faults.raise_first()
 
     if n < min_rows:
@@ -392,6 +436,9 @@ def build_dataset(
         split=split,
         repeat=repeat,
         pose_id=tuple(table.columns["pose_id"]) if "pose_id" in present else None,
+        station=station,
+        probe_q_wxyz=probe_q,
+        sigma_mm=sigma,
         target_xyz_mm=target_xyz_mm,
         target_abc_deg=target_abc_deg,
         more_xyz_mm=np.stack([m for m in more if m is not None], axis=1) if more else None,

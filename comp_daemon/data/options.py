@@ -66,8 +66,6 @@ _ANGLE_SCALE = {"deg": 1.0, "rad": 180.0 / math.pi}
 
 _PLAIN = re.compile(r"\s*[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?\s*", re.ASCII)
 _COMMA_NUMBER = re.compile(r"\s*[+-]?(?:\d+(?:,\d*)?|,\d+)(?:[eE][+-]?\d+)?\s*", re.ASCII)
-_SIGMA_COLUMNS = ("sigma_mm",)
-_QUATERNION_COLUMNS = ("qw", "qx", "qy", "qz")
 
 
 def parse_units(text: str) -> tuple[LengthUnit, AngleUnit]:
@@ -88,11 +86,11 @@ def parse_units(text: str) -> tuple[LengthUnit, AngleUnit]:
 
 
 def _numeric(name: str) -> bool:
-    return is_numeric_column(name) or name in _SIGMA_COLUMNS or name in _QUATERNION_COLUMNS
+    return is_numeric_column(name)
 
 
 def _length_column(name: str) -> bool:
-    return name in LENGTH_COLUMNS or name in _SIGMA_COLUMNS or is_reflector_column(name)
+    return name in LENGTH_COLUMNS or is_reflector_column(name)
 
 
 def _angle_column(name: str) -> bool:

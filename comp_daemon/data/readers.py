@@ -27,6 +27,10 @@ Conventions of this implementation, where the spec leaves room:
   (``kind="targets"``, or ``"any"``) need a1..a6 or tx, ty, tz.
 - A UTF-8 byte order mark is accepted. Blank lines are accepted only at the end of the file.
   Quoting follows RFC 4180 (``csv`` module, strict); a malformed quote is refused.
+- ``station`` names the tracker's set-up (any non-empty text, spaces around it ignored);
+  ``qw, qx, qy, qz`` (whole, beside x, y, z) a 6-DOF probe's orientation, a unit quaternion
+  (``|q|`` within 1e-3 of 1; refused naming the row and ``qw``); ``sigma_mm`` the row's declared
+  position σ per axis, a number > 0.
 - Unknown columns are kept verbatim as text (no stripping).
 - No cell may hold a NUL character or a lone surrogate (text that cannot be written as UTF-8).
 - JSON: a list of records or ``{"name": ..., "records": [...]}``; a key given twice, a NUL or a
@@ -285,10 +289,10 @@ def _json_cell(column: str, value: Any) -> tuple[str, str | None]:
         return value, text_fault(value)
     if column == "split":
         return "", f"split must be the string 'fit' or 'check', got {_shown(value)}"
-    if column == "pose_id":
+    if column in ("pose_id", "station"):
         if isinstance(value, int) and not isinstance(value, bool) and not _long_integer(value):
             return str(value), None
-        return "", f"pose_id must be a string or an integer, got {_shown(value)}"
+        return "", f"{column} must be a string or an integer, got {_shown(value)}"
     if value is None:
         return "", None
     if isinstance(value, dict | list):
@@ -311,7 +315,7 @@ def dataset_from_records(
 
     The rules are those of the CSV reader; errors name ``record k`` (1-based) instead of a row.
     Numeric columns take JSON numbers (not strings), ``split`` a string, ``pose_id`` a string or
-    an integer; unknown keys are kept as text. Records must all have the same keys.
+    an integer (so does ``station``); unknown keys are kept as text. Records must all have the same keys.
     """
 
     def refuse(problem: str, record: int | None, column: str | None = None) -> DatasetError:
