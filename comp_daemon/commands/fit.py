@@ -45,7 +45,15 @@ from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset_file
 from comp_daemon.data.options import ReadOptions
 from comp_daemon.models.artifact import save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
-from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
+from comp_daemon.models.covariance import near_dependent_note
+from comp_daemon.models.evaluation import (
+    REGISTERED_NOMINAL,
+    SEED000_TABLE2_MM,
+    error_statistics,
+    format_table2,
+    outside_fit_ranges,
+    registered_nominal,
+)
 from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, directions_of, infer_fit_directions
 from comp_daemon.models.registry import (
     ALL_MODELS,
@@ -264,6 +272,9 @@ def _fit(args: argparse.Namespace) -> int:
     line = selection_line(fitted.info)
     if line:
         print(f"{args.model}: {line} (out of fold on the fit rows)")
+    note = near_dependent_note(fitted.info)
+    if note:
+        print(f"{args.model}: {note}")
     for warning in ("frame_warning", "mass_warning"):
         if warning in fitted.info:
             print(f"{args.model}: {fitted.info[warning]}")
@@ -332,6 +343,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
+    extrapolated = outside_fit_ranges(dataset.a_deg[split.fit_rows], dataset.a_deg[check])
     frame_warned = False
     for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
         steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
@@ -361,10 +373,33 @@ def _evaluate(args: argparse.Namespace) -> int:
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()
             )
+        elif token != "nominal":
+            fits[token]["check_rows_outside_range"] = extrapolated["rows"]
         steps.log(
             f"{token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
             f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms"
         )
+    if "nominal" in table:  # beside the raw nominal row, the one that does not count unknown targets
+        t0 = time.perf_counter()
+        fit_rows = split.fit_rows
+        more = None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[fit_rows]
+        reg_model, reg_info = registered_nominal(
+            robot, dataset.a_deg[fit_rows], dataset.xyz_mm[fit_rows], more
+        )
+        t1 = time.perf_counter()
+        table[REGISTERED_NOMINAL] = error_statistics(
+            dataset.xyz_mm[check], reg_model.predict_tcp_mm(dataset.a_deg[check])
+        )
+        fits[REGISTERED_NOMINAL] = {
+            "frame": "registered",
+            **reg_info,
+            "check_rows_outside_range": extrapolated["rows"],
+        }
+        timing[REGISTERED_NOMINAL] = {
+            "fit_s": t1 - t0,
+            "predict_s": time.perf_counter() - t1,
+            "predict_rows": len(check),
+        }
     if args.calibrated:
         t0 = time.perf_counter()
         calibrated, calibrated_fits = evaluate_calibrated(
@@ -380,7 +415,20 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"{dataset.source}: {len(split.fit_rows)} fit rows, {len(check)} check rows; "
         "error = measured - model (mm); sorted by the check rows' 3-D RMS"
     )
-    print(format_table2(table, timing))
+    outside = {
+        name: fits[name]["check_rows_outside_range"]
+        for name in ranking
+        if "check_rows_outside_range" in fits[name]
+    }
+    print(format_table2(table, timing, outside))
+    if extrapolated["rows"]:
+        axes = ", ".join(f"{axis} {count}" for axis, count in extrapolated["per_axis"].items())
+        print(
+            f"extrapolation: {extrapolated['rows']} of {len(check)} check rows lie outside the fit rows' "
+            "axis "
+            f"ranges ({axes}); 'outside' counts them per model (a fitted polynomial or kriging model "
+            "is not to be trusted there)"
+        )
     chosen = {name: selection_line(fits[name]) for name in ranking}
     if any(chosen.values()):
         print("kept and dropped out of fold on the fit rows (the check rows unseen):")

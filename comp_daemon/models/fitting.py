@@ -59,7 +59,12 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
-from comp_daemon.models.covariance import ParameterCovariance, attach_covariance, covariance_from_fit
+from comp_daemon.models.covariance import (
+    ParameterCovariance,
+    attach_covariance,
+    covariance_from_fit,
+    near_dependent_pairs,
+)
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
@@ -367,9 +372,22 @@ def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
         **targets,
         "effects": list(effects),
         "solver": lm_info(kf.lm),
-        "identifiability": report_info(kf.report),
+        "identifiability": {**report_info(kf.report), "near_dependent": _near_dependent(kf)},
         "identified": identified_info(kf.identified, kf.values, kf.std),
     }
+
+
+def _near_dependent(kf: KinematicFit) -> list[dict[str, Any]]:
+    """The identified parameters' near-dependent pairs (covariance of the fit at its solution);
+    pairs inside the measurement frame (``base_*`` with ``base_*``) are left out: its translation
+    and rotation correlate whenever the tracker's origin is far from the robot, and that frame is
+    not the robot's."""
+    try:
+        cov, _ = covariance_from_fit(kf.lm.jacobian, kf.lm.residual)
+    except ValueError:  # no more residuals than parameters: no covariance
+        return []
+    pairs = near_dependent_pairs(kf.identified, cov)
+    return [p for p in pairs if not all(name.startswith("base_") for name in p["pair"])]
 
 
 def _data_frame(robot: RobotDescription, rows: FitRows, options: FitOptions) -> Literal["base", "tracker"]:
