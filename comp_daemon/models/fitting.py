@@ -161,6 +161,9 @@ class FitRows:
     payload_kg: NDArray[np.float64] | float = 0.0
     temp_c: NDArray[np.float64] | None = None
     more_xyz_mm: NDArray[np.float64] | None = None  # (n, K − 1, 3) further targets on the flange
+    sigma_mm: NDArray[np.float64] | None = (
+        None  # (n,) declared position σ per row (weights the kinematic fit)
+    )
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -189,6 +192,7 @@ class FitRows:
             payload,
             None if self.temp_c is None else self.temp_c[rows],
             None if self.more_xyz_mm is None else self.more_xyz_mm[rows],
+            None if self.sigma_mm is None else self.sigma_mm[rows],
         )
 
     def errors(self, model: ErrorModel) -> NDArray[np.float64]:
@@ -213,6 +217,7 @@ class FitRows:
             payload_kg=dataset.payload_kg[rows],
             temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
             more_xyz_mm=None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[rows],
+            sigma_mm=None if dataset.sigma_mm is None else dataset.sigma_mm[rows],
         )
 
 
@@ -332,6 +337,7 @@ def _kinematic(
         effects=effects,
         frame=options.frame,
         more_targets_mm=rows.more_xyz_mm,
+        sigma_mm=rows.sigma_mm,
     )
 
 
@@ -367,9 +373,11 @@ def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
             "targets_rms_mm": kf.targets_rms_mm,
             "more_targets_mm": kf.model.more_targets_mm.tolist(),
         }
+    weighting = {"weighting": "rows weighted by 1/sigma_mm (weighted least squares)"} if kf.weighted else {}
     return {
         "rms_mm": kf.rms_mm,
         **targets,
+        **weighting,
         "effects": list(effects),
         "solver": lm_info(kf.lm),
         "identifiability": {**report_info(kf.report), "near_dependent": _near_dependent(kf)},
