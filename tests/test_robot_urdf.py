@@ -72,6 +72,14 @@ def test_ur5_zero_pose_is_the_pendants() -> None:
     assert flange == pytest.approx([-817.25, -191.45, -5.491], abs=1e-9)
 
 
+def test_ur5_preset_is_the_real_campaigns_hand_written_file() -> None:
+    """The UR5 of the public real campaign was described by hand (benchmarks/…/ur5.toml, with the
+    campaign's tool); its flange is the preset's at every pose."""
+    hand = load_robot(Path(__file__).parents[1] / "benchmarks" / "real_campaigns" / "ur5_jacobi" / "ur5.toml")
+    a_deg = np.random.default_rng(6).uniform(-180, 180, (50, 6))
+    assert np.max(np.abs(description_fk(hand, a_deg) - description_fk(load_robot("ur5"), a_deg))) < 1e-9
+
+
 def _wrapper(tmp_path: Path, body: str) -> Path:
     path = tmp_path / "robot.toml"
     path.write_text(f'[urdf]\nfile = "{UR5E_URDF}"\n{body}', "utf-8")
