@@ -136,7 +136,7 @@ def test_compensate_writes_a_sigma_column(geometric: Path, tmp_path: Path) -> No
     write_dataset(Dataset(a_deg=ds.a_deg[:8]), targets)
     out = tmp_path / "out.csv"
     assert main(["compensate", str(model_path), str(targets), "--out", str(out)]) == 0
-    sigma = np.array([float(v) for v in read_dataset(out, kind="targets").extra["sigma_mm"]])
+    sigma = np.array([float(v) for v in read_dataset(out, kind="targets").extra["predicted_sigma_mm"]])
     model = load_model(model_path, KR).model
     corrected = read_dataset(out, kind="targets").a_deg
     expected = np.linalg.norm(model.predict_std_mm(corrected), axis=1)

@@ -202,7 +202,7 @@ def test_kind_fits_saves_loads_bit_exact_and_compensates(campaign: Path, tmp_pat
     assert main(["compensate", str(out), str(targets), "--out", str(corrected_path), "--robot", "kr210"]) == 0
     corrected = read_dataset(corrected_path, kind="targets")
     # every fitted kind states the uncertainty of its prediction; the nominal geometry has none
-    sigma = corrected.extra.get("sigma_mm")
+    sigma = corrected.extra.get("predicted_sigma_mm")
     assert (sigma is None) == (spec.kind == "nominal"), name
     if sigma is not None:
         assert all(0.0 < float(v) < 1.0 for v in sigma), (name, sigma)

@@ -36,6 +36,7 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.poe import PoeModel
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
 from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction, uncertainty_summary
+from comp_daemon.models.covariance import near_dependent_note
 from comp_daemon.models.evaluation import error_statistics
 from comp_daemon.models.solver_comparison import SolverProblem, compare_solvers, parse_solvers, solver_table
 from comp_daemon.models.uncertainty import repeat_uncertainty
@@ -91,6 +92,9 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     )
     for line in info["not_identifiable"]:
         print(f"  {line if line.startswith('not identifiable') else 'not identifiable: ' + line}")
+    note = near_dependent_note(info)
+    if note:
+        print(f"  {note}")
     if "bar_error_rms_mm" in check:
         b = check["bar_error_rms_mm"]
         print(f"  check {check['check_rows']} rows: bar error RMS {b['before']:.4f} -> {b['after']:.4f} mm")

@@ -2,7 +2,7 @@
 
 ``compensate MODEL.json TARGETS.csv --out CORRECTED.csv`` writes, for every target, the axis values
 whose predicted TCP (by the model) is the wanted one, and, where the model has one, the 3-D 1-σ
-uncertainty of that prediction (``sigma_mm``, :meth:`ErrorModel.predict_std_mm`). Targets are
+uncertainty of that prediction (``predicted_sigma_mm``, :meth:`ErrorModel.predict_std_mm`). Targets are
 ``a1..a6`` (the nominal program) or ``tx, ty, tz[, ta, tb, tc]`` (robot base frame). The options
 (:func:`compensation_options`) and :func:`compensate_targets` are shared with ``export targets``.
 
@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, write_dataset
@@ -73,6 +74,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="also write the refused rows here (row, column, reason); they are always listed on stderr",
     )
     compensation_options(comp)
+    reader_options(comp)
     comp.set_defaults(func=_compensate)
 
 
@@ -141,7 +143,7 @@ def _compensate(args: argparse.Namespace) -> int:
     extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
     sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
     if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
-        extra["sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
+        extra["predicted_sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
     extra["model_kind"] = (model.kind,) * n
     out = Dataset(
         a_deg=result.a_deg,
@@ -204,7 +206,9 @@ def compensate_rows(model: ErrorModel, path: str, args: argparse.Namespace) -> C
     header, a missing column) refuses the file: :class:`UserError`.
     """
     try:
-        read = read_rows(path, limits_deg=model.robot.axis_limits_deg, kind="targets")
+        read = read_rows(
+            path, limits_deg=model.robot.axis_limits_deg, kind="targets", options=read_options_of(args)
+        )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
     limits = _limits(args)

@@ -5,6 +5,11 @@ the reason (row, column, fault) on stderr and as JSON (``"ok": false``) on stdou
 positions that cannot be millimetres of the robot (metres, inches …) are refused by the same rule
 as ``fit`` and ``diagnose`` (:func:`comp_daemon.models.units.millimetre_problem`). Files ending
 in ``.json`` are read as JSON records, anything else as CSV.
+
+:func:`reader_options` adds the options that say how a file from another tool is written
+(``--delimiter``, ``--decimal-comma``, ``--units``; :mod:`comp_daemon.data.options`) to every
+command that reads a campaign or a target file; :func:`read_options_of` turns them into
+:class:`~comp_daemon.data.options.ReadOptions`.
 """
 
 from __future__ import annotations
@@ -15,7 +20,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from comp_daemon.data.dataset import DatasetError, read_dataset, read_dataset_json
+from comp_daemon.data.dataset import DatasetError, read_dataset_file
+from comp_daemon.data.options import DELIMITERS, ReadOptions
 from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import PRESETS, load_robot
 
@@ -30,7 +36,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     check.add_argument("file", metavar="FILE", help="data set file (CSV per docs/data-format.md, or .json)")
     check.add_argument(
-        "--robot", required=True, help=f"preset ({', '.join(PRESETS)}) or path to a TOML file (axis limits)"
+        "--robot",
+        required=True,
+        help=f"preset ({', '.join(PRESETS)}) or path to a TOML or URDF file (axis limits)",
     )
     check.add_argument(
         "--kind",
@@ -42,15 +50,47 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     check.add_argument(
         "--min-rows", type=int, default=0, help="refuse fewer rows than this (a model's parameter count)"
     )
+    reader_options(check)
     check.set_defaults(func=_check)
+
+
+def reader_options(parser: argparse.ArgumentParser) -> None:
+    """``--delimiter``, ``--decimal-comma`` and ``--units``: how the data file is written."""
+    group = parser.add_argument_group("how the data file is written (default: the data set format)")
+    group.add_argument(
+        "--delimiter",
+        choices=tuple(DELIMITERS),
+        default=None,
+        help="field separator of a CSV file: ',' (default), ';' or tab",
+    )
+    group.add_argument(
+        "--decimal-comma",
+        action="store_true",
+        help="numbers with ',' as the decimal mark (fields then separated by ';' unless --delimiter says "
+        "tab)",
+    )
+    group.add_argument(
+        "--units",
+        default=None,
+        metavar="LENGTH,ANGLE",
+        help="units of the file's positions (mm or m) and angles (deg or rad), e.g. m,rad; default mm,deg. "
+        "Stating it also turns off the refusal of files that look like metres or radians",
+    )
+
+
+def read_options_of(args: argparse.Namespace) -> ReadOptions:
+    """The :class:`ReadOptions` of a command's ``--delimiter``, ``--decimal-comma``, ``--units``."""
+    return ReadOptions.of(args.delimiter, args.decimal_comma, args.units)
 
 
 def _check(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
     path = Path(args.file)
-    reader = read_dataset_json if path.suffix.lower() == ".json" else read_dataset
+    options = read_options_of(args)
     try:
-        dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=args.min_rows, kind=args.kind)
+        dataset = read_dataset_file(
+            path, limits_deg=robot.axis_limits_deg, min_rows=args.min_rows, kind=args.kind, options=options
+        )
     except DatasetError as exc:
         return _refuse(str(exc), exc.row, exc.column)
     if dataset.a_deg is not None and dataset.xyz_mm is not None:
@@ -58,6 +98,8 @@ def _check(args: argparse.Namespace) -> int:
         if units is not None:  # the rule fit and diagnose refuse by
             return _refuse(f"{dataset.source}: {units}", None, "x, y, z")
     summary: dict[str, Any] = {"ok": True, "robot": robot.name, "kind": args.kind, **dataset.summary()}
+    if not options.is_default:
+        summary["read_as"] = options.describe()
     if dataset.split is None and len(dataset) >= 2:
         choice = dataset.split_or_draw()
         summary["split"]["drawn"] = {

@@ -16,10 +16,11 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
-from comp_daemon.data.dataset import read_dataset, read_dataset_json
+from comp_daemon.data.dataset import read_dataset_file
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import Diagnosis
@@ -48,6 +49,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="write the diagnosis here (default: print it)",
     )
     p.add_argument("--report", type=Path, metavar="OUT.html", help="also write the HTML report here")
+    reader_options(p)
     p.add_argument(
         "--frame",
         choices=("auto", "base", "tracker"),
@@ -102,9 +104,10 @@ def _run(args: argparse.Namespace) -> int:
         effects=effects,
     )
     path = Path(args.data)
-    reader = read_dataset_json if path.suffix.lower() == ".json" else read_dataset
     # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
-    dataset = reader(path, limits_deg=robot.axis_limits_deg, min_rows=0, kind="measurement")
+    dataset = read_dataset_file(
+        path, limits_deg=robot.axis_limits_deg, min_rows=0, kind="measurement", options=read_options_of(args)
+    )
     for target in (args.json_out, args.report):
         if target is not None and not target.expanduser().parent.is_dir():
             raise ValueError(f"cannot write {target}: no such directory")

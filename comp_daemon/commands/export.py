@@ -1,9 +1,10 @@
 """``comp-daemon export params | targets``: a model in the controller's own form.
 
-- ``export params --model MODEL.json --format kuka|abb|csv -o FILE [--data DATA]`` lists a
+- ``export params --model MODEL.json --format kuka|abb|csv|urdf -o FILE [--data DATA]`` lists a
   kinematic model's identified parameters (``kinematic``, ``kinematic+ratio+backlash`` …) for a
   KUKA or ABB engineer to review, or as CSV with the nominal value, the change and the 1-σ of each
-  (:mod:`comp_daemon.models.export.params`); ``--data`` adds the RMS on the data set's check rows
+  (:mod:`comp_daemon.models.export.params`), or writes its calibrated geometry as a URDF
+  (:mod:`comp_daemon.models.export.urdf`); ``--data`` adds the RMS on the data set's check rows
   to the header.
 - ``export targets --model MODEL.json --targets TARGETS.csv --format krl|rapid|csv -o FILE``
   compensates the targets as ``compensate`` does (the same refusals and options; any model kind)
@@ -24,15 +25,17 @@ from pathlib import Path
 import numpy as np
 
 from comp_daemon.commands.compensate import compensate_targets, compensation_options
+from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_text_atomic
-from comp_daemon.data.dataset import DatasetError, read_dataset, read_dataset_json
+from comp_daemon.data.dataset import DatasetError, read_dataset_file
 from comp_daemon.models.artifact import LoadedModel, ModelArtifactError, load_model
 from comp_daemon.models.compensation import nominal_targets
 from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, params_text, write_targets
 from comp_daemon.models.export.frames import abc_deg_to_matrix
 from comp_daemon.models.export.params import listing_of
 from comp_daemon.models.export.targets import TargetList, module_name, point_names
+from comp_daemon.models.export.urdf import urdf_text
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, load_robot
 
@@ -48,7 +51,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="a model in the controller's form: KUKA/ABB/CSV parameter listings, KRL/RAPID/CSV target lists",
     )
     sub = export.add_subparsers(dest="export_command", metavar="WHAT", required=True)
-    robot_help = f"refuse the model unless it belongs to this robot (preset: {', '.join(PRESETS)}, or TOML)"
+    robot_help = (
+        f"refuse the model unless it belongs to this robot (preset: {', '.join(PRESETS)}, "
+        "or a TOML or URDF file)"
+    )
 
     params = sub.add_parser(
         "params", help="a kinematic model's identified parameters as a reviewable listing"
@@ -56,12 +62,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     params.add_argument(
         "--model", required=True, metavar="MODEL.json", help="model artifact written by 'fit'"
     )
-    params.add_argument("--format", required=True, choices=tuple(PARAM_FORMATS), help="listing format")
+    params.add_argument(
+        "--format",
+        required=True,
+        choices=(*PARAM_FORMATS, "urdf"),
+        help="listing format; urdf: the calibrated geometry as a URDF (docs/urdf.md)",
+    )
     params.add_argument("-o", "--out", required=True, metavar="FILE", help="listing to write")
     params.add_argument(
         "--data", default=None, metavar="DATA", help="measurement data set: report the RMS on its check rows"
     )
     params.add_argument("--robot", default=None, help=robot_help)
+    reader_options(params)
     params.set_defaults(func=_params)
 
     targets = sub.add_parser("targets", help="compensated targets as a KRL, RAPID or CSV point list")
@@ -78,6 +90,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     targets.add_argument("-o", "--out", required=True, metavar="FILE", help="target list to write")
     targets.add_argument("--robot", default=None, help=robot_help)
     compensation_options(targets)
+    reader_options(targets)
     targets.set_defaults(func=_targets)
 
 
@@ -89,11 +102,12 @@ def _load(args: argparse.Namespace) -> LoadedModel:
         raise UserError(str(exc)) from None
 
 
-def _check_rms_mm(loaded: LoadedModel, path: str) -> float:
+def _check_rms_mm(loaded: LoadedModel, path: str, args: argparse.Namespace) -> float:
     model = loaded.model
-    reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
     try:
-        data = reader(path, limits_deg=model.robot.axis_limits_deg, kind="measurement")
+        data = read_dataset_file(
+            path, limits_deg=model.robot.axis_limits_deg, kind="measurement", options=read_options_of(args)
+        )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
     check = np.asarray(data.split_or_draw().check_rows)
@@ -109,7 +123,7 @@ def _check_rms_mm(loaded: LoadedModel, path: str) -> float:
 def _params(args: argparse.Namespace) -> int:
     loaded = _load(args)
     model = loaded.model
-    check = _check_rms_mm(loaded, args.data) if args.data else None
+    check = _check_rms_mm(loaded, args.data, args) if args.data else None
     try:
         listing = listing_of(model, loaded.document, check)
     except ValueError as exc:
@@ -117,7 +131,10 @@ def _params(args: argparse.Namespace) -> int:
     info = listing.info
     assert isinstance(model, KinematicModel)  # listing_of refused the others
     try:
-        text, diff = params_text(listing, model, args.format)
+        if args.format == "urdf":
+            text, diff = urdf_text(model, listing.info.lines())
+        else:
+            text, diff = params_text(listing, model, args.format)
     except ValueError as exc:
         raise UserError(f"{args.out}: {exc}; not written") from None
     write_text_atomic(args.out, text)
@@ -131,9 +148,13 @@ def _params(args: argparse.Namespace) -> int:
 def _targets(args: argparse.Namespace) -> int:
     loaded = _load(args)
     model = loaded.model
-    reader = read_dataset_json if Path(args.targets).suffix.lower() == ".json" else read_dataset
     try:
-        targets = reader(args.targets, limits_deg=model.robot.axis_limits_deg, kind="targets")
+        targets = read_dataset_file(
+            args.targets,
+            limits_deg=model.robot.axis_limits_deg,
+            kind="targets",
+            options=read_options_of(args),
+        )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
     wanted, result, _ = compensate_targets(model, targets, args)

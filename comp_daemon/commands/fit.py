@@ -26,7 +26,6 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
@@ -37,14 +36,24 @@ from comp_daemon.commands.campaigns import (
     fit_campaign_file,
     is_campaign_file,
 )
+from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.coverage import still_axes_note
-from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset, read_dataset_json
+from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset_file
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.models.artifact import save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
-from comp_daemon.models.evaluation import SEED000_TABLE2_MM, error_statistics, format_table2
+from comp_daemon.models.covariance import near_dependent_note
+from comp_daemon.models.evaluation import (
+    REGISTERED_NOMINAL,
+    SEED000_TABLE2_MM,
+    error_statistics,
+    format_table2,
+    outside_fit_ranges,
+    registered_nominal,
+)
 from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, directions_of, infer_fit_directions
 from comp_daemon.models.registry import (
     ALL_MODELS,
@@ -158,6 +167,7 @@ def _common(parser: argparse.ArgumentParser) -> None:
         help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
         "(models with backlash then refuse the data)",
     )
+    reader_options(parser)
 
 
 def _directions(
@@ -178,12 +188,15 @@ def _parse_model(token: str, order: Order | None) -> ModelSpec:
         raise UserError(str(exc)) from None
 
 
-def read_data(path: str, robot: RobotDescription, min_rows: int, kind: Any) -> Dataset:
-    """A data set or target file (``.json`` records, else CSV) checked against the robot's axis limits;
-    the reader's refusals as :class:`UserError`."""
-    reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
+def read_data(
+    path: str, robot: RobotDescription, min_rows: int, kind: Any, options: ReadOptions | None = None
+) -> Dataset:
+    """A data set or target file (``.json`` records, else CSV) checked against the robot's axis limits,
+    read with ``options`` (separator, decimal comma, units); the reader's refusals as :class:`UserError`."""
     try:
-        return reader(path, limits_deg=robot.axis_limits_deg, min_rows=min_rows, kind=kind)
+        return read_dataset_file(
+            path, limits_deg=robot.axis_limits_deg, min_rows=min_rows, kind=kind, options=options
+        )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
 
@@ -217,7 +230,7 @@ def _fit(args: argparse.Namespace) -> int:
         return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
-    dataset = read_data(args.data, robot, 0, "measurement")
+    dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
     reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
     if reason is not None:
         raise UserError(f"{dataset.source}: {len(dataset)} data rows; {reason}")
@@ -259,6 +272,9 @@ def _fit(args: argparse.Namespace) -> int:
     line = selection_line(fitted.info)
     if line:
         print(f"{args.model}: {line} (out of fold on the fit rows)")
+    note = near_dependent_note(fitted.info)
+    if note:
+        print(f"{args.model}: {note}")
     for warning in ("frame_warning", "mass_warning"):
         if warning in fitted.info:
             print(f"{args.model}: {fitted.info[warning]}")
@@ -283,7 +299,7 @@ def _evaluate(args: argparse.Namespace) -> int:
         return evaluate_solvers(args, load_robot_cached(args))
     parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
-    dataset = read_data(args.data, robot, 0, "measurement")
+    dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
     if len(dataset) < 2:
         raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
     data_sha256 = dataset.content_sha256
@@ -327,6 +343,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
+    extrapolated = outside_fit_ranges(dataset.a_deg[split.fit_rows], dataset.a_deg[check])
     frame_warned = False
     for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
         steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
@@ -356,10 +373,33 @@ def _evaluate(args: argparse.Namespace) -> int:
             fits[token]["check_rows_outside_range"] = int(
                 fitted.model.outside_range(dataset.a_deg[check]).sum()
             )
+        elif token != "nominal":
+            fits[token]["check_rows_outside_range"] = extrapolated["rows"]
         steps.log(
             f"{token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
             f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms"
         )
+    if "nominal" in table:  # beside the raw nominal row, the one that does not count unknown targets
+        t0 = time.perf_counter()
+        fit_rows = split.fit_rows
+        more = None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[fit_rows]
+        reg_model, reg_info = registered_nominal(
+            robot, dataset.a_deg[fit_rows], dataset.xyz_mm[fit_rows], more
+        )
+        t1 = time.perf_counter()
+        table[REGISTERED_NOMINAL] = error_statistics(
+            dataset.xyz_mm[check], reg_model.predict_tcp_mm(dataset.a_deg[check])
+        )
+        fits[REGISTERED_NOMINAL] = {
+            "frame": "registered",
+            **reg_info,
+            "check_rows_outside_range": extrapolated["rows"],
+        }
+        timing[REGISTERED_NOMINAL] = {
+            "fit_s": t1 - t0,
+            "predict_s": time.perf_counter() - t1,
+            "predict_rows": len(check),
+        }
     if args.calibrated:
         t0 = time.perf_counter()
         calibrated, calibrated_fits = evaluate_calibrated(
@@ -375,7 +415,20 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"{dataset.source}: {len(split.fit_rows)} fit rows, {len(check)} check rows; "
         "error = measured - model (mm); sorted by the check rows' 3-D RMS"
     )
-    print(format_table2(table, timing))
+    outside = {
+        name: fits[name]["check_rows_outside_range"]
+        for name in ranking
+        if "check_rows_outside_range" in fits[name]
+    }
+    print(format_table2(table, timing, outside))
+    if extrapolated["rows"]:
+        axes = ", ".join(f"{axis} {count}" for axis, count in extrapolated["per_axis"].items())
+        print(
+            f"extrapolation: {extrapolated['rows']} of {len(check)} check rows lie outside the fit rows' "
+            "axis "
+            f"ranges ({axes}); 'outside' counts them per model (a fitted polynomial or kriging model "
+            "is not to be trusted there)"
+        )
     chosen = {name: selection_line(fits[name]) for name in ranking}
     if any(chosen.values()):
         print("kept and dropped out of fold on the fit rows (the check rows unseen):")

@@ -1,4 +1,8 @@
-"""``comp-daemon robot show|fk``: look at a robot description and its forward kinematics."""
+"""``comp-daemon robot show|fk``: look at a robot description and its forward kinematics.
+
+``ROBOT`` is a preset, a TOML description, a TOML ``[urdf]`` wrapper or a URDF file
+(:mod:`comp_daemon.robot.urdf`); ``robot show --format toml|urdf`` writes it in either form.
+"""
 
 from __future__ import annotations
 
@@ -10,21 +14,30 @@ import numpy as np
 
 from comp_daemon.kinematics.forward import chain, gravity_torques_nm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.robot.description import PRESETS, load_robot
+from comp_daemon.robot.description import PRESETS, description_toml, load_robot
+from comp_daemon.robot.urdf import description_urdf
+
+ROBOT_HELP = f"preset ({', '.join(PRESETS)}), or path to a TOML or URDF file"
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
     robot = subparsers.add_parser("robot", help="robot descriptions: show one, compute forward kinematics")
     sub = robot.add_subparsers(dest="robot_command", metavar="ROBOT_COMMAND", required=True)
 
-    show = sub.add_parser("show", help="print a robot description as JSON")
-    show.add_argument("robot", metavar="ROBOT", help=f"preset ({', '.join(PRESETS)}) or path to a TOML file")
+    show = sub.add_parser("show", help="print a robot description (JSON, TOML or URDF)")
+    show.add_argument("robot", metavar="ROBOT", help=ROBOT_HELP)
+    show.add_argument(
+        "--format",
+        choices=("json", "toml", "urdf"),
+        default="json",
+        help="json (default, with source and sha256), toml (a description file), urdf (its kinematics)",
+    )
     show.set_defaults(func=_show)
 
     fk = sub.add_parser(
         "fk", help="flange and TCP position and static gravity torques for one set of axis values"
     )
-    fk.add_argument("robot", metavar="ROBOT", help=f"preset ({', '.join(PRESETS)}) or path to a TOML file")
+    fk.add_argument("robot", metavar="ROBOT", help=ROBOT_HELP)
     fk.add_argument("axes", metavar="A", type=float, nargs=6, help="axis values A1..A6 in deg")
     fk.add_argument("--payload-kg", type=float, default=0.0, help="load at the TCP (kg, default 0)")
     fk.set_defaults(func=_fk)
@@ -32,6 +45,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _show(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
+    if args.format == "toml":
+        print(description_toml(robot), end="")
+        return 0
+    if args.format == "urdf":
+        print(description_urdf(robot, [f"{robot.name}, from {robot.source}"]), end="")
+        return 0
     doc = robot.to_dict()
     doc["source"] = robot.source
     doc["sha256"] = robot.sha256

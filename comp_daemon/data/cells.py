@@ -22,6 +22,8 @@ from comp_daemon.data.columns import (
     DIR_COLUMNS,
     GRATING_COLUMNS,
     KNOWN_COLUMNS,
+    QUATERNION_COLUMNS,
+    QUATERNION_NORM_TOL,
     SCALAR_NUMBER_COLUMNS,
     TARGET_ABC_COLUMNS,
     TARGET_XYZ_COLUMNS,
@@ -39,6 +41,7 @@ __all__ = [
     "build_dataset",
     "parse_numbers",
     "printable",
+    "separator_fault",
     "text_fault",
 ]
 
@@ -47,6 +50,7 @@ DatasetKind = Literal["measurement", "targets", "any"]
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 _INTEGER = re.compile(r"[+-]?\d+", re.ASCII)
 _TEXT_FAULT = re.compile("[\x00\ud800-\udfff]")
+_DECIMAL_COMMA = re.compile(r"[+-]?\d*,\d+(?:[eE][+-]?\d+)?", re.ASCII)
 
 
 def text_fault(text: str) -> str | None:
@@ -111,6 +115,8 @@ def _number_fault(cell: str) -> str:
     try:
         value = float(text)
     except ValueError:
+        if _DECIMAL_COMMA.fullmatch(text):
+            return f"not a number: {cell!r} has a decimal comma; read the file with --decimal-comma"
         return f"not a number: {cell!r}"
     if not math.isfinite(value):
         return f"non-finite number {cell!r}"
@@ -190,20 +196,59 @@ def _parse_repeat(table: CellTable, faults: CellFaults) -> IntArray | None:
     return np.array([int(c) for c in cells], dtype=np.int64)
 
 
+def separator_fault(header: Sequence[str]) -> str | None:
+    """Why a header that is one column holding ``;`` or tabs is refused (naming the option that
+    reads it), ``None`` for any other header."""
+    if len(header) == 1:
+        for sep, what, option in ((";", "semicolons", "';'"), ("\t", "tabs", "tab")):
+            if sep in header[0]:
+                return (
+                    f"the header is one column holding {what}; this format separates columns with commas "
+                    f"(and writes decimals with '.'): read the file with --delimiter {option} (and "
+                    "--decimal-comma when its numbers have decimal commas)"
+                )
+    return None
+
+
+def _parse_quaternions(table: CellTable, faults: CellFaults, q: FloatArray | None) -> FloatArray | None:
+    """The (n, 4) probe orientations, each a unit quaternion within :data:`QUATERNION_NORM_TOL`."""
+    if q is None:
+        return None
+    norm = np.linalg.norm(q, axis=1)
+    bad = np.flatnonzero(np.abs(norm - 1.0) > QUATERNION_NORM_TOL)
+    if bad.size:
+        i = int(bad[0])
+        cells = [table.columns[c][i].strip() for c in QUATERNION_COLUMNS]
+        faults.add(
+            "qw",
+            i,
+            f"the probe orientation (qw, qx, qy, qz) = ({', '.join(cells)}) has norm {norm[i]:.6g}; "
+            f"a unit quaternion is required (|q| = 1 within {QUATERNION_NORM_TOL:g})",
+        )
+        return None
+    return q
+
+
+def _parse_station(table: CellTable, faults: CellFaults) -> tuple[str, ...] | None:
+    cells = tuple(c.strip() for c in table.columns["station"])
+    empty = [i for i, c in enumerate(cells) if not c]
+    if empty:
+        faults.add(
+            "station", empty[0], "empty station; every row names the tracker set-up it was measured from"
+        )
+        return None
+    return cells
+
+
 def _check_header(table: CellTable, kind: DatasetKind) -> None:
     header = table.header
 
     def refuse(problem: str, column: str | None) -> DatasetError:
         return DatasetError(problem, source=table.source, row=1, column=column, row_label=table.row_label)
 
-    if len(header) == 1:
-        for sep, what in ((";", "semicolons"), ("\t", "tabs")):
-            if sep in header[0]:
-                raise refuse(
-                    f"the header is one column holding {what}; this format separates columns with commas "
-                    "(and writes decimals with '.')",
-                    None,
-                )
+    problem = separator_fault(header)
+    if problem is not None:
+        raise refuse(problem, None)
     seen: dict[str, int] = {}
     known = set(KNOWN_COLUMNS)
     for k, name in enumerate(header, start=1):
@@ -240,6 +285,8 @@ def _check_header(table: CellTable, kind: DatasetKind) -> None:
     has_abc = group(TARGET_ABC_COLUMNS, "ta, tb, tc")
     if has_abc and not has_targets:
         raise refuse("column missing (ta, tb, tc need the target position tx, ty, tz)", "tx")
+    if group(QUATERNION_COLUMNS, "qw, qx, qy, qz") and not has_xyz:
+        raise refuse("column missing (a probe's orientation qw, qx, qy, qz needs its position x, y, z)", "x")
 
     if kind == "measurement":
         for needed, names in ((has_axes, AXIS_COLUMNS), (has_xyz, XYZ_COLUMNS)):
@@ -360,6 +407,16 @@ def build_dataset(
 
     split = _parse_split(table, faults) if "split" in present else None
     repeat = _parse_repeat(table, faults) if "repeat" in present else None
+    probe_q = _parse_quaternions(table, faults, block(QUATERNION_COLUMNS))
+    sigma = parse_numbers(table, faults, "sigma_mm") if "sigma_mm" in present else None
+    if sigma is not None and (sigma <= 0).any():
+        i = int(np.flatnonzero(sigma <= 0)[0])
+        faults.add(
+            "sigma_mm",
+            i,
+            f"sigma_mm must be > 0 mm (a standard deviation), got {table.columns['sigma_mm'][i]!r}",
+        )
+    station = _parse_station(table, faults) if "station" in present else None
     faults.raise_first()
 
     if n < min_rows:
@@ -379,6 +436,9 @@ def build_dataset(
         split=split,
         repeat=repeat,
         pose_id=tuple(table.columns["pose_id"]) if "pose_id" in present else None,
+        station=station,
+        probe_q_wxyz=probe_q,
+        sigma_mm=sigma,
         target_xyz_mm=target_xyz_mm,
         target_abc_deg=target_abc_deg,
         more_xyz_mm=np.stack([m for m in more if m is not None], axis=1) if more else None,

@@ -13,15 +13,21 @@ import re
 from typing import Any
 
 __all__ = [
+    "ANGLE_COLUMNS",
     "AXIS_COLUMNS",
     "DIR_COLUMNS",
     "GRATING_COLUMNS",
     "KNOWN_COLUMNS",
+    "LENGTH_COLUMNS",
+    "NUMERIC_COLUMNS",
+    "QUATERNION_COLUMNS",
+    "QUATERNION_NORM_TOL",
     "SCALAR_NUMBER_COLUMNS",
     "TARGET_ABC_COLUMNS",
     "TARGET_XYZ_COLUMNS",
     "XYZ_COLUMNS",
     "DatasetError",
+    "is_numeric_column",
     "is_reflector_column",
     "reflector_columns",
     "reflector_index",
@@ -34,6 +40,10 @@ GRATING_COLUMNS: tuple[str, ...] = ("g1", "g2", "g3", "g4", "g5", "g6")
 TARGET_XYZ_COLUMNS: tuple[str, ...] = ("tx", "ty", "tz")
 TARGET_ABC_COLUMNS: tuple[str, ...] = ("ta", "tb", "tc")
 SCALAR_NUMBER_COLUMNS: tuple[str, ...] = ("payload_kg", "temp_c", "t_s")
+#: a 6-DOF probe's orientation (unit quaternion, w first) in the frame of x, y, z
+QUATERNION_COLUMNS: tuple[str, ...] = ("qw", "qx", "qy", "qz")
+#: |q| may differ from 1 by this much (exporters round to 6 or 7 digits)
+QUATERNION_NORM_TOL = 1e-3
 
 KNOWN_COLUMNS: tuple[str, ...] = (
     *AXIS_COLUMNS,
@@ -44,10 +54,32 @@ KNOWN_COLUMNS: tuple[str, ...] = (
     "split",
     "repeat",
     "pose_id",
+    "station",
+    *QUATERNION_COLUMNS,
+    "sigma_mm",
     *TARGET_XYZ_COLUMNS,
     *TARGET_ABC_COLUMNS,
 )
 
+
+#: the columns whose cells are numbers (besides the further targets' ``xK, yK, zK``)
+NUMERIC_COLUMNS: frozenset[str] = frozenset(
+    (
+        *AXIS_COLUMNS,
+        *XYZ_COLUMNS,
+        *DIR_COLUMNS,
+        *GRATING_COLUMNS,
+        *SCALAR_NUMBER_COLUMNS,
+        *TARGET_XYZ_COLUMNS,
+        *TARGET_ABC_COLUMNS,
+        *QUATERNION_COLUMNS,
+        "sigma_mm",
+        "repeat",
+    )
+)
+#: lengths (mm) and angles (deg) among them, the columns a reader's unit option scales
+LENGTH_COLUMNS: tuple[str, ...] = (*XYZ_COLUMNS, *TARGET_XYZ_COLUMNS, "sigma_mm")
+ANGLE_COLUMNS: tuple[str, ...] = (*AXIS_COLUMNS, *GRATING_COLUMNS, *TARGET_ABC_COLUMNS)
 
 _REFLECTOR = re.compile(r"([xyz])([1-9][0-9]*)")
 
@@ -71,6 +103,11 @@ def reflector_index(name: str) -> int | None:
 def is_reflector_column(name: str) -> bool:
     """Whether ``name`` is a further target's column (``x2`` … ``zK``)."""
     return reflector_index(name) is not None
+
+
+def is_numeric_column(name: str) -> bool:
+    """Whether the cells of column ``name`` are numbers."""
+    return name in NUMERIC_COLUMNS or is_reflector_column(name)
 
 
 class DatasetError(ValueError):

@@ -15,6 +15,7 @@ from comp_daemon.data.readers import (
     dataset_from_records,
     parse_dataset,
     read_dataset,
+    read_dataset_file,
     read_dataset_json,
 )
 from comp_daemon.data.table import (
@@ -38,6 +39,7 @@ __all__ = [
     "dataset_to_csv",
     "parse_dataset",
     "read_dataset",
+    "read_dataset_file",
     "read_dataset_json",
     "write_dataset",
 ]

@@ -12,7 +12,11 @@ Conventions of this implementation, where the spec leaves room:
   case variant of a known name (``A1``, ``X``) is refused with a hint ("did you mean 'a1'?")
   instead of being kept as an unknown column.
 - Numbers are plain decimals (``-12``, ``0.5``, ``.5``, ``1e-3``; spaces around them ignored);
-  ``nan``, ``inf``, empty cells, decimal commas, hex and ``1_000`` are refused.
+  ``nan``, ``inf``, empty cells, decimal commas, hex and ``1_000`` are refused. Files from other
+  tools (``;``-separated, decimal commas, metres, radians) are read with stated
+  :class:`~comp_daemon.data.options.ReadOptions` (``--delimiter``, ``--decimal-comma``,
+  ``--units``), never by guess; one that looks as if it needed them is refused naming the option
+  (:mod:`comp_daemon.data.options`).
 - ``dir`` cells are numbers equal to -1 or +1 (``1``, ``+1``, ``-1.0``); ``split`` is exactly
   ``fit`` or ``check``; ``repeat`` an integer >= 0; ``payload_kg`` >= 0.
 - Column groups come whole or not at all: a1..a6, x/y/z, dir1..dir6, tx/ty/tz, ta/tb/tc
@@ -23,6 +27,10 @@ Conventions of this implementation, where the spec leaves room:
   (``kind="targets"``, or ``"any"``) need a1..a6 or tx, ty, tz.
 - A UTF-8 byte order mark is accepted. Blank lines are accepted only at the end of the file.
   Quoting follows RFC 4180 (``csv`` module, strict); a malformed quote is refused.
+- ``station`` names the tracker's set-up (any non-empty text, spaces around it ignored);
+  ``qw, qx, qy, qz`` (whole, beside x, y, z) a 6-DOF probe's orientation, a unit quaternion
+  (``|q|`` within 1e-3 of 1; refused naming the row and ``qw``); ``sigma_mm`` the row's declared
+  position σ per axis, a number > 0.
 - Unknown columns are kept verbatim as text (no stripping).
 - No cell may hold a NUL character or a lone surrogate (text that cannot be written as UTF-8).
 - JSON: a list of records or ``{"name": ..., "records": [...]}``; a key given twice, a NUL or a
@@ -43,19 +51,17 @@ from typing import Any, BinaryIO
 
 from numpy.typing import ArrayLike
 
-from comp_daemon.data.cells import CellTable, DatasetKind, build_dataset, printable, text_fault
-from comp_daemon.data.columns import (
-    AXIS_COLUMNS,
-    DIR_COLUMNS,
-    GRATING_COLUMNS,
-    SCALAR_NUMBER_COLUMNS,
-    TARGET_ABC_COLUMNS,
-    TARGET_XYZ_COLUMNS,
-    XYZ_COLUMNS,
-    DatasetError,
-    is_reflector_column,
+from comp_daemon.data.cells import (
+    CellTable,
+    DatasetKind,
+    build_dataset,
+    printable,
+    separator_fault,
+    text_fault,
 )
+from comp_daemon.data.columns import DatasetError, is_numeric_column
 from comp_daemon.data.jsontext import JsonRecords, load_json_records, record_path
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
 
 __all__ = [
@@ -64,6 +70,7 @@ __all__ = [
     "dataset_from_records",
     "parse_dataset",
     "read_dataset",
+    "read_dataset_file",
     "read_dataset_json",
 ]
 
@@ -76,8 +83,8 @@ _UNDECODABLE = re.compile("[\udc80-\udcff]")
 class _CsvRecords:
     """CSV records with the file line each starts on; ``line`` is where reading stopped."""
 
-    def __init__(self, text: str) -> None:
-        self._reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    def __init__(self, text: str, delimiter: str = ",") -> None:
+        self._reader = csv.reader(io.StringIO(text, newline=""), strict=True, delimiter=delimiter)
         self.line = 1
 
     def __iter__(self) -> Iterator[tuple[int, list[str]]]:
@@ -128,13 +135,17 @@ def parse_dataset(
     limits_deg: ArrayLike | None = None,
     min_rows: int = 0,
     kind: DatasetKind = "measurement",
+    options: ReadOptions | None = None,
 ) -> Dataset:
     """Parse CSV text or bytes (UTF-8) into a :class:`Dataset`, refusing it whole on any fault.
 
     ``limits_deg`` is the robot's (6, 2) [min, max] axis limits (``RobotDescription.axis_limits_deg``);
     ``min_rows`` the number of parameters of the model the data is for. ``kind``:
     ``"measurement"`` needs a1..a6 and x, y, z; ``"targets"`` and ``"any"`` need a1..a6 or tx, ty, tz.
+    ``options``: separator, decimal comma and units (:class:`~comp_daemon.data.options.ReadOptions`;
+    default the format as specified).
     """
+    options = options or ReadOptions()
     if isinstance(data, bytes | bytearray | memoryview):
         raw = bytes(data)
         try:
@@ -152,7 +163,7 @@ def parse_dataset(
     rows: list[list[str]] = []
     row_numbers: list[int] = []
     blank_at: int | None = None
-    records = _CsvRecords(text)
+    records = _CsvRecords(text, options.delimiter)
     check_text = text_fault(text) is not None  # then find the field
     try:
         for line, record in records:
@@ -162,6 +173,9 @@ def parse_dataset(
                 if not record:
                     raise DatasetError("empty line where the header row should be", source=source, row=1)
                 header = [h.strip() for h in record]
+                problem = separator_fault(header)
+                if problem is not None:  # before the rows, which split on the decimal commas
+                    raise DatasetError(problem, source=source, row=1)
                 continue
             if not record:
                 blank_at = line if blank_at is None else blank_at
@@ -188,7 +202,16 @@ def parse_dataset(
 
     columns = {name: [r[k] for r in rows] for k, name in enumerate(header)}
     table = CellTable(source=source, header=header, columns=columns, row_numbers=row_numbers)
-    return build_dataset(table, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+    return _built(table, options, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+
+
+def _built(
+    table: CellTable, options: ReadOptions, *, limits_deg: ArrayLike | None, min_rows: int, kind: DatasetKind
+) -> Dataset:
+    """The data set of a cell table read with ``options`` (converted first, its units checked after)."""
+    data = build_dataset(options.convert(table), limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+    options.check_units(data)
+    return data
 
 
 def read_dataset(
@@ -198,11 +221,12 @@ def read_dataset(
     min_rows: int = 0,
     kind: DatasetKind = "measurement",
     source: str | None = None,
+    options: ReadOptions | None = None,
 ) -> Dataset:
     """Read a CSV data set from a path, bytes, a binary file, or CSV text.
 
     A ``str`` is taken as CSV text when it contains a newline, else as a path. See
-    :func:`parse_dataset` for ``limits_deg``, ``min_rows`` and ``kind``.
+    :func:`parse_dataset` for ``limits_deg``, ``min_rows``, ``kind`` and ``options``.
     """
     data: str | bytes
     if isinstance(path_or_data, bytes | bytearray):
@@ -214,27 +238,13 @@ def read_dataset(
     else:
         data, name = path_or_data.read(), getattr(path_or_data, "name", "<stream>")
     return parse_dataset(
-        data, source=source or str(name), limits_deg=limits_deg, min_rows=min_rows, kind=kind
+        data, source=source or str(name), limits_deg=limits_deg, min_rows=min_rows, kind=kind, options=options
     )
 
 
 # ---------------------------------------------------------------------------------------------
 # JSON records
 # ---------------------------------------------------------------------------------------------
-_NUMERIC_COLUMNS = frozenset(
-    (
-        *AXIS_COLUMNS,
-        *XYZ_COLUMNS,
-        *DIR_COLUMNS,
-        *GRATING_COLUMNS,
-        *SCALAR_NUMBER_COLUMNS,
-        *TARGET_XYZ_COLUMNS,
-        *TARGET_ABC_COLUMNS,
-        "repeat",
-    )
-)
-
-
 _MAX_INT_BITS = 1024  # 2**1024 is beyond every double
 
 
@@ -268,7 +278,7 @@ def _json_number_text(value: Any) -> str | None:
 
 def _json_cell(column: str, value: Any) -> tuple[str, str | None]:
     """(cell text, type problem or None) for one JSON value."""
-    if column in _NUMERIC_COLUMNS or is_reflector_column(column):
+    if is_numeric_column(column):
         if value is None:
             return "", None
         text = _json_number_text(value)
@@ -279,10 +289,10 @@ def _json_cell(column: str, value: Any) -> tuple[str, str | None]:
         return value, text_fault(value)
     if column == "split":
         return "", f"split must be the string 'fit' or 'check', got {_shown(value)}"
-    if column == "pose_id":
+    if column in ("pose_id", "station"):
         if isinstance(value, int) and not isinstance(value, bool) and not _long_integer(value):
             return str(value), None
-        return "", f"pose_id must be a string or an integer, got {_shown(value)}"
+        return "", f"{column} must be a string or an integer, got {_shown(value)}"
     if value is None:
         return "", None
     if isinstance(value, dict | list):
@@ -299,12 +309,13 @@ def dataset_from_records(
     limits_deg: ArrayLike | None = None,
     min_rows: int = 0,
     kind: DatasetKind = "measurement",
+    options: ReadOptions | None = None,
 ) -> Dataset:
     """A :class:`Dataset` from JSON-style records (one object per row, same keys in each).
 
     The rules are those of the CSV reader; errors name ``record k`` (1-based) instead of a row.
     Numeric columns take JSON numbers (not strings), ``split`` a string, ``pose_id`` a string or
-    an integer; unknown keys are kept as text. Records must all have the same keys.
+    an integer (so does ``station``); unknown keys are kept as text. Records must all have the same keys.
     """
 
     def refuse(problem: str, record: int | None, column: str | None = None) -> DatasetError:
@@ -353,7 +364,17 @@ def dataset_from_records(
         row_label="record",
         pre_errors=pre_errors,
     )
-    return build_dataset(table, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+    return _built(table, _json_options(options, source), limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+
+
+def _json_options(options: ReadOptions | None, source: str) -> ReadOptions:
+    """JSON numbers have no separator or decimal mark to choose: only the units apply."""
+    options = options or ReadOptions()
+    if options.decimal_comma or options.delimiter != ",":
+        raise DatasetError(
+            "--decimal-comma and --delimiter apply to CSV files; JSON numbers are JSON numbers", source=source
+        )
+    return options
 
 
 def dataset_from_json(
@@ -363,11 +384,12 @@ def dataset_from_json(
     limits_deg: ArrayLike | None = None,
     min_rows: int = 0,
     kind: DatasetKind = "measurement",
+    options: ReadOptions | None = None,
 ) -> Dataset:
     """:func:`dataset_from_records` of a parsed JSON data set; a refusal also names its ``path``."""
     try:
         return dataset_from_records(
-            doc.records, source=source, limits_deg=limits_deg, min_rows=min_rows, kind=kind
+            doc.records, source=source, limits_deg=limits_deg, min_rows=min_rows, kind=kind, options=options
         )
     except DatasetError as exc:
         row = exc.row if exc.row_label == "record" else None
@@ -388,6 +410,7 @@ def read_dataset_json(
     min_rows: int = 0,
     kind: DatasetKind = "measurement",
     source: str | None = None,
+    options: ReadOptions | None = None,
 ) -> Dataset:
     """Read a JSON data set (UTF-8): a list of records or ``{"name": ..., "records": [...]}``.
 
@@ -403,4 +426,19 @@ def read_dataset_json(
         raw, name = Path(path_or_data).read_bytes(), str(path_or_data)
     name = source or name
     doc = load_json_records(raw, name)
-    return dataset_from_json(doc, source=name, limits_deg=limits_deg, min_rows=min_rows, kind=kind)
+    return dataset_from_json(
+        doc, source=name, limits_deg=limits_deg, min_rows=min_rows, kind=kind, options=options
+    )
+
+
+def read_dataset_file(
+    path: str | os.PathLike[str],
+    *,
+    limits_deg: ArrayLike | None = None,
+    min_rows: int = 0,
+    kind: DatasetKind = "measurement",
+    options: ReadOptions | None = None,
+) -> Dataset:
+    """A data set file: JSON records when its name ends in ``.json``, else CSV; read with ``options``."""
+    reader = read_dataset_json if Path(path).suffix.lower() == ".json" else read_dataset
+    return reader(path, limits_deg=limits_deg, min_rows=min_rows, kind=kind, options=options)

@@ -25,6 +25,7 @@ from numpy.typing import ArrayLike
 from comp_daemon.data.cells import CellTable, DatasetKind, build_dataset, text_fault
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.jsontext import load_json_records
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.readers import dataset_from_records, read_dataset, read_dataset_json
 from comp_daemon.data.table import Dataset
 
@@ -72,20 +73,27 @@ def read_rows(
     *,
     limits_deg: ArrayLike | None = None,
     kind: DatasetKind = "targets",
+    options: ReadOptions | None = None,
 ) -> RowwiseRead:
-    """Read ``path`` (``.json`` records, else CSV) by the reader's rules, setting refused rows aside."""
+    """Read ``path`` (``.json`` records, else CSV) by the reader's rules, setting refused rows aside.
+
+    ``options`` say how the file is written (separator, decimal comma, units), as for the reader;
+    a JSON file read with options other than the defaults is refused whole on a row's fault."""
+    options = options or ReadOptions()
     is_json = Path(path).suffix.lower() == ".json"
     reader = read_dataset_json if is_json else read_dataset
     label = "record" if is_json else "row"
     try:
-        return RowwiseRead(reader(path, limits_deg=limits_deg, kind=kind), (), label)
+        return RowwiseRead(reader(path, limits_deg=limits_deg, kind=kind, options=options), (), label)
     except DatasetError as exc:
-        if not _one_rows_fault(exc):
+        if not _one_rows_fault(exc) or (is_json and not options.is_default):
             raise
     source = str(path)
     data = Path(path).read_bytes()
     rows = (
-        _json_rows(data, source, limits_deg, kind) if is_json else _csv_rows(data, source, limits_deg, kind)
+        _json_rows(data, source, limits_deg, kind)
+        if is_json
+        else _csv_rows(data, source, limits_deg, kind, options)
     )
     refused = dict(rows.refused)
     keep = [i for i in range(len(rows.numbers)) if i not in refused]
@@ -114,11 +122,13 @@ def _sorted(refused: dict[int, RowRefusal]) -> tuple[RowRefusal, ...]:
     return tuple(refused[i] for i in sorted(refused))
 
 
-def _csv_rows(data: bytes, source: str, limits_deg: ArrayLike | None, kind: DatasetKind) -> _Rows:
+def _csv_rows(
+    data: bytes, source: str, limits_deg: ArrayLike | None, kind: DatasetKind, options: ReadOptions
+) -> _Rows:
     """The CSV file's data records (the reader has accepted its text and header) and a reader of a
     subset of them that keeps the file's row numbers."""
     text = data.decode("utf-8").removeprefix("\ufeff")
-    reader = csv.reader(io.StringIO(text, newline=""), strict=True)
+    reader = csv.reader(io.StringIO(text, newline=""), strict=True, delimiter=options.delimiter)
     header = [h.strip() for h in next(reader)]
     records: list[list[str]] = []
     lines: list[int] = []
@@ -141,7 +151,9 @@ def _csv_rows(data: bytes, source: str, limits_deg: ArrayLike | None, kind: Data
             for k, name in enumerate(header)
         }
         table = CellTable(source=source, header=header, columns=columns, row_numbers=[lines[i] for i in keep])
-        return build_dataset(table, limits_deg=limits_deg, min_rows=0, kind=kind)
+        dataset = build_dataset(options.convert(table), limits_deg=limits_deg, min_rows=0, kind=kind)
+        options.check_units(dataset)
+        return dataset
 
     return _Rows(lines, subset, refused)
 

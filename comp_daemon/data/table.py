@@ -25,6 +25,7 @@ import dataclasses
 import hashlib
 import os
 import re
+from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -40,6 +41,8 @@ from comp_daemon.data.columns import (
     DIR_COLUMNS,
     GRATING_COLUMNS,
     KNOWN_COLUMNS,
+    QUATERNION_COLUMNS,
+    QUATERNION_NORM_TOL,
     TARGET_ABC_COLUMNS,
     TARGET_XYZ_COLUMNS,
     XYZ_COLUMNS,
@@ -98,6 +101,11 @@ class Dataset:
     ``more_xyz_mm`` (n, K − 1, 3) holds the further targets (reflectors) fixed to the same flange,
     columns ``x2, y2, z2`` … ``xK, yK, zK``, in the frame of ``xyz_mm`` (target 1);
     :attr:`reflectors_mm` stacks all K as (n, K, 3).
+
+    ``station`` names each row's tracker set-up (rows of one station share a measurement frame);
+    ``probe_q_wxyz`` (n, 4) is a 6-DOF probe's orientation, a unit quaternion (w first) in the frame
+    of ``xyz_mm`` (columns ``qw, qx, qy, qz``); ``sigma_mm`` (n,) each row's declared position σ
+    per axis (mm, > 0).
     """
 
     a_deg: FloatArray | None
@@ -114,6 +122,9 @@ class Dataset:
     target_xyz_mm: FloatArray | None = None
     target_abc_deg: FloatArray | None = None
     more_xyz_mm: FloatArray | None = None
+    station: tuple[str, ...] | None = None
+    probe_q_wxyz: FloatArray | None = None
+    sigma_mm: FloatArray | None = None
     extra: Mapping[str, tuple[str, ...]] = field(default_factory=dict)
     source: str = "<memory>"
     row_numbers: IntArray = field(default_factory=lambda: np.zeros(0, np.int64))
@@ -176,6 +187,7 @@ class Dataset:
             if len(pose_id) != n:
                 raise ValueError(f"Dataset.pose_id: expected {n} entries, got {len(pose_id)}")
             put(self, "pose_id", pose_id)
+        self._init_probe(n)
 
         extra: dict[str, tuple[str, ...]] = {}
         known = set(KNOWN_COLUMNS)
@@ -210,6 +222,29 @@ class Dataset:
         _require_finite(more, "more_xyz_mm")
         more.flags.writeable = False
         object.__setattr__(self, "more_xyz_mm", more)
+
+    def _init_probe(self, n: int) -> None:
+        """Validate ``station``, ``probe_q_wxyz`` and ``sigma_mm``."""
+        put = object.__setattr__
+        if self.station is not None:
+            station = tuple(str(s) for s in self.station)
+            if len(station) != n or not all(s and s == s.strip() for s in station):
+                raise ValueError(f"Dataset.station: {n} non-empty names without surrounding spaces expected")
+            put(self, "station", station)
+        if self.probe_q_wxyz is not None:
+            if self.xyz_mm is None:
+                raise ValueError("Dataset.probe_q_wxyz: a probe's orientation needs its position xyz_mm")
+            q = _frozen(self.probe_q_wxyz, np.float64, (n, 4), "probe_q_wxyz")
+            _require_finite(q, "probe_q_wxyz")
+            if (np.abs(np.linalg.norm(q, axis=1) - 1.0) > QUATERNION_NORM_TOL).any():
+                raise ValueError("Dataset.probe_q_wxyz: every row must be a unit quaternion")
+            put(self, "probe_q_wxyz", q)
+        if self.sigma_mm is not None:
+            sigma = _frozen(self.sigma_mm, np.float64, (n,), "sigma_mm")
+            _require_finite(sigma, "sigma_mm")
+            if (sigma <= 0).any():
+                raise ValueError("Dataset.sigma_mm: must be > 0")
+            put(self, "sigma_mm", sigma)
 
     @property
     def n_reflectors(self) -> int:
@@ -316,6 +351,10 @@ class Dataset:
             out.append(("repeat", [str(int(v)) for v in self.repeat]))
         if self.pose_id is not None:
             out.append(("pose_id", list(self.pose_id)))
+        if self.station is not None:
+            out.append(("station", list(self.station)))
+        numbers(QUATERNION_COLUMNS, self.probe_q_wxyz)
+        numbers(("sigma_mm",), self.sigma_mm)
         numbers(TARGET_XYZ_COLUMNS, self.target_xyz_mm)
         numbers(TARGET_ABC_COLUMNS, self.target_abc_deg)
         out.extend(self.extra.items())
@@ -361,6 +400,9 @@ class Dataset:
             split=take(self.split),
             repeat=take(self.repeat),
             pose_id=None if self.pose_id is None else take_text(self.pose_id),
+            station=None if self.station is None else take_text(self.station),
+            probe_q_wxyz=take(self.probe_q_wxyz),
+            sigma_mm=take(self.sigma_mm),
             target_xyz_mm=take(self.target_xyz_mm),
             target_abc_deg=take(self.target_abc_deg),
             more_xyz_mm=take(self.more_xyz_mm),
@@ -450,6 +492,15 @@ class Dataset:
             "gratings": [name for name, p in zip(GRATING_COLUMNS, self.g_present, strict=True) if p],
             "repeat": self.repeat is not None,
             "pose_id": self.pose_id is not None,
+            "stations": None if self.station is None else dict(sorted(Counter(self.station).items())),
+            "probe_orientation": self.probe_q_wxyz is not None,
+            "sigma_mm": None
+            if self.sigma_mm is None
+            else {
+                "min": float(np.min(self.sigma_mm)),
+                "median": float(np.median(self.sigma_mm)),
+                "max": float(np.max(self.sigma_mm)),
+            },
             "axis_range_deg": ranges(AXIS_COLUMNS, self.a_deg),
             "xyz_range_mm": ranges(XYZ_COLUMNS, self.xyz_mm),
             "target_range_mm": ranges(TARGET_XYZ_COLUMNS, self.target_xyz_mm),

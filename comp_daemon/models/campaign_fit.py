@@ -39,7 +39,7 @@ from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
 from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, BallbarFit, ballbar_lengths_mm, fit_ballbar
 from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.covariance import ParameterCovariance
+from comp_daemon.models.covariance import ParameterCovariance, near_dependent_pairs
 from comp_daemon.models.crossbar import bar_errors_mm, calibrate_crossbar, check_plan
 from comp_daemon.models.fitting import FittedModel, report_info
 from comp_daemon.models.kinematic import KinematicModel
@@ -247,7 +247,12 @@ def fit_ballbar_campaign(
             "iterations": fit.iterations,
             "stop": fit.reason,
         },
-        "identifiability": report_info(fit.report),
+        "identifiability": {
+            **report_info(fit.report),
+            "near_dependent": near_dependent_pairs(
+                [BALLBAR_PARAM_NAMES[i] for i in keep], fit.cov[np.ix_(keep, keep)]
+            ),
+        },
         "not_identifiable": [d.describe() for d in fit.null_space],
         "identified": _identified([BALLBAR_PARAM_NAMES[i] for i in keep], theta[keep], fit.std[keep]),
         "frame": "robot base (nominal); a tracker frame is registered on tracker data",

@@ -16,6 +16,14 @@ effects, :func:`~comp_daemon.models.chebyshev.chebyshev_jacobian` for the Chebys
 taken on scaled columns (unit norms), with singular values below 1e-14 of the largest treated as
 zero (an unidentifiable direction contributes nothing instead of infinity).
 
+Near-dependent parameters. Two parameters whose estimates are correlated beyond
+:data:`NEAR_DEPENDENT_CORRELATION` (``|Σ_ij| / sqrt(Σ_ii Σ_jj)``) passed the identifiability test
+but trade against each other: the data separate them only by their small differences (e.g. ``d5``
+and ``alpha5`` with a probe almost on axis 6, or seed 002's ``dl4`` and ``dtheta3`` on a ballbar).
+:func:`near_dependent_pairs` names every such pair, largest first; the fits report them
+(``identifiability.near_dependent``) and ``fit`` prints them: fix one of the pair or measure poses
+that tell them apart before trusting either value.
+
 The covariance is saved with the model's artifact (``uncertainty``, :meth:`to_dict`) and attached
 to the loaded model, whose :meth:`~comp_daemon.models.base.ErrorModel.predict_std_mm` then answers.
 Kriging models have their own uncertainty, the ordinary-kriging variance of their residual.
@@ -37,7 +45,18 @@ from comp_daemon.models.compliance import ComplianceModel, compliance_jacobian
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.models.kinematic import KinematicModel, KinematicProblem
 
-__all__ = ["ParameterCovariance", "attach_covariance", "covariance_from_fit"]
+__all__ = [
+    "NEAR_DEPENDENT_CORRELATION",
+    "ParameterCovariance",
+    "attach_covariance",
+    "covariance_from_fit",
+    "describe_pairs",
+    "near_dependent_note",
+    "near_dependent_pairs",
+]
+
+#: |correlation| of two fitted parameters above which they are reported as near-dependent
+NEAR_DEPENDENT_CORRELATION = 0.9
 
 SV_RTOL = 1e-14
 
@@ -58,6 +77,44 @@ def covariance_from_fit(
     inv = np.where(sv > SV_RTOL * sv[0], 1.0 / np.where(sv > 0, sv, 1.0) ** 2, 0.0)
     scaled = (vt.T * inv) @ vt
     return s2 * scaled / np.outer(norms, norms), float(np.sqrt(s2))
+
+
+def near_dependent_pairs(
+    names: Sequence[str], covariance: NDArray[np.float64], threshold: float = NEAR_DEPENDENT_CORRELATION
+) -> list[dict[str, Any]]:
+    """``[{"pair": [a, b], "correlation": r}, …]`` for every pair of parameters whose estimates are
+    correlated beyond ``threshold`` in absolute value, the strongest first (parameters with zero
+    variance, i.e. not identified, are left out)."""
+    cov = np.asarray(covariance, dtype=float)
+    std = np.sqrt(np.maximum(np.diag(cov), 0.0))
+    ok = std > 0
+    corr = np.zeros_like(cov)
+    corr[np.ix_(ok, ok)] = cov[np.ix_(ok, ok)] / np.outer(std[ok], std[ok])
+    i, j = np.triu_indices(len(names), k=1)
+    strong = np.flatnonzero(np.abs(corr[i, j]) > threshold)
+    strong = strong[np.argsort(-np.abs(corr[i[strong], j[strong]]))]
+    return [
+        {"pair": [names[i[k]], names[j[k]]], "correlation": float(np.clip(corr[i[k], j[k]], -1.0, 1.0))}
+        for k in strong
+    ]
+
+
+def near_dependent_note(info: dict[str, Any]) -> str | None:
+    """The sentence a command prints for a fit's ``identifiability.near_dependent`` pairs, or None."""
+    pairs = (info.get("identifiability") or {}).get("near_dependent") or []
+    if not pairs:
+        return None
+    return (
+        f"near-dependent parameters (|correlation| > {NEAR_DEPENDENT_CORRELATION:g}; fitted, but each "
+        f"trades against the other): {describe_pairs(pairs)}; fix one of a pair or add poses that tell "
+        "them apart before trusting their values"
+    )
+
+
+def describe_pairs(pairs: Sequence[dict[str, Any]], limit: int = 6) -> str:
+    """``d5 ~ alpha5 (r -0.998), …`` of :func:`near_dependent_pairs` (the first ``limit``)."""
+    text = ", ".join(f"{p['pair'][0]} ~ {p['pair'][1]} (r {p['correlation']:+.3f})" for p in pairs[:limit])
+    return text + (f" and {len(pairs) - limit} more" if len(pairs) > limit else "")
 
 
 @dataclass(frozen=True, slots=True)

@@ -59,7 +59,12 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
-from comp_daemon.models.covariance import ParameterCovariance, attach_covariance, covariance_from_fit
+from comp_daemon.models.covariance import (
+    ParameterCovariance,
+    attach_covariance,
+    covariance_from_fit,
+    near_dependent_pairs,
+)
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
@@ -156,6 +161,9 @@ class FitRows:
     payload_kg: NDArray[np.float64] | float = 0.0
     temp_c: NDArray[np.float64] | None = None
     more_xyz_mm: NDArray[np.float64] | None = None  # (n, K − 1, 3) further targets on the flange
+    sigma_mm: NDArray[np.float64] | None = (
+        None  # (n,) declared position σ per row (weights the kinematic fit)
+    )
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -184,6 +192,7 @@ class FitRows:
             payload,
             None if self.temp_c is None else self.temp_c[rows],
             None if self.more_xyz_mm is None else self.more_xyz_mm[rows],
+            None if self.sigma_mm is None else self.sigma_mm[rows],
         )
 
     def errors(self, model: ErrorModel) -> NDArray[np.float64]:
@@ -208,6 +217,7 @@ class FitRows:
             payload_kg=dataset.payload_kg[rows],
             temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
             more_xyz_mm=None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[rows],
+            sigma_mm=None if dataset.sigma_mm is None else dataset.sigma_mm[rows],
         )
 
 
@@ -327,6 +337,7 @@ def _kinematic(
         effects=effects,
         frame=options.frame,
         more_targets_mm=rows.more_xyz_mm,
+        sigma_mm=rows.sigma_mm,
     )
 
 
@@ -362,14 +373,29 @@ def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
             "targets_rms_mm": kf.targets_rms_mm,
             "more_targets_mm": kf.model.more_targets_mm.tolist(),
         }
+    weighting = {"weighting": "rows weighted by 1/sigma_mm (weighted least squares)"} if kf.weighted else {}
     return {
         "rms_mm": kf.rms_mm,
         **targets,
+        **weighting,
         "effects": list(effects),
         "solver": lm_info(kf.lm),
-        "identifiability": report_info(kf.report),
+        "identifiability": {**report_info(kf.report), "near_dependent": _near_dependent(kf)},
         "identified": identified_info(kf.identified, kf.values, kf.std),
     }
+
+
+def _near_dependent(kf: KinematicFit) -> list[dict[str, Any]]:
+    """The identified parameters' near-dependent pairs (covariance of the fit at its solution);
+    pairs inside the measurement frame (``base_*`` with ``base_*``) are left out: its translation
+    and rotation correlate whenever the tracker's origin is far from the robot, and that frame is
+    not the robot's."""
+    try:
+        cov, _ = covariance_from_fit(kf.lm.jacobian, kf.lm.residual)
+    except ValueError:  # no more residuals than parameters: no covariance
+        return []
+    pairs = near_dependent_pairs(kf.identified, cov)
+    return [p for p in pairs if not all(name.startswith("base_") for name in p["pair"])]
 
 
 def _data_frame(robot: RobotDescription, rows: FitRows, options: FitOptions) -> Literal["base", "tracker"]:

@@ -245,6 +245,7 @@ class KinematicProblem:
         more_measured_mm: NDArray[np.float64] | None = None,
         more_start_mm: NDArray[np.float64] | None = None,
         more_idx: NDArray[np.intp] | None = None,
+        row_weights: NDArray[np.float64] | None = None,
     ) -> None:
         self.robot, self.start, self.eff0 = robot, start, eff0
         self.geo_idx = np.asarray(geo_idx, dtype=np.intp)
@@ -257,6 +258,12 @@ class KinematicProblem:
             np.zeros((m, 3)) if more_start_mm is None else np.asarray(more_start_mm, dtype=float)
         )
         self.more_idx = np.arange(3 * m) if more_idx is None else np.asarray(more_idx, dtype=np.intp)
+        # per residual entry (target after target, rows, x y z): the row's weight (None: all 1)
+        self.weights = (
+            None
+            if row_weights is None
+            else np.tile(np.repeat(np.asarray(row_weights, dtype=float), 3), 1 + m)
+        )
 
     def unpack(self, x: NDArray[np.float64]) -> tuple[KinematicParams, EffectParams, NDArray[np.float64]]:
         n_geo = self.geo_idx.size
@@ -273,6 +280,10 @@ class KinematicProblem:
         return flat.reshape(-1, 3)
 
     def residual(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        raw = self._residual(x)
+        return raw if self.weights is None else raw * self.weights
+
+    def _residual(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         params, eff, _ = self.unpack(x)
         if self.more_meas is None:
             tcp = twin_tcp_mm(self.robot, params, eff, self.a, self.dir, self.payload, self.temp)
@@ -294,6 +305,10 @@ class KinematicProblem:
         return jac
 
     def jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        raw = self._jacobian(x)
+        return raw if self.weights is None else raw * self.weights[:, None]
+
+    def _jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         params, eff, dx = self.unpack(x)
         jac = self._target_jacobian(params, eff, dx)
         if self.more_meas is None:
@@ -327,6 +342,7 @@ class KinematicFit:
     n_rows: int
     targets: int = 1  # targets per row the fit used (K)
     targets_rms_mm: float | None = None  # 3-D RMS residual over every target (None: the TCP only)
+    weighted: bool = False  # rows weighted by 1/sigma_mm (weighted least squares)
 
     def named_values(self) -> dict[str, float]:
         return {n: float(v) for n, v in zip(self.identified, self.values, strict=True)}
@@ -349,6 +365,7 @@ def calibrate_kinematic(
     rtol: float = 1e-8,
     max_iter: int = 100,
     more_targets_mm: NDArray[np.float64] | None = None,
+    sigma_mm: NDArray[np.float64] | None = None,
 ) -> KinematicFit:
     """Calibrate the robot's MDH parameters (and ``effects``) on measured TCP positions.
 
@@ -357,6 +374,8 @@ def calibrate_kinematic(
     (seed 001: ``("ratio", "backlash")``), on ``effect_joints``. ``more_targets_mm`` (n, K − 1, 3):
     further targets on the flange measured at the same poses, in the same frame; their flange
     offsets are identified with the rest (module docstring: 6-DOF with three or more targets).
+    ``sigma_mm`` (n,): each row's declared position σ (the data set's column); the rows are then
+    weighted by ``median(σ)/σ`` (weighted least squares; the RMS reported stays unweighted).
     """
     a = as_axes(a_deg)
     p_meas = np.asarray(p_measured_mm, dtype=float)
@@ -435,15 +454,17 @@ def calibrate_kinematic(
         more_measured_mm=more_meas,
         more_start_mm=more_start,
         more_idx=more_idx,
+        row_weights=None if sigma_mm is None else _row_weights(sigma_mm, n),
     )
 
     x0 = np.zeros(idx.size)
     result = improved_lm(problem.residual, problem.jacobian, x0, x_scale="jac", max_iter=max_iter)
+    unweighted = result.residual if problem.weights is None else result.residual / problem.weights
     params, eff, _ = problem.unpack(result.x)
     more_fit = None if more_meas is None else problem.more_targets(result.x)
     model = KinematicModel(robot, params, eff if effects else None, registration, more_fit)
     std = _standard_errors(result.jacobian, result.residual)
-    per_point = np.sum(result.residual.reshape(-1, n, 3) ** 2, axis=2)  # (K, n)
+    per_point = np.sum(unweighted.reshape(-1, n, 3) ** 2, axis=2)  # (K, n)
     rms = float(np.sqrt(np.mean(per_point[0])))
     return KinematicFit(
         model=model,
@@ -458,7 +479,16 @@ def calibrate_kinematic(
         n_rows=n,
         targets=1 + n_more,
         targets_rms_mm=None if more_meas is None else float(np.sqrt(np.mean(per_point))),
+        weighted=sigma_mm is not None,
     )
+
+
+def _row_weights(sigma_mm: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    """``median(σ)/σ`` per row: weighted least squares with residuals kept in mm."""
+    sigma = np.asarray(sigma_mm, dtype=float)
+    if sigma.shape != (n,) or not np.all(np.isfinite(sigma)) or (sigma <= 0).any():
+        raise ValueError(f"sigma_mm must be ({n},) finite numbers > 0")
+    return float(np.median(sigma)) / sigma
 
 
 def _priority(start: KinematicParams, eff_names: Sequence[str], more_names: Sequence[str]) -> tuple[str, ...]:

@@ -97,6 +97,8 @@ def scale_problem(p_nominal_base_mm: NDArray[np.float64], p_measured_mm: NDArray
     guesses = {"metres": 1e-3, "centimetres": 0.1, "inches": 1 / 25.4, "micrometres": 1e3}
     unit, factor = min(guesses.items(), key=lambda kv: abs(np.log(ratio / kv[1])))
     hint = f" (in {unit}?)" if abs(np.log(ratio / factor)) < np.log(1.5) else ""
+    if hint and unit == "metres":
+        hint += "; a file in metres is read with --units m,deg (or m,rad)"
     return (
         f"the measured x, y, z spread {ratio:.3g} times as far as the nominal TCP positions of the same "
         f"axis values ({measured:.4g} mm against {nominal:.4g} mm RMS about their centroids): they are "

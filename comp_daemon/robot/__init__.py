@@ -1,4 +1,4 @@
-"""Robot descriptions (TOML) and the shipped presets."""
+"""Robot descriptions (TOML, or a URDF: :mod:`comp_daemon.robot.urdf`) and the shipped presets."""
 
 from comp_daemon.robot.description import (
     PRESETS,
