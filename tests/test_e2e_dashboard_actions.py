@@ -70,10 +70,20 @@ class Cell:
             base_url=self.base_url, headers={"Authorization": f"Bearer {TOKENS[role]}"}, timeout=10.0
         )
 
-    async def page(self, role: str) -> Any:
+    async def page(self, role: str, routes: dict[str, Any] | None = None) -> Any:
+        """The dashboard as ``role``, live unless ``routes`` answers API paths (with their query)
+        with the given JSON instead of the service."""
         from playwright.async_api import expect
 
         page = await self.browser.new_page(viewport={"width": 1600, "height": 1000})
+        if routes:
+
+            async def answer(route: Any) -> None:
+                url = route.request.url
+                doc = next((d for path, d in routes.items() if url.endswith(path)), None)
+                await (route.continue_() if doc is None else route.fulfill(json=doc))
+
+            await page.route("**/api/**", answer)
         page.errors = []
 
         def console(m: Any) -> None:
@@ -84,7 +94,8 @@ class Cell:
         page.on("console", console)
         page.on("pageerror", lambda e: page.errors.append(f"page error: {e}"))
         await page.goto(f"{self.base_url}/dashboard/#token={TOKENS[role]}")
-        await expect(page.locator("#live-text")).to_have_text("live", timeout=15_000)
+        if not routes:  # with routes the browser holds each response until it ends: no event stream
+            await expect(page.locator("#live-text")).to_have_text("live", timeout=15_000)
         await expect(page.locator("#p-actions")).to_be_visible(timeout=10_000)
         return page
 
@@ -394,6 +405,57 @@ async def test_an_engineer_calibrates_the_gratings_and_sees_the_progress(cell: C
             f"in use: version {version + 1}", timeout=10_000
         )
         await expect(page.locator("#calibrate-btn")).to_be_enabled(timeout=10_000)
+        assert page.errors == []
+    finally:
+        await page.close()
+
+
+# ------------------------------------------------------------------------------- jobs and ladder
+
+REPORT = {
+    "unmodelled": ["backlash"],
+    "joints": [2, 3],
+    "noise_floor_mm": 0.01,
+    "unexplained_rms_mm": 0.02,
+    "rows": {"fit": 120, "check": 40},
+    "where": {"summary": "Backlash on A2 and on A3. Approach the targets from one side."},
+    "baseline": {"check_rms_mm": 0.40, "check_max_mm": 0.90},
+    "steps": [
+        {"effect": "geometric", "joints": [], "check_rms_mm": 0.20, "check_max_mm": 0.50,
+         "shrink_pct": 50.0, "significant": True},
+        {"effect": "backlash", "joints": [2], "check_rms_mm": 0.08, "check_max_mm": 0.20,
+         "shrink_pct": 60.0, "significant": True},
+        {"effect": "backlash", "joints": [3], "check_rms_mm": 0.03, "check_max_mm": 0.07,
+         "shrink_pct": 62.5, "significant": True},
+    ],
+}  # fmt: skip
+JOB = {
+    "id": 1, "kind": "diagnosis", "state": "done", "progress": 1.0, "message": "writing the report",
+    "params": {}, "dataset_id": 1, "result": None, "error": None,
+    "created_at": None, "started_at": None, "finished_at": None,
+}  # fmt: skip
+
+
+async def test_an_ended_job_says_so_and_ladder_steps_are_named_with_their_joints(cell: Cell) -> None:
+    """The page's rendering of a finished diagnosis (the service's answers given, in the API's shapes):
+    its job no longer reads as its last progress message, and two backlash steps on different
+    joints are told apart in the table and the chart."""
+    from playwright.async_api import expect
+
+    routes = {"/api/jobs?limit=15": [JOB], "/api/diagnoses?limit=10": [JOB], "/api/diagnoses/1": REPORT}
+    page = await cell.page("viewer", routes)
+    try:
+        row = page.locator("#jobs tbody tr")
+        await expect(row).to_have_count(1, timeout=10_000)
+        await expect(row).to_contain_text("report ready")
+        await expect(row).not_to_contain_text("writing the report")
+        await page.locator("#diagnoses tbody tr").first.click()
+        steps = page.locator("#ladder tbody tr td:first-child")
+        await expect(steps).to_have_text(
+            ["nominal", "geometric", "backlash A2", "backlash A3"], timeout=10_000
+        )
+        chart = await page.locator("#ladder-chart text").all_text_contents()
+        assert "backlashA2" in chart and "backlashA3" in chart, chart
         assert page.errors == []
     finally:
         await page.close()
