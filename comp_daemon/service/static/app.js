@@ -622,7 +622,7 @@
         const order = j.result && j.result.stats ? j.result.stats.order : null;
         return `${j.params.model || "model"} stored${order !== null && order !== undefined ? " (m=" + order + ")" : ""}`;
       }
-      if (j.kind === "diagnosis") return "report ready (Diagnosis panel)";
+      if (j.kind === "diagnosis") return "report ready";
       return "done";
     }
     if (j.state === "queued") return "waiting for a worker";
@@ -923,6 +923,14 @@
     return parts.join(", ");
   }
 
+  // the reason of a refusal without the place its message starts with ("x.csv, row 3, column 'a3': …"),
+  // which the page shows on its own
+  function refusalReason(b, err) {
+    const message = b.message || err.message;
+    const m = message.match(/^[^:]*?, (?:\$\S* )?(?:row|record|line|target) \d+(?:, column '[^']*')?: ([\s\S]*)$/);
+    return m ? m[1] : message;
+  }
+
   // ---- drop a file: a campaign becomes a data set, a target file is queued
 
   function splitCsvLine(line) {
@@ -994,7 +1002,7 @@
       const b = err.body || {};
       const place = refusalPlace(b);
       box.replaceChildren(
-        el("div", { class: "bad", "data-testid": "refusal" }, el("b", {}, `${file.name} refused`), place ? ` at ${place}` : "", ": ", b.message || err.message),
+        el("div", { class: "bad", "data-testid": "refusal" }, el("b", {}, `${file.name} refused`), place ? ` at ${place}` : "", ": ", refusalReason(b, err)),
         isJson ? null : excerpt(text, b.row, b.column),
       );
     }
@@ -1065,7 +1073,7 @@
       const name = field ? String(field).split(".").pop() : null;
       if (name && $(`t-${name}`)) $(`t-${name}`).classList.add("bad");
       const place = name ? `field ${name}` : "";
-      say(box, "bad", el("b", {}, "refused"), place ? ` at ${place}` : "", ": ", b.message || err.message);
+      say(box, "bad", el("b", {}, "refused"), place ? ` at ${place}` : "", ": ", refusalReason(b, err));
     } finally {
       button.disabled = false;
     }
@@ -1128,7 +1136,7 @@
     if (g.unavailable) { text.textContent = g.unavailable; bar.classList.add("hidden"); button.disabled = true; return; }
     const cal = g.calibration;
     const inUse = cal
-      ? `in use: version ${cal.version}${cal.created_at ? ` of ${cal.created_at}` : ""}; residual rms ` +
+      ? `in use: version ${cal.version}${cal.created_at ? ` of ${new Date(cal.created_at).toLocaleString()}` : ""}; residual rms ` +
         cal.joints.map((m) => `A${m.joint} ${m.residual_rms_deg.toFixed(4)}°`).join(", ")
       : "no calibration in use";
     const parts = [el("div", {}, inUse)];
