@@ -19,11 +19,12 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import AsyncIterator, Callable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import httpx
+import numpy as np
 
 TOKENS = {
     "viewer": "e2e-viewer-token-0123456789abcdef",
@@ -332,6 +333,58 @@ def fit_and_activate(client: httpx.Client, dataset_id: int, model: str = "kinema
     r = client.post(f"/api/models/{models[0]['id']}/activate")
     assert r.status_code == 200, r.text
     return job
+
+
+@contextlib.asynccontextmanager
+async def in_process_cell(
+    root: Path, *, seed: int, stale_after_ms: float = 400.0, **sim: Any
+) -> AsyncIterator[Any]:
+    """The assembled daemon with its simulated cell (kr210-cell), in this process and event loop:
+    started, RSI running, the gratings calibrated on three poses around home, the nominal model
+    active, ready. ``sim``: further :class:`~comp_daemon.daemon.app.SimOptions` (``rearm_after_s``).
+    Stopped at the end (exit code 0 asserted)."""
+    import asyncio
+
+    from comp_daemon.daemon.app import Daemon, SimOptions
+    from comp_daemon.models.artifact import model_document
+    from comp_daemon.models.base import NominalModel
+    from comp_daemon.service.config import load_settings
+    from comp_daemon.service.store import ModelDraft
+
+    async def until(cond: Callable[[], Any], timeout_s: float) -> None:
+        async with asyncio.timeout(timeout_s):
+            while not cond():
+                await asyncio.sleep(0.01)
+
+    def activate_nominal(daemon: Daemon) -> None:
+        assert daemon.store is not None
+        doc = model_document(NominalModel(daemon.robot), data_sha256="0" * 64, frame="base")
+        daemon.store.activate_model(
+            daemon.store.add_model(ModelDraft("nominal", None, doc, {}, None)).id, by="test"
+        )
+
+    cfg = root / "config.toml"
+    cfg.write_text(config_text(root / "data", 0, 0, stale_after_ms=stale_after_ms), encoding="utf-8")
+    daemon = Daemon(load_settings(cfg), sim=SimOptions(scenario="kr210-cell", seed=seed, **sim))
+    run = asyncio.create_task(daemon.run())
+    try:
+        async with asyncio.timeout(60):
+            await daemon.started.wait()
+        await until(lambda: daemon.runtime is not None and daemon.runtime.rsi_alive(), 10)
+        assert daemon.sim_info is not None
+        home = np.array(daemon.sim_info.home_deg)
+        poses = [
+            tuple(home + np.r_[d * np.array([1.0, (-1.0) ** k, 0.5]), 0, 0, 0])
+            for k, d in enumerate((-12.0, 0.0, 12.0))
+        ]
+        await daemon.calibrate_gratings(poses, settle_cycles=15, sample_cycles=8)
+        await asyncio.to_thread(activate_nominal, daemon)
+        await until(lambda: not daemon.readiness_reasons(), 10)
+        yield daemon
+    finally:
+        daemon.request_stop("tests over")
+        code = await asyncio.wait_for(run, 30)
+        assert code == 0
 
 
 def target_rows(targets: Sequence[dict[str, Any]]) -> str:

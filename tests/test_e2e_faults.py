@@ -30,15 +30,11 @@ import httpx
 import numpy as np
 import pytest
 import pytest_asyncio
-from e2e_daemon import TOKENS, config_text
+from e2e_daemon import TOKENS, in_process_cell
 
-from comp_daemon.daemon.app import Daemon, SimOptions
-from comp_daemon.models.artifact import model_document
-from comp_daemon.models.base import NominalModel
+from comp_daemon.daemon.app import Daemon
 from comp_daemon.rt.rsi_codec import build_rob
 from comp_daemon.rt.safety import FaultKind, SafetyState
-from comp_daemon.service.config import load_settings
-from comp_daemon.service.store import ModelDraft
 
 pytestmark = [pytest.mark.slow, pytest.mark.asyncio(loop_scope="module")]
 
@@ -118,46 +114,19 @@ async def until(cond: Callable[[], Any], timeout_s: float) -> None:
             await asyncio.sleep(0.01)
 
 
-def activate_nominal(daemon: Daemon) -> None:
-    assert daemon.store is not None
-    doc = model_document(NominalModel(daemon.robot), data_sha256="0" * 64, frame="base")
-    daemon.store.activate_model(
-        daemon.store.add_model(ModelDraft("nominal", None, doc, {}, None)).id, by="test"
-    )
-
-
 @pytest_asyncio.fixture(loop_scope="module", scope="module")
 async def cell(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Cell]:
     root: Path = tmp_path_factory.mktemp("faults")
-    cfg = root / "config.toml"
     # a grating gone silent must count as stale before the target under way can settle (its dwell
     # is 240 ms), so this module keeps 150 ms rather than the 400 ms of the other end-to-end tests
-    cfg.write_text(config_text(root / "data", 0, 0, stale_after_ms=150.0), encoding="utf-8")
-    daemon = Daemon(load_settings(cfg), sim=SimOptions(scenario="kr210-cell", seed=5))
-    run = asyncio.create_task(daemon.run())
-    try:
-        async with asyncio.timeout(60):
-            await daemon.started.wait()
-        await until(lambda: daemon.runtime is not None and daemon.runtime.rsi_alive(), 10)
+    async with in_process_cell(root, seed=5, stale_after_ms=150.0) as daemon:
         assert daemon.sim_info is not None
-        home = np.array(daemon.sim_info.home_deg)
-        poses = [
-            tuple(home + np.r_[d * np.array([1.0, (-1.0) ** k, 0.5]), 0, 0, 0])
-            for k, d in enumerate((-12.0, 0.0, 12.0))
-        ]
-        await daemon.calibrate_gratings(poses, settle_cycles=15, sample_cycles=8)
-        await asyncio.to_thread(activate_nominal, daemon)
-        await until(lambda: not daemon.readiness_reasons(), 10)
         async with httpx.AsyncClient(
             base_url=f"http://127.0.0.1:{daemon.http_port}",
             headers={"Authorization": f"Bearer {TOKENS['operator']}"},
             timeout=10.0,
         ) as client:
-            yield Cell(daemon, client, home)
-    finally:
-        daemon.request_stop("tests over")
-        code = await asyncio.wait_for(run, 30)
-        assert code == 0
+            yield Cell(daemon, client, np.array(daemon.sim_info.home_deg))
     assert daemon.rsi_stats is not None and daemon.rsi_stats.handler_errors == 0
 
 

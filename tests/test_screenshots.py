@@ -154,7 +154,7 @@ def test_dashboard_screenshot(browser: Any, out_dir: Path, tmp_path: Path) -> No
                 lambda: (
                     (j := eng.get(f"/api/jobs/{diagnosis_id}").json())["state"] in ("done", "failed") and j
                 ),
-                120,
+                300,  # 20 s alone; minutes on a machine shared by many test runs
                 "the diagnosis job",
                 every_s=0.2,
             )
@@ -170,7 +170,7 @@ def test_dashboard_screenshot(browser: Any, out_dir: Path, tmp_path: Path) -> No
         served.page.close()
 
         w = Watched(browser, 1000)
-        w.page.goto(f"{daemon.base_url}/dashboard/#token={TOKENS['operator']}")
+        w.page.goto(f"{daemon.base_url}/dashboard/#token={TOKENS['engineer']}")
         expect(w.page.locator("#live-text")).to_have_text("live", timeout=15_000)
         expect(w.page.locator("#ready-text")).to_have_text("ready", timeout=10_000)
         assert "comp-daemon" in w.page.locator("h1").inner_text()
@@ -199,6 +199,28 @@ def test_dashboard_screenshot(browser: Any, out_dir: Path, tmp_path: Path) -> No
         expect(w.page.locator("#table2 tbody tr").first).to_be_visible(timeout=10_000)
         expect(w.page.locator("#joints tbody tr")).to_have_count(6, timeout=10_000)
         expect(w.page.locator("#diagnoses tbody tr").first).to_be_visible(timeout=10_000)
+        # a finished diagnosis says so (not its last progress message); its ladder names each step's joints
+        job_row = w.page.locator("#jobs tbody tr", has_text="diagnosis")
+        expect(job_row).to_contain_text("report ready", timeout=10_000)
+        w.page.locator("#diagnoses tbody tr").first.click()
+        expect(w.page.locator("#ladder tbody tr").nth(1)).to_be_visible(timeout=10_000)
+        labels = w.page.locator("#ladder tbody tr td:first-child").all_inner_texts()
+        assert len(set(labels)) == len(labels), labels
+        # the cell actions, with a target file refused by row and column
+        rows = [home, [500.0 if i == 2 else v for i, v in enumerate(home)]]
+        broken = "pose_id,a1,a2,a3,a4,a5,a6\n" + "".join(
+            f"rib-{9 + k:02d}," + ",".join(f"{v:g}" for v in row) + "\n" for k, row in enumerate(rows)
+        )
+        transfer = w.page.evaluate_handle(
+            "([t]) => { const dt = new DataTransfer();"
+            " dt.items.add(new File([t], 'rib-9.csv', { type: 'text/csv' })); return dt; }",
+            [broken],
+        )
+        w.page.locator("#drop").dispatch_event("drop", {"dataTransfer": transfer})
+        expect(w.page.locator("[data-testid=refusal]")).to_contain_text("row 3, column a3", timeout=10_000)
+        # the browser logs the refused request itself; the page shows the refusal
+        w.errors[:] = [e for e in w.errors if "status of 422" not in e]
+        w.page.evaluate("window.scrollTo(0, 0)")  # the click above scrolled; the header sticks at the top
         w.page.wait_for_timeout(500)
         w.shot(out_dir / "dashboard.png", full_page=True)
         assert all(u.startswith(daemon.base_url) for u in w.urls), w.urls

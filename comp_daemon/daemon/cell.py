@@ -130,6 +130,7 @@ class Cell:
         self._cal_error: str | None = None
         self._cal_started_at: float | None = None
         self._cal_finished_at: float | None = None
+        self._cal_poses: tuple[int, int] | None = None  # (measured, total) of the last attempt
 
     # ------------------------------------------------------------------------------ start
 
@@ -378,10 +379,14 @@ class Cell:
         poses = None if poses_deg is None else [tuple(float(v) for v in p) for p in poses_deg]
         self._cal_error = None
         self._cal_started_at, self._cal_finished_at = time.time(), None
+        self._cal_poses = None
+
+        def measured(done: int, total: int) -> None:
+            self._cal_poses = (done, total)
 
         async def run() -> None:
             try:
-                cal = await self.calibrate_gratings(poses)
+                cal = await self.calibrate_gratings(poses, progress=measured)
                 log.info(f"daemon: grating calibration v{cal.version} started by {by} is in use")
             except Exception as exc:
                 self._cal_error = str(exc) or type(exc).__name__
@@ -403,6 +408,8 @@ class Cell:
             "last_error": self._cal_error,
             "started_at": self._cal_started_at,
             "finished_at": self._cal_finished_at,
+            "poses_measured": None if self._cal_poses is None else self._cal_poses[0],
+            "poses_total": None if self._cal_poses is None else self._cal_poses[1],
         }
 
     async def calibrate_gratings(

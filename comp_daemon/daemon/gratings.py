@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import asyncio
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
@@ -114,14 +114,20 @@ async def calibrate_gratings(
     min_readings: int = 6,
     min_span_deg: float = 10.0,
     cycle_timeout_s: float = 0.05,
+    progress: Callable[[int, int], None] | None = None,
 ) -> GratingCalibration:
-    """Run the routine (module docstring); returns the stored calibration, already in use."""
+    """Run the routine (module docstring); returns the stored calibration, already in use.
+
+    ``progress(done, total)`` is called with the poses measured so far: (0, n) before the first
+    move, then after each pose."""
     joints = runtime.joints
     missing = [j for j in joints if j not in geometry]
     if missing:
         raise GratingCalibrationError(f"no grating geometry (radius) for joints {missing}")
     axis_rows: list[NDArray[np.float64]] = []
     count_rows: list[NDArray[np.float64]] = []
+    if progress is not None:
+        progress(0, len(poses))
     for p, pose in enumerate(poses):
         target = np.asarray(pose, dtype=float)
         for side in (-1.0, 1.0):
@@ -143,6 +149,8 @@ async def calibrate_gratings(
             axis_rows.append(axes)
             count_rows.append(counts)
         log.info(f"grating calibration: pose {p + 1}/{len(poses)} measured")
+        if progress is not None:
+            progress(p + 1, len(poses))
     axes_all = np.array(axis_rows)
     counts_all = np.array(count_rows)
     maps = [

@@ -420,7 +420,7 @@ def create_app(
     The process pool starts and stops with the app's lifespan.
     """
     from comp_daemon.service import job_kinds as default_kinds
-    from comp_daemon.service.routes import datasets, diagnoses, fits, system, targets
+    from comp_daemon.service.routes import datasets, diagnoses, fits, system, target_files, targets
 
     robot = load_robot(settings.robot.name)
     state = ServiceState(
@@ -487,6 +487,7 @@ def create_app(
     app.include_router(fits.router, prefix="/api")
     app.include_router(diagnoses.router, prefix="/api")
     app.include_router(targets.router, prefix="/api")
+    app.include_router(target_files.router, prefix="/api")
 
     @app.get("/", include_in_schema=False)
     async def root() -> RedirectResponse:

@@ -111,7 +111,8 @@ class DaemonControl(Protocol):
     def grating_status(self) -> dict[str, Any]:
         """``calibrating`` (bool), ``calibration`` (the calibration in use, its artifact dict, or
         None), ``last_error`` (why the last attempt failed, or None), ``started_at`` /
-        ``finished_at`` (UNIX seconds of the last attempt, or None)."""
+        ``finished_at`` (UNIX seconds of the last attempt, or None), ``poses_measured`` and
+        ``poses_total`` (the last attempt's progress, or None before its first pose is known)."""
         ...
 
     def acknowledge_fault(self, by: str) -> dict[str, Any] | None:

@@ -64,6 +64,17 @@ TargetState = Literal[
     "queued", "compensating", "moving", "settling", "done", "failed", "cancelled", "interrupted"
 ]
 
+IdempotencyKey = Annotated[
+    str,
+    Header(
+        alias="Idempotency-Key",
+        min_length=1,
+        max_length=200,
+        pattern=r"^[\x21-\x7e]+$",
+        description="the MES's unique key for this batch (printable ASCII, no spaces)",
+    ),
+]
+
 _CHANGE_ERRORS: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}, 409: {"model": ErrorOut}}
 
 
@@ -190,16 +201,7 @@ async def post_batch(
     response: Response,
     svc: State,
     who: Operator,
-    idempotency_key: Annotated[
-        str,
-        Header(
-            alias="Idempotency-Key",
-            min_length=1,
-            max_length=200,
-            pattern=r"^[\x21-\x7e]+$",
-            description="the MES's unique key for this batch (printable ASCII, no spaces)",
-        ),
-    ],
+    idempotency_key: IdempotencyKey,
 ) -> BatchOut:
     limit = svc.settings.http.max_batch_targets
     if len(body.targets) > limit:

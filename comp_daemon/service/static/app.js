@@ -2,8 +2,14 @@
  *
  * Data: GET /api/status (every 5 s and on demand; its "rsi" part lists each RSI stop with its cause
  * and what happens next), lists from /api/targets, /api/models, /api/jobs,
- * /api/datasets, /api/diagnoses; live updates from /api/events (server-sent events, read with fetch so
- * that the bearer token travels in the Authorization header, never in a URL).
+ * /api/datasets, /api/diagnoses, /api/gratings; live updates from /api/events (server-sent events,
+ * read with fetch so that the bearer token travels in the Authorization header, never in a URL).
+ * One source per fact: the banner's grating lines and the joint table are drawn from the same joint
+ * rows (the daemon's staleness rule decides both); the RSI panel's header and its stop box from the
+ * same "running" (the daemon's RSI sessions when it tracks them).
+ * Actions (role-aware; a viewer sees none): drop a campaign (POST /api/datasets) or a target file
+ * (POST /api/batches/file), queue a target (POST /api/batches), reset a fault
+ * (POST /api/loop/reset-fault), calibrate the gratings (POST /api/gratings/calibrate).
  * Token: from the URL fragment (#token=...) or the sign-in dialog; kept in sessionStorage only.
  * Units: angles in degrees, lengths in mm, latencies in ms.
  */
@@ -32,6 +38,9 @@
     diagId: null,
     diagReport: null,
     live: false,
+    loop: null,
+    gratings: null,
+    statusAt: 0,
   };
 
   const $ = (id) => document.getElementById(id);
@@ -234,7 +243,10 @@
       schedule("status", refreshStatus, 500);
     } else if (kind.startsWith("dataset.")) {
       schedule("datasets", refreshDatasets);
-    } else if (kind.startsWith("daemon.") || kind.startsWith("rsi.")) {
+    } else if (kind.startsWith("gratings.")) {
+      schedule("gratings", refreshGratings, 100);
+      schedule("status", refreshStatus, 300);
+    } else if (kind.startsWith("daemon.") || kind.startsWith("rsi.") || kind.startsWith("loop.")) {
       schedule("status", refreshStatus, 200);
     }
   }
@@ -245,26 +257,47 @@
     try {
       const status = await api("/api/status");
       S.status = status;
+      S.statusAt = Date.now();
       S.role = status.you ? status.you.role : "anonymous";
       $("who").textContent = status.you ? `${status.you.name} · ${status.you.role}` : "—";
       $("robot").textContent = status.robot;
       applySnapshot(status.daemon);
-      renderRsi(status.rsi, status.daemon);
-      renderReady(status);
+      renderRsi(status.rsi);
+      renderReady();
       renderQueueChips();
       renderActions();
+      if (!S.gratings || S.gratings.calibrating) refreshGratings();
     } catch (err) {
       if (err.status !== 401) toast(`status: ${err.message}`);
     }
   }
 
-  function renderReady(status) {
-    $("ready-dot").className = `dot ${status.ready ? "ok" : "warn"}`;
-    $("ready-text").textContent = status.ready ? "ready" : "not ready";
+  // the daemon words a grating's fault "grating A<j>: <kind> (<detail>)"; those lines are drawn from
+  // the joint rows the table shows, so that the banner and the table cannot disagree
+  const GRATING_REASON = /^grating A\d+: /;
+
+  function gratingReasons(joints) {
+    return joints.filter((j) => j.encoder && j.encoder !== "ok" && j.encoder !== "absent")
+      .sort((a, b) => a.joint - b.joint)
+      .map((j) => `grating A${j.joint}: ${j.encoder}${j.encoder_detail ? ` (${j.encoder_detail})` : ""}`);
+  }
+
+  function currentReasons() {
+    if (!S.status) return [];
+    const joints = (S.snapshot && S.snapshot.joints) || [];
+    return [...S.status.reasons.filter((r) => !GRATING_REASON.test(r)), ...gratingReasons(joints)];
+  }
+
+  function renderReady() {
+    if (!S.status) return;
+    const reasons = currentReasons();
+    const ready = reasons.length === 0;
+    $("ready-dot").className = `dot ${ready ? "ok" : "warn"}`;
+    $("ready-text").textContent = ready ? "ready" : "not ready";
     const box = $("reasons");
     box.replaceChildren();
-    if (!status.ready && status.reasons.length) {
-      box.append(el("ul", {}, ...status.reasons.map((r) => el("li", {}, r))));
+    if (!ready) {
+      box.append(el("ul", {}, ...reasons.map((r) => el("li", {}, r))));
       box.classList.remove("hidden");
     } else {
       box.classList.add("hidden");
@@ -288,8 +321,11 @@
 
   function setStateBadge(state) {
     const badge = $("state-badge");
+    const changed = badge.textContent !== state;
     badge.textContent = state;
     badge.className = `badge ${stateClass(state)}`;
+    // the fault box and the buttons follow the state word (fault latched, calibrating…)
+    if (changed && S.status && S.snapshot && S.snapshot.state !== state) schedule("status", refreshStatus, 100);
   }
 
   function mergeJoints(rows) {
@@ -299,6 +335,7 @@
     const joints = [...byJoint.values()];
     if (S.snapshot) S.snapshot.joints = joints;
     renderJoints(joints);
+    renderReady();
   }
 
   function applySnapshot(snap) {
@@ -310,11 +347,32 @@
       ? `target ${snap.current_target_id}${snap.phase ? " · " + snap.phase : ""}` : "no target";
     applyLoop(snap.loop || {});
     renderJoints(snap.joints || []);
+    renderFault();
+  }
+
+  // RSI running or stopped, one answer for the panel's header and its stop box: the daemon's RSI
+  // sessions when it tracks them (a stop is recorded once telegrams have ceased, a re-arm once the
+  // controller runs again), else the loop's own "telegrams arrive"
+  function rsiRunning() {
+    const rsi = S.status && S.status.rsi;
+    if (rsi) return rsi.running;
+    return Boolean(S.loop && S.loop.running);
+  }
+
+  function renderLoopHeader() {
+    const loop = S.loop || {};
+    const cycle = loop.cycle_ms || (S.status && S.status.cycle_ms);
+    $("cycle").textContent = cycle ? `${cycle} ms cycle · ${rsiRunning() ? "running" : "stopped"}` : "—";
   }
 
   function applyLoop(loop) {
-    const cycle = loop.cycle_ms || (S.status && S.status.cycle_ms);
-    $("cycle").textContent = cycle ? `${cycle} ms cycle · ${loop.running ? "running" : "stopped"}` : "—";
+    S.loop = loop;
+    renderLoopHeader();
+    const rsi = S.status && S.status.rsi;
+    // telegrams came or ceased since the sessions were read: read them again (at most once a second)
+    if (rsi && loop.running !== undefined && loop.running !== rsi.running && Date.now() - S.statusAt > 1000) {
+      schedule("status", refreshStatus, 100);
+    }
     $("lat-p50").textContent = fmt(loop.latency_p50_ms, 3);
     $("lat-p99").textContent = fmt(loop.latency_p99_ms, 3);
     $("lat-max").textContent = fmt(loop.latency_max_ms, 3);
@@ -336,7 +394,7 @@
     operator: "operator",
   };
 
-  function renderRsi(rsi, snap) {
+  function renderRsi(rsi) {
     const box = $("rsi-stop");
     const body = document.querySelector("#rsi-stops tbody");
     if (!rsi) {
@@ -350,8 +408,8 @@
     $("rsi-summary").textContent = `· ${rsi.sessions} started · ${rsi.stops_total} stopped${causes ? ` (${causes})` : ""}` +
       ` · ${rsi.rearms} re-armed`;
     const last = (rsi.stops || [])[0];
-    const running = snap && snap.loop ? snap.loop.running : rsi.running;
-    if (last && !running && last.rearmed_at === null) {
+    renderLoopHeader();
+    if (last && !rsiRunning() && last.rearmed_at === null) {
       const when = new Date(last.time * 1000).toLocaleTimeString();
       box.replaceChildren(
         el("div", {}, el("b", {}, `RSI stopped at ${when}: ${CAUSE_WORDS[last.cause] || last.cause}`),
@@ -363,14 +421,16 @@
     } else {
       box.className = "rsi-stop hidden";
     }
-    body.replaceChildren(...(rsi.stops || []).slice(0, 20).map((s) => el("tr", {},
-      el("td", { class: "mono" }, new Date(s.time * 1000).toLocaleTimeString()),
-      el("td", {}, pill(CAUSE_WORDS[s.cause] || s.cause, s.cause === "operator" ? "queued" : "failed")),
-      el("td", { class: "num" }, s.cycles),
-      el("td", { class: "num" }, s.late_replies),
-      el("td", {}, s.detail),
-      el("td", {}, s.next),
-    )));
+    body.replaceChildren(...(rsi.stops || []).slice(0, 20).flatMap((s) => [
+      el("tr", { class: "stop" },
+        el("td", { class: "mono" }, new Date(s.time * 1000).toLocaleTimeString()),
+        el("td", {}, pill(CAUSE_WORDS[s.cause] || s.cause, s.cause === "operator" ? "queued" : "failed")),
+        el("td", { class: "num" }, s.cycles),
+        el("td", { class: "num" }, s.late_replies)),
+      el("tr", { class: "stop-detail" },
+        el("td", { colspan: 4 }, el("span", { class: "detail" }, s.detail), " · ", el("b", {}, "then: "),
+          el("span", { class: "then" }, s.next || "—"))),
+    ]));
   }
 
   function renderJoints(joints) {
@@ -538,9 +598,7 @@
 
   function renderJobs() {
     const rows = S.jobs.map((j) => {
-      const note = j.state === "failed" ? j.error : j.state === "done" && j.kind === "fit" && j.result
-        ? `${j.params.model}${j.result.stats && j.result.stats.order !== null && j.result.stats.order !== undefined ? " m=" + j.result.stats.order : ""}`
-        : j.message || j.params.model || "";
+      const note = jobNote(j);
       const cancel = can("engineer") && (j.state === "queued" || j.state === "running")
         ? el("button", { class: "act danger", type: "button", onclick: () => act(`/api/jobs/${j.id}/cancel`).then(refreshJobs) }, "cancel") : null;
       return el("tr", {},
@@ -553,6 +611,22 @@
       );
     });
     $("jobs").tBodies[0].replaceChildren(...rows);
+  }
+
+  // what a job's note says: its progress message only while it runs; once ended, how it ended
+  function jobNote(j) {
+    if (j.state === "failed") return j.error || "failed";
+    if (j.state === "cancelled") return "cancelled";
+    if (j.state === "done") {
+      if (j.kind === "fit") {
+        const order = j.result && j.result.stats ? j.result.stats.order : null;
+        return `${j.params.model || "model"} stored${order !== null && order !== undefined ? " (m=" + order + ")" : ""}`;
+      }
+      if (j.kind === "diagnosis") return "report ready";
+      return "done";
+    }
+    if (j.state === "queued") return "waiting for a worker";
+    return j.message || j.params.model || "";
   }
 
   async function refreshDatasets() {
@@ -569,7 +643,7 @@
       ] : [];
       return el("tr", {},
         el("td", { class: "num" }, d.id), el("td", { class: "reason", title: d.sha256 }, d.name),
-        el("td", { class: "num" }, d.rows), el("td", {}, split), el("td", {}, ...actions));
+        el("td", { class: "num" }, d.rows), el("td", {}, split), el("td", { class: "acts" }, ...actions));
     });
     $("datasets").tBodies[0].replaceChildren(...rows);
   }
@@ -746,23 +820,34 @@
       el("div", {}, el("b", {}, "unmodelled: "), r.unmodelled.length ? r.unmodelled.join(", ") : "none",
         r.joints && r.joints.length ? ` · joints ${r.joints.join(", ")}` : ""),
       el("div", { class: "muted" }, `noise floor ${fmt(r.noise_floor_mm, 3)} mm · unexplained ${fmt(r.unexplained_rms_mm, 3)} mm · rows fit ${r.rows.fit} / check ${r.rows.check}`),
-      where.summary ? el("div", { style: "margin-top:6px" }, where.summary) : null,
+      where.summary ? whereSummary(where.summary) : null,
     );
     const steps = [{ effect: "nominal", joints: [], check_rms_mm: r.baseline.check_rms_mm, check_max_mm: r.baseline.check_max_mm, shrink_pct: null, significant: true }, ...r.steps];
     $("ladder").tBodies[0].replaceChildren(...steps.map((s) => el("tr", {},
-      el("td", {}, s.effect), el("td", {}, (s.joints || []).join(",")),
+      el("td", {}, stepLabel(s)),
       el("td", { class: "num" }, fmt(s.check_rms_mm, 3)), el("td", { class: "num" }, fmt(s.check_max_mm, 3)),
       el("td", { class: "num" }, s.shrink_pct === null || s.shrink_pct === undefined ? "" : fmt(s.shrink_pct, 1)),
       el("td", {}, s.significant ? pill("yes", "ok") : pill("no", "cancelled")))));
     drawLadder(steps, r.noise_floor_mm);
   }
 
+  // the "where" text: its first sentence, the rest behind a click (it can run to a page)
+  function whereSummary(text) {
+    const cut = text.search(/\.\s/);
+    if (cut < 0 || cut > text.length - 3) return el("div", { style: "margin-top:6px" }, text);
+    return el("details", { class: "where" }, el("summary", {}, text.slice(0, cut + 1)), text.slice(cut + 2));
+  }
+
+  // a step is named by its effect and the joints it acts on: two backlash steps on A2 and on A3
+  // read "backlash A2" and "backlash A3"
+  const stepLabel = (s) => (s.joints && s.joints.length ? `${s.effect} ${s.joints.map((j) => `A${j}`).join(",")}` : s.effect);
+
   function drawLadder(steps, floor) {
     const svg = $("ladder-chart");
     const ns = "http://www.w3.org/2000/svg";
     const w = svg.clientWidth || 400;
-    const h = 150;
-    const pad = { l: 40, r: 6, t: 8, b: 22 };
+    const h = 170;
+    const pad = { l: 40, r: 6, t: 8, b: 34 };
     const top = Math.max(...steps.map((s) => s.check_rms_mm || 0), floor || 0) * 1.1 || 1;
     const bw = (w - pad.l - pad.r) / steps.length;
     const y = (v) => pad.t + (h - pad.t - pad.b) * (1 - v / top);
@@ -776,7 +861,13 @@
     steps.forEach((s, i) => {
       const v = s.check_rms_mm || 0;
       parts.push(mk("rect", { x: pad.l + i * bw + bw * 0.15, y: y(v), width: bw * 0.7, height: Math.max(1, y(0) - y(v)), fill: s.significant ? "#4fa3e0" : "#3a4552" }));
-      parts.push(mk("text", { x: pad.l + i * bw + bw / 2, y: h - 6, fill: "#8796a5", "font-size": 11, "text-anchor": "middle" }, s.effect));
+      // two lines under the bar: the effect, then its joints (long labels would run into each other)
+      const label = mk("text", { x: pad.l + i * bw + bw / 2, y: h - 20, fill: "#8796a5", "font-size": 11, "text-anchor": "middle" });
+      label.append(mk("tspan", { x: pad.l + i * bw + bw / 2 }, s.effect));
+      if (s.joints && s.joints.length) {
+        label.append(mk("tspan", { x: pad.l + i * bw + bw / 2, dy: 13, "font-size": 10 }, s.joints.map((j) => `A${j}`).join(",")));
+      }
+      parts.push(label);
     });
     if (floor) {
       parts.push(mk("line", { x1: pad.l, x2: w - pad.r, y1: y(floor), y2: y(floor), stroke: "#3fb950", "stroke-dasharray": "4 3" }));
@@ -787,6 +878,303 @@
     svg.setAttribute("viewBox", `0 0 ${w} ${h}`);
     svg.replaceChildren(...parts);
   }
+
+  // ------------------------------------------------------------------ cell actions
+
+  function renderCellActions() {
+    const panel = $("p-actions");
+    panel.classList.toggle("hidden", !can("viewer") || S.status === null);
+    for (const node of panel.querySelectorAll("[data-needs]")) {
+      node.classList.toggle("hidden", !can(node.dataset.needs));
+    }
+    $("actions-note").textContent = can("engineer") ? "engineer: all actions"
+      : can("operator") ? "operator: targets and faults (campaigns and calibration need an engineer)"
+        : "viewer: no actions";
+    renderFault();
+    renderGratings();
+  }
+
+  function confirmDialog(title, body, okText) {
+    const dlg = $("confirm");
+    $("confirm-title").textContent = title;
+    $("confirm-body").replaceChildren(...body);
+    $("confirm-ok").textContent = okText;
+    return new Promise((resolve) => {
+      dlg.addEventListener("close", () => resolve(dlg.returnValue === "ok"), { once: true });
+      dlg.returnValue = "";
+      dlg.showModal();
+    });
+  }
+
+  const say = (box, cls, ...parts) => box.replaceChildren(el("div", { class: cls }, ...parts));
+  const clock = () => new Date().toLocaleTimeString();
+
+  function idempotencyKey(prefix) {
+    const bytes = crypto.getRandomValues(new Uint8Array(8));
+    return `${prefix}-${Date.now().toString(36)}-${[...bytes].map((b) => b.toString(16).padStart(2, "0")).join("")}`;
+  }
+
+  // where a refusal points: "row 3, column a3" (row 1 is the header), "target 2, field tx", a JSON path
+  function refusalPlace(b) {
+    const parts = [];
+    if (b.path) parts.push(b.path);
+    else if (b.row !== null && b.row !== undefined) parts.push(`${b.row_label || "row"} ${b.row}`);
+    if (b.column) parts.push(`${b.row_label === "target" ? "field" : "column"} ${b.column}`);
+    return parts.join(", ");
+  }
+
+  // the reason of a refusal without the place its message starts with ("x.csv, row 3, column 'a3': …"),
+  // which the page shows on its own
+  function refusalReason(b, err) {
+    const message = b.message || err.message;
+    const m = message.match(/^[^:]*?, (?:\$\S* )?(?:row|record|line|target) \d+(?:, column '[^']*')?: ([\s\S]*)$/);
+    return m ? m[1] : message;
+  }
+
+  // ---- drop a file: a campaign becomes a data set, a target file is queued
+
+  function splitCsvLine(line) {
+    const cells = [];
+    let cur = "";
+    let quoted = false;
+    for (let i = 0; i < line.length; i++) {
+      const c = line[i];
+      if (quoted) {
+        if (c === '"' && line[i + 1] === '"') { cur += '"'; i++; } else if (c === '"') quoted = false; else cur += c;
+      } else if (c === '"') quoted = true;
+      else if (c === ",") { cells.push(cur); cur = ""; } else cur += c;
+    }
+    cells.push(cur);
+    return cells;
+  }
+
+  function fileKind(name, text) {
+    const body = text.replace(/^\ufeff/, "").trimStart();
+    if (name.toLowerCase().endsWith(".json") || body.startsWith("[") || body.startsWith("{")) return "campaign";
+    const header = splitCsvLine(body.split(/\r?\n/, 1)[0]).map((h) => h.trim());
+    return ["x", "y", "z"].every((c) => header.includes(c)) ? "campaign" : "targets";
+  }
+
+  // the refused file around the row at fault, the cell at fault outlined (CSV only)
+  function excerpt(text, row, column) {
+    const lines = text.replace(/^\ufeff/, "").split(/\r?\n/);
+    if (!row || row > lines.length) return null;
+    const header = splitCsvLine(lines[0]).map((h) => h.trim());
+    const col = column ? header.indexOf(column) : -1;
+    const first = Math.max(2, row - 2);
+    const last = Math.min(lines.length, row + 1);
+    const tr = (n, cells, head) => el("tr", { class: n === row ? "bad-row" : "" },
+      el(head ? "th" : "td", { class: "num muted" }, n),
+      ...cells.map((c, k) => el(head ? "th" : "td", { class: n === row && (k === col || col < 0 && row === 1) ? "bad-cell" : "" }, c)));
+    const rows = [tr(1, lines[0] === undefined ? [] : splitCsvLine(lines[0]), true)];
+    for (let n = first; n <= last; n++) if (lines[n - 1] !== "" || n === row) rows.push(tr(n, splitCsvLine(lines[n - 1] || ""), false));
+    return el("div", { class: "excerpt" }, el("table", { "data-testid": "refusal-excerpt" }, el("tbody", {}, ...rows)));
+  }
+
+  async function uploadFile(file) {
+    const box = $("upload-result");
+    const text = await file.text();
+    const kind = fileKind(file.name, text);
+    const needs = kind === "campaign" ? "engineer" : "operator";
+    if (!can(needs)) {
+      say(box, "bad", `${file.name} reads as a ${kind === "campaign" ? "campaign" : "target file"}: that needs the ${needs} role`);
+      return;
+    }
+    const isJson = file.name.toLowerCase().endsWith(".json");
+    say(box, "muted", `${kind === "campaign" ? "checking" : "queueing"} ${file.name}…`);
+    try {
+      const name = encodeURIComponent(file.name.slice(0, 200));
+      if (kind === "campaign") {
+        const d = await api(`/api/datasets?name=${name}`, {
+          method: "POST", body: text, headers: { "Content-Type": isJson ? "application/json" : "text/csv" },
+        });
+        const split = d.summary && d.summary.split && d.summary.split.column ? `, ${d.summary.split.fit} fit / ${d.summary.split.check} check` : "";
+        say(box, "ok", `${file.name}: stored as data set ${d.id} (${d.rows} rows${split})`);
+        refreshDatasets();
+      } else {
+        const b = await api(`/api/batches/file?name=${name}`, {
+          method: "POST", body: text, headers: { "Content-Type": "text/csv", "Idempotency-Key": idempotencyKey("file") },
+        });
+        say(box, "ok", `${file.name}: ${b.targets.length} target${b.targets.length === 1 ? "" : "s"} queued as batch ${b.id}`);
+        refreshTargets();
+      }
+    } catch (err) {
+      const b = err.body || {};
+      const place = refusalPlace(b);
+      box.replaceChildren(
+        el("div", { class: "bad", "data-testid": "refusal" }, el("b", {}, `${file.name} refused`), place ? ` at ${place}` : "", ": ", refusalReason(b, err)),
+        isJson ? null : excerpt(text, b.row, b.column),
+      );
+    }
+  }
+
+  const drop = $("drop");
+  drop.addEventListener("dragover", (ev) => { ev.preventDefault(); drop.classList.add("over"); });
+  drop.addEventListener("dragleave", () => drop.classList.remove("over"));
+  drop.addEventListener("drop", (ev) => {
+    ev.preventDefault();
+    drop.classList.remove("over");
+    const file = ev.dataTransfer && ev.dataTransfer.files[0];
+    if (file) uploadFile(file);
+  });
+  drop.addEventListener("keydown", (ev) => { if (ev.key === "Enter" || ev.key === " ") { ev.preventDefault(); $("file-input").click(); } });
+  $("file-input").addEventListener("change", (ev) => {
+    const file = ev.target.files[0];
+    if (file) uploadFile(file);
+    ev.target.value = "";
+  });
+
+  // ---- one target from the form
+
+  const FORMS = { axes: ["a1", "a2", "a3", "a4", "a5", "a6"], tcp: ["tx", "ty", "tz", "ta", "tb", "tc"] };
+
+  function renderTargetFields() {
+    const names = FORMS[$("t-form").value];
+    $("t-fields").replaceChildren(...names.map((n) => el("label", {}, n,
+      el("input", { id: `t-${n}`, name: n, inputmode: "decimal", placeholder: n.startsWith("t") && "abc".includes(n[1]) ? "optional" : "" }))));
+  }
+  $("t-form").addEventListener("change", renderTargetFields);
+  renderTargetFields();
+
+  $("t-current").addEventListener("click", () => {
+    const joints = (S.snapshot && S.snapshot.joints) || [];
+    $("t-form").value = "axes";
+    renderTargetFields();
+    for (const j of joints) if (j.axis_deg !== null && j.axis_deg !== undefined) $(`t-a${j.joint}`).value = Number(j.axis_deg).toFixed(4);
+  });
+
+  $("target-form").addEventListener("submit", async (ev) => {
+    ev.preventDefault();
+    const box = $("target-result");
+    const record = {};
+    const pose = $("t-pose").value.trim();
+    if (pose) record.pose_id = pose;
+    for (const n of FORMS[$("t-form").value]) {
+      const input = $(`t-${n}`);
+      input.classList.remove("bad");
+      const v = input.value.trim();
+      if (v === "") continue;
+      const x = Number(v);
+      record[n] = v !== "" && Number.isFinite(x) ? x : v; // the service names what is wrong with a non-number
+    }
+    const button = $("t-queue");
+    button.disabled = true;
+    try {
+      const b = await api("/api/batches", {
+        method: "POST", body: JSON.stringify({ targets: [record] }),
+        headers: { "Content-Type": "application/json", "Idempotency-Key": idempotencyKey("form") },
+      });
+      const t = b.targets[0];
+      say(box, "ok", `target ${t.id}${pose ? ` (${pose})` : ""} queued at ${clock()}`);
+      refreshTargets();
+    } catch (err) {
+      const b = err.body || {};
+      const field = b.column || (b.details && b.details[0] && b.details[0].field) || null;
+      const name = field ? String(field).split(".").pop() : null;
+      if (name && $(`t-${name}`)) $(`t-${name}`).classList.add("bad");
+      const place = name ? `field ${name}` : "";
+      say(box, "bad", el("b", {}, "refused"), place ? ` at ${place}` : "", ": ", refusalReason(b, err));
+    } finally {
+      button.disabled = false;
+    }
+  });
+
+  // ---- fault: the latched fault's reason, reset with a confirmation
+
+  function faultLatched() {
+    return S.snapshot && S.snapshot.state === "fault" ? (S.snapshot.hold_reason || "a fault is latched") : null;
+  }
+
+  function renderFault() {
+    const reason = faultLatched();
+    const text = $("fault-text");
+    if (reason) text.replaceChildren(pill("fault"), " ", el("span", { class: "fault-on" }, reason));
+    else text.replaceChildren(el("span", { class: "muted" }, S.snapshot ? `no fault latched (${S.snapshot.state})` : "—"));
+    $("reset-btn").disabled = !reason;
+  }
+
+  $("reset-btn").addEventListener("click", async () => {
+    const reason = faultLatched();
+    if (!reason) return;
+    const ok = await confirmDialog("Reset the latched fault?", [
+      el("p", {}, el("b", {}, "Fault: "), reason),
+      el("p", { class: "muted" }, "Reset it only once its cause is cleared. A stop must also be cleared on the robot " +
+        "(acknowledge on the smartPAD, start the program again: RSI_ON)."),
+    ], "Reset fault");
+    if (!ok) return;
+    const box = $("fault-result");
+    try {
+      const r = await api("/api/loop/reset-fault", { method: "POST" });
+      if (r.cleared) say(box, "ok", `${r.cleared.kind} (${r.cleared.reaction}) reset at ${clock()}`);
+      else say(box, "muted", "no fault was latched any more");
+      if (r.daemon) applySnapshot(r.daemon);
+      refreshStatus();
+    } catch (err) {
+      say(box, "bad", `reset refused: ${(err.body && err.body.message) || err.message}`);
+    }
+  });
+
+  // ---- grating calibration with its progress
+
+  async function refreshGratings() {
+    if (!can("viewer")) return;
+    try {
+      S.gratings = await api("/api/gratings");
+    } catch (err) {
+      S.gratings = { unavailable: (err.body && err.body.message) || err.message };
+    }
+    renderGratings();
+    if (S.gratings.calibrating) schedule("gratings", refreshGratings, 700);
+  }
+
+  function renderGratings() {
+    const g = S.gratings;
+    const text = $("grating-text");
+    const bar = $("grating-progress");
+    const button = $("calibrate-btn");
+    if (!g) { text.textContent = "—"; bar.classList.add("hidden"); button.disabled = true; return; }
+    if (g.unavailable) { text.textContent = g.unavailable; bar.classList.add("hidden"); button.disabled = true; return; }
+    const cal = g.calibration;
+    const inUse = cal
+      ? `in use: version ${cal.version}${cal.created_at ? ` of ${new Date(cal.created_at).toLocaleString()}` : ""}; residual rms ` +
+        cal.joints.map((m) => `A${m.joint} ${m.residual_rms_deg.toFixed(4)}°`).join(", ")
+      : "no calibration in use";
+    const parts = [el("div", {}, inUse)];
+    if (g.calibrating) {
+      const done = g.poses_measured ?? 0;
+      const total = g.poses_total;
+      parts.unshift(el("div", { "data-testid": "grating-progress" }, el("b", {}, "calibrating: "),
+        total ? `${done} of ${total} poses measured` : "starting"));
+      bar.classList.remove("hidden");
+      $("grating-bar").style.width = `${total ? Math.round((100 * done) / total) : 2}%`;
+    } else {
+      bar.classList.add("hidden");
+      if (g.last_error) parts.push(el("div", { class: "fault-on" }, `last attempt failed: ${g.last_error}`));
+      else if (g.finished_at && cal) parts.push(el("div", { class: "muted" }, `last run ended ${new Date(g.finished_at * 1000).toLocaleTimeString()}`));
+    }
+    text.replaceChildren(...parts);
+    const busy = S.snapshot && ["compensating", "moving", "settling"].includes(S.snapshot.state);
+    button.disabled = Boolean(g.calibrating || busy);
+    button.title = busy ? "a target is active; calibrate between targets" : "";
+  }
+
+  $("calibrate-btn").addEventListener("click", async () => {
+    const ok = await confirmDialog("Calibrate the gratings?", [
+      el("p", {}, "The robot moves through the calibration poses near its home position (each approached " +
+        "from both sides) while the gratings are read; no target runs meanwhile."),
+      el("p", { class: "muted" }, "The new calibration replaces the one in use when it succeeds."),
+    ], "Calibrate");
+    if (!ok) return;
+    const box = $("grating-result");
+    try {
+      S.gratings = await api("/api/gratings/calibrate", { method: "POST" });
+      say(box, "muted", `started at ${clock()}`);
+      renderGratings();
+      schedule("gratings", refreshGratings, 500);
+    } catch (err) {
+      say(box, "bad", `not started: ${(err.body && err.body.message) || err.message}`);
+    }
+  });
 
   // ------------------------------------------------------------------ event log, actions, clock
 
@@ -802,6 +1190,7 @@
   }
 
   function renderActions() {
+    renderCellActions();
     renderTargets();
     renderJobs();
     renderDatasets();

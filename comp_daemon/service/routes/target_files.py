@@ -1,0 +1,143 @@
+"""Queue a target file as a batch: ``POST /api/batches/file`` (operator), the dashboard's drop zone.
+
+The body is a target file as ``compensate`` reads it (CSV, ``text/csv``; the data set format with
+``kind="targets"``: ``pose_id`` and axis values ``a1..a6``, or a wanted TCP ``tx, ty, tz`` with an
+optional ``ta, tb, tc``; ``payload_kg`` when given). It is read by the project's reader, so a refused
+file is answered 422 with the reader's message and the file's row (header = row 1) and column; then
+every target is checked as ``POST /api/batches`` checks it (reach, wrist singularity), and a refusal
+there names the file's row too. Nothing of a refused file is queued. The ``Idempotency-Key`` rule is
+that of ``POST /api/batches`` (the same key and file: the same batch, 200).
+"""
+
+from __future__ import annotations
+
+from typing import Annotated, Any
+
+import numpy as np
+from fastapi import APIRouter, Depends, Query, Request, Response
+
+from comp_daemon.common.logs import get_logger
+from comp_daemon.data.columns import DatasetError
+from comp_daemon.data.readers import parse_dataset
+from comp_daemon.data.table import Dataset
+from comp_daemon.service.auth import Principal, require
+from comp_daemon.service.config import Role
+from comp_daemon.service.routes.targets import (
+    IdempotencyKey,
+    compensations,
+    request_sha256,
+    validate_targets,
+)
+from comp_daemon.service.schemas import BatchOut, ErrorOut
+from comp_daemon.service.state import ApiError, ServiceState, get_state
+
+router = APIRouter(tags=["targets"])
+_log = get_logger("comp_daemon.api.targets")
+
+State = Annotated[ServiceState, Depends(get_state)]
+Operator = Annotated[Principal, Depends(require(Role.operator))]
+
+_CSV_TYPES = ("text/csv", "application/csv", "text/plain")
+_BODY: dict[str, Any] = {
+    "requestBody": {
+        "required": True,
+        "description": "A target file (CSV): pose_id and a1..a6, or tx, ty, tz with optional ta, tb, tc.",
+        "content": {"text/csv": {"schema": {"type": "string"}}},
+    }
+}
+
+
+def file_records(dataset: Dataset) -> list[dict[str, Any]]:
+    """The targets of a target file as batch records (the fields of ``POST /api/batches``)."""
+    if dataset.a_deg is not None and dataset.target_xyz_mm is not None:
+        raise DatasetError(
+            "a queued target gives either axis values a1..a6 or a TCP tx, ty, tz, not both",
+            source=dataset.source,
+            row=int(dataset.row_numbers[0]),
+            column="tx",
+        )
+    payload = np.asarray(dataset.payload_kg, dtype=float)
+    records: list[dict[str, Any]] = []
+    for i in range(len(dataset)):
+        record: dict[str, Any] = {}
+        if dataset.pose_id is not None and dataset.pose_id[i]:
+            record["pose_id"] = dataset.pose_id[i]
+        if dataset.a_deg is not None:
+            record |= {f"a{k + 1}": float(v) for k, v in enumerate(dataset.a_deg[i])}
+        else:
+            assert dataset.target_xyz_mm is not None  # kind="targets": one of the two
+            record |= dict(zip(("tx", "ty", "tz"), map(float, dataset.target_xyz_mm[i]), strict=True))
+            if dataset.target_abc_deg is not None:
+                record |= dict(zip(("ta", "tb", "tc"), map(float, dataset.target_abc_deg[i]), strict=True))
+        if payload.size and payload[i] != 0.0:
+            record["payload_kg"] = float(payload[i])
+        records.append(record)
+    return records
+
+
+def _read(text: bytes, name: str, svc: ServiceState) -> list[dict[str, Any]]:
+    """Read and check the file; a refusal names the file's row (header = row 1) and column."""
+    dataset = parse_dataset(text, source=name, limits_deg=svc.robot.axis_limits_deg, kind="targets")
+    records = file_records(dataset)
+    limit = svc.settings.http.max_batch_targets
+    if len(records) > limit:
+        raise ApiError(
+            422,
+            "invalid_request",
+            f"{len(records)} targets is over the limit of {limit} per batch (http.max_batch_targets)",
+        )
+    try:
+        validate_targets(records, svc.robot, svc.settings.compensation.limits())
+    except DatasetError as exc:
+        index = (exc.row or 1) - 1
+        raise DatasetError(
+            exc.problem, source=name, row=int(dataset.row_numbers[index]), column=exc.column
+        ) from None
+    return records
+
+
+@router.post(
+    "/batches/file",
+    status_code=201,
+    response_model=BatchOut,
+    summary="Queue a target file (CSV) as a batch, once per Idempotency-Key (operator)",
+    openapi_extra=_BODY,
+    responses={
+        200: {"model": BatchOut, "description": "the batch queued earlier under this key"},
+        409: {"model": ErrorOut, "description": "the key was used with another file"},
+        413: {"model": ErrorOut, "description": "body over http.max_upload_bytes"},
+        415: {"model": ErrorOut, "description": "not text/csv"},
+        422: {
+            "model": ErrorOut,
+            "description": "a refused file; row (header = row 1) and column name the fault",
+        },
+    },
+)
+async def post_target_file(
+    request: Request,
+    response: Response,
+    svc: State,
+    who: Operator,
+    idempotency_key: IdempotencyKey,
+    name: Annotated[str, Query(min_length=1, max_length=200, description="the file's name")] = "targets.csv",
+) -> BatchOut:
+    ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
+    if ctype not in _CSV_TYPES:
+        raise ApiError(415, "unsupported_media_type", "send the target file as text/csv")
+    limit = svc.settings.http.max_upload_bytes
+    body = bytearray()
+    async for chunk in request.stream():
+        body += chunk
+        if len(body) > limit:
+            raise ApiError(
+                413, "too_large", f"upload over the limit of {limit} bytes (http.max_upload_bytes)"
+            )
+    records = await svc.run(_read, bytes(body), name, svc)
+    batch, targets, created = await svc.run(
+        svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
+    )
+    if created:
+        _log.info("target file queued", batch_id=batch.id, size=batch.size, file=name, by=who.name)
+    else:
+        response.status_code = 200
+    return BatchOut.of(batch, targets, await svc.run(compensations, svc.store, targets))
