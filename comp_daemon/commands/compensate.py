@@ -29,6 +29,7 @@ from comp_daemon.models.compensation import (
     compensate,
     nominal_targets,
 )
+from comp_daemon.preparation.campaign import prepare_directions
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, load_robot
 
 __all__ = ["compensate_targets", "compensation_options", "register"]
@@ -92,8 +93,12 @@ def _compensate(args: argparse.Namespace) -> int:
     model = loaded.model
     targets = read_data(args.targets, model.robot, 0, "targets")
     n = len(targets)
-    wanted, result, limits = compensate_targets(model, targets, args)
-    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    # a nominal program (a1..a6) is run in its row order: its directions are that order's, as a fit's
+    targets, directions = prepare_directions(targets, need=uses_approach_directions(model))
+    if directions.note:
+        print(f"{targets.source}: {directions.note}")
+    wanted, result, limits = compensate_targets(model, targets, args, directions.unknown)
+    dir_ = _directions(targets, directions.unknown)
     if dir_ is None and uses_approach_directions(model):
         print(
             f"{targets.source}: no dir1..dir6 columns: the model's backlash is not applied (approach "
@@ -141,13 +146,24 @@ def _compensate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _directions(targets: Dataset, unknown_dir: np.ndarray | None) -> np.ndarray | None:
+    """The targets' approach directions as floats, 0 where an inferred one is unknown."""
+    if targets.dir is None:
+        return None
+    dir_ = targets.dir.astype(float)
+    if unknown_dir is not None:
+        dir_[unknown_dir] = 0.0
+    return dir_
+
+
 def compensate_targets(
-    model: ErrorModel, targets: Dataset, args: argparse.Namespace
+    model: ErrorModel, targets: Dataset, args: argparse.Namespace, unknown_dir: np.ndarray | None = None
 ) -> tuple[np.ndarray, CompensationResult, CompensationLimits]:
     """The wanted TCPs (robot base frame), the compensation and its limits of a target file's rows
     (``a1..a6`` nominal program, or ``tx, ty, tz[, ta, tb, tc]``) by :func:`compensate`, with the
     options of :func:`compensation_options`; refusals, unreachable and unconverged targets as
-    :class:`UserError` naming the rows."""
+    :class:`UserError` naming the rows. ``unknown_dir`` marks inferred approach directions that
+    are unknown (no backlash offset there)."""
     n = len(targets)
     if n == 0:
         raise UserError(f"{targets.source}: no targets")
@@ -169,7 +185,7 @@ def compensate_targets(
         )
     except ValueError as exc:
         raise UserError(str(exc)) from None
-    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    dir_ = _directions(targets, unknown_dir)
     try:
         result = compensate(
             model,

@@ -84,7 +84,7 @@ from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
-from comp_daemon.models.registration import detect_frame, rigid_registration, scale_problem
+from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -99,8 +99,11 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
-def observations_from_dataset(dataset: Dataset) -> Observations:
-    """The arrays of a measurement data set; pose groups by ``pose_id``, else by identical axes."""
+def observations_from_dataset(dataset: Dataset, dir: FloatArray | None = None) -> Observations:
+    """The arrays of a measurement data set; pose groups by ``pose_id``, else by identical axes.
+
+    ``dir`` (n, 6): the approach directions to use (the prepared ones, 0 where unknown); by
+    default the data set's ``dir`` columns."""
     if dataset.a_deg is None or dataset.xyz_mm is None:
         raise ValueError(f"{dataset.source}: diagnosis needs axis values a1..a6 and measured x, y, z")
     if dataset.pose_id is not None:
@@ -116,13 +119,17 @@ def observations_from_dataset(dataset: Dataset) -> Observations:
     return Observations(
         a_deg=np.array(dataset.a_deg, dtype=float),
         xyz_mm=np.array(dataset.xyz_mm, dtype=float),
-        dir=None if dataset.dir is None else np.array(dataset.dir, dtype=float),
+        dir=np.array(dir, dtype=float) if dir is not None else _dir_columns(dataset),
         payload_kg=np.array(dataset.payload_kg, dtype=float),
         temp_c=None if dataset.temp_c is None else np.array(dataset.temp_c, dtype=float),
         pose_group=np.asarray(group, dtype=np.int64).reshape(-1),
         clock=clock,
         clock_name=clock_name,
     )
+
+
+def _dir_columns(dataset: Dataset) -> FloatArray | None:
+    return None if dataset.dir is None else np.array(dataset.dir, dtype=float)
 
 
 def _shrink(before: float, after: float) -> float:
@@ -159,47 +166,30 @@ def _noise_floor_from_repeats(obs: Observations) -> float | None:
 def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions | None = None) -> Diagnosis:
     """Diagnose the gap between ``robot``'s nominal twin and the measurements in ``dataset``."""
     options = options or DiagnoseOptions()
-    obs = observations_from_dataset(dataset)
-    split = dataset.split_or_draw(seed=options.seed, check_fraction=options.check_fraction)
-    fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
-    if len(check_rows) == 0:
-        if split.drawn:
-            raise ValueError(
-                f"{dataset.source}: the {len(dataset)} rows are one pose (repeats of the same axis "
-                "values): no pose is left to hold out as check rows; the diagnosis needs poses spread "
-                "over the workspace"
-            )
-        raise ValueError(
-            f"{dataset.source}: the split column marks no row 'check'; the diagnosis needs check rows"
-        )
+    prepared = prepare_campaign(
+        dataset,
+        robot,
+        PrepareOptions(
+            frame=options.frame,
+            need_directions=True,
+            infer_directions=options.infer_directions,
+            min_fit_rows=N_PARAMS,
+            min_fit_rows_for="parameters of the geometric step",
+            seed=options.seed,
+            check_fraction=options.check_fraction,
+        ),
+    )
+    obs = observations_from_dataset(prepared.dataset, prepared.dir_of(np.arange(len(dataset))))
+    split = prepared.split
+    fit_rows, check_rows = prepared.fit_rows, prepared.check_rows
     mass = MassModel.from_robot(robot)
     nominal = KinematicParams.from_robot(robot)
     effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
-    scale = scale_problem(predict_mm(mass, nominal, effects0, obs), obs.xyz_mm)
-    if scale is not None:
-        raise ValueError(f"{dataset.source}: {scale}")
-    if len(fit_rows) < N_PARAMS:
-        if split.drawn:
-            need = int(np.ceil(N_PARAMS / (1.0 - options.check_fraction)))
-            how = (
-                f"{len(check_rows)} of the {len(dataset)} rows are held out as check rows; give at least "
-                f"{need} rows, or a split column with at least {N_PARAMS} 'fit' rows"
-            )
-        else:
-            how = f"the split column marks {len(fit_rows)} rows 'fit'; at least {N_PARAMS} are needed"
-        raise ValueError(
-            f"{dataset.source}: {len(fit_rows)} fit rows, fewer than the {N_PARAMS} parameters "
-            f"of the geometric step ({how})"
-        )
 
-    # 1. frame
+    # 1. frame (prepared: registered on the fit rows when the data are in a tracker's frame)
     obs_fit = obs.take(fit_rows)
-    p_nom = predict_mm(mass, nominal, effects0, obs_fit)
-    rms_nominal = float(np.sqrt(np.mean(np.sum((obs_fit.xyz_mm - p_nom) ** 2, axis=1))))
-    frame: str = options.frame
-    if frame == "auto":
-        frame = detect_frame(p_nom, obs_fit.xyz_mm)
-    world_T_base = rigid_registration(p_nom, obs_fit.xyz_mm) if frame == "tracker" else np.eye(4)
+    frame, world_T_base = prepared.frame, prepared.world_T_base
+    rms_nominal = prepared.nominal_fit_rms_mm
     start_params = nominal.with_base(world_T_base)
 
     # 2. geometric step: identifiability, then Gauss–Newton
@@ -271,6 +261,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         noise_floor_mm=floor,
         noise_floor_source=floor_source,
         where=where,
+        directions=prepared.directions,
         residual_structure=structure,
         remainder_rows="check rows, and fit rows out of fold",
         time_nuisance=ctx.nuisance is not None,

@@ -19,6 +19,7 @@ from comp_daemon.diagnosis.fitting import FitResult, Observations
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.preparation.campaign import Directions
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -58,6 +59,7 @@ class DiagnoseOptions:
     tracker_sigma_mm: float | None = None  # declared tracker uncertainty (σ per axis), if known
     effects: tuple[str, ...] | None = None  # the effects to try (None: the whole catalogue)
     remainder_model: bool = True  # try the joint-space remainder model after the ladder
+    infer_directions: bool = True  # without dir columns, approach directions from the pose order
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -161,6 +163,7 @@ class Diagnosis:
     remainder_rows: str = ""  # which rows' remainder residual_structure tested
     time_nuisance: bool = False  # the effects were tested with a time nuisance in their base
     remainder_model: RemainderModel | None = None  # joint-space model of the remainder (kept or not)
+    directions: Directions | None = None  # where the approach directions come from (the preparation)
 
     @property
     def significant_steps(self) -> list[Step]:
@@ -193,6 +196,7 @@ class Diagnosis:
                 "measured_in": self.frame,
                 "world_T_base": [[rounded(v, 9) for v in row] for row in self.world_T_base],
             },
+            **({} if self.directions is None else {"directions": self.directions.to_json()}),
             "clock": {
                 "from": self.obs.clock_name,
                 "unit": "h since the first t_s" if self.obs.clock_name == "t_s" else "row",
