@@ -63,6 +63,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import Dataset
+from comp_daemon.diagnosis.agreement import Agreement, fit_check_agreement
 from comp_daemon.diagnosis.candidates import (
     JOINTS,
     Candidate,
@@ -225,6 +226,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     structure = _structure(ctx, dataset, steps)
     skipped = group_skips(reasons)
     by_joint = {j: [n for c in cands if c.joint == j and c not in reasons for n in c.names] for j in JOINTS}
+    agreement = _agreement(ctx, prepared.dataset, steps)
     baseline = Baseline(
         check_rms_mm=base_rms,
         check_max_mm=base_max,
@@ -232,6 +234,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         skipped=skipped,
         noise_floor_source=floor_source,
         structure=describe_structure(structure),
+        disagreement=agreement.describe(),
     )
     where = locate(obs, mass, steps, baseline, ctx.problem, by_joint)
     flange = flange_errors(mass, steps[0].fit, obs, dataset.reflectors_mm, fit_rows, check_rows, robot, frame)
@@ -262,6 +265,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         noise_floor_source=floor_source,
         where=where,
         directions=prepared.directions,
+        agreement=agreement,
         residual_structure=structure,
         remainder_rows="check rows, and fit rows out of fold",
         time_nuisance=ctx.nuisance is not None,
@@ -476,6 +480,22 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     for j in JOINTS:
         columns[f"dir{j}"] = None if obs.dir is None else obs.dir[:, j - 1]
     return residual_structure(resid, columns, obs.pose_group, folds=ctx.options.folds, seed=ctx.options.seed)
+
+
+def _agreement(ctx: Context, dataset: Dataset, steps: list[Step]) -> Agreement:
+    """Whether the fit and check rows agree along the ladder (:mod:`comp_daemon.diagnosis.agreement`)."""
+    ladder = [steps[0], *(s for s in steps[1:] if s.significant)]
+    final = final_step(steps)
+    predicted = predict_mm(ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check)
+    return fit_check_agreement(
+        [s.check_rms_mm for s in ladder],
+        [s.cv_rms_mm for s in ladder],
+        ctx.obs,
+        ctx.fit_rows,
+        ctx.check_rows,
+        predicted,
+        dataset,
+    )
 
 
 def _remainder(ctx: Context, steps: list[Step]) -> RemainderModel:

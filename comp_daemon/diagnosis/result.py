@@ -15,6 +15,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
+from comp_daemon.diagnosis.agreement import Agreement
 from comp_daemon.diagnosis.fitting import FitResult, Observations
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
@@ -164,6 +165,7 @@ class Diagnosis:
     time_nuisance: bool = False  # the effects were tested with a time nuisance in their base
     remainder_model: RemainderModel | None = None  # joint-space model of the remainder (kept or not)
     directions: Directions | None = None  # where the approach directions come from (the preparation)
+    agreement: Agreement | None = None  # whether the fit and check rows tell the same story
 
     @property
     def significant_steps(self) -> list[Step]:
@@ -214,6 +216,7 @@ class Diagnosis:
             "noise_floor_mm": None if self.noise_floor_mm is None else rounded(self.noise_floor_mm),
             "noise_floor_source": self.noise_floor_source,
             "residual_structure": [r.to_json() for r in self.residual_structure],
+            **({} if self.agreement is None else {"fit_check_agreement": self.agreement.to_json()}),
             "remainder_rows": self.remainder_rows,
             **({} if self.remainder_model is None else {"remainder_model": self.remainder_model.to_json()}),
             "unidentifiable": self.unidentifiable,

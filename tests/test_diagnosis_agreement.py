@@ -1,0 +1,62 @@
+"""Fit and check rows that disagree stop the diagnosis's advice and say what differs between them."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from diagnosis_campaigns import NOISE_FLOOR_MM, make_campaign
+
+from comp_daemon.diagnosis import diagnose
+from comp_daemon.diagnosis.where import signed_pct
+
+
+def _rotation_z(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def test_check_rows_in_another_frame_stop_the_advice_and_name_the_frame() -> None:
+    camp = make_campaign("kr210", 61, [("ratio", 2, 5 * NOISE_FLOOR_MM)])
+    ds = camp.dataset
+    check = ds.check_rows()
+    xyz = np.array(ds.xyz_mm)
+    # the tracker moved before the check rows were measured: 0.05° about z and 0.8 mm
+    xyz[check] = xyz[check] @ _rotation_z(0.05).T + np.array([0.8, -0.3, 0.2])
+    moved = dataclasses.replace(ds, xyz_mm=xyz)
+    doc = diagnose(moved, camp.robot).to_json()
+    agreement = doc["fit_check_agreement"]
+    assert agreement["agree"] is False
+    assert any(d.startswith("frame: a rigid motion of the check rows alone") for d in agreement["differences"])
+    assert agreement["check_frame"]["share_pct"] > 50
+    summary = doc["where"]["summary"]
+    assert "The fit and check rows disagree" in summary and "To act:" not in summary
+
+
+def test_check_rows_from_the_same_campaign_agree_and_keep_the_advice() -> None:
+    camp = make_campaign("kr210", 61, [("ratio", 2, 5 * NOISE_FLOOR_MM)])
+    doc = diagnose(camp.dataset, camp.robot).to_json()
+    assert doc["fit_check_agreement"]["agree"] is True
+    assert doc["unmodelled"] == ["ratio"] and "To act:" in doc["where"]["summary"]
+
+
+def test_check_rows_outside_the_fit_rows_axis_range_are_counted() -> None:
+    camp = make_campaign("kr210", 62, [("ratio", 2, 5 * NOISE_FLOOR_MM)])
+    ds = camp.dataset
+    a1 = ds.a_deg[:, 0]
+    # the check rows are the poses with the largest A1, and they are measured in a moved frame
+    cut = np.quantile(a1, 0.7)
+    split = np.where(a1 > cut, "check", "fit")
+    xyz = np.array(ds.xyz_mm)
+    xyz[a1 > cut] += np.array([1.5, 0.0, 0.0])
+    doc = diagnose(dataclasses.replace(ds, split=split, xyz_mm=xyz), camp.robot).to_json()
+    agreement = doc["fit_check_agreement"]
+    assert agreement["agree"] is False
+    assert agreement["check_rows_outside_fit_ranges"]["a1"] > 0
+    assert any(d.startswith("axis ranges:") and "A1" in d for d in agreement["differences"])
+
+
+def test_signed_percentages_have_one_sign() -> None:
+    assert signed_pct(-6.2) == "−6 %"
+    assert signed_pct(4.4) == "+4 %"
+    assert signed_pct(0.2) == "0 %"
