@@ -27,7 +27,8 @@ def test_check_rows_in_another_frame_stop_the_advice_and_name_the_frame() -> Non
     doc = diagnose(moved, camp.robot).to_json()
     agreement = doc["fit_check_agreement"]
     assert agreement["agree"] is False
-    assert any(d.startswith("frame: a rigid motion of the check rows alone") for d in agreement["differences"])
+    frame = "frame: a rigid motion of the check rows alone"
+    assert any(d.startswith(frame) for d in agreement["differences"])
     assert agreement["check_frame"]["share_pct"] > 50
     summary = doc["where"]["summary"]
     assert "The fit and check rows disagree" in summary and "To act:" not in summary

@@ -74,13 +74,21 @@ from comp_daemon.diagnosis.candidates import (
     group_skips,
     unidentifiable_candidates,
 )
-from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize, predict_mm
+from comp_daemon.diagnosis.fitting import (
+    FitResult,
+    Observations,
+    at_fit,
+    linearize,
+    predict_mm,
+    project_out,
+    target_columns,
+)
 from comp_daemon.diagnosis.remainder import RemainderModel, judge_remainder
 from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
 from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
-from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets
+from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets, target_offsets_mm
 from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
@@ -188,19 +196,26 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
 
     # 1. frame (prepared: registered on the fit rows when the data are in a tracker's frame)
-    obs_fit = obs.take(fit_rows)
     frame, world_T_base = prepared.frame, prepared.world_T_base
     rms_nominal = prepared.nominal_fit_rms_mm
     start_params = nominal.with_base(world_T_base)
+    start = FitResult(start_params, effects0, rms_nominal, 0, True)
+    # every target: the further ones as rows of their own, at their place on the flange
+    more = prepared.dataset.more_xyz_mm
+    obs_all, fit_all, check_all = obs, fit_rows, check_rows
+    if more is not None:
+        offsets = target_offsets_mm(mass, start, obs.take(fit_rows), more[fit_rows])
+        obs_all, fit_all, check_all = _every_target(obs, more, offsets, fit_rows, check_rows)
 
     # 2. geometric step: identifiability, then Gauss–Newton
-    _, jac0 = linearize(mass, start_params, effects0, [], obs_fit)
-    ident = analyze_identifiability(jac0, PARAM_NAMES, priority=mdh_priority(start_params))
+    obs_all_fit = obs_all.take(fit_all)
+    _, jac0 = linearize(mass, start_params, effects0, [], obs_all_fit)
+    (jac0_free,) = project_out(target_columns(mass, start_params, effects0, obs_all_fit), jac0)
+    ident = analyze_identifiability(jac0_free, PARAM_NAMES, priority=mdh_priority(start_params))
     geo_free = np.zeros(N_PARAMS, dtype=bool)
     geo_free[ident.identifiable_index] = True
     unidentifiable = [r.describe() for r in ident.removed]
-    ctx = Context(mass, obs, fit_rows, check_rows, geo_free, options)
-    start = FitResult(start_params, effects0, rms_nominal, 0, True)
+    ctx = Context(mass, obs_all, fit_all, check_all, geo_free, options)
     base_rms, base_max = ctx.check_stats(start)
     geo_fit = ctx.fit(start, [])
     step_at, searched = _search_step(ctx, geo_fit)
@@ -226,7 +241,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     structure = _structure(ctx, dataset, steps)
     skipped = group_skips(reasons)
     by_joint = {j: [n for c in cands if c.joint == j and c not in reasons for n in c.names] for j in JOINTS}
-    agreement = _agreement(ctx, prepared.dataset, steps)
+    agreement = _agreement(ctx, obs, fit_rows, check_rows, prepared.dataset, steps)
     baseline = Baseline(
         check_rms_mm=base_rms,
         check_max_mm=base_max,
@@ -281,7 +296,10 @@ def _identifiable(
     The others are added to ``reasons``.
     """
     all_names = [n for c in avail for n in c.names]
-    _, jac_geo = linearize(ctx.mass, geo_fit.params, geo_fit.effects, all_names, ctx.obs_fit)
+    obs = at_fit(ctx.obs_fit, geo_fit)
+    _, jac_geo = linearize(ctx.mass, geo_fit.params, geo_fit.effects, all_names, obs)
+    if obs.target is not None:  # what the targets' places on the flange absorb is not identifiable
+        (jac_geo,) = project_out(target_columns(ctx.mass, geo_fit.params, geo_fit.effects, obs), jac_geo)
     jac_flat = jac_geo.reshape(-1, jac_geo.shape[2])
     offsets: dict[Candidate, NDArray[np.int64]] = {}
     pos = N_PARAMS
@@ -406,7 +424,10 @@ def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
     clock = ctx.obs_fit.clock
     if clock is None or len(np.unique(clock)) < 2:
         return math.inf, 1
-    resid, jac = linearize(ctx.mass, geo_fit.params, geo_fit.effects, [], ctx.obs_fit)
+    obs = at_fit(ctx.obs_fit, geo_fit)
+    resid, jac = linearize(ctx.mass, geo_fit.params, geo_fit.effects, [], obs)
+    if obs.target is not None:
+        resid, jac = project_out(target_columns(ctx.mass, geo_fit.params, geo_fit.effects, obs), resid, jac)
     geo = jac[:, :, ctx.geo_idx].reshape(-1, len(ctx.geo_idx))
     norms = np.linalg.norm(geo, axis=0)
     qmat, _ = np.linalg.qr(geo / np.where(norms > 0, norms, 1.0))
@@ -464,15 +485,17 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     resid = np.empty_like(ctx.obs.xyz_mm)
     fit_rows, check_rows = ctx.fit_rows, ctx.check_rows
     resid[fit_rows] = lp.oof_residuals(ctx.own_cols(len(names)))
-    resid[check_rows] = ctx.obs_check.xyz_mm - predict_mm(
-        ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
+    obs_check = at_fit(ctx.obs_check, final.fit)
+    resid[check_rows] = obs_check.xyz_mm - predict_mm(
+        ctx.mass, final.fit.params, final.fit.effects, obs_check
     )
     obs = ctx.obs
+    copies = len(obs) // len(dataset)  # the targets per pose: their rows follow one another
     columns: dict[str, FloatArray | None] = {}
     if obs.clock_name == "t_s":
-        columns["t_s"] = np.asarray(dataset.t_s, dtype=float)
+        columns["t_s"] = np.tile(np.asarray(dataset.t_s, dtype=float), copies)
     else:
-        columns["pose_order"] = np.arange(len(obs), dtype=float)
+        columns["pose_order"] = np.tile(np.arange(len(dataset), dtype=float), copies)
     for j in JOINTS:
         columns[f"a{j}"] = obs.a_deg[:, j - 1]
     columns["payload_kg"] = obs.payload_kg
@@ -482,19 +505,44 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     return residual_structure(resid, columns, obs.pose_group, folds=ctx.options.folds, seed=ctx.options.seed)
 
 
-def _agreement(ctx: Context, dataset: Dataset, steps: list[Step]) -> Agreement:
-    """Whether the fit and check rows agree along the ladder (:mod:`comp_daemon.diagnosis.agreement`)."""
+def _agreement(
+    ctx: Context,
+    obs: Observations,
+    fit_rows: NDArray[np.int64],
+    check_rows: NDArray[np.int64],
+    dataset: Dataset,
+    steps: list[Step],
+) -> Agreement:
+    """Whether the fit and check rows agree along the ladder (:mod:`comp_daemon.diagnosis.agreement`),
+    on the TCP's rows ``obs``."""
     ladder = [steps[0], *(s for s in steps[1:] if s.significant)]
     final = final_step(steps)
-    predicted = predict_mm(ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check)
+    predicted = predict_mm(ctx.mass, final.fit.params, final.fit.effects, obs.take(check_rows))
     return fit_check_agreement(
         [s.check_rms_mm for s in ladder],
         [s.cv_rms_mm for s in ladder],
-        ctx.obs,
-        ctx.fit_rows,
-        ctx.check_rows,
+        obs,
+        fit_rows,
+        check_rows,
         predicted,
         dataset,
+    )
+
+
+def _every_target(
+    obs: Observations,
+    more_mm: FloatArray,
+    offsets_mm: FloatArray,
+    fit_rows: NDArray[np.int64],
+    check_rows: NDArray[np.int64],
+) -> tuple[Observations, NDArray[np.int64], NDArray[np.int64]]:
+    """The observations of every target (:meth:`Observations.with_targets`) and their fit and check rows."""
+    k, n = 1 + more_mm.shape[1], len(obs)
+    every = obs.with_targets(np.asarray(more_mm, dtype=float), offsets_mm)
+    return (
+        every,
+        np.concatenate([fit_rows + i * n for i in range(k)]),
+        np.concatenate([check_rows + i * n for i in range(k)]),
     )
 
 
@@ -504,16 +552,15 @@ def _remainder(ctx: Context, steps: list[Step]) -> RemainderModel:
         return RemainderModel(False, False, "not asked for (DiagnoseOptions.remainder_model)")
     final = final_step(steps)
     names = [n for s in steps if s.significant and s.effect != "geometric" for n in s.names]
-    lp = ctx.problem(final.fit, names)
-    resid_check = ctx.obs_check.xyz_mm - predict_mm(
-        ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
-    )
+    lp = ctx.problem(final.fit, names, tcp_only=True)  # a function of the axes: the TCP's rows
+    obs_check = ctx.obs_check_tcp
+    resid_check = obs_check.xyz_mm - predict_mm(ctx.mass, final.fit.params, final.fit.effects, obs_check)
     return judge_remainder(
         lp,
         ctx.own_cols(len(names)),
-        ctx.obs_fit.a_deg,
+        ctx.obs_fit.a_deg[ctx.tcp_fit],
         lp.r,
-        ctx.obs_check.a_deg,
+        obs_check.a_deg,
         resid_check,
         seed=ctx.options.seed,
     )
