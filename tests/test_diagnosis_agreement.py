@@ -61,3 +61,10 @@ def test_signed_percentages_have_one_sign() -> None:
     assert signed_pct(-6.2) == "−6 %"
     assert signed_pct(4.4) == "+4 %"
     assert signed_pct(0.2) == "0 %"
+
+
+def test_thermal_growth_with_the_temperature_rising_with_time_is_named_thermal_only() -> None:
+    camp = make_campaign("kr210", 63, [("thermal", None, 5 * NOISE_FLOOR_MM)])
+    ds = dataclasses.replace(camp.dataset, t_s=60.0 * np.arange(len(camp.dataset), dtype=float))
+    doc = diagnose(ds, camp.robot).to_json()
+    assert doc["unmodelled"] == ["thermal"]

@@ -58,6 +58,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -84,7 +85,7 @@ from comp_daemon.diagnosis.fitting import (
     target_columns,
 )
 from comp_daemon.diagnosis.remainder import RemainderModel, judge_remainder
-from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
+from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step, rounded
 from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
@@ -233,7 +234,8 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     avail = _identifiable(ctx, geo_fit, [c for c in cands if c not in reasons], reasons)
     if not any(c.effect in TIME_EFFECTS for c in avail) and _follows_time(ctx, geo_fit):
         ctx.nuisance = time_nuisance(np.asarray(ctx.obs_fit.clock))
-    accepted, rejected, selection, _ = select(ctx, geo_fit, avail, options)
+    accepted, rejected, selection, final_fit = select(ctx, geo_fit, avail, options)
+    accepted = _physical_over_clock(ctx, final_fit, accepted, selection)
 
     # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
     steps = _ladder(ctx, start, geo_fit, accepted, rejected, base_rms)
@@ -455,6 +457,54 @@ def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
 
 #: the effects of the catalogue that are functions of the campaign clock
 TIME_EFFECTS = ("drift", "step")
+
+
+#: temperature and clock this correlated on the fit rows are collinear drivers
+COLLINEAR_DRIVERS = 0.9
+#: a time effect beside thermal growth must lower the CV error by this share to be needed as well
+NEEDED_GAIN = 0.02
+
+
+def _physical_over_clock(
+    ctx: Context, fit: FitResult, accepted: list[Candidate], selection: list[dict[str, Any]]
+) -> list[Candidate]:
+    """``accepted`` without its time effects when thermal growth is accepted, the temperature follows
+    the clock (|r| > :data:`COLLINEAR_DRIVERS` on the fit rows) and the time effects do not lower
+    the cross-validated error by :data:`NEEDED_GAIN` beside it: collinear drivers, the physical one
+    is named unless both are needed out of fold. The decision is recorded in ``selection``."""
+    timed = [c for c in accepted if c.effect in TIME_EFFECTS]
+    temp, clock = ctx.obs_fit.temp_c, ctx.obs_fit.clock
+    if not timed or not any(c.effect == "thermal" for c in accepted) or temp is None or clock is None:
+        return accepted
+    if np.std(temp) == 0 or np.std(clock) == 0:
+        return accepted
+    r = float(np.corrcoef(temp, clock)[0, 1])
+    if abs(r) <= COLLINEAR_DRIVERS:
+        return accepted
+    names = [n for c in accepted for n in c.names]
+    lp = ctx.problem(fit, names)
+    cols = ctx.own_cols(len(names))
+    n_base = len(ctx.geo_idx)
+    drop: list[int] = []
+    pos = 0
+    for c in accepted:
+        if c in timed:
+            drop += cols[n_base + pos : n_base + pos + len(c.names)]
+        pos += len(c.names)
+    cv_both = lp.cv_rms_mm(cols)
+    cv_thermal = lp.cv_rms_mm([k for k in cols if k not in drop])
+    needed = cv_thermal > (1.0 + NEEDED_GAIN) * cv_both
+    selection.append(
+        {
+            "round": len(selection) + 1,
+            "collinear_drivers": {"temp_c": ctx.obs.clock_name, "r": rounded(r)},
+            "cv_rms_mm_thermal_and_time": rounded(cv_both),
+            "cv_rms_mm_thermal_only": rounded(cv_thermal),
+            "kept_time_effects": needed,
+            "time_effects": [c.label for c in timed],
+        }
+    )
+    return accepted if needed else [c for c in accepted if c not in timed]
 
 
 def _follows_time(ctx: Context, geo_fit: FitResult) -> bool:
