@@ -68,3 +68,22 @@ def test_thermal_growth_with_the_temperature_rising_with_time_is_named_thermal_o
     ds = dataclasses.replace(camp.dataset, t_s=60.0 * np.arange(len(camp.dataset), dtype=float))
     doc = diagnose(ds, camp.robot).to_json()
     assert doc["unmodelled"] == ["thermal"]
+
+
+def test_an_error_outside_the_vocabulary_is_reported_by_its_axes_not_named_as_an_effect() -> None:
+    """A3's angle error follows A2 (no effect of the vocabulary has that form): the effect that
+    would stand in for it is beaten by the flexible alternative of its driver and not named."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from benchmarks.blind_diagnosis import realistic_cases, realistic_dataset
+
+    case = next(c for c in realistic_cases(1) if c["build"] == "coupling")
+    ds, robot = realistic_dataset(case)
+    doc = diagnose(ds, robot).to_json()
+    assert doc["unmodelled"] == []
+    assert doc["unnamed_errors"], "the error must be reported"
+    found = doc["unnamed_errors"][0]
+    assert found["driver_axis"] == 2 and 3 in found["joints"]
+    assert "that no effect of the vocabulary names" in doc["where"]["summary"]

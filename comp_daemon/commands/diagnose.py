@@ -167,6 +167,8 @@ def _run(args: argparse.Namespace) -> int:
             f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
             file=out,
         )
+        for unnamed in diag.unnamed:
+            print(unnamed["summary"], file=out)
         if diag.agreement is not None and not diag.agreement.agree:
             print(diag.agreement.describe(), file=out)
         timed = [s.effect for s in diag.steps if s.significant and s.effect in ("drift", "step")]

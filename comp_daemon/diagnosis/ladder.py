@@ -65,6 +65,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import Dataset
 from comp_daemon.diagnosis.agreement import Agreement, fit_check_agreement
+from comp_daemon.diagnosis.attribution import flexible_attribution
 from comp_daemon.diagnosis.candidates import (
     JOINTS,
     Candidate,
@@ -236,6 +237,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         ctx.nuisance = time_nuisance(np.asarray(ctx.obs_fit.clock))
     accepted, rejected, selection, final_fit = select(ctx, geo_fit, avail, options)
     accepted = _physical_over_clock(ctx, final_fit, accepted, selection)
+    accepted, unnamed = flexible_attribution(ctx, final_fit, accepted)
 
     # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
     steps = _ladder(ctx, start, geo_fit, accepted, rejected, base_rms)
@@ -259,7 +261,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         where["flange"] = flange
         where["summary"] += " " + flange_words(flange)
     remainder = _remainder(ctx, steps)
-    where["summary"] = f"{where['summary']} {remainder.describe()}"
+    where["summary"] = " ".join([where["summary"], *(u.describe() for u in unnamed), remainder.describe()])
     return Diagnosis(
         robot=robot,
         dataset=dataset,
@@ -283,6 +285,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         where=where,
         directions=prepared.directions,
         agreement=agreement,
+        unnamed=[u.to_json() for u in unnamed],
         residual_structure=structure,
         remainder_rows="check rows, and fit rows out of fold",
         time_nuisance=ctx.nuisance is not None,

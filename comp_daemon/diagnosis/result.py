@@ -166,6 +166,8 @@ class Diagnosis:
     remainder_model: RemainderModel | None = None  # joint-space model of the remainder (kept or not)
     directions: Directions | None = None  # where the approach directions come from (the preparation)
     agreement: Agreement | None = None  # whether the fit and check rows tell the same story
+    # errors an effect stood in for that a flexible alternative of its driver explains better
+    unnamed: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def significant_steps(self) -> list[Step]:
@@ -217,6 +219,7 @@ class Diagnosis:
             "noise_floor_source": self.noise_floor_source,
             "residual_structure": [r.to_json() for r in self.residual_structure],
             **({} if self.agreement is None else {"fit_check_agreement": self.agreement.to_json()}),
+            "unnamed_errors": self.unnamed,
             "remainder_rows": self.remainder_rows,
             **({} if self.remainder_model is None else {"remainder_model": self.remainder_model.to_json()}),
             "unidentifiable": self.unidentifiable,

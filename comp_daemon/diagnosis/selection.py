@@ -99,16 +99,26 @@ class Context:
     def fit(self, start: FitResult, names: Sequence[str]) -> FitResult:
         return fit_twin(self.mass, self.obs_fit, start.params, start.effects, self.geo_free, names)
 
-    def problem(self, fit: FitResult, names: Sequence[str], *, tcp_only: bool = False) -> LinearProblem:
+    def problem(
+        self,
+        fit: FitResult,
+        names: Sequence[str],
+        *,
+        tcp_only: bool = False,
+        extra: FloatArray | None = None,
+    ) -> LinearProblem:
         """Linear problem with columns [free geometric | nuisance | names] at ``fit``; with
         ``tcp_only`` on the TCP's fit rows alone (several targets per pose). The further targets'
         places on the flange are free: their columns are projected out of every column and the
-        residual (on the TCP's rows they are zero)."""
+        residual (on the TCP's rows they are zero). ``extra`` (n_fit, 3, q): columns appended after
+        the names (a flexible alternative's)."""
         obs = at_fit(self.obs_fit, fit)
         resid, jac = linearize(self.mass, fit.params, fit.effects, names, obs)
         geo = jac[:, :, self.geo_idx]
         eff = jac[:, :, N_PARAMS + np.arange(len(names))]
         blocks = [geo, eff] if self.nuisance is None else [geo, self.nuisance, eff]
+        if extra is not None:
+            blocks.append(extra)
         full = np.concatenate(blocks, axis=2)
         if obs.target is not None and not tcp_only:
             resid, full = project_out(target_columns(self.mass, fit.params, fit.effects, obs), resid, full)
