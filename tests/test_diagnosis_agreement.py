@@ -1,4 +1,5 @@
-"""Fit and check rows that disagree stop the diagnosis's advice and say what differs between them."""
+"""What the diagnosis must not name: advice while fit and check rows disagree, a clock beside the
+temperature it follows, an effect that stands in for an error outside the vocabulary."""
 
 from __future__ import annotations
 

@@ -10,10 +10,10 @@ beside everything else the ladder accepted (the effect itself set to zero), line
 selection's final fit, and compared by their k-fold cross-validated error on the fit rows (the
 folds of the selection). When the flexible one is lower by more than :data:`FLEX_GAIN`, the
 effect's form does not explain the error it was chosen for: the effect is not named, and the error
-is reported as "an error of axes …  that no effect of the vocabulary names" with the driver, the
-joints whose angle error carries it (each block of the flexible fit whose removal costs at least
-:data:`JOINT_SHARE` of its gain) and its size (the RMS of the flexible part over the fit rows).
-It is not spread over other named effects: the ladder is built without it.
+is reported as "an error of axes … that no effect of the vocabulary names" with the driver, the
+joints whose angle error carries it (those whose block of the flexible fit, alone, explains within
+:data:`JOINT_SHARE` as much as the best block) and its size (the RMS of the flexible part over the
+fit rows). It is not spread over other named effects: the ladder is built without it.
 
 Effects of other drivers (backlash: the approach direction; compliance: the gravity torque;
 thermal: the temperature; drift and step: the clock) keep the selection's tests alone.
@@ -43,7 +43,7 @@ AXIS_DRIVEN = ("ratio", "cyclic")
 FLEX_DEGREE = 4
 #: the flexible alternative must lower the cross-validated RMS by more than this share
 FLEX_GAIN = 0.05
-#: a joint carries the unnamed error when dropping its block costs this share of the flexible gain
+#: a joint carries the unnamed error when its block alone explains within this share of the best block
 JOINT_SHARE = 0.2
 
 
@@ -125,11 +125,13 @@ def _against_flexible(
         return None
     sse_without, sse_with = flex.sse(own), flex.sse(own + extra)
     gain = max(sse_without - sse_with, 0.0)
-    joints = []
-    for i in range(6):
-        rest = [k for k in extra if not (start + i * block <= k < start + (i + 1) * block)]
-        if flex.sse(own + rest) - sse_with >= JOINT_SHARE * gain:
-            joints.append(i + 1)
+    # the joints whose angle error carries it: each block alone, those within JOINT_SHARE of the best
+    alone = [
+        sse_without - flex.sse(own + [k for k in extra if start + i * block <= k < start + (i + 1) * block])
+        for i in range(6)
+    ]
+    best = max(alone)
+    joints = [i + 1 for i, g in enumerate(alone) if best > 0 and g >= (1.0 - JOINT_SHARE) * best]
     rms = float(np.sqrt(gain / max(flex.n, 1)))
     return Unnamed(cand.label, cand.joint, joints or [cand.joint], rms, cv_effect, cv_flex)
 

@@ -16,6 +16,7 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -28,13 +29,12 @@ __all__ = [
     "Observations",
     "at_fit",
     "fit_twin",
-    "fitted_offsets",
     "flange_mm",
     "linearize",
+    "linearize_targets",
     "predict_mm",
     "project_out",
     "seen_from_flange",
-    "target_columns",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -175,29 +175,32 @@ def linearize(
     """Residual (n, 3) and Jacobian (n, 3, 39 + len(names)) of the twin at the observed poses.
 
     A further target sits at its own place on the flange: the tool's columns are zero on its rows
-    (:func:`target_columns` are the derivatives by that place)."""
+    (:func:`linearize_targets` also gives the derivatives by that place)."""
+    resid, jac, _ = linearize_targets(mass, params, effects, names, obs)
+    return resid, jac
+
+
+def linearize_targets(
+    mass: MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: Sequence[str],
+    obs: Observations,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`linearize`, and (n, 3, 3·(K − 1)) the derivative of each row's position by its
+    further target's place on the flange (zero on the other rows; (n, 3, 0) with one target)."""
+    n_more = 0 if obs.target_offsets_mm is None or obs.target is None else len(obs.target_offsets_mm)
     tcp = np.empty((len(obs), 3))
     jac = np.empty((len(obs), 3, N_PARAMS + len(names)))
+    tcols = np.zeros((len(obs), 3, 3 * n_more))
     for rows, tcp_k, jac_k, offset in _jacobians(mass, params, effects, names, obs):
         tcp[rows], jac[rows] = tcp_k, jac_k
         if offset is not None:
-            jac[rows, :, TOOL_SLICE] = 0.0
-    return obs.xyz_mm - tcp, jac
-
-
-def target_columns(
-    mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
-) -> FloatArray:
-    """(n, 3, 3·(K − 1)) the derivative of each row's position by its further target's place on the
-    flange (zero on the other rows); (n, 3, 0) with one target."""
-    if obs.target is None or obs.target_offsets_mm is None:
-        return np.zeros((len(obs), 3, 0))
-    out = np.zeros((len(obs), 3, 3 * len(obs.target_offsets_mm)))
-    for rows, _, jac, offset in _jacobians(mass, params, effects, [], obs):
-        if offset is not None:
+            assert obs.target is not None
             k = int(obs.target[rows[0]])
-            out[rows, :, 3 * (k - 1) : 3 * k] = jac[:, :, TOOL_SLICE]
-    return out
+            tcols[rows, :, 3 * (k - 1) : 3 * k] = jac_k[:, :, TOOL_SLICE]
+            jac[rows, :, TOOL_SLICE] = 0.0
+    return obs.xyz_mm - tcp, jac, tcols
 
 
 @dataclass(frozen=True)
@@ -232,23 +235,6 @@ def seen_from_flange(rot: FloatArray, origin: FloatArray, points_mm: FloatArray)
     """(3,) the mean of the points (n, 3) seen from the flange frames: the least-squares place on
     the flange of a target measured there."""
     return np.einsum("nji,nj->ni", rot, points_mm - origin).mean(axis=0)
-
-
-def fitted_offsets(
-    mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
-) -> FloatArray | None:
-    """(K − 1, 3) the further targets' least-squares places on the flange of this twin; None with
-    one target."""
-    if obs.target is None or obs.target_offsets_mm is None:
-        return None
-    out = np.array(obs.target_offsets_mm, dtype=float)
-    for k in range(1, len(out) + 1):
-        rows = np.flatnonzero(obs.target == k)
-        if len(rows):
-            sub = obs.take(rows)
-            rot, origin = flange_mm(mass, params, effects, sub)
-            out[k - 1] = seen_from_flange(rot, origin, sub.xyz_mm)
-    return out
 
 
 def project_out(columns: FloatArray, *arrays: FloatArray) -> list[FloatArray]:
@@ -296,24 +282,40 @@ def fit_twin(
     n_geo = len(geo_idx)
     cols = np.concatenate([geo_idx, N_PARAMS + np.arange(len(names))])
 
-    def placed(p: KinematicParams, e: EffectParams) -> Observations:
-        """The rows with the further targets at their least-squares places for this twin."""
-        offsets = fitted_offsets(mass, p, e, obs)
-        return obs if offsets is None else dataclasses.replace(obs, target_offsets_mm=offsets)
-
     def cost_of(p: KinematicParams, e: EffectParams) -> tuple[float, Observations]:
-        at = placed(p, e)
-        r = at.xyz_mm - predict_mm(mass, p, e, at)
-        return float(np.sum(r * r)), at
+        """The cost with the further targets at their least-squares places for this twin, and the
+        rows with them there (one twin evaluation per target)."""
+        if obs.target is None or obs.target_offsets_mm is None:
+            r = obs.xyz_mm - predict_mm(mass, p, e, obs)
+            return float(np.sum(r * r)), obs
+        offsets = np.array(obs.target_offsets_mm, dtype=float)
+        sse = 0.0
+        first: tuple[Observations, Any] | None = None  # the targets share their poses: one twin
+        for rows, sub, offset in obs.by_target():
+            if first is not None and np.array_equal(first[0].a_deg, sub.a_deg):
+                st = first[1]
+            else:
+                st = twin_state(mass, p, e, sub.a_deg, sub.dir, sub.payload_kg, sub.temp_c, clock=sub.clock)
+                first = (sub, st)
+            if offset is None:
+                pred = st.tcp_mm
+            else:
+                flange = st.chain.world_T_frame[:, 6]
+                rot, origin = flange[:, :3, :3], flange[:, :3, 3]
+                place = seen_from_flange(rot, origin, sub.xyz_mm)
+                offsets[int(obs.target[rows[0]]) - 1] = place
+                pred = origin + rot @ place
+            sse += float(np.sum((sub.xyz_mm - pred) ** 2))
+        return sse, dataclasses.replace(obs, target_offsets_mm=offsets)
 
     cost, current = cost_of(params, effects)
     converged = False
     iterations = 0
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        resid, jac = linearize(mass, params, effects, names, current)
+        resid, jac, tcols = linearize_targets(mass, params, effects, names, current)
         jac = jac[:, :, cols]
         if current.target is not None:  # the targets' places are profiled out (variable projection)
-            resid, jac = project_out(target_columns(mass, params, effects, current), resid, jac)
+            resid, jac = project_out(tcols, resid, jac)
         step = _solve_scaled(jac.reshape(-1, len(cols)), resid.reshape(-1))
         new_cost = cost
         t = 1.0

@@ -80,10 +80,9 @@ from comp_daemon.diagnosis.fitting import (
     FitResult,
     Observations,
     at_fit,
-    linearize,
+    linearize_targets,
     predict_mm,
     project_out,
-    target_columns,
 )
 from comp_daemon.diagnosis.remainder import RemainderModel, judge_remainder
 from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step, rounded
@@ -211,8 +210,8 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
 
     # 2. geometric step: identifiability, then Gauss–Newton
     obs_all_fit = obs_all.take(fit_all)
-    _, jac0 = linearize(mass, start_params, effects0, [], obs_all_fit)
-    (jac0_free,) = project_out(target_columns(mass, start_params, effects0, obs_all_fit), jac0)
+    _, jac0, tcols0 = linearize_targets(mass, start_params, effects0, [], obs_all_fit)
+    (jac0_free,) = project_out(tcols0, jac0)
     ident = analyze_identifiability(jac0_free, PARAM_NAMES, priority=mdh_priority(start_params))
     geo_free = np.zeros(N_PARAMS, dtype=bool)
     geo_free[ident.identifiable_index] = True
@@ -302,9 +301,8 @@ def _identifiable(
     """
     all_names = [n for c in avail for n in c.names]
     obs = at_fit(ctx.obs_fit, geo_fit)
-    _, jac_geo = linearize(ctx.mass, geo_fit.params, geo_fit.effects, all_names, obs)
-    if obs.target is not None:  # what the targets' places on the flange absorb is not identifiable
-        (jac_geo,) = project_out(target_columns(ctx.mass, geo_fit.params, geo_fit.effects, obs), jac_geo)
+    _, jac_geo, tcols = linearize_targets(ctx.mass, geo_fit.params, geo_fit.effects, all_names, obs)
+    (jac_geo,) = project_out(tcols, jac_geo)  # what the targets' places absorb is not identifiable
     jac_flat = jac_geo.reshape(-1, jac_geo.shape[2])
     offsets: dict[Candidate, NDArray[np.int64]] = {}
     pos = N_PARAMS
@@ -430,9 +428,8 @@ def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
     if clock is None or len(np.unique(clock)) < 2:
         return math.inf, 1
     obs = at_fit(ctx.obs_fit, geo_fit)
-    resid, jac = linearize(ctx.mass, geo_fit.params, geo_fit.effects, [], obs)
-    if obs.target is not None:
-        resid, jac = project_out(target_columns(ctx.mass, geo_fit.params, geo_fit.effects, obs), resid, jac)
+    resid, jac, tcols = linearize_targets(ctx.mass, geo_fit.params, geo_fit.effects, [], obs)
+    resid, jac = project_out(tcols, resid, jac)
     geo = jac[:, :, ctx.geo_idx].reshape(-1, len(ctx.geo_idx))
     norms = np.linalg.norm(geo, axis=0)
     qmat, _ = np.linalg.qr(geo / np.where(norms > 0, norms, 1.0))

@@ -26,10 +26,9 @@ from comp_daemon.diagnosis.fitting import (
     Observations,
     at_fit,
     fit_twin,
-    linearize,
+    linearize_targets,
     predict_mm,
     project_out,
-    target_columns,
 )
 from comp_daemon.diagnosis.result import DiagnoseOptions, rounded
 from comp_daemon.diagnosis.stats import LinearProblem, make_folds
@@ -113,7 +112,7 @@ class Context:
         residual (on the TCP's rows they are zero). ``extra`` (n_fit, 3, q): columns appended after
         the names (a flexible alternative's)."""
         obs = at_fit(self.obs_fit, fit)
-        resid, jac = linearize(self.mass, fit.params, fit.effects, names, obs)
+        resid, jac, tcols = linearize_targets(self.mass, fit.params, fit.effects, names, obs)
         geo = jac[:, :, self.geo_idx]
         eff = jac[:, :, N_PARAMS + np.arange(len(names))]
         blocks = [geo, eff] if self.nuisance is None else [geo, self.nuisance, eff]
@@ -121,7 +120,7 @@ class Context:
             blocks.append(extra)
         full = np.concatenate(blocks, axis=2)
         if obs.target is not None and not tcp_only:
-            resid, full = project_out(target_columns(self.mass, fit.params, fit.effects, obs), resid, full)
+            resid, full = project_out(tcols, resid, full)
         rows = self.tcp_fit if tcp_only else slice(None)
         return LinearProblem(resid[rows], full[rows], self.obs_fit.pose_group[rows], self.fold[rows])
 
