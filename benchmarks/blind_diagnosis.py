@@ -15,12 +15,21 @@ one payload, no column naming them), sized like the others: a hit names exactly 
 with the full catalogue; with the vocabulary of diagnose.md alone the case is *honest* when the
 remainder follows time, no joint effect is named and no noise floor is claimed (no repeats).
 
+``--realistic`` runs instead the suite of campaigns as real cells produce them (:data:`REALISTIC`,
+each scored right or wrong by its own rule, :func:`realistic_right`): directions only in the pose
+order, an error outside the vocabulary (one axis' angle error driven by another axis), thermal
+growth with the temperature rising with time, a wrist error seen only through further reflectors,
+a tracker frame metres from the base, noise and repeats only, each effect alone, three together,
+and two sessions with the tracker moved between the fit and the check rows.
+
 Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.blind_diagnosis [--jobs 2]``
+(``--realistic [--seeds 1]`` for the suite above)
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -31,14 +40,18 @@ from typing import Any
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
+import numpy as np
 from diagnosis_campaigns import (
     NOISE_FLOOR_MM,
     PLANT_NOISE_FLOOR_MM,
     make_campaign,
     plant_campaign,
+    wrist_campaign,
 )
 
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 
 SIZES = {"near": 1.0, "large": 10.0}
 LIMIT_SIZES = {"0.25x": 0.25, "0.5x": 0.5}
@@ -240,9 +253,134 @@ def cases(seeds: int, nulls: int, limit: bool) -> list[dict[str, Any]]:
     return out
 
 
+#: the realistic suite: (name, robot, withheld (effect, joint, size in noise floors), how it is built)
+REALISTIC: list[tuple[str, str, list[tuple[str, int | None, float]], str]] = [
+    ("directions from the pose order", "kr210", [("backlash", 2, 5.0), ("backlash", 3, 5.0)], "no-dir"),
+    ("coupling outside the vocabulary", "kr210", [], "coupling"),
+    ("thermal, temperature rising with time", "kr210", [("thermal", None, 5.0)], "t_s"),
+    ("wrist backlash seen by further reflectors", "irb120", [("backlash", 6, 0.0)], "wrist"),
+    ("tracker frame far from the base", "kr210", [("ratio", 2, 5.0)], "tracker"),
+    ("noise and repeats only", "kr210", [], "repeats"),
+    ("backlash alone", "kr210", [("backlash", 1, 5.0)], "plain"),
+    ("ratio alone", "kr210", [("ratio", 3, 5.0)], "plain"),
+    ("cyclic alone", "kr210", [("cyclic", 2, 5.0)], "plain"),
+    ("compliance alone", "kr210", [("compliance", 2, 5.0)], "plain"),
+    ("thermal alone", "kr210", [("thermal", None, 5.0)], "plain"),
+    (
+        "three together",
+        "kr210",
+        [("backlash", 2, 5.0), ("cyclic", 1, 5.0), ("compliance", 3, 5.0)],
+        "plain",
+    ),
+    ("two sessions, tracker moved", "kr210", [("ratio", 2, 5.0)], "sessions"),
+]
+
+#: the angle error of axis 3 driven by axis 2 in the coupling case: amplitude (deg)
+COUPLING_DEG = 0.01
+
+
+def realistic_cases(seeds: int) -> list[dict[str, Any]]:
+    return [
+        {
+            "kind": "realistic",
+            "name": name,
+            "robot": robot,
+            "build": build,
+            "tracker": build == "tracker",
+            "size": "-",
+            "seed": 5000 + seed,
+            "withheld": [(e, j, size * NOISE_FLOOR_MM) for e, j, size in withheld],
+        }
+        for name, robot, withheld, build in REALISTIC
+        for seed in range(seeds)
+    ]
+
+
+def _rotation_z(deg: float) -> np.ndarray:
+    c, s = np.cos(np.radians(deg)), np.sin(np.radians(deg))
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def realistic_dataset(case: dict[str, Any]) -> tuple[Any, Any]:
+    """The campaign of one realistic case (data set, robot), built as its ``build`` says."""
+    build, seed = case["build"], case["seed"]
+    if build == "wrist":
+        camp = wrist_campaign(seed, 0.03)
+        return camp.dataset, camp.robot
+    camp = make_campaign(
+        case["robot"],
+        seed,
+        [] if build == "coupling" else case["withheld"],
+        tracker=build == "tracker",
+        with_dir=build != "no-dir",
+        with_temp=any(e == "thermal" for e, _, _ in case["withheld"]),
+        repeat_fraction=0.4 if build == "repeats" else 0.1,
+    )
+    ds = camp.dataset
+    if build == "t_s":  # one pose a minute: the temperature and the clock rise together
+        ds = dataclasses.replace(ds, t_s=60.0 * np.arange(len(ds), dtype=float))
+    if build == "coupling":  # A3's angle error follows A2: no effect of the vocabulary has that form
+        params = KinematicParams.from_robot(camp.robot)
+        a = np.array(ds.a_deg)
+        moved = a.copy()
+        moved[:, 2] += COUPLING_DEG * np.sin(np.radians(3.0 * a[:, 1]))
+        delta = tcp_position_mm(params, axes_deg_to_q_rad(moved, params.sign)) - tcp_position_mm(
+            params, axes_deg_to_q_rad(a, params.sign)
+        )
+        ds = dataclasses.replace(ds, xyz_mm=np.asarray(ds.xyz_mm) + delta)
+    if build == "sessions":  # the tracker moved between the fit and the check rows
+        check = ds.check_rows()
+        xyz = np.array(ds.xyz_mm)
+        xyz[check] = xyz[check] @ _rotation_z(0.05).T + np.array([0.8, -0.3, 0.2])
+        ds = dataclasses.replace(ds, xyz_mm=xyz)
+    return ds, camp.robot
+
+
+def realistic_right(case: dict[str, Any], doc: dict[str, Any]) -> bool:
+    """Whether the diagnosis of a realistic case is right (what an engineer acting on it needs)."""
+    got = {s["effect"]: s["joints"] for s in doc["steps"][1:] if s["significant"]}
+    want = {
+        e: sorted({j for ee, j, _ in case["withheld"] if ee == e and j is not None})
+        for e, _, _ in case["withheld"]
+    }
+    build = case["build"]
+    if build == "coupling":  # nothing of the vocabulary may be named
+        return not got
+    if build == "sessions":  # no effect advice while the fit and check rows disagree
+        agreement = doc.get("fit_check_agreement", {})
+        return agreement.get("agree") is False and "To act:" not in doc["where"]["summary"]
+    if build == "repeats":
+        return not got and doc["noise_floor_source"] == "repeats"
+    if build == "wrist":
+        return 6 in got.get("backlash", [])
+    if build == "t_s":  # the physical driver, not the clock as well
+        return got == {"thermal": []}
+    if build == "no-dir":
+        return got == want and doc.get("directions", {}).get("source") == "inferred"
+    return got == want
+
+
+def run_realistic_case(case: dict[str, Any]) -> dict[str, Any]:
+    ds, robot = realistic_dataset(case)
+    t0 = time.perf_counter()
+    doc = diagnose(ds, robot).to_json()
+    elapsed = time.perf_counter() - t0
+    return {
+        **case,
+        "withheld": [[e, j] for e, j, _ in case["withheld"]],
+        "hit": realistic_right(case, doc),
+        "named": {s["effect"]: s["joints"] for s in doc["steps"][1:] if s["significant"]},
+        "seconds": round(elapsed, 3),
+        "unexplained_rms_mm": doc["unexplained_rms_mm"],
+        "noise_floor_mm": doc["noise_floor_mm"],
+    }
+
+
 def run_case(case: dict[str, Any]) -> dict[str, Any]:
     if case["kind"] == "time":
         return run_time_case(case)
+    if case["kind"] == "realistic":
+        return run_realistic_case(case)
     if case["kind"].startswith("plant"):
         camp = plant_campaign(
             case["withheld"], case["seed"], wide=case["box"] == "wide", tracker=case["tracker"]
@@ -297,8 +435,14 @@ def main() -> None:
         action="store_true",
         help="also withhold the time effects (drift, step) from plant campaigns with no column naming them",
     )
+    parser.add_argument(
+        "--realistic", action="store_true", help="run only the realistic suite (REALISTIC), right/wrong"
+    )
     parser.add_argument("--json", type=Path, help="write every case's result here")
     args = parser.parse_args()
+    if args.realistic:
+        realistic_main(args)
+        return
     todo = cases(args.seeds, args.nulls, args.limit)
     if args.plant:
         todo += plant_cases(args.seeds, args.plant_nulls)
@@ -356,6 +500,24 @@ def main() -> None:
             )
     secs = sorted(r["seconds"] for r in results)
     print(f"diagnosis time per campaign: median {secs[len(secs) // 2]:.2f} s, max {secs[-1]:.2f} s")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+
+
+def realistic_main(args: argparse.Namespace) -> None:
+    todo = realistic_cases(args.seeds)
+    t0 = time.perf_counter()
+    if args.jobs > 1:
+        with ProcessPoolExecutor(args.jobs) as pool:
+            results = list(pool.map(run_case, todo))
+    else:
+        results = [run_case(c) for c in todo]
+    print(f"{len(results)} realistic campaigns in {time.perf_counter() - t0:.0f} s")
+    for r in results:
+        verdict = "right" if r["hit"] else "WRONG"
+        print(f"  {verdict:5s} {r['name']:45s} seed {r['seed']} named {r['named']}")
+    right = sum(r["hit"] for r in results)
+    print(f"right: {right}/{len(results)}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 

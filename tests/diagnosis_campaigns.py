@@ -288,3 +288,38 @@ def plant_campaign(
     sc = dataclasses.replace(sc, effects=effects)
     ds = run_campaign(sc, n_poses, seed=seed, repeats=repeats, in_tracker_frame=tracker)
     return Campaign(dataset=ds, robot=sc.robot, effects=effects, truth_dx=sc.true_dx())
+
+
+#: two further reflectors on the flange (mm, flange frame), off axis 6 as on a tracker nest
+FURTHER_TARGETS_MM = np.array([[87.0, 0.0, 20.0], [-40.0, 75.0, 20.0]])
+
+
+def wrist_campaign(seed: int, backlash6_deg: float, *, n_poses: int = 260) -> Campaign:
+    """An IRB 120 campaign (TCP on axis 6) with three reflectors per pose: the TCP and
+    :data:`FURTHER_TARGETS_MM`, small random geometry and a backlash of joint 6 (deg) that only the
+    further reflectors can show; tracker noise :data:`NOISE_MM` per axis, 30 % check rows."""
+    from comp_daemon.models.effects import MassModel, twin_state
+
+    rng = np.random.default_rng(seed)
+    robot = load_robot("irb120")
+    a, direction = sample_poses(robot, n_poses, rng)
+    dx = random_geometry(rng) * 0.3
+    truth = KinematicParams.from_robot(robot).apply(dx)
+    effects = EffectParams.zeros(TRUE_HARMONICS).with_values(["h6"], [backlash6_deg])
+    payload = np.zeros(n_poses)
+    st = twin_state(MassModel.from_robot(robot), truth, effects, a, direction, payload, None)
+    flange = st.chain.world_T_frame[:, 6]
+    rot, origin = flange[:, :3, :3], flange[:, :3, 3]
+    tcp = st.tcp_mm + rng.normal(0.0, NOISE_MM, (n_poses, 3))
+    more = origin[:, None] + np.einsum("nij,kj->nki", rot, FURTHER_TARGETS_MM)
+    more = more + rng.normal(0.0, NOISE_MM, more.shape)
+    dataset = Dataset(
+        a_deg=a,
+        xyz_mm=tcp,
+        more_xyz_mm=more,
+        dir=direction.astype(np.int8),
+        payload_kg=payload,
+        split=np.where(rng.random(n_poses) < 0.3, "check", "fit"),
+        source=f"synthetic:irb120:wrist:{seed}",
+    )
+    return Campaign(dataset=dataset, robot=robot, effects=effects, truth_dx=dx)

@@ -5,8 +5,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from comp_daemon.data.directions import infer_directions, with_inferred_directions
+from comp_daemon.data.directions import infer_directions
 from comp_daemon.data.table import Dataset
+from comp_daemon.preparation.campaign import prepare_directions
 
 
 def test_sign_of_last_motion_carried_over_still_axes() -> None:
@@ -45,9 +46,11 @@ def test_dataset_with_dir_is_left_alone_and_bad_shapes_refused() -> None:
     a = np.zeros((3, 6))
     a[:, 2] = [0.0, 1.0, 0.5]
     ds = Dataset(a_deg=a, xyz_mm=np.zeros((3, 3)))
-    filled, inf = with_inferred_directions(ds)
-    assert inf is not None and filled.dir is not None and filled.dir[:, 2].tolist() == [1, 1, -1]
-    again, none = with_inferred_directions(filled)
-    assert none is None and again is filled
+    filled, inf = prepare_directions(ds)
+    assert inf.inferred and filled.dir is not None and filled.dir[:, 2].tolist() == [1, 1, -1]
+    again, columns = prepare_directions(filled)
+    assert columns.source == "columns" and again is filled
+    untouched, none = prepare_directions(ds, need=False)
+    assert none.source == "none" and untouched is ds
     with pytest.raises(ValueError, match=r"\(n, 6\)"):
         infer_directions(np.zeros((3, 5)))

@@ -277,10 +277,10 @@ def test_diagnosis_noise_floor_from_targets_and_flange_errors(tmp_path: Path) ->
     assert flange["targets"] == 3 and flange["rows"] == "check"
     assert 0 < flange["position_rms_mm"] <= flange["position_max_mm"]
     assert 0 < flange["orientation_rms_deg"] <= flange["orientation_max_deg"]
-    # the geometric step fits the TCP alone: a 6-DOF calibration removes much of the wrist's
-    # orientation error that it leaves (real-like has wrist errors)
+    # the geometric step fits every target: it leaves no more of the wrist's orientation error
+    # (real-like has wrist errors) than a 6-DOF calibration on every target's position does
     six = flange["six_dof"]
-    assert six["orientation_rms_deg"] < 0.7 * flange["orientation_rms_deg"]
+    assert flange["orientation_rms_deg"] < 1.3 * six["orientation_rms_deg"]
     assert six["position_rms_mm"] < 1.2 * flange["position_rms_mm"]
     assert "orientation" in doc["where"]["summary"]
     page = render_report_html(diag)

@@ -19,10 +19,10 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects.base import EffectData
 from comp_daemon.models.effects.catalogue import COMPLIANCE
-from comp_daemon.models.fitting import infer_fit_directions
 from comp_daemon.models.registration import scale_problem
 from comp_daemon.models.registry import parse_model_name, undetermined_reason
 from comp_daemon.models.selection import selection_line
+from comp_daemon.preparation.campaign import prepare_directions
 from comp_daemon.robot.description import load_robot
 
 REQUIRED = ("a1", "a2", "a3", "a4", "a5", "a6", "x", "y", "z")
@@ -150,12 +150,12 @@ def test_undetermined_reason_takes_a_payload_as_load() -> None:
 
 def test_inferred_directions_say_the_row_order_is_assumed(kr_campaign: Path, tmp_path: Path) -> None:
     data = read_dataset(_subset(kr_campaign, tmp_path / "req.csv", REQUIRED))
-    _, _, note = infer_fit_directions(data)
+    note = prepare_directions(data)[1].note
     assert note is not None and "in row order" in note
     assert "assumed: the file lists the poses in the order the robot visited them" in note
     # with a clock the order is the clock's, and nothing is assumed about the file's row order
     timed = read_dataset(_subset(kr_campaign, tmp_path / "timed.csv", (*REQUIRED, "t_s")))
-    _, _, note = infer_fit_directions(timed)
+    note = prepare_directions(timed)[1].note
     assert note is not None and "in t_s" in note and "assumed: the file lists" not in note
 
 
@@ -182,7 +182,7 @@ def test_a_dropped_part_with_a_lower_held_out_rms_says_why() -> None:
     assert "ratio (0.2000 mm held out without, 0.2100 with)" in line
 
 
-def test_diagnose_without_dir_says_what_it_did_not_test_and_that_the_remainder_is_not_noise(
+def test_diagnose_without_dir_infers_the_directions_and_says_the_remainder_is_not_noise(
     repeats_required: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     data = repeats_required
@@ -195,8 +195,42 @@ def test_diagnose_without_dir_says_what_it_did_not_test_and_that_the_remainder_i
     # the simulated cell has backlash the file cannot show: far above the floor, and said so
     assert ratio > 2.0
     assert f"({ratio:.1f} x the floor: not noise" in out
-    assert "not tested: backlash (no dir1..dir6 columns" in out and "thermal (no temp_c column" in out
+    assert "thermal (no temp_c column" in out and "not tested: backlash" not in out
     assert "unmodelled: none;" not in out
+    # backlash is tested on directions inferred from the row order, and the diagnosis says so
+    assert doc["directions"]["source"] == "inferred" and doc["directions"]["assumed_row_order"]
+    assert "approach directions (dir1..dir6) inferred" in err and "assumed: the file lists" in err
+    assert not any(s["effect"] == "backlash" for s in doc["skipped"])
+
+
+def test_diagnose_finds_backlash_on_directions_inferred_from_the_row_order(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    full = tmp_path / "bl.csv"
+    assert (
+        main(
+            ["sim", "sample", "--scenario", "kr210-backlash", "--n", "120", "--seed", "3", "--out", str(full)]
+        )
+        == 0
+    )
+    data = _subset(full, tmp_path / "req.csv", (*REQUIRED, "split"))
+    assert main(["diagnose", str(data), "--robot", "kr210", "--json", str(tmp_path / "d.json")]) == 0
+    out, err = capsys.readouterr()
+    doc = json.loads((tmp_path / "d.json").read_text())
+    assert "backlash" in doc["unmodelled"]
+    assert doc["directions"]["source"] == "inferred" and doc["directions"]["order"] == "row order"
+    assert "assumed: the file lists the poses in the order the robot visited them" in err
+    assert "backlash named on approach directions inferred from the row order (assumed" in out
+
+
+def test_diagnose_no_infer_dir_leaves_backlash_untested_by_name(
+    repeats_required: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    args = ["diagnose", str(repeats_required), "--robot", "kr210", "--no-infer-dir"]
+    assert main([*args, "--json", str(tmp_path / "d.json")]) == 0
+    out = capsys.readouterr().out
+    assert "not tested: backlash (no dir1..dir6 columns" in out
+    assert json.loads((tmp_path / "d.json").read_text())["directions"] == {"source": "none"}
 
 
 def _scaled(src: Path, dst: Path, factor: float, rows: int) -> Path:
@@ -479,8 +513,8 @@ def test_fold_counts_that_cannot_cross_validate_are_refused(
 @pytest.mark.parametrize(
     ("old", "new", "message"),
     [
-        (",fit,", ",check,", "0 fit rows (the split column marks them 'fit'); a fit needs at least 3"),
-        (",check,", ",fit,", "no check rows to evaluate on (the split marks no row 'check')"),
+        (",fit,", ",check,", "0 fit rows, fewer than the 3 poses a fit needs (the split column marks 0"),
+        (",check,", ",fit,", "no check rows to judge on (the split marks no row 'check')"),
     ],
     ids=["no-fit-rows", "no-check-rows"],
 )
@@ -493,7 +527,7 @@ def test_a_split_column_without_fit_or_check_rows_is_refused_by_name(
     assert message in capsys.readouterr().err
 
 
-def test_compensating_with_a_backlash_model_without_dir_says_the_backlash_is_not_applied(
+def test_compensating_with_a_backlash_model_without_dir_infers_or_says_it_is_not_applied(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     data = tmp_path / "c.csv"
@@ -501,9 +535,17 @@ def test_compensating_with_a_backlash_model_without_dir_says_the_backlash_is_not
     model = tmp_path / "m.json"
     args = ["fit", str(data), "--robot", "kr210", "--model", "kinematic:all+backlash", "--out", str(model)]
     assert main(args) == 0
+    # a nominal program (a1..a6) takes its directions from its row order, as the fit did, and says so
     targets = _subset(data, tmp_path / "t.csv", ("a1", "a2", "a3", "a4", "a5", "a6"), rows=5)
     capsys.readouterr()
     assert main(["compensate", str(model), str(targets), "--out", str(tmp_path / "o.csv")]) == 0
+    out = capsys.readouterr().out
+    assert "approach directions (dir1..dir6) inferred" in out and "assumed: the file lists" in out
+    assert "backlash is not applied" not in out
+    # TCP targets have no axis values to order: the backlash cannot be applied, and that is said
+    tcp = tmp_path / "tcp.csv"
+    tcp.write_text("tx,ty,tz\n1800,0,800\n1900,50,900\n")
+    assert main(["compensate", str(model), str(tcp), "--out", str(tmp_path / "o.csv")]) == 0
     assert "no dir1..dir6 columns: the model's backlash is not applied" in capsys.readouterr().out
     with_dir = _subset(
         data,

@@ -42,6 +42,7 @@ from comp_daemon.models.compensation import (
     compensate,
     nominal_targets,
 )
+from comp_daemon.preparation.campaign import prepare_directions
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, load_robot
 
 __all__ = [
@@ -130,7 +131,7 @@ def _compensate(args: argparse.Namespace) -> int:
     targets, result, limits = done.targets, done.result, done.limits
     assert result is not None and limits is not None
     n = len(targets)
-    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    dir_ = done.dir
     if dir_ is None and uses_approach_directions(model):
         print(
             f"{targets.source}: no dir1..dir6 columns: the model's backlash is not applied (approach "
@@ -194,6 +195,7 @@ class CompensatedRows:
     result: CompensationResult | None
     limits: CompensationLimits | None
     refused: tuple[RowRefusal, ...]
+    dir: np.ndarray | None = None  # the compensated rows' approach directions (0 where unknown)
 
 
 def compensate_rows(model: ErrorModel, path: str, args: argparse.Namespace) -> CompensatedRows:
@@ -215,9 +217,13 @@ def compensate_rows(model: ErrorModel, path: str, args: argparse.Namespace) -> C
     refused = {r.row: r for r in read.refused}
     if read.dataset is None:
         return CompensatedRows(None, None, None, None, read.refused)
-    targets = read.dataset
+    # a nominal program (a1..a6) is run in its row order (the refused rows left out): its directions
+    # are that order's, as a fit's
+    targets, directions = prepare_directions(read.dataset, need=uses_approach_directions(model))
+    if directions.note:
+        print(f"{targets.source}: {directions.note}")
+    dir_ = _directions(targets, directions.unknown)  # unknown inferred ones 0: no backlash offset
     wanted, rot, seed = _wanted(model, targets)
-    dir_ = None if targets.dir is None else targets.dir.astype(float)
     keep = np.arange(len(targets))
     while keep.size:
         try:
@@ -250,7 +256,7 @@ def compensate_rows(model: ErrorModel, path: str, args: argparse.Namespace) -> C
                 }
             if not out:
                 done = targets.subset(keep)
-                return CompensatedRows(done, wanted[keep], result, limits, _by_row(refused))
+                return CompensatedRows(done, wanted[keep], result, limits, _by_row(refused), _take(dir_, keep))
         for i, reason in out.items():
             row = int(targets.row_numbers[keep[i]])
             refused[row] = RowRefusal(row, None, reason, read.row_label)
@@ -300,18 +306,29 @@ def _wanted(model: ErrorModel, targets: Dataset) -> tuple[np.ndarray, np.ndarray
     return wanted, rot, targets.a_deg
 
 
+def _directions(targets: Dataset, unknown_dir: np.ndarray | None) -> np.ndarray | None:
+    """The targets' approach directions as floats, 0 where an inferred one is unknown."""
+    if targets.dir is None:
+        return None
+    dir_ = targets.dir.astype(float)
+    if unknown_dir is not None:
+        dir_[unknown_dir] = 0.0
+    return dir_
+
+
 def compensate_targets(
-    model: ErrorModel, targets: Dataset, args: argparse.Namespace
+    model: ErrorModel, targets: Dataset, args: argparse.Namespace, unknown_dir: np.ndarray | None = None
 ) -> tuple[np.ndarray, CompensationResult, CompensationLimits]:
     """The wanted TCPs (robot base frame), the compensation and its limits of a target file's rows
     (``a1..a6`` nominal program, or ``tx, ty, tz[, ta, tb, tc]``) by :func:`compensate`, with the
     options of :func:`compensation_options`; refusals, unreachable and unconverged targets as
-    :class:`UserError` naming the rows."""
+    :class:`UserError` naming the rows. ``unknown_dir`` marks inferred approach directions that
+    are unknown (no backlash offset there)."""
     if len(targets) == 0:
         raise UserError(f"{targets.source}: no targets")
     wanted, rot, seed = _wanted(model, targets)
     limits = _limits(args)
-    dir_ = None if targets.dir is None else targets.dir.astype(float)
+    dir_ = _directions(targets, unknown_dir)
     try:
         result = compensate(
             model,

@@ -84,6 +84,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         metavar="E1,E2",
         help=f"try only these effects (comma-separated, of {', '.join(EFFECTS)}; default: all)",
     )
+    p.add_argument(
+        "--no-infer-dir",
+        dest="infer_dir",
+        action="store_false",
+        help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
+        "(backlash is then not tested)",
+    )
     p.set_defaults(func=_run)
 
 
@@ -102,6 +109,7 @@ def _run(args: argparse.Namespace) -> int:
         seed=args.seed,
         tracker_sigma_mm=args.tracker_sigma_mm,
         effects=effects,
+        infer_directions=args.infer_dir,
     )
     path = Path(args.data)
     # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
@@ -118,6 +126,8 @@ def _run(args: argparse.Namespace) -> int:
         report = render_report_html(diag) if args.report is not None else None
     if diag.split_drawn:
         print(diag.split_message, file=sys.stderr)
+    if diag.directions is not None and diag.directions.note:
+        print(f"{diag.dataset.source}: {diag.directions.note}", file=sys.stderr)
     if args.json_out is None:
         print(doc)
     else:
@@ -160,11 +170,27 @@ def _run(args: argparse.Namespace) -> int:
             f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
             file=out,
         )
+        for unnamed in diag.unnamed:
+            print(unnamed["summary"], file=out)
+        if diag.agreement is not None and not diag.agreement.agree:
+            print(diag.agreement.describe(), file=out)
         timed = [s.effect for s in diag.steps if s.significant and s.effect in ("drift", "step")]
         if timed and diag.obs.clock_name != "t_s":
             print(
                 f"clock: the row order (no t_s column): {' and '.join(timed)} assume the rows are in "
                 "the order they were measured",
+                file=out,
+            )
+        if diag.directions is not None and diag.directions.inferred:
+            named = "named" if "backlash" in diag.unmodelled else "tested"
+            assumed = (
+                " (assumed to be the order the robot visited the poses)"
+                if diag.directions.order == "row order"
+                else ""
+            )
+            print(
+                f"directions: backlash {named} on approach directions inferred from the "
+                f"{diag.directions.order}{assumed}; give dir1..dir6 to make them certain",
                 file=out,
             )
         untested = untested_effects(diag.skipped)

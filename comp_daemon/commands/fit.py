@@ -12,8 +12,8 @@
 
 On a data set without ``dir1..dir6`` columns, ``fit`` and ``evaluate`` of a model that needs the
 approach directions (backlash) derive them from the pose order
-(:func:`comp_daemon.data.directions.with_inferred_directions`) and say so; ``--no-infer-dir``
-turns that off.
+(:func:`comp_daemon.preparation.prepare_campaign`, the preparation every door shares) and say so;
+``--no-infer-dir`` turns that off.
 
 Model names and kinds are those of :mod:`comp_daemon.models.registry`: ``kind[:order][+effect…]``,
 e.g. ``kinematic+ratio+backlash`` (the MDH calibration with seed 001's per-joint reduction-ratio
@@ -40,7 +40,6 @@ from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.commands.progress import progress, tracked
 from comp_daemon.common.atomic import write_json_atomic
-from comp_daemon.data.coverage import still_axes_note
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset_file
 from comp_daemon.data.options import ReadOptions
 from comp_daemon.models.artifact import save_model
@@ -54,7 +53,7 @@ from comp_daemon.models.evaluation import (
     outside_fit_ranges,
     registered_nominal,
 )
-from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, directions_of, infer_fit_directions
+from comp_daemon.models.fitting import FitOptions, FittedModel
 from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
@@ -71,6 +70,7 @@ from comp_daemon.models.registry import (
     with_order,
 )
 from comp_daemon.models.selection import selection_line
+from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign, PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import PRESETS, RobotDescription, load_robot
 
 __all__ = ["read_data", "register"]
@@ -170,15 +170,24 @@ def _common(parser: argparse.ArgumentParser) -> None:
     reader_options(parser)
 
 
-def _directions(
-    dataset: Dataset, specs: list[ModelSpec], args: argparse.Namespace
-) -> tuple[Dataset, np.ndarray | None, str | None]:
-    """``dataset`` with the approach directions inferred when a model needs them and the file has
-    none (and ``--no-infer-dir`` is not given), the mask of those still unknown, and the sentence
-    that says so (:func:`comp_daemon.models.fitting.infer_fit_directions`)."""
-    if not args.infer_dir or not any(uses_directions(s) for s in specs):
-        return dataset, None, None
-    return infer_fit_directions(dataset)
+def _prepare(
+    dataset: Dataset, specs: list[ModelSpec], args: argparse.Namespace, *, hold_out: bool
+) -> PreparedCampaign:
+    """The campaign prepared for these models (:func:`comp_daemon.preparation.prepare_campaign`):
+    directions inferred from the pose order when a model needs them and the file has none (unless
+    ``--no-infer-dir``), the split (drawn when ``hold_out``), the row floor and the frame; the
+    refusals as :class:`UserError`."""
+    options = PrepareOptions(
+        frame=args.frame,
+        need_directions=any(uses_directions(s) for s in specs),
+        infer_directions=args.infer_dir,
+        hold_out=hold_out,
+        require_check=hold_out,
+    )
+    try:
+        return prepare_campaign(dataset, load_robot_cached(args), options)
+    except CampaignError as exc:
+        raise UserError(str(exc)) from None
 
 
 def _parse_model(token: str, order: Order | None) -> ModelSpec:
@@ -202,19 +211,15 @@ def read_data(
 
 
 def _fit_rows(
-    dataset: Dataset,
-    spec: ModelSpec,
-    args: argparse.Namespace,
-    rows: np.ndarray,
-    unknown_dir: np.ndarray | None = None,
+    prepared: PreparedCampaign, spec: ModelSpec, args: argparse.Namespace, rows: np.ndarray
 ) -> FittedModel:
-    options = FitOptions(frame=args.frame, cv_folds=args.folds, seed=args.seed)
+    options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
     try:
-        return fit_spec(spec, load_robot_cached(args), FitRows.of(dataset, rows, unknown_dir), options)
+        return fit_spec(spec, load_robot_cached(args), prepared.rows(rows), options)
     except (MissingColumnError, UndeterminedModelError) as exc:
-        raise UserError(f"{dataset.source}: {exc}") from None
+        raise UserError(f"{prepared.source}: {exc}") from None
     except np.linalg.LinAlgError as exc:
-        raise UserError(f"{dataset.source}: the {spec.name} fit failed ({exc})") from None
+        raise UserError(f"{prepared.source}: the {spec.name} fit failed ({exc})") from None
 
 
 def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
@@ -234,18 +239,13 @@ def _fit(args: argparse.Namespace) -> int:
     reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
     if reason is not None:
         raise UserError(f"{dataset.source}: {len(dataset)} data rows; {reason}")
-    data_sha256 = dataset.content_sha256
-    dataset, unknown_dir, directions = _directions(dataset, [spec], args)
-    if directions:
-        print(f"{dataset.source}: {directions}")
-    rows = dataset.fit_rows()
-    if len(rows) < 3:
-        raise UserError(f"{dataset.source}: {len(rows)} fit rows; a fit needs at least 3")
-    still = still_axes_note(dataset, rows)
-    if still:
-        print(f"{dataset.source}: {still}")
+    prepared = _prepare(dataset, [spec], args, hold_out=False)
+    for sentence in prepared.describe():
+        print(f"{dataset.source}: {sentence}")
+    directions = prepared.directions.note
+    rows = prepared.fit_rows
     with progress(f"fitting {spec.name} on {len(rows)} rows"):
-        fitted = _fit_rows(dataset, spec, args, rows, unknown_dir)
+        fitted = _fit_rows(prepared, spec, args, rows)
     fit_info = dict(fitted.info)
     fit_info["model"] = spec.name
     fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
@@ -257,7 +257,7 @@ def _fit(args: argparse.Namespace) -> int:
             f"{dataset.source}: {len(rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
             "identifiable parameters"
         )
-    save_model(fitted.model, args.out, data_sha256=data_sha256, frame=fitted.frame, fit=fit_info)
+    save_model(fitted.model, args.out, data_sha256=prepared.data_sha256, frame=fitted.frame, fit=fit_info)
     order = f", order {fitted.model.order}" if fitted.model.order is not None else ""
     extra = ""
     if "identifiability" in fitted.info:
@@ -300,9 +300,6 @@ def _evaluate(args: argparse.Namespace) -> int:
     parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
     dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
-    if len(dataset) < 2:
-        raise UserError(f"{dataset.source}: evaluation needs at least 2 rows (fit and check)")
-    data_sha256 = dataset.content_sha256
     # a model the rows cannot determine is left out by name; the evaluation goes on with the rest
     skipped = {
         t: reason
@@ -315,7 +312,9 @@ def _evaluate(args: argparse.Namespace) -> int:
         raise UserError(f"{dataset.source}: {len(dataset)} data rows; no model can be evaluated ({reasons})")
     for token, reason in skipped.items():
         print(f"{dataset.source}: left out {token}: {reason}")
-    dataset, unknown_dir, directions = _directions(dataset, [spec for _, spec in parsed], args)
+    prepared = _prepare(dataset, [spec for _, spec in parsed], args, hold_out=True)
+    dataset, split = prepared.dataset, prepared.split
+    directions = prepared.directions.note
     if directions:
         print(f"{dataset.source}: {directions}")
     if args.models.strip() == "all" and dataset.dir is None:
@@ -324,22 +323,13 @@ def _evaluate(args: argparse.Namespace) -> int:
         if no_dir:
             print(f"{dataset.source}: left out (no dir columns): {', '.join(no_dir)}", file=sys.stderr)
         skipped.update(no_dir)
-    split = dataset.split_or_draw()
     if split.drawn:
         print(split.message, file=sys.stderr)
-    if len(split.check_rows) == 0:
-        why = "one pose (repeats): none left to hold out" if split.drawn else "the split marks no row 'check'"
-        raise UserError(f"{dataset.source}: no check rows to evaluate on ({why})")
-    if len(split.fit_rows) < 3:
-        how = "drawn" if split.drawn else "the split column marks them 'fit'"
-        raise UserError(f"{dataset.source}: {len(split.fit_rows)} fit rows ({how}); a fit needs at least 3")
-    still = still_axes_note(dataset, split.fit_rows)
-    if still:
-        print(f"{dataset.source}: {still}")
+    if prepared.still_axes:
+        print(f"{dataset.source}: {prepared.still_axes}")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
     check = split.check_rows
-    dir_check = None if dataset.dir is None else directions_of(dataset, check, unknown_dir)
-    temp_check = None if dataset.temp_c is None else dataset.temp_c[check]
+    check_data = prepared.rows(check)
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
@@ -348,7 +338,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
         steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
         t0 = time.perf_counter()
-        fitted = _fit_rows(dataset, spec, args, split.fit_rows, unknown_dir)
+        fitted = _fit_rows(prepared, spec, args, split.fit_rows)
         t1 = time.perf_counter()
         identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
         if len(split.fit_rows) < identifiable:
@@ -358,7 +348,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             print(f"{dataset.source}: left out {token}: {skipped[token]}")
             continue
         pred = fitted.model.predict_tcp_mm(
-            dataset.a_deg[check], dir_check, dataset.payload_kg[check], temp_check
+            check_data.a_deg, check_data.dir, check_data.payload_kg, check_data.temp_c
         )
         t2 = time.perf_counter()
         table[token] = error_statistics(dataset.xyz_mm[check], pred)
@@ -442,7 +432,7 @@ def _evaluate(args: argparse.Namespace) -> int:
     if args.json:
         doc = {
             "data": dataset.source,
-            "data_sha256": data_sha256,
+            "data_sha256": prepared.data_sha256,
             "robot": {"name": robot.name, "sha256": robot.sha256},
             "split": {
                 "drawn": split.drawn,

@@ -8,22 +8,28 @@ no known approach: its direction is taken as +1 and counted as assumed, so a cal
 leave those rows out.
 
 Where the ``t_s`` column exists the rows are put in time order first; otherwise file order is the
-visiting order (as in every campaign written by ``comp-daemon sim sample``).
+visiting order (as in every campaign written by ``comp-daemon sim sample``), an assumption
+:data:`ROW_ORDER_ASSUMPTION` says wherever such directions are used. Every door takes them through
+:func:`comp_daemon.preparation.campaign.prepare_directions`.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.data.table import Dataset
-
-__all__ = ["DirectionInference", "infer_directions", "with_inferred_directions"]
+__all__ = ["ROW_ORDER_ASSUMPTION", "DirectionInference", "infer_directions"]
 
 STILL_DEG = 1e-6  # an axis change smaller than this is no motion
+
+#: the assumption behind directions inferred from the file's row order, said wherever they are used
+ROW_ORDER_ASSUMPTION = (
+    "assumed: the file lists the poses in the order the robot visited them (no t_s column); "
+    "if it does not, these directions are wrong and a backlash fitted on them means nothing "
+    "(give dir1..dir6 or t_s to make them certain)"
+)
 
 
 @dataclass(frozen=True, slots=True)
@@ -40,7 +46,8 @@ class DirectionInference:
         return int(self.assumed.any(axis=1).sum())
 
     def describe(self) -> str:
-        n = len(self.dir)
+        """One sentence: how the directions were derived, the rows where an axis had not moved yet
+        (unknown: a caller sets them to 0, no backlash offset), and, in row order, the assumption."""
         text = (
             "approach directions (dir1..dir6) inferred from the sign of each axis' last motion"
             f" in {self.order}"
@@ -48,7 +55,9 @@ class DirectionInference:
         per_axis = self.assumed.sum(axis=0)
         if per_axis.any():
             counts = ", ".join(f"A{k + 1} {int(c)}" for k, c in enumerate(per_axis) if c)
-            text += f"; rows of {n} before an axis first moved (+1 assumed): {counts}"
+            text += f"; unknown (0) before an axis first moved, rows of {len(self.dir)}: {counts}"
+        if self.order == "row order":
+            text += "; " + ROW_ORDER_ASSUMPTION
         return text
 
 
@@ -81,11 +90,3 @@ def infer_directions(
     return DirectionInference(
         dir=out_dir, assumed=out_assumed, order="t_s" if t_s is not None else "row order"
     )
-
-
-def with_inferred_directions(dataset: Dataset) -> tuple[Dataset, DirectionInference | None]:
-    """``dataset`` with ``dir`` filled from the pose order when it has none (else unchanged, None)."""
-    if dataset.dir is not None or dataset.a_deg is None:
-        return dataset, None
-    inferred = infer_directions(dataset.a_deg, dataset.t_s)
-    return dataclasses.replace(dataset, dir=inferred.dir), inferred

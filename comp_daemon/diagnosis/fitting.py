@@ -13,21 +13,28 @@ Linear least squares is done with columns scaled to unit norm (the raw columns d
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+import dataclasses
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
-from comp_daemon.models.effects import EffectParams, MassModel, twin_jacobian, twin_tcp_mm
+from comp_daemon.kinematics.params import N_PARAMS, TOOL_SLICE, KinematicParams
+from comp_daemon.models.effects import EffectParams, MassModel, twin_jacobian, twin_state, twin_tcp_mm
 
 __all__ = [
     "FitResult",
     "Observations",
+    "at_fit",
     "fit_twin",
+    "flange_mm",
     "linearize",
+    "linearize_targets",
     "predict_mm",
+    "project_out",
+    "seen_from_flange",
 ]
 
 FloatArray = NDArray[np.float64]
@@ -53,6 +60,10 @@ class Observations:
     pose_group: NDArray[np.int64]
     clock: FloatArray | None = None
     clock_name: str = "pose_order"
+    # several targets per pose: the row's target (0 = the TCP, the twin's tool) and the further
+    # targets' positions in the flange frame ((K − 1, 3), mm); None: every row is the TCP
+    target: NDArray[np.int64] | None = None
+    target_offsets_mm: FloatArray | None = None
 
     def __len__(self) -> int:
         return int(self.a_deg.shape[0])
@@ -67,14 +78,91 @@ class Observations:
             pose_group=self.pose_group[idx],
             clock=None if self.clock is None else self.clock[idx],
             clock_name=self.clock_name,
+            target=None if self.target is None else self.target[idx],
+            target_offsets_mm=self.target_offsets_mm,
         )
+
+    def with_targets(self, more_xyz_mm: FloatArray, offsets_mm: FloatArray) -> Observations:
+        """Every target as rows of their own: these rows (target 0, the TCP), then each further
+        target's (``more_xyz_mm`` (n, K − 1, 3) measured, ``offsets_mm`` (K − 1, 3) its position in
+        the flange frame); row ``i + k·n`` is target ``k`` of pose ``i``."""
+        k = 1 + more_xyz_mm.shape[1]
+
+        def tiled(x: FloatArray | None) -> FloatArray | None:
+            return None if x is None else np.concatenate([x] * k, axis=0)
+
+        return Observations(
+            a_deg=np.concatenate([self.a_deg] * k, axis=0),
+            xyz_mm=np.concatenate([self.xyz_mm, *np.moveaxis(more_xyz_mm, 1, 0)], axis=0),
+            dir=tiled(self.dir),
+            payload_kg=np.concatenate([self.payload_kg] * k),
+            temp_c=tiled(self.temp_c),
+            pose_group=np.concatenate([self.pose_group] * k),
+            clock=tiled(self.clock),
+            clock_name=self.clock_name,
+            target=np.repeat(np.arange(k, dtype=np.int64), len(self)),
+            target_offsets_mm=np.asarray(offsets_mm, dtype=float).reshape(k - 1, 3),
+        )
+
+    def by_target(self) -> list[tuple[NDArray[np.int64], Observations, FloatArray | None]]:
+        """(rows, their observations, the target's flange-frame position or None for the TCP) per
+        target; one entry holding every row when there is one target."""
+        if self.target is None or self.target_offsets_mm is None:
+            return [(np.arange(len(self)), self, None)]
+        out = []
+        for k in range(len(self.target_offsets_mm) + 1):
+            rows = np.flatnonzero(self.target == k)
+            if len(rows):
+                sub = dataclasses.replace(self.take(rows), target=None, target_offsets_mm=None)
+                out.append((rows, sub, None if k == 0 else self.target_offsets_mm[k - 1]))
+        return out
+
+
+def _at_target(params: KinematicParams, offset_mm: FloatArray | None) -> KinematicParams:
+    return params if offset_mm is None else dataclasses.replace(params, tool_xyz_mm=offset_mm)
 
 
 def predict_mm(
     mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
 ) -> FloatArray:
-    """(n, 3) TCP of the twin at the observed poses (mm, world frame)."""
-    return twin_tcp_mm(mass, params, effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock)
+    """(n, 3) the twin's position of each row's target at the observed poses (mm, world frame)."""
+    out = np.empty((len(obs), 3))
+    for rows, sub, offset in obs.by_target():
+        out[rows] = twin_tcp_mm(
+            mass,
+            _at_target(params, offset),
+            effects,
+            sub.a_deg,
+            sub.dir,
+            sub.payload_kg,
+            sub.temp_c,
+            clock=sub.clock,
+        )
+    return out
+
+
+def _jacobians(
+    mass: MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: Sequence[str],
+    obs: Observations,
+) -> Iterator[tuple[NDArray[np.int64], FloatArray, FloatArray, FloatArray | None]]:
+    """Per target: its rows, the twin's positions there and their Jacobian, and its place on the
+    flange (None for the TCP)."""
+    for rows, sub, offset in obs.by_target():
+        tcp, jac = twin_jacobian(
+            mass,
+            _at_target(params, offset),
+            effects,
+            list(names),
+            sub.a_deg,
+            sub.dir,
+            sub.payload_kg,
+            sub.temp_c,
+            clock=sub.clock,
+        )
+        yield rows, tcp, jac, offset
 
 
 def linearize(
@@ -84,11 +172,35 @@ def linearize(
     names: Sequence[str],
     obs: Observations,
 ) -> tuple[FloatArray, FloatArray]:
-    """Residual (n, 3) and Jacobian (n, 3, 39 + len(names)) of the twin at the observed poses."""
-    tcp, jac = twin_jacobian(
-        mass, params, effects, list(names), obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock
-    )
-    return obs.xyz_mm - tcp, jac
+    """Residual (n, 3) and Jacobian (n, 3, 39 + len(names)) of the twin at the observed poses.
+
+    A further target sits at its own place on the flange: the tool's columns are zero on its rows
+    (:func:`linearize_targets` also gives the derivatives by that place)."""
+    resid, jac, _ = linearize_targets(mass, params, effects, names, obs)
+    return resid, jac
+
+
+def linearize_targets(
+    mass: MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: Sequence[str],
+    obs: Observations,
+) -> tuple[FloatArray, FloatArray, FloatArray]:
+    """:func:`linearize`, and (n, 3, 3·(K − 1)) the derivative of each row's position by its
+    further target's place on the flange (zero on the other rows; (n, 3, 0) with one target)."""
+    n_more = 0 if obs.target_offsets_mm is None or obs.target is None else len(obs.target_offsets_mm)
+    tcp = np.empty((len(obs), 3))
+    jac = np.empty((len(obs), 3, N_PARAMS + len(names)))
+    tcols = np.zeros((len(obs), 3, 3 * n_more))
+    for rows, tcp_k, jac_k, offset in _jacobians(mass, params, effects, names, obs):
+        tcp[rows], jac[rows] = tcp_k, jac_k
+        if offset is not None:
+            assert obs.target is not None
+            k = int(obs.target[rows[0]])
+            tcols[rows, :, 3 * (k - 1) : 3 * k] = jac_k[:, :, TOOL_SLICE]
+            jac[rows, :, TOOL_SLICE] = 0.0
+    return obs.xyz_mm - tcp, jac, tcols
 
 
 @dataclass(frozen=True)
@@ -100,6 +212,43 @@ class FitResult:
     rms_mm: float  # 3-D RMS residual over the rows fitted
     iterations: int
     converged: bool
+    target_offsets_mm: FloatArray | None = None  # the further targets' places on the flange, fitted
+
+
+def at_fit(obs: Observations, fit: FitResult) -> Observations:
+    """``obs`` with the further targets at the places ``fit`` found for them (unchanged otherwise)."""
+    if obs.target is None or fit.target_offsets_mm is None:
+        return obs
+    return dataclasses.replace(obs, target_offsets_mm=fit.target_offsets_mm)
+
+
+def flange_mm(
+    mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
+) -> tuple[FloatArray, FloatArray]:
+    """The twin's flange rotation (n, 3, 3) and origin (n, 3, mm) at the observed poses."""
+    st = twin_state(mass, params, effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock)
+    flange = st.chain.world_T_frame[:, 6]
+    return flange[:, :3, :3], flange[:, :3, 3]
+
+
+def seen_from_flange(rot: FloatArray, origin: FloatArray, points_mm: FloatArray) -> FloatArray:
+    """(3,) the mean of the points (n, 3) seen from the flange frames: the least-squares place on
+    the flange of a target measured there."""
+    return np.einsum("nji,nj->ni", rot, points_mm - origin).mean(axis=0)
+
+
+def project_out(columns: FloatArray, *arrays: FloatArray) -> list[FloatArray]:
+    """``arrays`` (n, 3[, m]) with the span of ``columns`` (n, 3, q) projected out of each."""
+    if columns.shape[2] == 0:
+        return list(arrays)
+    t = columns.reshape(-1, columns.shape[2])
+    norms = np.linalg.norm(t, axis=0)
+    qmat, _ = np.linalg.qr(t / np.where(norms > 0, norms, 1.0))
+    out = []
+    for a in arrays:
+        flat = a.reshape(len(t), -1)
+        out.append((flat - qmat @ (qmat.T @ flat)).reshape(a.shape))
+    return out
 
 
 def _solve_scaled(jac: FloatArray, rhs: FloatArray) -> FloatArray:
@@ -133,17 +282,41 @@ def fit_twin(
     n_geo = len(geo_idx)
     cols = np.concatenate([geo_idx, N_PARAMS + np.arange(len(names))])
 
-    def cost_of(p: KinematicParams, e: EffectParams) -> float:
-        r = obs.xyz_mm - predict_mm(mass, p, e, obs)
-        return float(np.sum(r * r))
+    def cost_of(p: KinematicParams, e: EffectParams) -> tuple[float, Observations]:
+        """The cost with the further targets at their least-squares places for this twin, and the
+        rows with them there (one twin evaluation per target)."""
+        if obs.target is None or obs.target_offsets_mm is None:
+            r = obs.xyz_mm - predict_mm(mass, p, e, obs)
+            return float(np.sum(r * r)), obs
+        offsets = np.array(obs.target_offsets_mm, dtype=float)
+        sse = 0.0
+        first: tuple[Observations, Any] | None = None  # the targets share their poses: one twin
+        for rows, sub, offset in obs.by_target():
+            if first is not None and np.array_equal(first[0].a_deg, sub.a_deg):
+                st = first[1]
+            else:
+                st = twin_state(mass, p, e, sub.a_deg, sub.dir, sub.payload_kg, sub.temp_c, clock=sub.clock)
+                first = (sub, st)
+            if offset is None:
+                pred = st.tcp_mm
+            else:
+                flange = st.chain.world_T_frame[:, 6]
+                rot, origin = flange[:, :3, :3], flange[:, :3, 3]
+                place = seen_from_flange(rot, origin, sub.xyz_mm)
+                offsets[int(obs.target[rows[0]]) - 1] = place
+                pred = origin + rot @ place
+            sse += float(np.sum((sub.xyz_mm - pred) ** 2))
+        return sse, dataclasses.replace(obs, target_offsets_mm=offsets)
 
-    cost = cost_of(params, effects)
+    cost, current = cost_of(params, effects)
     converged = False
     iterations = 0
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        resid, jac = linearize(mass, params, effects, names, obs)
-        jf = jac[:, :, cols].reshape(-1, len(cols))
-        step = _solve_scaled(jf, resid.reshape(-1))
+        resid, jac, tcols = linearize_targets(mass, params, effects, names, current)
+        jac = jac[:, :, cols]
+        if current.target is not None:  # the targets' places are profiled out (variable projection)
+            resid, jac = project_out(tcols, resid, jac)
+        step = _solve_scaled(jac.reshape(-1, len(cols)), resid.reshape(-1))
         new_cost = cost
         t = 1.0
         for _ in range(20):
@@ -151,9 +324,9 @@ def fit_twin(
             dx[geo_idx] = t * step[:n_geo]
             trial_p = params.apply(dx)
             trial_e = effects.add(names, t * step[n_geo:]) if names else effects
-            new_cost = cost_of(trial_p, trial_e)
+            new_cost, trial_obs = cost_of(trial_p, trial_e)
             if new_cost <= cost * (1.0 + 1e-12) + 1e-30:
-                params, effects = trial_p, trial_e
+                params, effects, current = trial_p, trial_e, trial_obs
                 break
             t *= 0.5
         else:
@@ -165,4 +338,11 @@ def fit_twin(
             converged = True
             break
     rms = float(np.sqrt(cost / max(len(obs), 1)))
-    return FitResult(params=params, effects=effects, rms_mm=rms, iterations=iterations, converged=converged)
+    return FitResult(
+        params=params,
+        effects=effects,
+        rms_mm=rms,
+        iterations=iterations,
+        converged=converged,
+        target_offsets_mm=current.target_offsets_mm,
+    )

@@ -58,11 +58,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import Dataset
+from comp_daemon.diagnosis.agreement import Agreement, fit_check_agreement
+from comp_daemon.diagnosis.attribution import flexible_attribution
 from comp_daemon.diagnosis.candidates import (
     JOINTS,
     Candidate,
@@ -73,19 +76,25 @@ from comp_daemon.diagnosis.candidates import (
     group_skips,
     unidentifiable_candidates,
 )
-from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize, predict_mm
+from comp_daemon.diagnosis.fitting import (
+    FitResult,
+    Observations,
+    at_fit,
+    linearize_targets,
+    predict_mm,
+    project_out,
+)
 from comp_daemon.diagnosis.remainder import RemainderModel, judge_remainder
-from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step
+from comp_daemon.diagnosis.result import DiagnoseOptions, Diagnosis, Step, final_step, rounded
 from comp_daemon.diagnosis.selection import Context, select, time_nuisance
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
-from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets
+from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets, target_offsets_mm
 from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
-from comp_daemon.models.registration import detect_frame, rigid_registration
-from comp_daemon.models.units import millimetre_problem
+from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -100,8 +109,11 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
-def observations_from_dataset(dataset: Dataset) -> Observations:
-    """The arrays of a measurement data set; pose groups by ``pose_id``, else by identical axes."""
+def observations_from_dataset(dataset: Dataset, dir: FloatArray | None = None) -> Observations:
+    """The arrays of a measurement data set; pose groups by ``pose_id``, else by identical axes.
+
+    ``dir`` (n, 6): the approach directions to use (the prepared ones, 0 where unknown); by
+    default the data set's ``dir`` columns."""
     if dataset.a_deg is None or dataset.xyz_mm is None:
         raise ValueError(f"{dataset.source}: diagnosis needs axis values a1..a6 and measured x, y, z")
     if dataset.pose_id is not None:
@@ -117,13 +129,17 @@ def observations_from_dataset(dataset: Dataset) -> Observations:
     return Observations(
         a_deg=np.array(dataset.a_deg, dtype=float),
         xyz_mm=np.array(dataset.xyz_mm, dtype=float),
-        dir=None if dataset.dir is None else np.array(dataset.dir, dtype=float),
+        dir=np.array(dir, dtype=float) if dir is not None else _dir_columns(dataset),
         payload_kg=np.array(dataset.payload_kg, dtype=float),
         temp_c=None if dataset.temp_c is None else np.array(dataset.temp_c, dtype=float),
         pose_group=np.asarray(group, dtype=np.int64).reshape(-1),
         clock=clock,
         clock_name=clock_name,
     )
+
+
+def _dir_columns(dataset: Dataset) -> FloatArray | None:
+    return None if dataset.dir is None else np.array(dataset.dir, dtype=float)
 
 
 def _shrink(before: float, after: float) -> float:
@@ -160,57 +176,47 @@ def _noise_floor_from_repeats(obs: Observations) -> float | None:
 def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions | None = None) -> Diagnosis:
     """Diagnose the gap between ``robot``'s nominal twin and the measurements in ``dataset``."""
     options = options or DiagnoseOptions()
-    obs = observations_from_dataset(dataset)
-    split = dataset.split_or_draw(seed=options.seed, check_fraction=options.check_fraction)
-    fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
-    if len(check_rows) == 0:
-        if split.drawn:
-            raise ValueError(
-                f"{dataset.source}: the {len(dataset)} rows are one pose (repeats of the same axis "
-                "values): no pose is left to hold out as check rows; the diagnosis needs poses spread "
-                "over the workspace"
-            )
-        raise ValueError(
-            f"{dataset.source}: the split column marks no row 'check'; the diagnosis needs check rows"
-        )
+    prepared = prepare_campaign(
+        dataset,
+        robot,
+        PrepareOptions(
+            frame=options.frame,
+            need_directions=True,
+            infer_directions=options.infer_directions,
+            min_fit_rows=N_PARAMS,
+            min_fit_rows_for="parameters of the geometric step",
+            seed=options.seed,
+            check_fraction=options.check_fraction,
+        ),
+    )
+    obs = observations_from_dataset(prepared.dataset, prepared.dir_of(np.arange(len(dataset))))
+    split = prepared.split
+    fit_rows, check_rows = prepared.fit_rows, prepared.check_rows
     mass = MassModel.from_robot(robot)
     nominal = KinematicParams.from_robot(robot)
     effects0 = EffectParams.zeros(options.harmonics, t_ref_c=options.t_ref_c)
-    scale = millimetre_problem(robot, obs.a_deg, obs.xyz_mm)
-    if scale is not None:
-        raise ValueError(f"{dataset.source}: {scale}")
-    if len(fit_rows) < N_PARAMS:
-        if split.drawn:
-            need = int(np.ceil(N_PARAMS / (1.0 - options.check_fraction)))
-            how = (
-                f"{len(check_rows)} of the {len(dataset)} rows are held out as check rows; give at least "
-                f"{need} rows, or a split column with at least {N_PARAMS} 'fit' rows"
-            )
-        else:
-            how = f"the split column marks {len(fit_rows)} rows 'fit'; at least {N_PARAMS} are needed"
-        raise ValueError(
-            f"{dataset.source}: {len(fit_rows)} fit rows, fewer than the {N_PARAMS} parameters "
-            f"of the geometric step ({how})"
-        )
 
-    # 1. frame
-    obs_fit = obs.take(fit_rows)
-    p_nom = predict_mm(mass, nominal, effects0, obs_fit)
-    rms_nominal = float(np.sqrt(np.mean(np.sum((obs_fit.xyz_mm - p_nom) ** 2, axis=1))))
-    frame: str = options.frame
-    if frame == "auto":
-        frame = detect_frame(p_nom, obs_fit.xyz_mm)
-    world_T_base = rigid_registration(p_nom, obs_fit.xyz_mm) if frame == "tracker" else np.eye(4)
+    # 1. frame (prepared: registered on the fit rows when the data are in a tracker's frame)
+    frame, world_T_base = prepared.frame, prepared.world_T_base
+    rms_nominal = prepared.nominal_fit_rms_mm
     start_params = nominal.with_base(world_T_base)
+    start = FitResult(start_params, effects0, rms_nominal, 0, True)
+    # every target: the further ones as rows of their own, at their place on the flange
+    more = prepared.dataset.more_xyz_mm
+    obs_all, fit_all, check_all = obs, fit_rows, check_rows
+    if more is not None:
+        offsets = target_offsets_mm(mass, start, obs.take(fit_rows), more[fit_rows])
+        obs_all, fit_all, check_all = _every_target(obs, more, offsets, fit_rows, check_rows)
 
     # 2. geometric step: identifiability, then Gauss–Newton
-    _, jac0 = linearize(mass, start_params, effects0, [], obs_fit)
-    ident = analyze_identifiability(jac0, PARAM_NAMES, priority=mdh_priority(start_params))
+    obs_all_fit = obs_all.take(fit_all)
+    _, jac0, tcols0 = linearize_targets(mass, start_params, effects0, [], obs_all_fit)
+    (jac0_free,) = project_out(tcols0, jac0)
+    ident = analyze_identifiability(jac0_free, PARAM_NAMES, priority=mdh_priority(start_params))
     geo_free = np.zeros(N_PARAMS, dtype=bool)
     geo_free[ident.identifiable_index] = True
     unidentifiable = [r.describe() for r in ident.removed]
-    ctx = Context(mass, obs, fit_rows, check_rows, geo_free, options)
-    start = FitResult(start_params, effects0, rms_nominal, 0, True)
+    ctx = Context(mass, obs_all, fit_all, check_all, geo_free, options)
     base_rms, base_max = ctx.check_stats(start)
     geo_fit = ctx.fit(start, [])
     step_at, searched = _search_step(ctx, geo_fit)
@@ -228,7 +234,9 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     avail = _identifiable(ctx, geo_fit, [c for c in cands if c not in reasons], reasons)
     if not any(c.effect in TIME_EFFECTS for c in avail) and _follows_time(ctx, geo_fit):
         ctx.nuisance = time_nuisance(np.asarray(ctx.obs_fit.clock))
-    accepted, rejected, selection, _ = select(ctx, geo_fit, avail, options)
+    accepted, rejected, selection, final_fit = select(ctx, geo_fit, avail, options)
+    accepted = _physical_over_clock(ctx, final_fit, accepted, selection)
+    accepted, unnamed = flexible_attribution(ctx, final_fit, accepted)
 
     # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
     steps = _ladder(ctx, start, geo_fit, accepted, rejected, base_rms)
@@ -236,6 +244,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     structure = _structure(ctx, dataset, steps)
     skipped = group_skips(reasons)
     by_joint = {j: [n for c in cands if c.joint == j and c not in reasons for n in c.names] for j in JOINTS}
+    agreement = _agreement(ctx, obs, fit_rows, check_rows, prepared.dataset, steps)
     baseline = Baseline(
         check_rms_mm=base_rms,
         check_max_mm=base_max,
@@ -243,6 +252,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         skipped=skipped,
         noise_floor_source=floor_source,
         structure=describe_structure(structure),
+        disagreement=agreement.describe(),
     )
     where = locate(obs, mass, steps, baseline, ctx.problem, by_joint)
     flange = flange_errors(mass, steps[0].fit, obs, dataset.reflectors_mm, fit_rows, check_rows, robot, frame)
@@ -250,7 +260,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         where["flange"] = flange
         where["summary"] += " " + flange_words(flange)
     remainder = _remainder(ctx, steps)
-    where["summary"] = f"{where['summary']} {remainder.describe()}"
+    where["summary"] = " ".join([where["summary"], *(u.describe() for u in unnamed), remainder.describe()])
     return Diagnosis(
         robot=robot,
         dataset=dataset,
@@ -272,6 +282,9 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         noise_floor_mm=floor,
         noise_floor_source=floor_source,
         where=where,
+        directions=prepared.directions,
+        agreement=agreement,
+        unnamed=[u.to_json() for u in unnamed],
         residual_structure=structure,
         remainder_rows="check rows, and fit rows out of fold",
         time_nuisance=ctx.nuisance is not None,
@@ -287,7 +300,9 @@ def _identifiable(
     The others are added to ``reasons``.
     """
     all_names = [n for c in avail for n in c.names]
-    _, jac_geo = linearize(ctx.mass, geo_fit.params, geo_fit.effects, all_names, ctx.obs_fit)
+    obs = at_fit(ctx.obs_fit, geo_fit)
+    _, jac_geo, tcols = linearize_targets(ctx.mass, geo_fit.params, geo_fit.effects, all_names, obs)
+    (jac_geo,) = project_out(tcols, jac_geo)  # what the targets' places absorb is not identifiable
     jac_flat = jac_geo.reshape(-1, jac_geo.shape[2])
     offsets: dict[Candidate, NDArray[np.int64]] = {}
     pos = N_PARAMS
@@ -412,7 +427,9 @@ def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
     clock = ctx.obs_fit.clock
     if clock is None or len(np.unique(clock)) < 2:
         return math.inf, 1
-    resid, jac = linearize(ctx.mass, geo_fit.params, geo_fit.effects, [], ctx.obs_fit)
+    obs = at_fit(ctx.obs_fit, geo_fit)
+    resid, jac, tcols = linearize_targets(ctx.mass, geo_fit.params, geo_fit.effects, [], obs)
+    resid, jac = project_out(tcols, resid, jac)
     geo = jac[:, :, ctx.geo_idx].reshape(-1, len(ctx.geo_idx))
     norms = np.linalg.norm(geo, axis=0)
     qmat, _ = np.linalg.qr(geo / np.where(norms > 0, norms, 1.0))
@@ -440,6 +457,54 @@ def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
 
 #: the effects of the catalogue that are functions of the campaign clock
 TIME_EFFECTS = ("drift", "step")
+
+
+#: temperature and clock this correlated on the fit rows are collinear drivers
+COLLINEAR_DRIVERS = 0.9
+#: a time effect beside thermal growth must lower the CV error by this share to be needed as well
+NEEDED_GAIN = 0.02
+
+
+def _physical_over_clock(
+    ctx: Context, fit: FitResult, accepted: list[Candidate], selection: list[dict[str, Any]]
+) -> list[Candidate]:
+    """``accepted`` without its time effects when thermal growth is accepted, the temperature follows
+    the clock (|r| > :data:`COLLINEAR_DRIVERS` on the fit rows) and the time effects do not lower
+    the cross-validated error by :data:`NEEDED_GAIN` beside it: collinear drivers, the physical one
+    is named unless both are needed out of fold. The decision is recorded in ``selection``."""
+    timed = [c for c in accepted if c.effect in TIME_EFFECTS]
+    temp, clock = ctx.obs_fit.temp_c, ctx.obs_fit.clock
+    if not timed or not any(c.effect == "thermal" for c in accepted) or temp is None or clock is None:
+        return accepted
+    if np.std(temp) == 0 or np.std(clock) == 0:
+        return accepted
+    r = float(np.corrcoef(temp, clock)[0, 1])
+    if abs(r) <= COLLINEAR_DRIVERS:
+        return accepted
+    names = [n for c in accepted for n in c.names]
+    lp = ctx.problem(fit, names)
+    cols = ctx.own_cols(len(names))
+    n_base = len(ctx.geo_idx)
+    drop: list[int] = []
+    pos = 0
+    for c in accepted:
+        if c in timed:
+            drop += cols[n_base + pos : n_base + pos + len(c.names)]
+        pos += len(c.names)
+    cv_both = lp.cv_rms_mm(cols)
+    cv_thermal = lp.cv_rms_mm([k for k in cols if k not in drop])
+    needed = cv_thermal > (1.0 + NEEDED_GAIN) * cv_both
+    selection.append(
+        {
+            "round": len(selection) + 1,
+            "collinear_drivers": {"temp_c": ctx.obs.clock_name, "r": rounded(r)},
+            "cv_rms_mm_thermal_and_time": rounded(cv_both),
+            "cv_rms_mm_thermal_only": rounded(cv_thermal),
+            "kept_time_effects": needed,
+            "time_effects": [c.label for c in timed],
+        }
+    )
+    return accepted if needed else [c for c in accepted if c not in timed]
 
 
 def _follows_time(ctx: Context, geo_fit: FitResult) -> bool:
@@ -470,15 +535,17 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     resid = np.empty_like(ctx.obs.xyz_mm)
     fit_rows, check_rows = ctx.fit_rows, ctx.check_rows
     resid[fit_rows] = lp.oof_residuals(ctx.own_cols(len(names)))
-    resid[check_rows] = ctx.obs_check.xyz_mm - predict_mm(
-        ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
+    obs_check = at_fit(ctx.obs_check, final.fit)
+    resid[check_rows] = obs_check.xyz_mm - predict_mm(
+        ctx.mass, final.fit.params, final.fit.effects, obs_check
     )
     obs = ctx.obs
+    copies = len(obs) // len(dataset)  # the targets per pose: their rows follow one another
     columns: dict[str, FloatArray | None] = {}
     if obs.clock_name == "t_s":
-        columns["t_s"] = np.asarray(dataset.t_s, dtype=float)
+        columns["t_s"] = np.tile(np.asarray(dataset.t_s, dtype=float), copies)
     else:
-        columns["pose_order"] = np.arange(len(obs), dtype=float)
+        columns["pose_order"] = np.tile(np.arange(len(dataset), dtype=float), copies)
     for j in JOINTS:
         columns[f"a{j}"] = obs.a_deg[:, j - 1]
     columns["payload_kg"] = obs.payload_kg
@@ -488,22 +555,62 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
     return residual_structure(resid, columns, obs.pose_group, folds=ctx.options.folds, seed=ctx.options.seed)
 
 
+def _agreement(
+    ctx: Context,
+    obs: Observations,
+    fit_rows: NDArray[np.int64],
+    check_rows: NDArray[np.int64],
+    dataset: Dataset,
+    steps: list[Step],
+) -> Agreement:
+    """Whether the fit and check rows agree along the ladder (:mod:`comp_daemon.diagnosis.agreement`),
+    on the TCP's rows ``obs``."""
+    ladder = [steps[0], *(s for s in steps[1:] if s.significant)]
+    final = final_step(steps)
+    predicted = predict_mm(ctx.mass, final.fit.params, final.fit.effects, obs.take(check_rows))
+    return fit_check_agreement(
+        [s.check_rms_mm for s in ladder],
+        [s.cv_rms_mm for s in ladder],
+        obs,
+        fit_rows,
+        check_rows,
+        predicted,
+        dataset,
+    )
+
+
+def _every_target(
+    obs: Observations,
+    more_mm: FloatArray,
+    offsets_mm: FloatArray,
+    fit_rows: NDArray[np.int64],
+    check_rows: NDArray[np.int64],
+) -> tuple[Observations, NDArray[np.int64], NDArray[np.int64]]:
+    """The observations of every target (:meth:`Observations.with_targets`) and their fit and check rows."""
+    k, n = 1 + more_mm.shape[1], len(obs)
+    every = obs.with_targets(np.asarray(more_mm, dtype=float), offsets_mm)
+    return (
+        every,
+        np.concatenate([fit_rows + i * n for i in range(k)]),
+        np.concatenate([check_rows + i * n for i in range(k)]),
+    )
+
+
 def _remainder(ctx: Context, steps: list[Step]) -> RemainderModel:
     """The joint-space remainder model on top of the final step, kept only if it wins out of fold."""
     if not ctx.options.remainder_model:
         return RemainderModel(False, False, "not asked for (DiagnoseOptions.remainder_model)")
     final = final_step(steps)
     names = [n for s in steps if s.significant and s.effect != "geometric" for n in s.names]
-    lp = ctx.problem(final.fit, names)
-    resid_check = ctx.obs_check.xyz_mm - predict_mm(
-        ctx.mass, final.fit.params, final.fit.effects, ctx.obs_check
-    )
+    lp = ctx.problem(final.fit, names, tcp_only=True)  # a function of the axes: the TCP's rows
+    obs_check = ctx.obs_check_tcp
+    resid_check = obs_check.xyz_mm - predict_mm(ctx.mass, final.fit.params, final.fit.effects, obs_check)
     return judge_remainder(
         lp,
         ctx.own_cols(len(names)),
-        ctx.obs_fit.a_deg,
+        ctx.obs_fit.a_deg[ctx.tcp_fit],
         lp.r,
-        ctx.obs_check.a_deg,
+        obs_check.a_deg,
         resid_check,
         seed=ctx.options.seed,
     )

@@ -15,10 +15,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
+from comp_daemon.diagnosis.agreement import Agreement
 from comp_daemon.diagnosis.fitting import FitResult, Observations
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.preparation.campaign import Directions
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -58,6 +60,7 @@ class DiagnoseOptions:
     tracker_sigma_mm: float | None = None  # declared tracker uncertainty (σ per axis), if known
     effects: tuple[str, ...] | None = None  # the effects to try (None: the whole catalogue)
     remainder_model: bool = True  # try the joint-space remainder model after the ladder
+    infer_directions: bool = True  # without dir columns, approach directions from the pose order
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -161,6 +164,10 @@ class Diagnosis:
     remainder_rows: str = ""  # which rows' remainder residual_structure tested
     time_nuisance: bool = False  # the effects were tested with a time nuisance in their base
     remainder_model: RemainderModel | None = None  # joint-space model of the remainder (kept or not)
+    directions: Directions | None = None  # where the approach directions come from (the preparation)
+    agreement: Agreement | None = None  # whether the fit and check rows tell the same story
+    # errors an effect stood in for that a flexible alternative of its driver explains better
+    unnamed: list[dict[str, Any]] = field(default_factory=list)
 
     @property
     def significant_steps(self) -> list[Step]:
@@ -193,6 +200,7 @@ class Diagnosis:
                 "measured_in": self.frame,
                 "world_T_base": [[rounded(v, 9) for v in row] for row in self.world_T_base],
             },
+            **({} if self.directions is None else {"directions": self.directions.to_json()}),
             "clock": {
                 "from": self.obs.clock_name,
                 "unit": "h since the first t_s" if self.obs.clock_name == "t_s" else "row",
@@ -210,6 +218,8 @@ class Diagnosis:
             "noise_floor_mm": None if self.noise_floor_mm is None else rounded(self.noise_floor_mm),
             "noise_floor_source": self.noise_floor_source,
             "residual_structure": [r.to_json() for r in self.residual_structure],
+            **({} if self.agreement is None else {"fit_check_agreement": self.agreement.to_json()}),
+            "unnamed_errors": self.unnamed,
             "remainder_rows": self.remainder_rows,
             **({} if self.remainder_model is None else {"remainder_model": self.remainder_model.to_json()}),
             "unidentifiable": self.unidentifiable,

@@ -13,6 +13,7 @@ in :mod:`comp_daemon.diagnosis.ladder`.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Sequence
 from typing import Any
 
@@ -20,7 +21,15 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.diagnosis.candidates import Candidate
-from comp_daemon.diagnosis.fitting import FitResult, Observations, fit_twin, linearize, predict_mm
+from comp_daemon.diagnosis.fitting import (
+    FitResult,
+    Observations,
+    at_fit,
+    fit_twin,
+    linearize_targets,
+    predict_mm,
+    project_out,
+)
 from comp_daemon.diagnosis.result import DiagnoseOptions, rounded
 from comp_daemon.diagnosis.stats import LinearProblem, make_folds
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
@@ -69,6 +78,9 @@ class Context:
         self.options = options
         self.fold = make_folds(self.obs_fit.pose_group, options.folds, options.seed)
         self.nuisance: FloatArray | None = None
+        # the TCP's rows (target 0) among the fit and check rows; every row with one target
+        self.tcp_fit = _tcp_rows(self.obs_fit)
+        self.obs_check_tcp = self.obs_check.take(_tcp_rows(self.obs_check))
 
     @property
     def n_nuisance(self) -> int:
@@ -86,13 +98,31 @@ class Context:
     def fit(self, start: FitResult, names: Sequence[str]) -> FitResult:
         return fit_twin(self.mass, self.obs_fit, start.params, start.effects, self.geo_free, names)
 
-    def problem(self, fit: FitResult, names: Sequence[str]) -> LinearProblem:
-        """Linear problem with columns [free geometric | nuisance | names] at ``fit``."""
-        resid, jac = linearize(self.mass, fit.params, fit.effects, names, self.obs_fit)
+    def problem(
+        self,
+        fit: FitResult,
+        names: Sequence[str],
+        *,
+        tcp_only: bool = False,
+        extra: FloatArray | None = None,
+    ) -> LinearProblem:
+        """Linear problem with columns [free geometric | nuisance | names] at ``fit``; with
+        ``tcp_only`` on the TCP's fit rows alone (several targets per pose). The further targets'
+        places on the flange are free: their columns are projected out of every column and the
+        residual (on the TCP's rows they are zero). ``extra`` (n_fit, 3, q): columns appended after
+        the names (a flexible alternative's)."""
+        obs = at_fit(self.obs_fit, fit)
+        resid, jac, tcols = linearize_targets(self.mass, fit.params, fit.effects, names, obs)
         geo = jac[:, :, self.geo_idx]
         eff = jac[:, :, N_PARAMS + np.arange(len(names))]
         blocks = [geo, eff] if self.nuisance is None else [geo, self.nuisance, eff]
-        return LinearProblem(resid, np.concatenate(blocks, axis=2), self.obs_fit.pose_group, self.fold)
+        if extra is not None:
+            blocks.append(extra)
+        full = np.concatenate(blocks, axis=2)
+        if obs.target is not None and not tcp_only:
+            resid, full = project_out(tcols, resid, full)
+        rows = self.tcp_fit if tcp_only else slice(None)
+        return LinearProblem(resid[rows], full[rows], self.obs_fit.pose_group[rows], self.fold[rows])
 
     def values(self, fit: FitResult, start: KinematicParams, names: Sequence[str]) -> FloatArray:
         """Values of the columns [free geometric | nuisance | names] at ``fit``, measured from ``start``."""
@@ -101,8 +131,13 @@ class Context:
         return np.concatenate([geo, np.zeros(self.n_nuisance), eff])
 
     def check_stats(self, fit: FitResult) -> tuple[float, float]:
-        resid = self.obs_check.xyz_mm - predict_mm(self.mass, fit.params, fit.effects, self.obs_check)
-        return distance_stats(resid)
+        """RMS and maximum of the 3-D error of the TCP (target 0) on the check rows."""
+        obs = self.obs_check_tcp
+        return distance_stats(obs.xyz_mm - predict_mm(self.mass, fit.params, fit.effects, obs))
+
+
+def _tcp_rows(obs: Observations) -> NDArray[np.int64]:
+    return np.arange(len(obs)) if obs.target is None else np.flatnonzero(obs.target == 0)
 
 
 def time_nuisance(clock: FloatArray) -> FloatArray:
@@ -236,12 +271,11 @@ def _replace_pass(
         swapped = False
         for k, old in enumerate(accepted):
             others = [c for c in accepted if c is not old]
-            point = FitResult(
-                current.params,
-                current.effects.with_values(list(old.names), np.zeros(len(old.names))),
-                current.rms_mm,
-                0,
-                True,
+            point = dataclasses.replace(
+                current,
+                effects=current.effects.with_values(list(old.names), np.zeros(len(old.names))),
+                iterations=0,
+                converged=True,
             )
             pool = [old, *avail]
             lp = ctx.problem(point, names_of(others) + names_of(pool))

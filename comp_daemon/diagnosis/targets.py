@@ -39,12 +39,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.diagnosis.fitting import FitResult, Observations
+from comp_daemon.diagnosis.fitting import FitResult, Observations, flange_mm, seen_from_flange
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["flange_errors", "flange_pose_errors", "flange_words", "noise_from_targets"]
+__all__ = ["flange_errors", "flange_pose_errors", "flange_words", "noise_from_targets", "target_offsets_mm"]
 
 FloatArray = NDArray[np.float64]
 
@@ -127,6 +127,14 @@ def _six_dof(
     return _summary(*flange_pose_errors(origin, twin, meas[check_rows]))
 
 
+def target_offsets_mm(mass: MassModel, fit: FitResult, obs: Observations, more_mm: FloatArray) -> FloatArray:
+    """(K − 1, 3) the further targets' positions in the flange frame (mm): each the mean of its
+    measured points ``more_mm`` (n, K − 1, 3) seen from the flange of the twin ``fit`` at ``obs``."""
+    rot, origin = flange_mm(mass, fit.params, fit.effects, obs)
+    more = np.asarray(more_mm, dtype=float)
+    return np.array([seen_from_flange(rot, origin, more[:, k]) for k in range(more.shape[1])])
+
+
 def flange_errors(
     mass: MassModel,
     fit: FitResult,
@@ -143,13 +151,9 @@ def flange_errors(
     if reflectors_mm is None or np.asarray(reflectors_mm).shape[1] < 3 or len(check_rows) == 0:
         return None
     meas = np.asarray(reflectors_mm, dtype=float)
-    st = twin_state(
-        mass, fit.params, fit.effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock
-    )
-    flange = st.chain.world_T_frame[:, 6]
-    rot, origin = flange[:, :3, :3], flange[:, :3, 3]
-    seen = np.einsum("nji,nkj->nki", rot[fit_rows], meas[fit_rows, 1:] - origin[fit_rows, None])
-    offsets = np.concatenate([fit.params.tool_xyz_mm[None, :], seen.mean(axis=0)], axis=0)  # (K, 3)
+    rot, origin = flange_mm(mass, fit.params, fit.effects, obs)
+    seen = target_offsets_mm(mass, fit, obs.take(fit_rows), meas[fit_rows, 1:])
+    offsets = np.concatenate([fit.params.tool_xyz_mm[None, :], seen], axis=0)  # (K, 3)
     twin = np.einsum("nij,kj->nki", rot, offsets) + origin[:, None]
     radius = float(np.mean(np.linalg.norm(offsets - offsets.mean(axis=0), axis=1)))
     # target_radius_mm: the targets' mean distance from their centroid, the lever arm of the orientation

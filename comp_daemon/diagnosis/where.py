@@ -30,7 +30,7 @@ from comp_daemon.diagnosis.result import Step, final_step, implicated_joints
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.models.effects import MassModel, effect_by_name
 
-__all__ = ["Baseline", "equivalent_joint_error_deg", "locate"]
+__all__ = ["Baseline", "equivalent_joint_error_deg", "locate", "signed_pct"]
 
 FloatArray = NDArray[np.float64]
 N_ANGLE_BINS = 6
@@ -46,6 +46,7 @@ class Baseline:
     skipped: list[dict[str, Any]]  # the diagnosis's skip list
     noise_floor_source: str | None = None  # repeats, targets, declared
     structure: str = ""  # the remainder's structure in words (comp_daemon.diagnosis.structure)
+    disagreement: str = ""  # fit and check rows disagree (comp_daemon.diagnosis.agreement): no advice
 
 
 def _r(value: float, digits: int = 4) -> float:
@@ -193,6 +194,14 @@ def _axes(joints: Sequence[int]) -> str:
     return names[0] if len(names) == 1 else ", ".join(names[:-1]) + " and " + names[-1]
 
 
+def signed_pct(value: float) -> str:
+    """A signed percentage with one true minus sign: ``−6 %``, ``+4 %``, ``0 %``."""
+    text = f"{abs(value):.0f}"
+    if text == "0":
+        return "0 %"
+    return f"{'−' if value < 0 else '+'}{text} %"
+
+
 def _fmt(mm: float) -> str:
     return f"{mm:.3f} mm"
 
@@ -253,14 +262,18 @@ def _summary(steps: Sequence[Step], baseline: Baseline, where: dict[str, Any]) -
         described = []
         for s in effect_steps:
             on = f" on {_axes(s.joints)}" if s.joints else ""
-            described.append(f"{s.effect}{on} (check error −{s.shrink_pct:.0f} % to {_fmt(s.check_rms_mm)})")
+            described.append(
+                f"{s.effect}{on} (check error {signed_pct(-s.shrink_pct)} to {_fmt(s.check_rms_mm)})"
+            )
         parts.append("It is explained by " + "; then ".join(described) + ".")
     left = final_step(steps).check_rms_mm
     structured = "follows" in baseline.structure
     parts.append(_left_words(left, floor, structured, bool(effect_steps)))
     if baseline.structure:
         parts.append(baseline.structure)
-    if effect_steps:
+    if baseline.disagreement:
+        parts.append(baseline.disagreement)
+    elif effect_steps:
         actions = [effect_by_name(s.effect).action.format(axes=_axes(s.joints)) for s in effect_steps]
         parts.append("To act: " + "; ".join(actions) + ".")
     skipped = [s for s in baseline.skipped if "combination" not in s["reason"]]

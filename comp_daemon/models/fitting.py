@@ -54,7 +54,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import Dataset
-from comp_daemon.data.directions import with_inferred_directions
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
@@ -85,7 +84,6 @@ __all__ = [
     "fit_kriging_kind",
     "fit_nominal_kind",
     "identified_info",
-    "infer_fit_directions",
     "lm_info",
     "report_info",
     "select_effects",
@@ -230,32 +228,6 @@ def directions_of(
     if unknown_dir is not None:
         d[unknown_dir[rows]] = 0.0
     return d
-
-
-def infer_fit_directions(dataset: Dataset) -> tuple[Dataset, NDArray[np.bool_] | None, str | None]:
-    """``dataset`` with ``dir`` derived from the pose order when it has none
-    (:func:`comp_daemon.data.directions.with_inferred_directions`), the (n, 6) mask of the
-    directions that stay unknown (an axis that has not moved yet: no backlash offset is applied
-    there, and the kriging distance puts it half way), and the sentence that says so; the data set
-    unchanged, None, None when it has ``dir`` columns."""
-    out, inferred = with_inferred_directions(dataset)
-    if inferred is None:
-        return dataset, None, None
-    note = (
-        "approach directions (dir1..dir6) inferred from the sign of each axis' last motion "
-        f"in {inferred.order}"
-    )
-    per_axis = inferred.assumed.sum(axis=0)
-    if per_axis.any():
-        counts = ", ".join(f"A{k + 1} {int(c)}" for k, c in enumerate(per_axis) if c)
-        note += f"; unknown (0) before an axis first moved, rows of {len(inferred.dir)}: {counts}"
-    if inferred.order == "row order":
-        note += (
-            "; assumed: the file lists the poses in the order the robot visited them (no t_s column); "
-            "if it does not, these directions are wrong and a backlash fitted on them means nothing "
-            "(give dir1..dir6 or t_s to make them certain)"
-        )
-    return out, inferred.assumed, note
 
 
 @dataclass(frozen=True, slots=True)

@@ -75,13 +75,13 @@ def run_fit(
     """Fit ``model`` on the fit rows of the data set, judge it and the nominal twin on the check rows.
 
     ``infer_dir``: a data set without ``dir`` columns gets the approach directions from the pose
-    order when the model needs them (:func:`comp_daemon.data.directions.with_inferred_directions`);
-    the stats' ``directions`` says so.
+    order when the model needs them; the campaign is prepared as every door prepares it
+    (:func:`comp_daemon.preparation.prepare_campaign`), and the stats' ``directions`` says so.
     """
     from comp_daemon.data.dataset import parse_dataset
     from comp_daemon.models.artifact import model_document
     from comp_daemon.models.evaluation import error_statistics
-    from comp_daemon.models.fitting import FitRows, ModelSpec, infer_fit_directions
+    from comp_daemon.models.fitting import FitOptions, ModelSpec
     from comp_daemon.models.registry import (
         fit_spec,
         parse_model_name,
@@ -89,6 +89,7 @@ def run_fit(
         uses_directions,
         with_order,
     )
+    from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
     from comp_daemon.robot.description import load_robot
 
     spec = with_order(parse_model_name(model), order)
@@ -107,21 +108,16 @@ def run_fit(
     reason = undetermined_reason(spec, robot, len(ds), ds.payload_kg)
     if reason is not None:  # the same sentence as the command line's, naming the model
         raise ValueError(f"{source}: {len(ds)} data rows; {reason}")
-    data_sha256 = ds.content_sha256
-    directions = unknown_dir = None
-    if infer_dir and uses_directions(spec):
-        ds, unknown_dir, directions = infer_fit_directions(ds)
-    split = ds.split_or_draw()
-    fit_rows, check_rows = np.asarray(split.fit_rows), np.asarray(split.check_rows)
-    if len(check_rows) == 0:
-        raise ValueError(f"{source}: no check rows to judge the model on")
-    if len(fit_rows) < 3:
-        raise ValueError(f"{source}: {len(fit_rows)} fit rows; a fit needs at least 3")
+    prepared = prepare_campaign(
+        ds, robot, PrepareOptions(need_directions=uses_directions(spec), infer_directions=infer_dir)
+    )
+    ds, split, directions = prepared.dataset, prepared.split, prepared.directions.note
+    fit_rows, check_rows = prepared.fit_rows, prepared.check_rows
 
     progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
-    train = FitRows.of(ds, fit_rows, unknown_dir)
+    train = prepared.rows(fit_rows)
     try:
-        fitted = fit_spec(spec, robot, train)
+        fitted = fit_spec(spec, robot, train, FitOptions(frame=prepared.frame))
     except ValueError as exc:
         raise ValueError(f"{source}: {exc}") from None
     if spec.kind == "kinematic" and len(fit_rows) < fitted.info["identifiability"]["identifiable"]:
@@ -130,8 +126,8 @@ def run_fit(
             "identifiable parameters"
         )
     progress(0.9, "judging on the check rows")
-    nominal = fit_spec(ModelSpec("nominal"), robot, train)
-    check = FitRows.of(ds, check_rows, unknown_dir)
+    nominal = fit_spec(ModelSpec("nominal"), robot, train, FitOptions(frame=prepared.frame))
+    check = prepared.rows(check_rows)
     pred_model = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
     pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
     p_check = check.xyz_mm
@@ -158,7 +154,7 @@ def run_fit(
         },
         "fit": info,
     }
-    artifact = model_document(fitted.model, data_sha256=data_sha256, frame=fitted.frame, fit=info)
+    artifact = model_document(fitted.model, data_sha256=prepared.data_sha256, frame=fitted.frame, fit=info)
     return {"stats": stats, "artifact": artifact}
 
 
