@@ -256,7 +256,8 @@ def compensate_rows(model: ErrorModel, path: str, args: argparse.Namespace) -> C
                 }
             if not out:
                 done = targets.subset(keep)
-                return CompensatedRows(done, wanted[keep], result, limits, _by_row(refused), _take(dir_, keep))
+                dir_kept = _take(dir_, keep)
+                return CompensatedRows(done, wanted[keep], result, limits, _by_row(refused), dir_kept)
         for i, reason in out.items():
             row = int(targets.row_numbers[keep[i]])
             refused[row] = RowRefusal(row, None, reason, read.row_label)
