@@ -316,3 +316,40 @@ async def test_the_same_port_back_with_its_ipoc_gone_back_is_a_new_session(
     controller_sock.sendto(telegram(36), addr)
     assert parse_sen(await recv(controller_sock)).ipoc == 36
     assert (proto.stats.sessions, proto.stats.stale, started) == (2, 1, [1, 2])
+
+
+def test_a_new_session_faults_the_active_target_and_leaves_an_idle_loop_alone() -> None:
+    """The restarted controller holds another correction than the loop has summed up: a target
+    in progress is failed (``rsi_lost``, freeze) before the new session's first telegram; with no
+    target the new session simply begins."""
+    from test_daemon_executor import JOINTS, Clock, Grating, Robot, calibration
+
+    from comp_daemon.rt.controller import JointLoopSettings
+    from comp_daemon.rt.loop import LoopRuntime
+    from comp_daemon.rt.safety import Faulted, FaultKind, SafetySettings, SafetyState
+
+    clock = Clock()
+    robot = Robot(clock)
+    runtime = LoopRuntime(
+        {j: Grating(robot, j) for j in JOINTS},
+        calibration=calibration(),
+        safety=SafetySettings(),
+        loop=JointLoopSettings(),
+        clock_ns=clock,
+    )
+    runtime.handle(robot.telegram())
+    runtime.new_session("controller session 2 from 127.0.0.1:40000")
+    assert runtime.core.state is SafetyState.IDLE and runtime.events.empty()
+    home = tuple(robot.setpoint)
+    runtime.arm("t1", home, tuple(home[j - 1] for j in JOINTS))
+    clock.ns += 12_000_000
+    runtime.handle(robot.telegram())
+    assert runtime.core.state in (SafetyState.ARMED, SafetyState.CORRECTING)
+    runtime.new_session("controller session 2 from 127.0.0.1:40000")
+    core = runtime.core
+    assert core.state is SafetyState.FAULT and core.fault is not None
+    assert core.fault.kind is FaultKind.RSI_LOST and "new RSI session" in core.fault.detail
+    events = []
+    while not runtime.events.empty():
+        events.append(runtime.events.get_nowait())
+    assert any(isinstance(e, Faulted) and e.target_id == "t1" for e in events), events
