@@ -167,6 +167,7 @@ async def test_late_copies_are_never_answered_and_rsi_keeps_running(rtp: Realtim
     runtime = rtp.runtime
     assert runtime is not None
     await sessions.observe(runtime, stats, report_age_s=0.0)
+    print(f"late copies: relay {seen}, endpoint {stats.snapshot() | {'latency': None, 'jitter': None}}")
     assert sessions.report()["stale_copies"] == stats.stale  # /api/status, under "rsi"
     assert rejected("stale_copy") - stale_before == stats.stale  # /metrics
 
@@ -249,6 +250,7 @@ async def test_a_second_sender_is_never_answered_nor_fed_into_the_loop(
     assert stats.sessions == 1 and stats.session_sender == sender
     assert all(ipoc < 9_000_000 for _, ipoc, *_ in runtime.trace)  # the loop saw one controller
     assert any("second sender 127.0.0.1:" in r.getMessage() for r in caplog.records)
+    print(f"second sender: {second}, other_sender {stats.other_sender}, answered {stats.answered}")
 
 
 async def test_a_controller_restart_is_a_new_session_logged_counted_and_recorded(
@@ -294,6 +296,7 @@ async def test_a_controller_restart_is_a_new_session_logged_counted_and_recorded
     assert after - sessions_before == 2
     lines = [r.getMessage() for r in caplog.records if "controller session 2" in r.getMessage()]
     assert lines and "IPOC went back" not in lines[0] and first_sender in lines[0], lines
+    print(f"restart: {lines[0]}; second controller: {second.status()['replies_ok']} replies ok, {late} late")
 
 
 async def test_the_same_port_back_with_its_ipoc_gone_back_is_a_new_session(
