@@ -46,7 +46,8 @@ Printed: the machine, per cycle time the latency p50/p99/p99.9/max, late and mis
 the daemon and of the echo baseline, the daemon's own view (handler latency percentiles, late
 count), the simulated controller's late count, what the load achieved (fits done, targets
 done/failed, HTTP requests and their latency); the histogram of the reply latency on the wire; and
-the worst 20 replies, each with what was going on when it came: a sampler reads every 50 ms the
+the worst 20 replies and the 20 longest stretches of telegrams left without one (after a stall the
+endpoint answers only the newest), each with what was going on when it came: a sampler reads every 50 ms the
 real-time process's ``/proc`` state (running or sleeping, the CPU it ran on, its voluntary and
 involuntary context switches since the last sample), the number of runnable tasks on the machine,
 and the load's own state (which fit was running, which HTTP request was in flight).
@@ -584,9 +585,9 @@ def _histogram(ms: np.ndarray, missing: int) -> dict[str, int]:
 def _worst(
     ipoc: np.ndarray, sent: np.ndarray, reply: np.ndarray, sampler: Sampler | None, n: int = 20
 ) -> list[dict[str, Any]]:
-    """The ``n`` slowest replies (no reply counts as slowest), oldest first within equal latency."""
-    lat = np.where(reply > 0, (reply - sent) / 1e6, np.inf)
-    order = np.argsort(-lat, kind="stable")[:n]
+    """The ``n`` slowest replies that came, oldest first within equal latency."""
+    lat = np.where(reply > 0, (reply - sent) / 1e6, -np.inf)
+    order = [i for i in np.argsort(-lat, kind="stable")[:n] if np.isfinite(lat[i])]
     t0 = int(sent[0]) if sent.size else 0
     return [
         {
@@ -596,6 +597,29 @@ def _worst(
             "context": sampler.around(int(sent[i])) if sampler is not None else "",
         }
         for i in order
+    ]
+
+
+def _unanswered(
+    ipoc: np.ndarray, sent: np.ndarray, reply: np.ndarray, sampler: Sampler | None, n: int = 20
+) -> list[dict[str, Any]]:
+    """The ``n`` longest stretches of consecutive telegrams without a reply (the endpoint answers
+    the newest after a stall, so a wait of more than a cycle shows here, not as a late reply)."""
+    missing = np.flatnonzero(reply == 0)
+    if missing.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(missing) != 1) + 1
+    stretches = np.split(missing, breaks)
+    stretches.sort(key=len, reverse=True)
+    t0 = int(sent[0])
+    return [
+        {
+            "ipoc": int(ipoc[run[0]]),
+            "telegrams": int(run.size),
+            "at_s": round((int(sent[run[0]]) - t0) / 1e9, 3),
+            "context": sampler.around(int(sent[run[0]])) if sampler is not None else "",
+        }
+        for run in stretches[:n]
     ]
 
 
@@ -856,6 +880,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
         over_1ms=int(np.sum(lat_ms > 1.0)),
         histogram=_histogram(lat_ms, int(np.sum(~answered))),
         worst=_worst(rec["ipoc"], sent, reply, sampler),
+        unanswered=_unanswered(rec["ipoc"], sent, reply, sampler),
         relay_forward_ms_p99=_pct(relay_ms, 99),
         steal_s=round(steal_s, 2),
         platform_floor=platform,
@@ -922,7 +947,19 @@ def _report(r: dict[str, Any]) -> str:
         f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}\n"
         f"   platform: {r['steal_s']} s of CPU time stolen by the hypervisor; {_floor_text(r)}\n"
         f"   reply latency on the wire (relay side): {_histogram_text(r['histogram'])}\n"
-        f"   the worst {len(r['worst'])} replies:\n{_worst_text(r['worst'])}"
+        f"   the worst {len(r['worst'])} replies:\n{_worst_text(r['worst'])}\n"
+        f"   the longest {len(r['unanswered'])} stretches without a reply:\n"
+        f"{_unanswered_text(r['unanswered'])}"
+    )
+
+
+def _unanswered_text(rows: list[dict[str, Any]]) -> str:
+    return (
+        "\n".join(
+            f"     IPOC {w['ipoc']} at {w['at_s']:9.3f} s: {w['telegrams']} telegram(s) — {w['context']}"
+            for w in rows
+        )
+        or "     none"
     )
 
 
@@ -932,9 +969,7 @@ def _histogram_text(h: dict[str, int]) -> str:
 
 def _worst_text(rows: list[dict[str, Any]]) -> str:
     return "\n".join(
-        f"     IPOC {w['ipoc']} at {w['at_s']:9.3f} s: "
-        f"{'no reply' if w['latency_ms'] is None else format(w['latency_ms'], '.3f') + ' ms'}"
-        f" — {w['context']}"
+        f"     IPOC {w['ipoc']} at {w['at_s']:9.3f} s: {w['latency_ms']:.3f} ms — {w['context']}"
         for w in rows
     )
 
