@@ -1,7 +1,8 @@
 """The daemon's RSI reply latency under load, seen from the controller's side of the wire.
 
-Run: ``python -m benchmarks.bench_rsi_loop [--cycles 50000] [--cycle-ms 12 --cycle-ms 4]
-[--http-rate 20] [--json OUT]`` (about 10 min at 12 ms and 3.5 min at 4 ms for 50 000 cycles).
+Run: ``python -m benchmarks.bench_rsi_loop [--cycles 50000 | --duration-s 3600] [--cycle-ms 12
+--cycle-ms 4] [--http-rate 20] [--json OUT]`` (about 10 min at 12 ms and 3.5 min at 4 ms for 50 000
+cycles; ``--duration-s`` measures that long per cycle time instead).
 
 Each run measures the daemon beside a **baseline**: a bare asyncio UDP echo (``echo_main``: a
 minimal ``DatagramProtocol`` answering every telegram with one fixed valid ``<Sen>`` reply, only
@@ -44,7 +45,12 @@ count). Late: a reply that took longer than one cycle, or none at all.
 Printed: the machine, per cycle time the latency p50/p99/p99.9/max, late and missing replies of
 the daemon and of the echo baseline, the daemon's own view (handler latency percentiles, late
 count), the simulated controller's late count, what the load achieved (fits done, targets
-done/failed, HTTP requests and their latency).
+done/failed, HTTP requests and their latency); the histogram of the reply latency on the wire; and
+the worst 20 replies and the 20 longest stretches of telegrams left without one (after a stall the
+endpoint answers only the newest), each with what was going on when it came: a sampler reads every 50 ms the
+real-time process's ``/proc`` state (running or sleeping, the CPU it ran on, its voluntary and
+involuntary context switches since the last sample), the number of runnable tasks on the machine,
+and the load's own state (which fit was running, which HTTP request was in flight).
 """
 
 from __future__ import annotations
@@ -70,7 +76,7 @@ import threading
 import time
 from collections import Counter
 from collections.abc import Iterator
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -397,6 +403,8 @@ class Load:
         self.request_errors: Counter[str] = Counter()
         self.request_ms: list[float] = []
         self.sse_events = 0
+        self.fit_running: str | None = None  # the kind of the fit in progress
+        self.in_flight: str | None = None  # the HTTP request in flight
         self.threads = []
         if opts.fits:
             self.threads.append(threading.Thread(target=self._fits, name="fits", daemon=True))
@@ -430,11 +438,13 @@ class Load:
                     self.stop_event.wait(1.0)
                     continue
                 self.fits_started += 1
+                self.fit_running = str(body["model"])
                 job = r.json()["id"]
                 while not self.stop_event.wait(0.5):
                     if c.get(f"/api/jobs/{job}").json()["state"] in ("done", "failed", "cancelled"):
                         self.fits_done += 1
                         break
+                self.fit_running = None
 
     def _targets(self) -> None:
         rng = np.random.default_rng(7)
@@ -466,6 +476,7 @@ class Load:
         with self._client() as c:
             while not self.stop_event.is_set() and self.requests < self.max_requests:
                 path = paths[self.requests % len(paths)]
+                self.in_flight = path
                 t0 = time.perf_counter()
                 try:
                     r = c.get(path)
@@ -473,6 +484,7 @@ class Load:
                         self.request_errors[f"{r.status_code} {path}"] += 1  # 503 is /ready's "no"
                 except httpx.HTTPError as exc:
                     self.request_errors[f"{type(exc).__name__} {path}"] += 1
+                self.in_flight = None
                 self.request_ms.append((time.perf_counter() - t0) * 1e3)
                 self.requests += 1
                 next_t += period
@@ -485,6 +497,130 @@ class Load:
                     self.sse_events += 1
                 if self.stop_event.is_set():
                     break
+
+
+# ------------------------------------------------------------------------------------ what was going on
+
+
+def _proc_sample(pid: int) -> tuple[str, int, int, int] | None:
+    """The process's state letter, last CPU, voluntary and involuntary context switches."""
+    try:
+        stat = Path(f"/proc/{pid}/stat").read_text()
+        status = Path(f"/proc/{pid}/status").read_text()
+    except OSError:
+        return None
+    fields = stat[stat.rindex(")") + 2 :].split()  # after "pid (comm) "
+    switches = dict(line.split(":\t") for line in status.splitlines() if "ctxt_switches" in line)
+    return (
+        fields[0],
+        int(fields[36]),  # processor (field 39 of stat)
+        int(switches.get("voluntary_ctxt_switches", 0)),
+        int(switches.get("nonvoluntary_ctxt_switches", 0)),
+    )
+
+
+class Sampler:
+    """Every ``period_s``: the real-time process's /proc state, runnable tasks, the load's state."""
+
+    def __init__(self, rt_pid: int | None, load: Load, period_s: float = 0.05) -> None:
+        self.rt_pid = rt_pid
+        self.load = load
+        self.period_s = period_s
+        self.rows: list[tuple[int, str, int, int, int, int, str | None, str | None]] = []
+        self.stop_event = threading.Event()
+        self.thread = threading.Thread(target=self._run, name="sampler", daemon=True)
+
+    def start(self) -> None:
+        self.thread.start()
+
+    def stop(self) -> None:
+        self.stop_event.set()
+        self.thread.join(timeout=10)
+
+    def _run(self) -> None:
+        while not self.stop_event.wait(self.period_s):
+            proc = None if self.rt_pid is None else _proc_sample(self.rt_pid)
+            state, cpu, vol, invol = proc if proc is not None else ("?", -1, 0, 0)
+            try:
+                runnable = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
+            except (OSError, ValueError, IndexError):
+                runnable = -1
+            load = self.load
+            self.rows.append(
+                (time.time_ns(), state, cpu, vol, invol, runnable, load.fit_running, load.in_flight)
+            )
+
+    def around(self, t_ns: int) -> str:
+        """What was going on at ``t_ns`` (CLOCK_REALTIME): the first sample after it, with the context
+        switches since the sample before."""
+        rows = self.rows
+        times = [r[0] for r in rows]
+        i = int(np.searchsorted(times, t_ns))
+        if not rows or i >= len(rows):
+            return "no sample"
+        t, state, cpu, vol, invol, runnable, fit, http = rows[i]
+        dvol = dinv = 0
+        if i > 0:
+            dvol, dinv = vol - rows[i - 1][3], invol - rows[i - 1][4]
+        return (
+            f"rt process {state} on CPU {cpu}, +{dvol} voluntary / +{dinv} involuntary switches in "
+            f"{(t - rows[i - 1][0]) / 1e6 if i > 0 else 0:.0f} ms; {runnable} runnable tasks; "
+            f"fit: {fit or 'none'}; HTTP: {http or 'none'}"
+        )
+
+
+#: upper bounds (ms) of the wire-latency histogram; the last bucket is open
+HISTOGRAM_MS = (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 24.0)
+
+
+def _histogram(ms: np.ndarray, missing: int) -> dict[str, int]:
+    edges = np.array(HISTOGRAM_MS)
+    counts = np.bincount(np.searchsorted(edges, ms, side="left"), minlength=edges.size + 1)
+    out = {f"<= {b:g} ms": int(n) for b, n in zip(edges, counts[:-1], strict=True)}
+    out[f"> {edges[-1]:g} ms"] = int(counts[-1])
+    out["no reply"] = missing
+    return out
+
+
+def _worst(
+    ipoc: np.ndarray, sent: np.ndarray, reply: np.ndarray, sampler: Sampler | None, n: int = 20
+) -> list[dict[str, Any]]:
+    """The ``n`` slowest replies that came, oldest first within equal latency."""
+    lat = np.where(reply > 0, (reply - sent) / 1e6, -np.inf)
+    order = [i for i in np.argsort(-lat, kind="stable")[:n] if np.isfinite(lat[i])]
+    t0 = int(sent[0]) if sent.size else 0
+    return [
+        {
+            "ipoc": int(ipoc[i]),
+            "at_s": round((int(sent[i]) - t0) / 1e9, 3),
+            "latency_ms": None if not np.isfinite(lat[i]) else round(float(lat[i]), 3),
+            "context": sampler.around(int(sent[i])) if sampler is not None else "",
+        }
+        for i in order
+    ]
+
+
+def _unanswered(
+    ipoc: np.ndarray, sent: np.ndarray, reply: np.ndarray, sampler: Sampler | None, n: int = 20
+) -> list[dict[str, Any]]:
+    """The ``n`` longest stretches of consecutive telegrams without a reply (the endpoint answers
+    the newest after a stall, so a wait of more than a cycle shows here, not as a late reply)."""
+    missing = np.flatnonzero(reply == 0)
+    if missing.size == 0:
+        return []
+    breaks = np.flatnonzero(np.diff(missing) != 1) + 1
+    stretches = np.split(missing, breaks)
+    stretches.sort(key=len, reverse=True)
+    t0 = int(sent[0])
+    return [
+        {
+            "ipoc": int(ipoc[run[0]]),
+            "telegrams": int(run.size),
+            "at_s": round((int(sent[run[0]]) - t0) / 1e9, 3),
+            "context": sampler.around(int(sent[run[0]])) if sampler is not None else "",
+        }
+        for run in stretches[:n]
+    ]
 
 
 # ------------------------------------------------------------------------------------ one run
@@ -624,6 +760,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     sample = ["sim", "sample", "--n", str(opts.campaign_rows), "--out", str(campaign), "--seed", "11"]
     subprocess.run([sys.executable, "-m", "comp_daemon", *sample], check=True, capture_output=True)
     load: Load | None = None
+    sampler: Sampler | None = None
     daemon: subprocess.Popen[bytes] | None = None
     result: dict[str, Any] = {"cycle_ms": cycle_ms, "options": asdict(opts)}
     try:
@@ -660,6 +797,10 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
 
                 load = Load(base, dataset_id, cell["home_deg"], opts, cycles * cycle_ms / 1000.0)
                 load.start()
+                word = c.get("/api/status").json()["daemon"]["loop"].get("realtime") or ""
+                pid = re.search(r"pid (\d+)", word)
+                sampler = Sampler(int(pid.group(1)) if pid else None, load)
+                sampler.start()
                 time.sleep(3.0)  # the first fit and batch under way
                 ctrl0 = json.loads(_line(cell["motion_port"], "status"))
                 status0 = c.get("/api/status").json()["daemon"]["loop"]
@@ -679,6 +820,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
                     wall_s = time.monotonic() - t0
                     steal_s = _steal_s() - steal0
                     platform = _floor_stop(floor, cycle_ms)
+                sampler.stop()
                 ctrl1 = json.loads(_line(cell["motion_port"], "status"))
                 status1 = c.get("/api/status").json()["daemon"]["loop"]
                 hist1 = _reply_histogram(c.get("/metrics").text)
@@ -692,6 +834,8 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
             daemon.send_signal(signal.SIGTERM)
             code = daemon.wait(timeout=60)
     finally:
+        if sampler is not None:
+            sampler.stop()
         if load is not None:
             load.stop()
         if daemon is not None and daemon.poll() is None:
@@ -734,6 +878,9 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
             "over_1ms": int(np.sum(echo_ms > 1.0)),
         },
         over_1ms=int(np.sum(lat_ms > 1.0)),
+        histogram=_histogram(lat_ms, int(np.sum(~answered))),
+        worst=_worst(rec["ipoc"], sent, reply, sampler),
+        unanswered=_unanswered(rec["ipoc"], sent, reply, sampler),
         relay_forward_ms_p99=_pct(relay_ms, 99),
         steal_s=round(steal_s, 2),
         platform_floor=platform,
@@ -798,7 +945,32 @@ def _report(r: dict[str, Any]) -> str:
         f"{r['sse_events']} SSE events; "
         f"relay forwarding p99 {r['relay_forward_ms_p99']:.3f} ms; load average {r['loadavg_start']} → "
         f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}\n"
-        f"   platform: {r['steal_s']} s of CPU time stolen by the hypervisor; {_floor_text(r)}"
+        f"   platform: {r['steal_s']} s of CPU time stolen by the hypervisor; {_floor_text(r)}\n"
+        f"   reply latency on the wire (relay side): {_histogram_text(r['histogram'])}\n"
+        f"   the worst {len(r['worst'])} replies:\n{_worst_text(r['worst'])}\n"
+        f"   the longest {len(r['unanswered'])} stretches without a reply:\n"
+        f"{_unanswered_text(r['unanswered'])}"
+    )
+
+
+def _unanswered_text(rows: list[dict[str, Any]]) -> str:
+    return (
+        "\n".join(
+            f"     IPOC {w['ipoc']} at {w['at_s']:9.3f} s: {w['telegrams']} telegram(s) — {w['context']}"
+            for w in rows
+        )
+        or "     none"
+    )
+
+
+def _histogram_text(h: dict[str, int]) -> str:
+    return ", ".join(f"{k}: {v}" for k, v in h.items() if v)
+
+
+def _worst_text(rows: list[dict[str, Any]]) -> str:
+    return "\n".join(
+        f"     IPOC {w['ipoc']} at {w['at_s']:9.3f} s: {w['latency_ms']:.3f} ms — {w['context']}"
+        for w in rows
     )
 
 
@@ -835,6 +1007,12 @@ def _controller_cpu(setting: str) -> int | None:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--cycles", type=int, default=50_000, help="measured cycles per cycle time")
+    parser.add_argument(
+        "--duration-s",
+        type=float,
+        default=None,
+        help="measure this long per cycle time instead of --cycles (e.g. 3600 for an hour)",
+    )
     parser.add_argument(
         "--cycle-ms", type=int, action="append", choices=(12, 4), help="12 and/or 4 (default both)"
     )
@@ -873,6 +1051,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.cycles < 100:
         parser.error("--cycles must be at least 100")
+    if args.duration_s is not None and args.duration_s < 10:
+        parser.error("--duration-s must be at least 10 s")
     print(f"machine: {machine_line()}", flush=True)
     results = []
     opts = Options(
@@ -888,8 +1068,10 @@ def main(argv: list[str] | None = None) -> int:
         floor_cpu=args.floor_cpu,
         keep=args.keep,
     )
-    print(f"options: {asdict(opts)}", flush=True)
+    print(f"options: {asdict(opts)}, duration per cycle time: {args.duration_s or 'by --cycles'}", flush=True)
     for cycle_ms in args.cycle_ms or [12, 4]:
+        if args.duration_s is not None:
+            opts = replace(opts, cycles=int(args.duration_s * 1000 / cycle_ms))
         r = run(cycle_ms, opts)
         print(_report(r), flush=True)
         results.append(r)

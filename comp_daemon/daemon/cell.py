@@ -171,7 +171,9 @@ class Cell:
         if rt.keep_jobs_off_cpu and not settings.jobs.cpus and rest:
             jobs = settings.jobs.model_copy(update={"cpus": sorted(rest)})
             self.settings = settings.model_copy(update={"jobs": jobs})
-        log.info(f"daemon: real-time loop: {self.realtime_word()}")
+        # one line: what was granted, and what was refused with the reason
+        say = log.warning if self.rtp.describe()["notes"] else log.info
+        say(f"daemon: real-time loop: {self.realtime_word()}")
 
     async def start_cell(self, calibration: GratingCalibration | None) -> None:
         """The simulated cell (or the configured ports and motion gateway), then the grating readers

@@ -22,6 +22,14 @@ re-arm (``rearmed_at``, the pause) and a new session begins. Every stop and re-a
 store's event log (``rsi.stopped``, ``rsi.rearmed``) and to the metrics; :meth:`RsiSessions.report`
 is what ``/api/status`` shows under ``rsi``.
 
+A controller that restarts faster than telegrams are seen to cease (a new source port, or its IPOC
+gone back) is recognised by the RSI endpoint (:mod:`comp_daemon.rt.rsi_server`: its ``sessions``
+count rises): the old session is recorded as stopped (``timeout``: its telegrams ceased) and
+re-armed at once, the new one counted, and ``rsi.restarted`` written to the event log with both
+senders. The endpoint's counts of older copies it did not answer (``stale``) and of telegrams from a
+second sender it ignored (``other_sender``) go to the metrics as rejected datagrams
+(``stale_copy``, ``other_sender``) and to the report.
+
 Times are UNIX seconds (``time``) for the record and the daemon's monotonic ns clock for ages.
 """
 
@@ -119,6 +127,10 @@ class RsiSessions:
         self.rearm_after_s: float | None = None  # the simulated controller's pause, once known
         self._start_answered = 0  # stats.answered at the end of the previous session
         self._start_late = 0
+        self.restarts = 0  # sessions the controller began without a stop seen in between
+        self._endpoint_sessions = 0  # the endpoint's session count, as far as judged here
+        self._rejected = {"stale_copy": 0, "other_sender": 0}
+        self.sender: str | None = None  # the current session's sender, host:port
 
     async def observe(
         self, runtime: LoopView, stats: RsiServerStats, *, report_age_s: float | None = 0.0
@@ -128,20 +140,72 @@ class RsiSessions:
         ``report_age_s``: how old the real-time process's latest report is; older than
         ``max_report_age_s`` (or None) the daemon's view of the telegrams is not current (that
         process was not scheduled, or is gone) and nothing is judged until it is."""
+        self._count_rejected(stats)
         if report_age_s is None or report_age_s > self.max_report_age_s:
             return
         alive = runtime.rsi_alive()
-        if alive and not self.running:
+        if alive and self.running and stats.sessions > self._endpoint_sessions:
+            await self._restarted(runtime, stats)
+        elif alive and not self.running:
             # telegrams that waited in the socket while the real-time process was not scheduled
             # arrive after the stop; the simulated controller says whether a session really runs
             simulated = self.controller_status is not None
             if self.stops and simulated and await self._controller_word() != "running":
                 return
-            await self._started()
+            await self._started(stats)
         elif self.running and not alive:
             await self._stopped(runtime, stats)
 
-    async def _started(self) -> None:
+    def _count_rejected(self, stats: RsiServerStats) -> None:
+        for reason, value in (("stale_copy", stats.stale), ("other_sender", stats.other_sender)):
+            new = value - self._rejected[reason]
+            if new > 0:
+                metrics.RSI_REJECTED.labels(reason=reason).inc(new)
+            self._rejected[reason] = value
+
+    async def _restarted(self, runtime: LoopView, stats: RsiServerStats) -> None:
+        """The endpoint saw a new controller session while telegrams never ceased long enough to be
+        judged a stop: the old session ends (``timeout``) and the new one begins at the same moment."""
+        now = self.wall_clock()
+        before, self.sender = self.sender, stats.session_sender
+        self._endpoint_sessions = stats.sessions
+        detail = (
+            f"the controller restarted: telegrams now come from {self.sender} "
+            f"(endpoint session {stats.sessions}), the previous session's from {before}"
+        )
+        record = RsiStopRecord(
+            session=self.sessions,
+            time=round(now, 3),
+            cause="timeout",
+            detail=detail,
+            cycles=stats.answered - self._start_answered,
+            late_replies=stats.late - self._start_late,
+            last_ipoc=runtime.last_ipoc,
+            next="the new session runs",
+            rearmed_at=round(now, 3),
+            pause_s=0.0,
+        )
+        self.stops.append(record)
+        self._start_answered, self._start_late = stats.answered, stats.late
+        self.stop_counts["timeout"] += 1
+        metrics.RSI_STOPS.labels(cause="timeout").inc()
+        self.sessions += 1
+        self.restarts += 1
+        metrics.RSI_SESSIONS.inc()
+        log.warning(f"rsi: session {self.sessions} started: {detail}")
+        await self._record(
+            "rsi.restarted",
+            {
+                "session": self.sessions,
+                "sender": self.sender,
+                "previous_sender": before,
+                "stop": record.to_dict(),
+            },
+        )
+
+    async def _started(self, stats: RsiServerStats) -> None:
+        self._endpoint_sessions = stats.sessions
+        self.sender = stats.session_sender
         self.running = True
         self.sessions += 1
         metrics.RSI_SESSIONS.inc()
@@ -255,6 +319,10 @@ class RsiSessions:
             "stops_total": sum(self.stop_counts.values()),
             "stops_by_cause": dict(self.stop_counts),
             "rearms": self.rearms,
+            "restarts": self.restarts,
+            "sender": self.sender,
+            "stale_copies": self._rejected["stale_copy"],
+            "other_sender": self._rejected["other_sender"],
             "rearm_after_s": self.rearm_after_s,
             "next": None if self.running or last is None else last.next,
             "stops": [s.to_dict() for s in reversed(self.stops)],

@@ -152,6 +152,10 @@ class RtChild:
             self.loop.call_soon(self.push)  # runs after the receive callback has sent the reply
         return reply
 
+    def _new_session(self, number: int, sender: tuple[str, int], what: str) -> None:
+        if number > 1 and self.runtime is not None:
+            self.runtime.new_session(what)
+
     # ---------------------------------------------------------------------------- reports
 
     def push(self) -> None:
@@ -331,7 +335,9 @@ class RtChild:
         self._sen_type = cfg.rsi.sen_type
         gc.collect()
         gc.freeze()  # the child's start-up objects: out of every later collector pass
-        self.rsi_transport, self.rsi = await start_rsi_server(self.handle, cfg.rsi)
+        self.rsi_transport, self.rsi = await start_rsi_server(
+            self.handle, cfg.rsi, on_new_session=self._new_session
+        )
         host, port = self.rsi_transport.get_extra_info("sockname")[:2]
         self.tasks.append(self.loop.create_task(self._report_idle(), name="rt-report"))
         return {

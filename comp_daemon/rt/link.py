@@ -72,6 +72,10 @@ RSI_COUNTERS = (
     "ipoc_skipped",
     "send_errors",
     "controller_delay",
+    "stale",
+    "other_sender",
+    "sessions",
+    "session_sender",
 )
 #: the loop's commands the daemon may send (methods of LoopRuntime)
 COMMANDS = frozenset({"arm", "release", "reset", "fault", "shutdown", "set_calibration"})
@@ -137,7 +141,7 @@ class StateReport:
     last_rx_ns: int | None
     readings: tuple[EncoderReading | EncoderFault, ...]
     reader_counts: tuple[tuple[int, dict[EncoderFaultKind, int], int], ...]  # joint, faults, warnings
-    rsi_counters: tuple[int | None, ...]  # in the order of RSI_COUNTERS
+    rsi_counters: tuple[int | str | None, ...]  # in the order of RSI_COUNTERS
     latency_ns: bytes  # new samples, array('q')
     jitter_ns: bytes
     trace: tuple[Any, ...]  # new rows of LoopRuntime.trace

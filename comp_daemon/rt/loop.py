@@ -349,6 +349,13 @@ class LoopRuntime(LoopView):
         if result.core.fault is not None and not result.events:
             self._log_fault(result.core.fault)
 
+    def new_session(self, what: str) -> None:
+        """The controller began a new RSI session (it restarted): an active target is faulted
+        (``rsi_lost``, freeze) before the new session's first telegram is handled, because the
+        correction the restarted controller holds is no longer the one the loop has summed up."""
+        if self.core.state in (SafetyState.ARMED, SafetyState.CORRECTING, SafetyState.SETTLED):
+            self.fault(FaultKind.RSI_LOST, f"the controller began a new RSI session ({what})")
+
     def shutdown(self) -> None:
         """Zero steps and ``Stop = 1`` from the next telegram on; the active target is reported."""
         result = shutdown(self.core, self.now_s())

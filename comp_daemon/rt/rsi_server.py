@@ -8,12 +8,30 @@ Newest-only answering: asyncio's datagram transport reads *one* datagram per rea
 a backlog (the loop was busy for more than a cycle) would otherwise be answered telegram by telegram,
 each answer later than the last. On every receive the protocol therefore drains the socket with
 non-blocking ``recvfrom_into`` on a duplicate of the transport's socket (same kernel queue), parses
-every datagram from the controller's address as it is read, and answers only the newest *valid*
-telegram; older valid ones are counted as ``superseded``. Garbage is counted as ``garbled`` and never
-displaces a valid telegram, so a flood of garbage from the controller's address (spoofed or a
-broken device) costs parse time but no reply. When nothing is queued this costs one ``recvfrom``
-returning EAGAIN. Comparing IPOCs alone would not do: every queued telegram is newer than the last
-one answered, so each would still be answered.
+every datagram from the controller's address as it is read, and answers only the *newest valid
+telegram of the session*: the one with the highest IPOC, not the last to arrive. Older fresh
+telegrams of the same batch are counted as ``superseded``. Garbage is counted as ``garbled`` and
+never displaces a valid telegram, so a flood of garbage from the controller's address (spoofed or
+a broken device) costs parse time but no reply. When nothing is queued this costs one ``recvfrom``
+returning EAGAIN.
+
+The controller session: the source address (host and port) the telegrams come from, with an IPOC
+that only grows. A telegram of the session whose IPOC is not above the highest one taken so far is
+an older copy (a duplicate, or a copy the network delivered late) and is counted as ``stale`` and
+never answered: answering it would send the controller a reply for a cycle it has left behind,
+while the reply to the current cycle is missing — a late reply on its count. Telegrams from a
+second sender on the controller's address while the session's sender is still sending are counted
+as ``other_sender`` and never answered or passed to the loop: one loop, one controller. The session
+is not handed over to the newcomer, because a robot in a running session must not be stopped by
+whatever else sends on the cell network; a real second controller gets no reply and stops on its
+own Timeout. A sender that has sent nothing for ``session_silence_ms`` (default: 10 cycles, the
+ETHERNET object's default Timeout — by then a controller without replies has stopped RSI) no longer
+holds the session: the next telegram begins a new session (counted as ``sessions``, logged with
+both senders), as it does when the same sender comes back after such a silence with an IPOC that
+went back (the controller restarted on the same port). The same sender resuming with a higher IPOC
+keeps its session here (a controller unscheduled for a while does that too); that RSI stopped and
+was re-armed in between is the daemon's judgement (:mod:`comp_daemon.daemon.rsi_sessions`). The
+``on_new_session`` callback learns of each new session before its first telegram is handled.
 
 Only datagrams from the configured controller address are accepted (host, and port if configured);
 others are counted as ``foreign``, logged (rate-limited) and never answered. A garbled datagram is
@@ -52,6 +70,7 @@ __all__ = [
     "RsiServerProtocol",
     "RsiServerStats",
     "SampleStats",
+    "SessionHook",
     "start_rsi_server",
 ]
 
@@ -59,6 +78,8 @@ log = get_logger(__name__)
 
 RsiHandler = Callable[[RobTelegram], SenReply]
 Clock = Callable[[], int]
+#: ``on_new_session(number, sender, what)``: a new controller session begins (``what``: in words)
+SessionHook = Callable[[int, tuple[str, int], str], None]
 
 #: Upper bucket bounds (ns) for latency and |jitter| histograms; the last bucket is open.
 LATENCY_BUCKETS_NS: tuple[int, ...] = tuple(
@@ -83,7 +104,9 @@ class RsiServerConfig:
     late_after_ms: float | None = None  # None: cycle_ms
     sen_type: str = "ImFree"  # used for the replies the server builds itself (handler failure)
     stop_on_handler_error: bool = True
-    log_every: int = 1000  # after the first, log every n-th foreign/garbled datagram
+    log_every: int = 1000  # after the first, log every n-th foreign/garbled/other-sender datagram
+    #: a sender silent this long (ms) no longer holds the session (None: 10 cycles)
+    session_silence_ms: float | None = None
     samples: int = 65536  # ring size for latency/jitter percentiles
     #: receive buffer asked of the kernel (SO_RCVBUF, capped by ``net.core.rmem_max``): room for a
     #: burst of garbage from the controller's address while this process is not scheduled, so that
@@ -168,8 +191,12 @@ class RsiServerStats:
         "jitter",
         "late",
         "latency",
+        "other_sender",
         "received",
         "send_errors",
+        "session_sender",
+        "sessions",
+        "stale",
         "superseded",
     )
 
@@ -179,6 +206,10 @@ class RsiServerStats:
         self.garbled = 0
         self.foreign = 0
         self.superseded = 0  # older telegrams drained and not answered
+        self.stale = 0  # copies of telegrams older than the session's newest: never answered
+        self.other_sender = 0  # telegrams of a second sender while the session's sender sends
+        self.sessions = 0  # controller sessions begun (the first, and each restart)
+        self.session_sender: str | None = None  # "host:port" of the session's sender
         self.handler_errors = 0
         self.late = 0  # replies whose latency exceeded late_after_ms
         self.ipoc_skipped = 0  # cycles missing between consecutive answered IPOCs
@@ -191,11 +222,12 @@ class RsiServerStats:
         counts = {
             name: getattr(self, name)
             for name in self.__slots__
-            if name not in ("latency", "jitter", "controller_delay")
+            if name not in ("latency", "jitter", "controller_delay", "session_sender")
         }
         return {
             **counts,
             "controller_delay": self.controller_delay,
+            "session_sender": self.session_sender,
             "latency": self.latency.summary(),
             "jitter": self.jitter.summary(),
         }
@@ -204,10 +236,18 @@ class RsiServerStats:
 class RsiServerProtocol(asyncio.DatagramProtocol):
     """Answers RSI telegrams from one controller in the receive callback. See the module docstring."""
 
-    def __init__(self, handler: RsiHandler, config: RsiServerConfig, *, clock: Clock = time.perf_counter_ns):
+    def __init__(
+        self,
+        handler: RsiHandler,
+        config: RsiServerConfig,
+        *,
+        clock: Clock = time.perf_counter_ns,
+        on_new_session: SessionHook | None = None,
+    ):
         self.handler = handler
         self.config = config
         self.clock = clock
+        self.on_new_session = on_new_session
         self.stats = RsiServerStats(config.samples)
         self.transport: asyncio.DatagramTransport | None = None
         self._drain_sock: socket.socket | None = None
@@ -216,6 +256,13 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
         self._last_rx_ns: int | None = None
         self._last_ipoc: int | None = None
         self._foreign_seen: set[tuple[str, int]] = set()
+        self._others_seen: set[tuple[str, int]] = set()
+        silence_ms = config.session_silence_ms
+        self._silence_ns = int((10 * config.cycle_ms if silence_ms is None else silence_ms) * 1e6)
+        # the session: its sender, the highest IPOC taken from it, when its last fresh telegram came
+        self._sender: tuple[str, int] | None = None
+        self._session_ipoc: int | None = None
+        self._session_rx_ns = 0
         self.closed = asyncio.Event()  # set when the transport has gone
 
     # asyncio callbacks ---------------------------------------------------------------------------
@@ -244,11 +291,14 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         t_rx = self.clock()
         self.stats.received += 1
-        newest = self._take(data, addr, None)
+        batch: list[_Valid] = []
+        self._take(data, addr, batch)
         if self._drain_sock is not None:
-            newest = self._drain(newest)
-        if newest is not None:
-            self._answer(newest[0], newest[1], t_rx)
+            self._drain(batch)
+        if batch:
+            newest = self._choose(batch, t_rx)
+            if newest is not None:
+                self._answer(newest[0], newest[1], t_rx)
 
     # internals -----------------------------------------------------------------------------------
 
@@ -267,10 +317,10 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
             )
         return False
 
-    def _take(self, data: bytes, addr: tuple[str | Any, int], newest: _Valid | None) -> _Valid | None:
-        """The newer of ``newest`` and this datagram if it is a telegram from the controller."""
+    def _take(self, data: bytes, addr: tuple[str | Any, int], batch: list[_Valid]) -> None:
+        """Append this datagram to ``batch`` if it is a telegram from the controller's address."""
         if not self._accept(addr):
-            return newest
+            return
         try:
             telegram = parse_rob(data)
         except RsiProtocolError as exc:
@@ -278,12 +328,10 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
             stats.garbled += 1
             if stats.garbled == 1 or stats.garbled % self.config.log_every == 0:
                 log.warning(f"rsi: garbled telegram from {addr[0]}:{addr[1]}: {exc} ({stats.garbled} so far)")
-            return newest
-        if newest is not None:
-            self.stats.superseded += 1
-        return telegram, addr
+            return
+        batch.append((telegram, (str(addr[0]), int(addr[1]))))
 
-    def _drain(self, newest: _Valid | None) -> _Valid | None:
+    def _drain(self, batch: list[_Valid]) -> None:
         sock = self._drain_sock
         assert sock is not None
         buf = self._buf
@@ -291,13 +339,82 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
             try:
                 n, addr = sock.recvfrom_into(buf)
             except (BlockingIOError, InterruptedError):
-                return newest
+                return
             except OSError as exc:  # e.g. ICMP port unreachable reported on the socket
                 self.error_received(exc)
                 continue
             self.stats.received += 1
-            newest = self._take(bytes(buf[:n]), addr, newest)
+            self._take(bytes(buf[:n]), addr, batch)
+
+    def _choose(self, batch: list[_Valid], t_rx: int) -> _Valid | None:
+        """The telegram to answer from one receive callback's valid telegrams: the session's newest
+        fresh one; counts the rest (superseded, stale, other sender). See the module docstring."""
+        stats = self.stats
+        sender = self._sender
+        silent = sender is None or t_rx - self._session_rx_ns >= self._silence_ns
+        ours = [v for v in batch if v[1] == sender]
+        if not ours and silent:  # the session's sender has gone quiet: the first one in the batch begins one
+            sender = batch[0][1]
+            ours = [v for v in batch if v[1] == sender]
+            self._begin(sender, ours, "a new sender")
+        elif ours and silent and self._session_ipoc is not None:
+            if max(v[0].ipoc for v in ours) <= self._session_ipoc:  # restarted on the same port
+                self._begin(ours[0][1], ours, "its IPOC went back")
+        if len(ours) < len(batch):
+            self._count_others(batch, sender)
+        newest: _Valid | None = None
+        top = self._session_ipoc
+        for v in ours:
+            ipoc = v[0].ipoc
+            if top is not None and ipoc <= top:
+                stats.stale += 1
+                continue
+            if newest is not None:
+                stats.superseded += 1
+            newest, top = v, ipoc
+        if newest is not None:
+            self._session_ipoc, self._session_rx_ns = top, t_rx
         return newest
+
+    def _begin(self, sender: tuple[str, int], ours: list[_Valid], why: str) -> None:
+        """A new controller session from ``sender`` (log, count, tell ``on_new_session``)."""
+        stats = self.stats
+        before, last_ipoc = self._sender, self._session_ipoc
+        stats.sessions += 1
+        stats.session_sender = f"{sender[0]}:{sender[1]}"
+        first = max(v[0].ipoc for v in ours)
+        if before is None:
+            what = f"controller session {stats.sessions} from {stats.session_sender}, IPOC {first}"
+            log.info(f"rsi: {what}")
+        else:
+            silent_ms = (self.clock() - self._session_rx_ns) / 1e6
+            what = (
+                f"controller session {stats.sessions} from {stats.session_sender} at IPOC {first} "
+                f"({why}): the session of {before[0]}:{before[1]} ended at IPOC {last_ipoc}, "
+                f"silent for {silent_ms:.0f} ms"
+            )
+            log.warning(f"rsi: {what}")
+        self._sender, self._session_ipoc = sender, None
+        self._last_ipoc = self._last_rx_ns = None  # no jitter across sessions
+        if self.on_new_session is not None:
+            try:
+                self.on_new_session(stats.sessions, sender, what)
+            except Exception:
+                log.exception("rsi: the new-session hook failed")
+
+    def _count_others(self, batch: list[_Valid], sender: tuple[str, int] | None) -> None:
+        stats = self.stats
+        for _, addr in batch:
+            if addr == sender:
+                continue
+            stats.other_sender += 1
+            if addr not in self._others_seen or stats.other_sender % self.config.log_every == 0:
+                if len(self._others_seen) < 1024:
+                    self._others_seen.add(addr)
+                log.warning(
+                    f"rsi: ignored telegram from a second sender {addr[0]}:{addr[1]} on the controller's "
+                    f"address while the session of {stats.session_sender} runs ({stats.other_sender} so far)"
+                )
 
     def _answer(self, telegram: RobTelegram, addr: tuple[str, int], t_rx: int) -> None:
         stats = self.stats
@@ -337,11 +454,15 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
 
 
 async def start_rsi_server(
-    handler: RsiHandler, config: RsiServerConfig, *, clock: Clock = time.perf_counter_ns
+    handler: RsiHandler,
+    config: RsiServerConfig,
+    *,
+    clock: Clock = time.perf_counter_ns,
+    on_new_session: SessionHook | None = None,
 ) -> tuple[asyncio.DatagramTransport, RsiServerProtocol]:
     """Bind the UDP endpoint (``bind_port`` 0 picks a free port) and return (transport, protocol)."""
     loop = asyncio.get_running_loop()
-    protocol = RsiServerProtocol(handler, config, clock=clock)
+    protocol = RsiServerProtocol(handler, config, clock=clock, on_new_session=on_new_session)
     transport, _ = await loop.create_datagram_endpoint(
         lambda: protocol, local_addr=(config.bind_host, config.bind_port), family=socket.AF_INET
     )

@@ -14,7 +14,8 @@ off it. All optional, all Linux:
   ``cyclictest`` and tuned's real-time profiles ask). It keeps a sleeping CPU from adding its wake-up
   time to a reply, at the cost of power. Needs root or write access to the device; refused → logged.
 
-Each refusal is returned as a note for the operator (the daemon shows them in ``loop.realtime``).
+Each refusal is returned as a note for the operator, not logged here: the daemon says in one
+start-up line what was granted and what was refused, and shows the same in ``loop.realtime``.
 """
 
 from __future__ import annotations
@@ -22,8 +23,6 @@ from __future__ import annotations
 import os
 import struct
 from typing import BinaryIO
-
-from comp_daemon.common.logs import get_logger
 
 __all__ = [
     "PM_QOS_DEVICE",
@@ -33,8 +32,6 @@ __all__ = [
     "request_wakeup_latency",
     "resolve_cpu",
 ]
-
-log = get_logger(__name__)
 
 PM_QOS_DEVICE = "/dev/cpu_dma_latency"
 
@@ -77,8 +74,8 @@ def other_cpus(cpu: int | None) -> set[int] | None:
 def apply_scheduling(cpu: int | None, priority: int, *, who: str) -> tuple[int | None, str, list[str]]:
     """Pin the calling thread to ``cpu`` and give it ``SCHED_FIFO`` at ``priority`` (0: leave it).
 
-    Returns (the CPU pinned to or None, the scheduling in words, what could not be applied); each
-    refusal is logged and the caller keeps running with what it has.
+    Returns (the CPU pinned to or None, the scheduling in words, what could not be applied); the
+    caller reports the refusals and keeps running with what it has.
     """
     pinned: int | None = None
     scheduler = "normal"
@@ -98,15 +95,13 @@ def apply_scheduling(cpu: int | None, priority: int, *, who: str) -> tuple[int |
                 f"could not set SCHED_FIFO priority {priority} ({exc}); "
                 "grant CAP_SYS_NICE or LimitRTPRIO, running at normal priority"
             )
-    for note in notes:
-        log.warning(f"rt: {note}")
     return pinned, scheduler, notes
 
 
 def request_wakeup_latency(us: int, device: str = PM_QOS_DEVICE) -> tuple[BinaryIO | None, str | None]:
     """Open a PM QoS request for CPU wake-up latency ≤ ``us`` µs; it holds while the file stays open.
 
-    Returns (the open file, None) or (None, why it was refused — also logged).
+    Returns (the open file, None) or (None, why it was refused).
     """
     fh = None
     try:
@@ -115,7 +110,5 @@ def request_wakeup_latency(us: int, device: str = PM_QOS_DEVICE) -> tuple[Binary
     except OSError as exc:
         if fh is not None:
             fh.close()
-        note = f"could not request a CPU wake-up latency of {us} µs ({exc})"
-        log.warning(f"rt: {note}")
-        return None, note
+        return None, f"could not request a CPU wake-up latency of {us} µs ({exc})"
     return fh, None

@@ -94,7 +94,8 @@ RSI_LATE_REPLIES = Counter(
 )
 RSI_REJECTED = Counter(
     "comp_daemon_rsi_rejected_total",
-    "Datagrams refused, by reason (garbled, foreign_address)",
+    "Datagrams refused, by reason (garbled, foreign_address, stale_copy: an older copy of a telegram "
+    "already answered, other_sender: a second sender on the controller's address)",
     ["reason"],
     registry=REGISTRY,
 )
