@@ -349,6 +349,7 @@ def calibrate_kinematic(
     rtol: float = 1e-8,
     max_iter: int = 100,
     more_targets_mm: NDArray[np.float64] | None = None,
+    report_ranks: bool = True,
 ) -> KinematicFit:
     """Calibrate the robot's MDH parameters (and ``effects``) on measured TCP positions.
 
@@ -357,6 +358,9 @@ def calibrate_kinematic(
     (seed 001: ``("ratio", "backlash")``), on ``effect_joints``. ``more_targets_mm`` (n, K − 1, 3):
     further targets on the flange measured at the same poses, in the same frame; their flange
     offsets are identified with the rest (module docstring: 6-DOF with three or more targets).
+    ``report_ranks=False`` leaves the identifiability report's rank checks and condition number
+    out (-1 and NaN; the identified parameters are the same): for fits whose report nobody reads,
+    the folds of a cross-validation.
     """
     a = as_axes(a_deg)
     p_meas = np.asarray(p_measured_mm, dtype=float)
@@ -415,6 +419,8 @@ def calibrate_kinematic(
         candidates=[*geo_candidates, *eff_names, *more_names],
         priority=_priority(start, eff_names, more_names),
         rtol=rtol,
+        check_rank=report_ranks,
+        check_condition=report_ranks,
     )
     idx = report.identifiable_index
     n_eff = len(eff_names)
