@@ -7,8 +7,10 @@ each fit.
 Campaigns (sampled by the simulator into ``--workdir`` the first time, seeds fixed):
 ``real-like-1000x3`` (``sim sample --scenario real-like --targets 3 --n 1000 --seed 1``),
 ``real-like-6000`` (``--targets 1 --n 6000 --seed 3``) and ``ur5`` (the real UR5 campaign of
-benchmarks/real_campaigns/ur5_jacobi). ``--profile N`` prints each fit's N costliest functions by
-their own time and by cumulative time. The numeric libraries run one thread (benchmarks/__init__).
+benchmarks/real_campaigns/ur5_jacobi, converted by benchmarks/real_campaign_ur5.py; its rows are
+split at random, as ``evaluate`` does without a split column). ``--profile N`` prints each fit's
+N costliest functions by their own time and by cumulative time. The numeric libraries run one
+thread (benchmarks/__init__).
 """
 
 from __future__ import annotations
@@ -47,12 +49,18 @@ CAMPAIGNS: dict[str, tuple[str, list[str]]] = {
 
 def campaign(name: str, workdir: Path) -> tuple[Path, str]:
     """The campaign's CSV (sampled on first use) and its robot."""
-    if name == "ur5":
-        return UR5_DIR / "ur5_grid_uncalibrated.csv", str(UR5_DIR / "ur5.toml")
-    robot, args = CAMPAIGNS[name]
     path = workdir / f"{name}.csv"
+    workdir.mkdir(parents=True, exist_ok=True)
+    if name == "ur5":  # converted to a data set by benchmarks/real_campaign_ur5.py
+        if not path.exists():
+            subprocess.run(
+                [sys.executable, "-m", "benchmarks.real_campaign_ur5", "--out", str(path)],
+                check=True,
+                stdout=subprocess.DEVNULL,
+            )
+        return path, str(UR5_DIR / "ur5.toml")
+    robot, args = CAMPAIGNS[name]
     if not path.exists():
-        workdir.mkdir(parents=True, exist_ok=True)
         subprocess.run(
             [sys.executable, "-m", "comp_daemon", "sim", "sample", *args, "--out", str(path)],
             check=True,
