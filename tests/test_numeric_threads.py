@@ -1,6 +1,7 @@
 """The numeric libraries' threads are set on purpose: by the command line before NumPy loads
 (``--threads``, ``COMP_DAEMON_THREADS``, default 1) and in every job worker (``jobs.threads``),
-whatever the environment the process was started with."""
+whatever the environment the process was started with; the job pool has a worker per CPU it may
+use."""
 
 from __future__ import annotations
 
@@ -138,4 +139,19 @@ async def test_every_job_worker_sets_its_threads(
         assert done.result["env"] == str(threads)  # and what the worker's children would load
     finally:
         runner.shutdown()
+        store.close()
+
+
+def test_the_job_pool_takes_the_cpus_it_may_use(tmp_path: Path) -> None:
+    """``jobs.workers = 0`` (the default): one worker per CPU of ``jobs.cpus``, or every CPU but the
+    real-time one; a number is taken as it is."""
+    store = Store(tmp_path / "s.sqlite3")
+    try:
+        assert JobSettings().workers == 0
+        assert JobRunner(store, JobSettings(cpus=[1])).workers == 1
+        assert JobRunner(store, JobSettings(cpus=[0, 2, 3])).workers == 3
+        assert JobRunner(store, JobSettings(workers=2, cpus=[1])).workers == 2
+        every = len(os.sched_getaffinity(0))
+        assert JobRunner(store, JobSettings()).workers == max(1, every - 1)
+    finally:
         store.close()

@@ -223,9 +223,20 @@ class JobRunner:
         self._reader = threading.Thread(target=self._read_progress, name="job-progress", daemon=True)
         self._reader.start()
 
+    @property
+    def workers(self) -> int:
+        """The pool's size: ``jobs.workers``, or with 0 one per CPU the workers may use (``jobs.cpus``;
+        without a list every CPU of this process but one, the real-time loop's)."""
+        if self.settings.workers:
+            return self.settings.workers
+        if self.settings.cpus:
+            return len(self.settings.cpus)
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        return max(1, cpus - 1)
+
     def _new_executor(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(
-            max_workers=self.settings.workers,
+            max_workers=self.workers,
             mp_context=self._ctx,
             initializer=_worker_init,
             initargs=(
