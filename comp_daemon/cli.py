@@ -6,6 +6,10 @@ Each module in :data:`COMMAND_MODULES` (``comp_daemon.commands.*``, and the simu
 :data:`ON_DEMAND` is imported only when it is the one that runs (the listing shows its help line),
 so ``comp-daemon run`` never loads the simulator. Errors that a user can fix (a bad file, an
 unknown robot) print one line to stderr and exit 2.
+
+``--threads N`` (before the command; default 1, or ``COMP_DAEMON_THREADS``) is how many threads
+the numeric libraries use in this process and the processes it starts
+(:mod:`comp_daemon.common.threads`); it is set before NumPy loads.
 """
 
 from __future__ import annotations
@@ -17,6 +21,13 @@ from collections.abc import Sequence
 
 from comp_daemon import __version__
 from comp_daemon.commands.errors import UserError
+from comp_daemon.common.threads import (
+    DEFAULT_THREADS,
+    THREADS_ENV,
+    parse_threads,
+    set_numeric_threads,
+    threads_from_argv,
+)
 
 COMMAND_MODULES: dict[str, str] = {
     "robot": "comp_daemon.commands.robot",
@@ -43,6 +54,14 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
         "closed-loop joint feedback over KUKA RSI, sim-to-real gap diagnosis.",
     )
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    parser.add_argument(
+        "--threads",
+        type=_threads_arg,
+        default=None,
+        metavar="N",
+        help=f"threads of the numeric libraries (BLAS, OpenMP) per process (default {DEFAULT_THREADS}, "
+        f"or {THREADS_ENV}); parallel work runs in processes instead (evaluate --jobs)",
+    )
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, module_name in COMMAND_MODULES.items():
         if name in ON_DEMAND and name != command:
@@ -52,8 +71,20 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     return parser
 
 
+def _threads_arg(text: str) -> int:
+    try:
+        return parse_threads(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     words = list(sys.argv[1:] if argv is None else argv)
+    try:  # before the command modules load NumPy
+        set_numeric_threads(threads_from_argv(words))
+    except ValueError as exc:
+        print(f"comp-daemon: error: {exc}", file=sys.stderr)
+        return 2
     parser = build_parser(next((w for w in words if not w.startswith("-")), None))
     args = parser.parse_args(words)
     func = getattr(args, "func", None)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import os
 import pty
 import subprocess
@@ -96,3 +97,27 @@ def test_progress_only_on_a_terminal(campaign: Path, tmp_path: Path, command: st
     assert expected[command] in err_tty
     if command == "evaluate":
         assert "2/2" in err_tty and "kinematic: check RMS" in err_tty
+
+
+def test_evaluate_says_which_model_is_fitted_and_how_many_remain(campaign: Path, tmp_path: Path) -> None:
+    """Serially and with ``--jobs 2`` (the models fitted in two processes): the same table."""
+    tables = {}
+    for jobs in ("1", "2"):
+        out_json = tmp_path / f"evaluate-{jobs}.json"
+        argv = ["evaluate", str(campaign), "--robot", "kr210", "--models", "nominal,kinematic,chebyshev:1"]
+        code, _, err = _run([*argv, "--jobs", jobs, "--json", str(out_json)], terminal=True)
+        assert code == 0, err
+        assert "models left)" in err  # each model's line says how many remain
+        if jobs == "1":
+            assert "fitting kinematic on 60 rows (2 of 3, 1 after it)" in err
+        else:
+            assert "3 models on 2 processes" in err
+        tables[jobs] = json.loads(out_json.read_text())["table2"]
+    assert tables["1"].keys() == tables["2"].keys()
+    for name in tables["1"]:
+        assert tables["2"][name]["3d"]["rms"] == pytest.approx(tables["1"][name]["3d"]["rms"], rel=1e-12)
+
+
+def test_evaluate_jobs_refuses_what_is_not_a_count() -> None:
+    code, _, err = _run(["evaluate", "x.csv", "--robot", "kr210", "--jobs", "two"], terminal=False)
+    assert code == 2 and "--jobs" in err and "number of processes" in err

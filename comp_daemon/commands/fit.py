@@ -24,8 +24,12 @@ error and backlash), ``chebyshev:cv``, ``kriging-backlash``, ``compliance``. Fil
 from __future__ import annotations
 
 import argparse
+import multiprocessing
+import os
 import sys
 import time
+from collections.abc import Iterator
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from typing import Any, Literal
 
 import numpy as np
@@ -38,7 +42,7 @@ from comp_daemon.commands.campaigns import (
 )
 from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
-from comp_daemon.commands.progress import progress, tracked
+from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset_file
 from comp_daemon.data.options import ReadOptions
@@ -93,6 +97,14 @@ def _order_arg(text: str) -> Order:
         raise argparse.ArgumentTypeError(f"expected an order 0..{MAX_ORDER} or 'cv', got {text!r}") from None
 
 
+def _jobs_arg(text: str) -> int:
+    if not text.strip().isdigit():
+        raise argparse.ArgumentTypeError(f"expected a number of processes (0: one per core), got {text!r}")
+    if int(text) > 0:
+        return int(text)
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
 def _folds_arg(text: str) -> int:
     if not (text.strip().isdigit() and 2 <= int(text) <= 20):
         raise argparse.ArgumentTypeError(f"expected 2..20 folds, got {text!r}")
@@ -125,6 +137,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         f"or all ({', '.join(ALL_MODELS)})",
     )
     ev.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
+    ev.add_argument(
+        "--jobs",
+        type=_jobs_arg,
+        default=1,
+        metavar="N",
+        help="fit the models in N processes side by side (default 1; 0: one per core the process may "
+        "use); each uses the numeric threads of --threads",
+    )
     _common(ev)
     ev.add_argument("--json", default=None, metavar="OUT.json", help="write the statistics and fits as JSON")
     ev.add_argument(
@@ -214,12 +234,87 @@ def _fit_rows(
     prepared: PreparedCampaign, spec: ModelSpec, args: argparse.Namespace, rows: np.ndarray
 ) -> FittedModel:
     options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
+    return _fit_checked(prepared, spec, load_robot_cached(args), options, rows)
+
+
+def _fit_checked(
+    prepared: PreparedCampaign,
+    spec: ModelSpec,
+    robot: RobotDescription,
+    options: FitOptions,
+    rows: np.ndarray,
+) -> FittedModel:
+    """``fit_spec`` on the prepared campaign's rows, its refusals as :class:`UserError` naming the
+    data set."""
     try:
-        return fit_spec(spec, load_robot_cached(args), prepared.rows(rows), options)
+        return fit_spec(spec, robot, prepared.rows(rows), options)
     except (MissingColumnError, UndeterminedModelError) as exc:
         raise UserError(f"{prepared.source}: {exc}") from None
     except np.linalg.LinAlgError as exc:
         raise UserError(f"{prepared.source}: the {spec.name} fit failed ({exc})") from None
+
+
+Judged = tuple[FittedModel, np.ndarray, float, float, int | None]  # fit, check predictions, times
+
+
+def _fit_and_predict(token: str, spec: ModelSpec, work: tuple[Any, ...]) -> Judged:
+    """One model of ``evaluate``: fitted on the fit rows, its predictions of the check rows, the fit's
+    and the prediction's time (s), and for a Chebyshev model the check rows outside its range.
+    Module level: ``--jobs`` runs it in worker processes."""
+    prepared, robot, options, fit_rows, check = work
+    t0 = time.perf_counter()
+    fitted = _fit_checked(prepared, spec, robot, options, fit_rows)
+    t1 = time.perf_counter()
+    rows = prepared.rows(check)
+    pred = fitted.model.predict_tcp_mm(rows.a_deg, rows.dir, rows.payload_kg, rows.temp_c)
+    t2 = time.perf_counter()
+    outside = None
+    if isinstance(fitted.model, ChebyshevModel):
+        outside = int(fitted.model.outside_range(rows.a_deg).sum())
+    return fitted, pred, t1 - t0, t2 - t1, outside
+
+
+def _fit_each(
+    models: list[tuple[str, ModelSpec]], work: tuple[Any, ...], jobs: int
+) -> Iterator[tuple[str, Judged]]:
+    """:func:`_fit_and_predict` of each model, in the given order, on ``jobs`` processes (each with
+    the command line's numeric threads, from the environment it inherits); the progress says which
+    model is fitted and how many remain."""
+    total = len(models)
+    rows = len(work[3])
+    with progress(f"evaluate: {total} models", total=total) as steps:
+
+        def done(token: str, outcome: Judged, left: int) -> None:
+            steps.advance()
+            err = work[0].dataset.xyz_mm[work[4]] - outcome[1]
+            rms = float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
+            steps.log(
+                f"{token}: check RMS {rms:.4f} mm, fit {outcome[2]:.2f} s, "
+                f"predict {1e3 * outcome[3]:.1f} ms ({left} models left)"
+            )
+
+        if jobs <= 1 or total <= 1:
+            for i, (token, spec) in enumerate(models):
+                steps.note(f"fitting {token} on {rows} rows ({i + 1} of {total}, {total - i - 1} after it)")
+                outcome = _fit_and_predict(token, spec, work)
+                done(token, outcome, total - i - 1)
+                yield token, outcome
+            return
+        ctx = multiprocessing.get_context("spawn")  # the progress display runs a thread: no fork
+        with ProcessPoolExecutor(max_workers=min(jobs, total), mp_context=ctx) as pool:
+            futures = {token: pool.submit(_fit_and_predict, token, spec, work) for token, spec in models}
+            pending = dict(futures)
+            steps.note(f"fitting {', '.join(list(pending)[:jobs])} ({total} models on {jobs} processes)")
+            results: dict[str, Judged] = {}
+            while pending:
+                finished, _ = wait(pending.values(), return_when=FIRST_COMPLETED)
+                for token in [t for t, f in pending.items() if f in finished]:
+                    results[token] = pending.pop(token).result()
+                    done(token, results[token], len(pending))
+                if pending:
+                    steps.note(f"fitting {', '.join(list(pending)[:jobs])} ({len(pending)} models left)")
+            for token, _ in models:
+                yield token, results[token]
 
 
 def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
@@ -329,17 +424,15 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(f"{dataset.source}: {prepared.still_axes}")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
     check = split.check_rows
-    check_data = prepared.rows(check)
     table: dict[str, dict[str, Any]] = {}
     fits: dict[str, dict[str, Any]] = {}
     timing: dict[str, dict[str, float]] = {}
     extrapolated = outside_fit_ranges(dataset.a_deg[split.fit_rows], dataset.a_deg[check])
     frame_warned = False
-    for steps, (token, spec) in tracked(parsed, f"evaluate: {len(parsed)} models"):
-        steps.note(f"fitting {token} on {len(split.fit_rows)} rows")
-        t0 = time.perf_counter()
-        fitted = _fit_rows(prepared, spec, args, split.fit_rows)
-        t1 = time.perf_counter()
+    options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
+    judged = _fit_each(list(parsed), (prepared, robot, options, split.fit_rows, check), args.jobs)
+    for token, outcome in judged:
+        fitted, pred, t_fit, t_pred, outside = outcome
         identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
         if len(split.fit_rows) < identifiable:
             skipped[token] = (
@@ -347,28 +440,18 @@ def _evaluate(args: argparse.Namespace) -> int:
             )
             print(f"{dataset.source}: left out {token}: {skipped[token]}")
             continue
-        pred = fitted.model.predict_tcp_mm(
-            check_data.a_deg, check_data.dir, check_data.payload_kg, check_data.temp_c
-        )
-        t2 = time.perf_counter()
         table[token] = error_statistics(dataset.xyz_mm[check], pred)
-        timing[token] = {"fit_s": t1 - t0, "predict_s": t2 - t1, "predict_rows": len(check)}
+        timing[token] = {"fit_s": t_fit, "predict_s": t_pred, "predict_rows": len(check)}
         fits[token] = {"frame": fitted.frame, **fitted.info}
         if "frame_warning" in fitted.info and not frame_warned:  # the same for every model: once
             print(f"{dataset.source}: {fitted.info['frame_warning']}")
             frame_warned = True
         if "mass_warning" in fitted.info:
             print(f"{dataset.source}: {token}: {fitted.info['mass_warning']}")
-        if isinstance(fitted.model, ChebyshevModel):
-            fits[token]["check_rows_outside_range"] = int(
-                fitted.model.outside_range(dataset.a_deg[check]).sum()
-            )
+        if outside is not None:
+            fits[token]["check_rows_outside_range"] = outside
         elif token != "nominal":
             fits[token]["check_rows_outside_range"] = extrapolated["rows"]
-        steps.log(
-            f"{token}: check RMS {table[token]['3d']['rms']:.4f} mm, "
-            f"fit {t1 - t0:.2f} s, predict {1e3 * (t2 - t1):.1f} ms"
-        )
     if "nominal" in table:  # beside the raw nominal row, the one that does not count unknown targets
         t0 = time.perf_counter()
         fit_rows = split.fit_rows
@@ -405,12 +488,12 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"{dataset.source}: {len(split.fit_rows)} fit rows, {len(check)} check rows; "
         "error = measured - model (mm); sorted by the check rows' 3-D RMS"
     )
-    outside = {
+    outside_by_model = {
         name: fits[name]["check_rows_outside_range"]
         for name in ranking
         if "check_rows_outside_range" in fits[name]
     }
-    print(format_table2(table, timing, outside))
+    print(format_table2(table, timing, outside_by_model))
     if extrapolated["rows"]:
         axes = ", ".join(f"{axis} {count}" for axis, count in extrapolated["per_axis"].items())
         print(

@@ -40,8 +40,9 @@ class Steps:
         self._task = task
 
     def note(self, description: str) -> None:
-        """Show ``description`` as what the task is doing now."""
-        self._bar.update(self._task, description=description)
+        """Show ``description`` as what the task is doing now (drawn at once: a step shorter than the
+        display's refresh period is still seen)."""
+        self._bar.update(self._task, description=description, refresh=True)
 
     def advance(self, steps: int = 1) -> None:
         self._bar.advance(self._task, steps)

@@ -169,22 +169,29 @@ def gravity_torques_nm(
     ch = ch if ch is not None else chain(params, q_rad)
     n = ch.tcp_mm.shape[0]
     # positions in the robot base frame, so that "down" is −z of frame 0 even in a tracker frame
-    base_T_world = np.linalg.inv(ch.world_T_frame[:, 0])
-    frames = base_T_world[:, None] @ ch.world_T_frame  # (n, 7, 4, 4)
+    world_T_base = ch.world_T_frame[:, 0]
+    if n and np.array_equal(world_T_base, np.broadcast_to(world_T_base[0], world_T_base.shape)):
+        base_T_world = np.linalg.inv(world_T_base[0])  # one base frame for every pose: invert it once
+        frames = base_T_world @ ch.world_T_frame  # (n, 7, 4, 4)
+        tcp = ch.tcp_mm @ base_T_world[:3, :3].T + base_T_world[:3, 3]
+    else:
+        each = np.linalg.inv(world_T_base)
+        frames = each[:, None] @ ch.world_T_frame
+        tcp = np.einsum("nij,nj->ni", each[:, :3, :3], ch.tcp_mm) + each[:, :3, 3]
     com = frames[:, 1:, :3, :3] @ link_com_mm[None, :, :, None]
     com = com[..., 0] + frames[:, 1:, :3, 3]  # (n, 6, 3) mm
-    tcp = (base_T_world[:, :3, :3] @ ch.tcp_mm[..., None])[..., 0] + base_T_world[:, :3, 3]
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (n,))
     masses = np.concatenate([np.broadcast_to(link_mass_kg, (n, 6)), payload[:, None]], axis=1)
-    points = np.concatenate([com, tcp[:, None, :]], axis=1)  # (n, 7, 3)
-    force = np.zeros((n, 7, 3))
-    force[:, :, 2] = -GRAVITY_MPS2 * masses
+    points_m = np.concatenate([com, tcp[:, None, :]], axis=1) / 1000.0  # (n, 7, 3)
+    # gravity (0, 0, f_b) on body b; about joint j (axis z_j through o_j) the bodies beyond it
+    # (b ≥ j) give z_j · Σ (p_b − o_j) × (0, 0, f_b) = z_jx·Σ f_b (p_by − o_jy) − z_jy·Σ f_b (p_bx − o_jx):
+    # sums over b ≥ j, i.e. suffix sums of f_b and f_b·p_b
+    f = -GRAVITY_MPS2 * masses  # (n, 7) N
+    f_sum = np.cumsum(f[:, ::-1], axis=1)[:, ::-1][:, :6]
+    fp_sum = np.cumsum((f[:, :, None] * points_m[:, :, :2])[:, ::-1], axis=1)[:, ::-1][:, :6]
     z = frames[:, :6, :3, 2]
-    o = frames[:, :6, :3, 3]
-    tau = np.empty((n, 6))
-    for j in range(6):
-        # bodies beyond joint j+1: links j+1..6 (indices j..5) and the payload (index 6)
-        arm_m = (points[:, j:, :] - o[:, j, None, :]) / 1000.0
-        moment = np.cross(arm_m, force[:, j:, :]).sum(axis=1)
-        tau[:, j] = np.einsum("ni,ni->n", z[:, j], moment)
+    o_m = frames[:, :6, :3, 3] / 1000.0
+    moment_x = fp_sum[..., 1] - o_m[..., 1] * f_sum
+    moment_y = fp_sum[..., 0] - o_m[..., 0] * f_sum
+    tau: NDArray[np.float64] = z[..., 0] * moment_x - z[..., 1] * moment_y
     return tau

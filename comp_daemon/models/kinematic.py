@@ -366,6 +366,7 @@ def calibrate_kinematic(
     max_iter: int = 100,
     more_targets_mm: NDArray[np.float64] | None = None,
     sigma_mm: NDArray[np.float64] | None = None,
+    report_ranks: bool = True,
 ) -> KinematicFit:
     """Calibrate the robot's MDH parameters (and ``effects``) on measured TCP positions.
 
@@ -376,6 +377,9 @@ def calibrate_kinematic(
     offsets are identified with the rest (module docstring: 6-DOF with three or more targets).
     ``sigma_mm`` (n,): each row's declared position σ (the data set's column); the rows are then
     weighted by ``median(σ)/σ`` (weighted least squares; the RMS reported stays unweighted).
+    ``report_ranks=False`` leaves the identifiability report's rank checks and condition number
+    out (-1 and NaN; the identified parameters are the same): for fits whose report nobody reads,
+    the folds of a cross-validation.
     """
     a = as_axes(a_deg)
     p_meas = np.asarray(p_measured_mm, dtype=float)
@@ -434,6 +438,8 @@ def calibrate_kinematic(
         candidates=[*geo_candidates, *eff_names, *more_names],
         priority=_priority(start, eff_names, more_names),
         rtol=rtol,
+        check_rank=report_ranks,
+        check_condition=report_ranks,
     )
     idx = report.identifiable_index
     n_eff = len(eff_names)

@@ -190,7 +190,8 @@ class AuthSettings(_Section):
 
 
 class JobSettings(_Section):
-    workers: int = Field(default=1, ge=1, le=64)
+    workers: int = Field(default=0, ge=0, le=64)  # 0: one per CPU the workers may use
+    threads: int = Field(default=1, ge=1, le=256)  # numeric library threads per worker
     max_pending: int = Field(default=16, ge=1)
     nice: int = Field(default=10, ge=0, le=19)
     cpus: list[int] = Field(default_factory=list)  # CPUs of the workers; empty: all but the real-time one

@@ -2,7 +2,8 @@
 
 A job kind is a picklable, module-level function plus a parent-side hook:
 
-- ``func(*args, progress=reporter) -> dict`` runs in a worker process (niced, SIGINT ignored).
+- ``func(*args, progress=reporter) -> dict`` runs in a worker process (niced, SIGINT ignored, its
+  numeric libraries limited to ``jobs.threads`` threads before the job loads them).
   ``reporter(fraction, message=None)`` records progress (0..1) and raises :class:`JobCancelled`
   when the job was cancelled or ran out of time, so long functions should call it now and then.
 - ``on_done(job, result) -> ModelDraft | None`` runs in the parent when the function returns; a
@@ -41,6 +42,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from comp_daemon.common.logs import bound, get_logger
+from comp_daemon.common.threads import set_numeric_threads
 from comp_daemon.service.config import JobSettings
 from comp_daemon.service.metrics import JOBS_FINISHED
 from comp_daemon.service.orphans import exit_with_parent
@@ -95,9 +97,17 @@ _worker_cancel: Any = None
 
 
 def _worker_init(
-    progress_queue: Any, cancel_flags: Any, nice: int, cpus: tuple[int, ...] = (), parent_pid: int = 0
+    progress_queue: Any,
+    cancel_flags: Any,
+    nice: int,
+    cpus: tuple[int, ...] = (),
+    parent_pid: int = 0,
+    threads: int = 1,
 ) -> None:
     global _worker_queue, _worker_cancel
+    # before a job loads NumPy: a worker pinned to fewer cores than the machine has would otherwise
+    # start a BLAS thread per core, spinning against each other on its own core
+    set_numeric_threads(threads)
     if parent_pid:
         exit_with_parent(parent_pid)
     _worker_queue = progress_queue
@@ -213,9 +223,20 @@ class JobRunner:
         self._reader = threading.Thread(target=self._read_progress, name="job-progress", daemon=True)
         self._reader.start()
 
+    @property
+    def workers(self) -> int:
+        """The pool's size: ``jobs.workers``, or with 0 one per CPU the workers may use (``jobs.cpus``;
+        without a list every CPU of this process but one, the real-time loop's)."""
+        if self.settings.workers:
+            return self.settings.workers
+        if self.settings.cpus:
+            return len(self.settings.cpus)
+        cpus = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+        return max(1, cpus - 1)
+
     def _new_executor(self) -> ProcessPoolExecutor:
         return ProcessPoolExecutor(
-            max_workers=self.settings.workers,
+            max_workers=self.workers,
             mp_context=self._ctx,
             initializer=_worker_init,
             initargs=(
@@ -224,6 +245,7 @@ class JobRunner:
                 self.settings.nice,
                 tuple(self.settings.cpus),
                 os.getpid(),
+                self.settings.threads,
             ),
         )
 
