@@ -2,10 +2,10 @@
 status code or content type the description does not list, every request the schema allows is
 accepted (the schema is as tight as the validation), and a 405 lists every method of its path.
 
-Two operations check what no JSON schema can say: an upload's CSV or JSON content (its columns,
-numbers, axis limits) and a target's reachability (a TCP the robot cannot reach, a pose near a wrist
-singularity). For those, and only those, a schema-valid request may be answered 422
-(``SCHEMATHESIS_CONFIG``)."""
+Three operations check what no JSON schema can say: an upload's CSV or JSON content (its columns,
+numbers, axis limits), a target file's content (the same reader's rules) and a target's reachability
+(a TCP the robot cannot reach, a pose near a wrist singularity). For those, and only those, a
+schema-valid request may be answered 422 (``SCHEMATHESIS_CONFIG``)."""
 
 from __future__ import annotations
 
@@ -27,6 +27,10 @@ checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "409",
 [[operations]]
 include-name = "POST /api/batches"
 checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "409", "422"]
+
+[[operations]]
+include-name = "POST /api/batches/file"
+checks.positive_data_acceptance.expected-statuses = ["2xx", "401", "403", "409", "413", "422"]
 """
 CHECKS = (
     "not_a_server_error",

@@ -147,8 +147,14 @@ class TrialSession:
         still here, so a reading that is stale for a moment (a busy computer) is asked for again for
         up to ``wait_s`` before the point goes without it."""
         deadline = time.monotonic() + wait_s
+        # /api/status is a snapshot (built every http.status_interval_s): the first answer may have
+        # been built before the robot came to stand; one built after it was served is not
+        first = (await self.cell.api("GET", "/api/status"))["built_at"]
         while True:
             status = await self.cell.api("GET", "/api/status")
+            if status["built_at"] <= first and time.monotonic() < deadline:
+                await asyncio.sleep(every_s)
+                continue
             out = np.full(3, np.nan)
             for joint in status["daemon"]["joints"]:
                 j, g = int(joint["joint"]), joint.get("grating_deg")

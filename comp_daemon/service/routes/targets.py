@@ -224,7 +224,7 @@ async def post_batch(
 
 
 @router.get(
-    "/batches/{batch_id}",
+    "/batches/{batch_id:int}",
     response_model=BatchOut,
     summary="A batch and its targets",
     responses=_CHANGE_ERRORS,
@@ -235,7 +235,7 @@ async def get_batch(batch_id: BatchId, svc: State, who: Viewer) -> BatchOut:
 
 
 @router.post(
-    "/batches/{batch_id}/cancel",
+    "/batches/{batch_id:int}/cancel",
     response_model=list[TargetOut],
     summary="Cancel every queued target of a batch (operator); returns those cancelled",
     responses=_CHANGE_ERRORS,
