@@ -168,14 +168,7 @@ class ReadOptions:
             if scale != 1.0:
                 out = [repr(float(c) * scale) if _PLAIN.fullmatch(c) else c for c in out]
             columns[name] = out
-        return CellTable(
-            source=table.source,
-            header=table.header,
-            columns=columns,
-            row_numbers=table.row_numbers,
-            row_label=table.row_label,
-            pre_errors=table.pre_errors,
-        )
+        return replace(table, columns=columns)
 
     # ---------------------------------------------------------------------------------- values
     def check_units(self, data: Dataset) -> None:

@@ -71,7 +71,6 @@ class StatusBoard:
         self.doc: dict[str, Any] = {}
         self.body = b"{}"
         self.built_at = -float("inf")  # monotonic seconds
-        self.builds = 0
         self._generation = 0  # store changes seen (changed())
         self._built_generation = -1  # the generation the snapshot includes
         self._building: asyncio.Task[None] | None = None
@@ -115,7 +114,6 @@ class StatusBoard:
         self.doc = doc
         self.built_at = time.monotonic()
         self._built_generation = generation
-        self.builds += 1
 
     def _store_part(self) -> tuple[dict[str, int], dict[str, Any] | None, dict[str, int]]:
         """Target counts, the active model (summary) and job counts, in one worker thread."""
