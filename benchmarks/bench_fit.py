@@ -36,7 +36,7 @@ import numpy as np
 import scipy
 from scipy.optimize import least_squares
 
-from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
+from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.chebyshev import (
@@ -55,7 +55,6 @@ from comp_daemon.models.identifiability import analyze_identifiability, mdh_prio
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.lm import improved_lm
 from comp_daemon.models.registry import ALL_MODELS, fit_model, fit_spec, parse_model_name
-from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.campaign import measure_at, run_campaign, sample_poses
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.scenario import load_scenario
@@ -224,7 +223,7 @@ def seed000_trial(seed: int) -> None:
     check = np.setdiff1d(np.arange(204), fit)
     check = check[np.argsort(np.asarray(data.t_s)[check])]  # visit the targets in campaign order
     wanted = data.target_xyz_mm[check]
-    rot = rotation_kuka_abc_deg(data.target_abc_deg[check]) @ FLANGE_R_KUKA_TOOL.T
+    rot = flange_rotation_of_tool_abc(data.target_abc_deg[check])
     a_nominal = data.a_deg[check]
     payload = data.payload_kg[check]
     dirs = _visit_dirs(a_nominal, scen.campaign.home_deg)

@@ -26,7 +26,8 @@ from numpy.typing import NDArray
 
 from benchmarks.machine import machine_info, machine_line
 from comp_daemon.kinematics.forward import flange_pose
-from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg, solve_ik
+from comp_daemon.kinematics.inverse import solve_ik
+from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
@@ -101,7 +102,7 @@ def box_poses(robot: RobotDescription, n: int, rng: np.random.Generator) -> NDAr
         u = latin_hypercube(rng, m, 6)
         p = np.asarray(BOX_CENTER_MM) + (u[:, :3] - 0.5) * np.asarray(BOX_SIZE_MM)
         abc = np.asarray(ABC_LO_DEG) + u[:, 3:] * (np.asarray(ABC_HI_DEG) - np.asarray(ABC_LO_DEG))
-        res = solve_ik(params, limits, p, rotation_kuka_abc_deg(abc) @ r_home, np.repeat(q_home, m, axis=0))
+        res = solve_ik(params, limits, p, abc_deg_to_matrix(abc) @ r_home, np.repeat(q_home, m, axis=0))
         found.append(q_rad_to_axes_deg(res.q_rad[res.ok], params.sign))
         have += int(res.ok.sum())
     return np.concatenate(found)[:n]

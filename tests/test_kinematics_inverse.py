@@ -9,10 +9,10 @@ from comp_daemon.kinematics.forward import chain, tcp_position_mm
 from comp_daemon.kinematics.inverse import (
     UnreachableTargetError,
     require_reachable,
-    rotation_kuka_abc_deg,
     solve_ik,
     solve_ik_axes,
 )
+from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
 from comp_daemon.robot.description import PRESETS, load_robot
 
@@ -85,7 +85,7 @@ def test_joint_limits_are_respected_even_when_the_target_needs_more() -> None:
         robot.sign,
         robot.axis_limits_deg,
         target,
-        rotation_kuka_abc_deg(np.zeros((1, 3)))
+        abc_deg_to_matrix(np.zeros((1, 3)))
         @ chain(params, axes_deg_to_q_rad(a, robot.sign)).world_T_frame[:, 6, :3, :3],
         seed,
     )
@@ -98,9 +98,3 @@ def test_axis_conversion_round_trip() -> None:
     robot = load_robot("kr210")
     a = _random_axes("kr210", 10, 9)
     np.testing.assert_allclose(q_rad_to_axes_deg(axes_deg_to_q_rad(a, robot.sign), robot.sign), a, atol=1e-12)
-
-
-def test_kuka_abc_rotation_is_rz_ry_rx() -> None:
-    r = rotation_kuka_abc_deg(np.array([[90.0, 0.0, 0.0], [0.0, 0.0, 90.0]]))
-    np.testing.assert_allclose(r[0] @ [1, 0, 0], [0, 1, 0], atol=1e-12)
-    np.testing.assert_allclose(r[1] @ [0, 1, 0], [0, 0, 1], atol=1e-12)

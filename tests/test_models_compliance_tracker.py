@@ -14,7 +14,7 @@ from benchmarks.seed004_compliance import (
     reproduce_seed004_tracker,
 )
 from comp_daemon.kinematics.forward import gravity_torques_nm
-from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
+from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.compliance import ComplianceModel, calibrate_compliance
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
@@ -117,7 +117,7 @@ def test_tracker_frame_is_registered_and_theta1_goes_with_the_base_rotation() ->
     truth = ComplianceModel(ROBOT, OFFSETS, COMP)
     a = _axes(60, 2)
     world_T_base = np.eye(4)
-    world_T_base[:3, :3] = rotation_kuka_abc_deg(np.array([[30.0, 1.0, -2.0]]))[0]
+    world_T_base[:3, :3] = abc_deg_to_matrix(np.array([30.0, 1.0, -2.0]))
     world_T_base[:3, 3] = [2500.0, -800.0, 300.0]
     p_base = truth.predict_tcp_mm(a)
     p = p_base @ world_T_base[:3, :3].T + world_T_base[:3, 3]

@@ -10,7 +10,7 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset
 from comp_daemon.kinematics.forward import chain
-from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
+from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.campaign import (
@@ -53,7 +53,7 @@ def test_sampled_poses_are_a_latin_hypercube_reached_by_nominal_ik() -> None:
     params = KinematicParams.from_robot(KR210_CELL.robot)
     ch = chain(params, axes_deg_to_q_rad(poses.a_deg, params.sign))
     np.testing.assert_allclose(ch.tcp_mm, poses.target_xyz_mm, atol=1e-3)
-    want_r = rotation_kuka_abc_deg(poses.target_abc_deg)
+    want_r = abc_deg_to_matrix(poses.target_abc_deg)
     np.testing.assert_allclose(ch.world_T_frame[:, 6, :3, :3] @ FLANGE_R_KUKA_TOOL, want_r, atol=1e-6)
 
 

@@ -29,7 +29,8 @@ from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, write_dataset
 from comp_daemon.data.rowwise import RowRefusal, read_rows
-from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
+from comp_daemon.kinematics.inverse import UnreachableTargetError
+from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.models.artifact import ModelArtifactError, load_model
 from comp_daemon.models.base import ErrorModel, uses_approach_directions
 from comp_daemon.models.chebyshev import ChebyshevModel
@@ -43,7 +44,7 @@ from comp_daemon.models.compensation import (
     nominal_targets,
 )
 from comp_daemon.preparation.campaign import prepare_directions
-from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, load_robot
+from comp_daemon.robot.description import load_robot
 
 __all__ = [
     "SOME_REFUSED",
@@ -297,7 +298,7 @@ def _wanted(model: ErrorModel, targets: Dataset) -> tuple[np.ndarray, np.ndarray
         wanted = np.asarray(targets.target_xyz_mm)
         rot = None
         if targets.target_abc_deg is not None:
-            rot = rotation_kuka_abc_deg(targets.target_abc_deg) @ FLANGE_R_KUKA_TOOL.T
+            rot = flange_rotation_of_tool_abc(targets.target_abc_deg)
         seed = targets.a_deg
         if seed is None:
             seed = np.broadcast_to(model.robot.axis_limits_deg.mean(axis=1), (n, 6))

@@ -29,15 +29,15 @@ from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import DatasetError, read_dataset_file
+from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.models.artifact import LoadedModel, ModelArtifactError, load_model
 from comp_daemon.models.compensation import nominal_targets
 from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, params_text, write_targets
-from comp_daemon.models.export.frames import abc_deg_to_matrix
 from comp_daemon.models.export.params import listing_of
 from comp_daemon.models.export.targets import TargetList, module_name, point_names
 from comp_daemon.models.export.urdf import urdf_text
 from comp_daemon.models.kinematic import KinematicModel
-from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, PRESETS, load_robot
+from comp_daemon.robot.description import PRESETS, load_robot
 
 __all__ = ["register"]
 
@@ -160,7 +160,7 @@ def _targets(args: argparse.Namespace) -> int:
     wanted, result, _ = compensate_targets(model, targets, args)
     n = len(targets)
     if targets.target_abc_deg is not None:
-        flange_R = abc_deg_to_matrix(np.asarray(targets.target_abc_deg)) @ FLANGE_R_KUKA_TOOL.T
+        flange_R = flange_rotation_of_tool_abc(targets.target_abc_deg)
     else:  # the nominal program's orientation, or where only a position was asked for, the nominal solution's
         _, flange_R = nominal_targets(model, result.a_uncompensated_deg)
     # KRL and RAPID take identifiers; the CSV keeps the pose ids as they were

@@ -33,7 +33,8 @@ from typing import Any
 import numpy as np
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
+from comp_daemon.kinematics.inverse import UnreachableTargetError
+from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.models import artifact as artifacts
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.compensation import (
@@ -44,7 +45,7 @@ from comp_daemon.models.compensation import (
     compensate,
     nominal_targets,
 )
-from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
+from comp_daemon.robot.description import RobotDescription
 from comp_daemon.rt.executor import CompensatedTarget, CompensationError, ModelMissingError
 from comp_daemon.service.store import Store
 
@@ -118,7 +119,7 @@ class ActiveModelCompensator:
             r_wanted = None
             if all(k in request for k in _ABC):
                 abc = np.array([[float(request[k]) for k in _ABC]])
-                r_wanted = rotation_kuka_abc_deg(abc) @ FLANGE_R_KUKA_TOOL.T
+                r_wanted = flange_rotation_of_tool_abc(abc)
             seed = None if current is None else np.asarray(current, dtype=float)[None, :]
         else:
             raise CompensationError("the target gives neither a1..a6 nor tx, ty, tz")

@@ -23,7 +23,6 @@ __all__ = [
     "UnreachableTargetError",
     "orientation_error_rad",
     "require_reachable",
-    "rotation_kuka_abc_deg",
     "solve_ik",
     "solve_ik_axes",
 ]
@@ -52,25 +51,6 @@ class IKResult:
     position_error_mm: NDArray[np.float64]  # (n,)
     orientation_error_rad: NDArray[np.float64]  # (n,) zeros when no orientation was asked for
     iterations: int
-
-
-def rotation_kuka_abc_deg(abc_deg: NDArray[np.float64]) -> NDArray[np.float64]:
-    """(n, 3, 3) rotation from KUKA A, B, C (deg): Rz(A)·Ry(B)·Rx(C)."""
-    abc = np.deg2rad(np.atleast_2d(np.asarray(abc_deg, dtype=float)))
-    ca, sa = np.cos(abc[:, 0]), np.sin(abc[:, 0])
-    cb, sb = np.cos(abc[:, 1]), np.sin(abc[:, 1])
-    cc, sc = np.cos(abc[:, 2]), np.sin(abc[:, 2])
-    r = np.empty((abc.shape[0], 3, 3))
-    r[:, 0, 0] = ca * cb
-    r[:, 0, 1] = ca * sb * sc - sa * cc
-    r[:, 0, 2] = ca * sb * cc + sa * sc
-    r[:, 1, 0] = sa * cb
-    r[:, 1, 1] = sa * sb * sc + ca * cc
-    r[:, 1, 2] = sa * sb * cc - ca * sc
-    r[:, 2, 0] = -sb
-    r[:, 2, 1] = cb * sc
-    r[:, 2, 2] = cb * cc
-    return r
 
 
 def orientation_error_rad(

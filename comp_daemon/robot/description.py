@@ -43,7 +43,7 @@ __all__ = [
 
 # KUKA's tool frame in the flange frame of the robot files (z out of the flange): x_tool = z_flange,
 # y_tool = y_flange, z_tool = −x_flange, i.e. Ry(−90°). A target's A, B, C orient the KUKA tool frame;
-# the flange orientation asked of the kinematics is rotation_kuka_abc_deg(abc) @ FLANGE_R_KUKA_TOOL.T.
+# the flange orientation asked of the kinematics is kinematics.kuka_abc.flange_rotation_of_tool_abc.
 FLANGE_R_KUKA_TOOL = np.array([[0.0, 0.0, -1.0], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0]])
 FLANGE_R_KUKA_TOOL.setflags(write=False)
 

@@ -29,9 +29,9 @@ from scipy.stats import qmc
 
 from comp_daemon.data.dataset import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg, solve_ik
+from comp_daemon.kinematics.inverse import solve_ik
+from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
-from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.scenario import Scenario
 from comp_daemon.sim.tracker import LaserTracker
@@ -90,7 +90,7 @@ def solve_axes(
     """Nominal IK of TCP targets (xyz, KUKA A/B/C); returns axis values (n, 6) deg and ok (n,)."""
     params = KinematicParams.from_robot(scenario.robot)
     limits = _limits_q_rad(params, scenario.robot.axis_limits_deg)
-    target_r = rotation_kuka_abc_deg(abc_deg) @ FLANGE_R_KUKA_TOOL.T
+    target_r = flange_rotation_of_tool_abc(abc_deg)
     seed = scenario.campaign.home_deg if seed_axes_deg is None else seed_axes_deg
     q_seed = np.broadcast_to(axes_deg_to_q_rad(np.asarray(seed, dtype=float), params.sign), (len(xyz_mm), 6))
     res = solve_ik(params, limits, xyz_mm, target_r, q_seed)

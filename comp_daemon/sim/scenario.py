@@ -190,10 +190,10 @@ class Scenario:
 
     def tracker_T_base(self) -> NDArray[np.float64]:
         """(4, 4) pose of the robot base frame in the tracker's frame."""
-        from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
+        from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix
 
         out = np.eye(4)
-        out[:3, :3] = rotation_kuka_abc_deg(self.cell.tracker_abc_deg)[0]
+        out[:3, :3] = abc_deg_to_matrix(self.cell.tracker_abc_deg)
         out[:3, 3] = self.cell.tracker_xyz_mm
         return out
 

@@ -1,7 +1,6 @@
 """Frames and numbers as controller listings write them: KUKA A, B, C, ABB quaternions, exact decimals.
 
-* ``A, B, C`` (deg): KUKA's ``Rz(A)·Ry(B)·Rx(C)``
-  (:func:`comp_daemon.kinematics.inverse.rotation_kuka_abc_deg` is the forward direction);
+* ``A, B, C`` (deg): KUKA's ``Rz(A)·Ry(B)·Rx(C)``, converted by :mod:`comp_daemon.kinematics.kuka_abc`;
 * quaternions ``q1..q4`` = ``w, x, y, z`` (ABB's order), unit, ``q1 ≥ 0``;
 * rotation vectors in degrees (axis × angle) for the CSV listings;
 * numbers as the shortest decimal text (no exponent) that reads back to the same double
@@ -13,14 +12,11 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.inverse import rotation_kuka_abc_deg
 from comp_daemon.kinematics.so3 import rotvec_to_matrix
 
 __all__ = [
     "FloatArray",
-    "abc_deg_to_matrix",
     "frame",
-    "matrix_to_abc_deg",
     "matrix_to_quaternion",
     "matrix_to_rotvec_deg",
     "num",
@@ -52,27 +48,6 @@ def rigid_inverse(t: FloatArray) -> FloatArray:
     """Inverse of a rigid 4×4 transform (transpose of the rotation, no general inversion)."""
     rot = np.asarray(t, dtype=float)[:3, :3]
     return frame(-rot.T @ np.asarray(t, dtype=float)[:3, 3], rot.T)
-
-
-def matrix_to_abc_deg(rot: FloatArray) -> FloatArray:
-    """(…, 3) KUKA ``A, B, C`` (deg) of rotation matrices (…, 3, 3), ``Rz(A)·Ry(B)·Rx(C)``.
-
-    ``B`` from ``atan2(−r31, hypot(r11, r21))`` (accurate at every angle); at ``B = ±90°`` (gimbal
-    lock) only ``A ∓ C`` is defined and ``C`` is set to 0.
-    """
-    r = np.asarray(rot, dtype=float)
-    cb = np.hypot(r[..., 0, 0], r[..., 1, 0])
-    b = np.arctan2(-r[..., 2, 0], cb)
-    locked = cb < 1e-12
-    a = np.where(locked, np.arctan2(-r[..., 0, 1], r[..., 1, 1]), np.arctan2(r[..., 1, 0], r[..., 0, 0]))
-    c = np.where(locked, 0.0, np.arctan2(r[..., 2, 1], r[..., 2, 2]))
-    return np.degrees(np.stack([a, b, c], axis=-1))
-
-
-def abc_deg_to_matrix(abc_deg: FloatArray) -> FloatArray:
-    """(…, 3, 3) rotation matrices of KUKA ``A, B, C`` (…, 3) in deg."""
-    abc = np.asarray(abc_deg, dtype=float)
-    return rotation_kuka_abc_deg(abc.reshape(-1, 3)).reshape(*abc.shape[:-1], 3, 3)
 
 
 def matrix_to_quaternion(rot: FloatArray) -> FloatArray:

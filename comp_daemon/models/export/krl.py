@@ -23,14 +23,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from comp_daemon.models.export.frames import (
-    FloatArray,
-    abc_deg_to_matrix,
-    frame,
-    matrix_to_abc_deg,
-    matrix_to_rotvec_deg,
-    num,
-)
+from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, flange_rotation_of_tool_abc, matrix_to_abc_deg
+from comp_daemon.models.export.frames import FloatArray, frame, matrix_to_rotvec_deg, num
 from comp_daemon.models.export.params import (
     FRAME_AXES,
     JOINT_FIELDS,
@@ -228,5 +222,5 @@ def parse_krl_targets(text: str, where: str = "<dat>") -> TargetList:
         names=names,
         a_deg=np.array([[axes[n][k] for k in _AXES] for n in names]),
         xyz_mm=np.array([[poses[n][k] for k in "XYZ"] for n in names]),
-        flange_R=abc_deg_to_matrix(abc) @ FLANGE_R_KUKA_TOOL.T,
+        flange_R=flange_rotation_of_tool_abc(abc),
     )

@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.models.export.frames import abc_deg_to_matrix, matrix_to_abc_deg, num
-from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
+from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc, tool_abc_of_flange_rotation
+from comp_daemon.models.export.frames import num
 
 __all__ = [
     "CSV_TARGET_COLUMNS",
@@ -51,7 +51,7 @@ class TargetList:
     @property
     def tool_abc_deg(self) -> NDArray[np.float64]:
         """(n, 3) KUKA A, B, C (deg) of the tool frame (x out of the flange) of the nominal target."""
-        return matrix_to_abc_deg(self.flange_R @ FLANGE_R_KUKA_TOOL)
+        return tool_abc_of_flange_rotation(self.flange_R)
 
 
 def point_names(pose_ids: Sequence[str] | None, n: int) -> tuple[str, ...]:
@@ -95,5 +95,5 @@ def parse_csv_targets(text: str, where: str = "<csv>") -> TargetList:
         names=tuple(r["pose_id"] for r in rows),
         a_deg=values[:, :6],
         xyz_mm=values[:, 6:9],
-        flange_R=abc_deg_to_matrix(values[:, 9:12]) @ FLANGE_R_KUKA_TOOL.T,
+        flange_R=flange_rotation_of_tool_abc(values[:, 9:12]),
     )

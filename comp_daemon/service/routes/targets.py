@@ -30,14 +30,15 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.dataset import DatasetError, dataset_from_records
-from comp_daemon.kinematics.inverse import UnreachableTargetError, rotation_kuka_abc_deg
+from comp_daemon.kinematics.inverse import UnreachableTargetError
+from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.models.compensation import (
     CompensationLimits,
     base_refusals,
     nominal_solution,
     wrist_refusals,
 )
-from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, RobotDescription
+from comp_daemon.robot.description import RobotDescription
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.schemas import (
@@ -114,7 +115,7 @@ def _reach_problems(
     rot = None
     if oriented:
         abc = np.array([[float(records[i][k]) for k in ("ta", "tb", "tc")] for i in rows])
-        rot = rotation_kuka_abc_deg(abc) @ FLANGE_R_KUKA_TOOL.T
+        rot = flange_rotation_of_tool_abc(abc)
     try:
         a = nominal_solution(robot, p, rot)
     except UnreachableTargetError as exc:
