@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from comp_daemon.daemon.compensation import ActiveModelCompensator
+from comp_daemon.data.target import Target
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
@@ -40,7 +41,7 @@ def activate(store: Store, artifact: dict[str, Any], kind: str = "kinematic") ->
 def test_without_a_model_the_target_fails_as_model_missing(store: Store) -> None:
     comp = ActiveModelCompensator(store, load_robot("kr210"), [0, 1, 2])
     with pytest.raises(ModelMissingError, match="no model is active"):
-        comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
+        comp(Target(axes_deg=tuple(HOME)))
 
 
 def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(store: Store) -> None:
@@ -51,7 +52,7 @@ def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(s
     model = KinematicModel(robot, KinematicParams.from_robot(robot).apply(dx))
     model_id = activate(store, model_document(model, data_sha256="a" * 64, frame="base"))
     comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
-    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    request = Target(axes_deg=tuple(HOME))
     out = comp(request)
     assert out.model_id == model_id
     assert out.loop_target_deg == out.commanded_deg[:3]
@@ -62,7 +63,7 @@ def test_a_kinematic_model_moves_the_command_so_its_prediction_hits_the_target(s
     np.testing.assert_allclose(predicted, wanted, atol=1e-6)
     assert np.abs(np.subtract(out.commanded_deg, HOME)).max() > 1e-4  # the model did change it
     # the same wanted TCP given as a position reaches the same prediction
-    tcp = {"tx": float(wanted[0, 0]), "ty": float(wanted[0, 1]), "tz": float(wanted[0, 2])}
+    tcp = Target(tcp_mm=tuple(wanted[0]))
     by_position = comp(tcp)
     np.testing.assert_allclose(model.predict_tcp_mm(np.array([by_position.commanded_deg])), wanted, atol=1e-6)
 
@@ -80,7 +81,7 @@ def test_the_daemon_compensator_applies_its_configured_limits(store: Store) -> N
             frame="base",
         ),
     )
-    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    request = Target(axes_deg=tuple(HOME))
     loose = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
     change = np.abs(np.subtract(loose(request).commanded_deg, HOME)).max()
     tight = ActiveModelCompensator(
@@ -100,7 +101,7 @@ def test_an_artifact_that_is_not_a_model_document_is_refused(store: Store) -> No
     activate(store, {"kind": "nominal", "order": None, "payload": nominal.to_payload()}, "nominal")
     comp = ActiveModelCompensator(store, robot, [0, 1, 2])
     with pytest.raises(ModelMissingError, match="not a comp-daemon model document"):
-        comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
+        comp(Target(axes_deg=tuple(HOME)))
 
 
 def test_unusable_models_and_requests_are_refused_by_name(store: Store) -> None:
@@ -109,12 +110,10 @@ def test_unusable_models_and_requests_are_refused_by_name(store: Store) -> None:
     activate(store, model_document(NominalModel(other), data_sha256="b" * 64, frame="base"), "nominal")
     comp = ActiveModelCompensator(store, robot, [0, 1, 2])
     with pytest.raises(ModelMissingError, match="fitted for robot"):
-        comp({f"a{i + 1}": v for i, v in enumerate(HOME)})
+        comp(Target(axes_deg=tuple(HOME)))
     activate(store, model_document(NominalModel(robot), data_sha256="c" * 64, frame="base"), "nominal")
-    with pytest.raises(CompensationError, match=r"neither a1\.\.a6 nor tx, ty, tz"):
-        comp({"a1": 1.0, "tx": 2.0})
     with pytest.raises(CompensationError, match="unreachable within joint limits"):
-        comp({"tx": 9000.0, "ty": 0.0, "tz": 500.0})
+        comp(Target(tcp_mm=(9000.0, 0.0, 500.0)))
 
 
 def _fitted_kinematic(robot: Any) -> tuple[Any, dict[str, Any]]:
@@ -132,7 +131,7 @@ def test_the_compensation_info_carries_its_model_mapping_and_uncertainty(store: 
     robot = load_robot("kr210")
     model, doc = _fitted_kinematic(robot)
     activate(store, doc)
-    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    request = Target(axes_deg=tuple(HOME))
     comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))
     out = comp(request)
     assert out.info is not None and out.info["mapping"] == "six-axis"
@@ -148,7 +147,7 @@ def test_the_compensation_info_carries_its_model_mapping_and_uncertainty(store: 
 def test_the_nominal_model_has_no_uncertainty_to_report(store: Store) -> None:
     robot = load_robot("kr210")
     activate(store, model_document(NominalModel(robot), data_sha256="e" * 64, frame="base"), "nominal")
-    out = ActiveModelCompensator(store, robot, [0, 1, 2])({f"a{i + 1}": v for i, v in enumerate(HOME)})
+    out = ActiveModelCompensator(store, robot, [0, 1, 2])(Target(axes_deg=tuple(HOME)))
     assert out.info is not None and "predicted_sigma_mm" not in out.info
 
 
@@ -156,7 +155,7 @@ def test_the_seed000_mapping_keeps_the_wrist_of_the_nominal_solution(store: Stor
     robot = load_robot("kr210")
     model, doc = _fitted_kinematic(robot)
     activate(store, doc)
-    request = {f"a{i + 1}": v for i, v in enumerate(HOME)}
+    request = Target(axes_deg=tuple(HOME))
     six = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))(request)
     seed000 = ActiveModelCompensator(
         store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME), mapping="seed000"

@@ -8,12 +8,13 @@ from __future__ import annotations
 
 import asyncio
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import pytest
 
+from comp_daemon.data.target import Target
 from comp_daemon.rt.controller import JointLoopSettings
 from comp_daemon.rt.encoder_reader import EncoderFault, EncoderReading
 from comp_daemon.rt.encoder_reader import FaultKind as EncoderFaultKind
@@ -104,9 +105,10 @@ def calibration() -> GratingCalibration:
     return GratingCalibration(1, "2026-11-21T00:00:00Z", maps)
 
 
-def compensate(request: Mapping[str, Any]) -> CompensatedTarget:
-    axes = [float(a) for a in request["axes_deg"]]
-    if request.get("unreachable"):
+def compensate(target: Target) -> CompensatedTarget:
+    assert target.axes_deg is not None
+    axes = list(target.axes_deg)
+    if target.pose_id == "unreachable":
         raise CompensationError("target outside the workspace")
     commanded = tuple(a + 0.003 for a in axes)  # the "model": a small feed-forward correction
     return CompensatedTarget(commanded, tuple(commanded[j - 1] for j in JOINTS), model_id=1)
@@ -212,11 +214,16 @@ def axes(i: int) -> list[float]:
     return [5.0 * i, -85.0 + i, 92.0 - i, 1.0, 30.0 + i, 2.0]
 
 
+def record(i: int, pose_id: str | None = None) -> dict[str, Any]:
+    """A queued target's request as the service stores it."""
+    return Target(axes_deg=tuple(axes(i)), pose_id=pose_id).to_record()
+
+
 async def test_targets_run_one_at_a_time_in_queue_order(tmp_path: Path) -> None:
     cell = Cell(tmp_path)
     await cell.cycles(5)
-    ids_a = submit(cell.store, "batch-a", [{"axes_deg": axes(i)} for i in range(3)])
-    ids_b = submit(cell.store, "batch-b", [{"axes_deg": axes(i)} for i in (3, 4)])
+    ids_a = submit(cell.store, "batch-a", [record(i) for i in range(3)])
+    ids_b = submit(cell.store, "batch-b", [record(i) for i in (3, 4)])
     cell.start()
     await cell.until(lambda: len(cell.outcomes) == 5)
     order = ids_a + ids_b
@@ -226,7 +233,7 @@ async def test_targets_run_one_at_a_time_in_queue_order(tmp_path: Path) -> None:
     kinds = [(t, k) for t, k in cell.log]
     expected = [(t, f"target.{s}") for t in order for s in ("compensating", "moving", "settling", "done")]
     assert kinds == expected
-    assert cell.robot.moves == [compensate({"axes_deg": axes(i)}).commanded_deg for i in range(5)]
+    assert cell.robot.moves == [compensate(Target.from_record(record(i))).commanded_deg for i in range(5)]
     for tid in order:
         rec = cell.store.get_target(tid)
         assert rec.state == "done"
@@ -235,7 +242,7 @@ async def test_targets_run_one_at_a_time_in_queue_order(tmp_path: Path) -> None:
         assert set(rec.final_joint_errors_deg) == {"A1", "A2", "A3"}
         assert all(v is not None and abs(v) <= 0.001 for v in rec.final_joint_errors_deg.values())
     # the loop took the offsets out: the joints sit at the commanded angles
-    last = compensate({"axes_deg": axes(4)}).commanded_deg
+    last = compensate(Target.from_record(record(4))).commanded_deg
     for j in JOINTS:
         assert cell.robot.angle(j) == pytest.approx(last[j - 1], abs=0.001)
     assert cell.runtime.core.state is SafetyState.IDLE
@@ -245,16 +252,16 @@ async def test_targets_run_one_at_a_time_in_queue_order(tmp_path: Path) -> None:
 async def test_failures_are_recorded_and_the_queue_goes_on(tmp_path: Path) -> None:
     cell = Cell(tmp_path)
     await cell.cycles(5)
-    refused = compensate({"axes_deg": axes(2)}).commanded_deg
+    refused = compensate(Target.from_record(record(2))).commanded_deg
     cell.robot.refuse.add(refused)
     ids = submit(
         cell.store,
         "b",
         [
-            {"axes_deg": axes(1), "unreachable": True},
-            {"axes_deg": axes(2)},
-            {"axes_deg": axes(3)},
-            {"axes_deg": axes(4)},
+            record(1, pose_id="unreachable"),
+            record(2),
+            record(3),
+            record(4),
         ],
     )
     cell.start()
@@ -273,10 +280,25 @@ async def test_failures_are_recorded_and_the_queue_goes_on(tmp_path: Path) -> No
     await cell.stop()
 
 
+async def test_a_queued_request_that_is_not_a_target_fails_by_name_and_is_never_driven(
+    tmp_path: Path,
+) -> None:
+    cell = Cell(tmp_path)
+    await cell.cycles(5)
+    ids = submit(cell.store, "b", [{"a1": 1.0, "a2": 2.0}, record(1)])
+    cell.start()
+    await cell.until(lambda: len(cell.outcomes) == 2)
+    assert [(o.target_id, o.state) for o in cell.outcomes] == [(ids[0], "failed"), (ids[1], "done")]
+    reason = cell.outcomes[0].reason or ""
+    assert reason.startswith("the queued request is not a target: a3, a4, a5, a6 missing"), reason
+    assert cell.robot.moves == [compensate(Target.from_record(record(1))).commanded_deg]
+    await cell.stop()
+
+
 async def test_nothing_is_claimed_while_not_ready(tmp_path: Path) -> None:
     cell = Cell(tmp_path)
     cell.ready_reason = "no active model"
-    (tid,) = submit(cell.store, "b", [{"axes_deg": axes(1)}])
+    (tid,) = submit(cell.store, "b", [record(1)])
     cell.start()
     await cell.cycles(50)
     await asyncio.sleep(0.05)
@@ -292,7 +314,7 @@ async def test_nothing_is_claimed_while_not_ready(tmp_path: Path) -> None:
 async def test_shutdown_mid_target_marks_it_interrupted(tmp_path: Path) -> None:
     cell = Cell(tmp_path)
     await cell.cycles(5)
-    ids = submit(cell.store, "b", [{"axes_deg": axes(1)}, {"axes_deg": axes(2)}])
+    ids = submit(cell.store, "b", [record(1), record(2)])
     cell.start()
     await cell.until(lambda: cell.executor.phase == "settling")
     cell.executor.stop_claiming()
@@ -312,7 +334,7 @@ async def test_shutdown_mid_target_marks_it_interrupted(tmp_path: Path) -> None:
 async def test_a_full_disk_fails_the_target_safely_and_the_executor_goes_on(tmp_path: Path) -> None:
     cell = Cell(tmp_path)
     await cell.cycles(5)
-    ids = submit(cell.store, "b", [{"axes_deg": axes(i)} for i in (1, 2, 3)])
+    ids = submit(cell.store, "b", [record(i) for i in (1, 2, 3)])
     cell.start()
     # 1. the disk fills while the first target settles: its final state cannot be written
     cell.disk.full_at = "done"
@@ -321,7 +343,7 @@ async def test_a_full_disk_fails_the_target_safely_and_the_executor_goes_on(tmp_
     assert cell.store.get_target(ids[0]).state == "settling"  # not yet recorded ...
     assert [u[:2] for u in cell.executor.unsaved] == [(ids[0], "done")]  # ... but kept
     # nothing more is claimed while the disk is full, and the executor keeps running
-    await cell.until(lambda: cell.disk.refused >= 3)
+    await cell.until(lambda: cell.disk.refused >= 3 and cell.executor.blocked_reason is not None)
     assert not cell.executor_task.done()
     assert cell.store.get_target(ids[1]).state == "queued"
     assert cell.executor.blocked_reason is not None and "disk full" in cell.executor.blocked_reason

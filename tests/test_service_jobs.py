@@ -18,6 +18,7 @@ from service_client import in_process_service, job_done
 from test_service_api import auth, campaign_csv, make_settings
 
 from comp_daemon.daemon.compensation import ActiveModelCompensator
+from comp_daemon.data.target import Target
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.artifact import parse_model
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
@@ -326,7 +327,5 @@ async def test_every_kind_fits_over_http_and_compensates_once_active(service: An
             await client.post(f"/api/models/{record.id}/activate", headers=auth("engineer"))
         ).status_code == 200
         comp = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: home)
-        out = comp(
-            {"a1": 10.0, "a2": -80.0, "a3": 110.0, "a4": 0.0, "a5": 50.0, "a6": 0.0, "payload_kg": 100.0}
-        )
+        out = comp(Target(axes_deg=(10.0, -80.0, 110.0, 0.0, 50.0, 0.0), payload_kg=100.0))
         assert out.model_id == record.id and out.info["predicted_residual_mm"] < 1e-5, name

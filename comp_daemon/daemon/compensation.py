@@ -1,9 +1,10 @@
 """Target compensation by the store's active model, for the executor (runs in a worker thread).
 
-A target request (a row of a target file, ``docs/data-format.md``) gives either the axis values
-``a1..a6`` of the nominal program (deg) or the wanted TCP ``tx, ty, tz`` (mm, robot base frame) with
-an optional orientation ``ta, tb, tc`` (deg, KUKA A, B, C of the tool frame), and optionally
-``payload_kg``. The wanted TCP of an axis-value request is its nominal forward kinematics.
+A target (:class:`comp_daemon.data.target.Target`, a row of a target file, ``docs/data-format.md``)
+gives either the axis values ``a1..a6`` of the nominal program (deg) or the wanted TCP
+``tx, ty, tz`` (mm, robot base frame) with an optional orientation ``ta, tb, tc`` (deg, KUKA A, B,
+C of the tool frame), and optionally ``payload_kg``. The wanted TCP of an axis-value request is its
+nominal forward kinematics.
 
 The active model (loaded from its artifact, cached by model id) then gives the commanded axis
 values whose *predicted* TCP is the wanted one (:func:`comp_daemon.models.compensation.compensate`,
@@ -33,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.data.target import Target
 from comp_daemon.kinematics.inverse import UnreachableTargetError
 from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.models import artifact as artifacts
@@ -52,10 +54,6 @@ from comp_daemon.service.store import Store
 __all__ = ["ActiveModelCompensator", "model_from_artifact"]
 
 log = get_logger(__name__)
-
-_AXES = ("a1", "a2", "a3", "a4", "a5", "a6")
-_TCP = ("tx", "ty", "tz")
-_ABC = ("ta", "tb", "tc")
 
 
 def model_from_artifact(artifact: Mapping[str, Any], robot: RobotDescription, where: str) -> ErrorModel:
@@ -105,24 +103,23 @@ class ActiveModelCompensator:
             self._cache = (record.id, model)
         return record.id, model
 
-    def __call__(self, request: Mapping[str, Any]) -> CompensatedTarget:
+    def __call__(self, target: Target) -> CompensatedTarget:
         model_id, model = self.model()
-        payload = request.get("payload_kg")
+        payload = target.payload_kg
         current = self.current_axes() if self.current_axes is not None else None
         seed: np.ndarray | None
-        if all(k in request for k in _AXES):
-            a_nominal = np.array([[float(request[k]) for k in _AXES]])
+        r_wanted: np.ndarray | None
+        if target.axes_deg is not None:
+            a_nominal = np.array([target.axes_deg])
             p_wanted, r_wanted = nominal_targets(model, a_nominal)
             seed = a_nominal
-        elif all(k in request for k in _TCP):
-            p_wanted = np.array([[float(request[k]) for k in _TCP]])
-            r_wanted = None
-            if all(k in request for k in _ABC):
-                abc = np.array([[float(request[k]) for k in _ABC]])
-                r_wanted = flange_rotation_of_tool_abc(abc)
-            seed = None if current is None else np.asarray(current, dtype=float)[None, :]
         else:
-            raise CompensationError("the target gives neither a1..a6 nor tx, ty, tz")
+            assert target.tcp_mm is not None  # a Target has exactly one form
+            p_wanted = np.array([target.tcp_mm])
+            r_wanted = None
+            if target.abc_deg is not None:
+                r_wanted = flange_rotation_of_tool_abc(np.array([target.abc_deg]))
+            seed = None if current is None else np.asarray(current, dtype=float)[None, :]
         direction = None
         if current is not None and seed is not None:
             direction = np.sign(seed - np.asarray(current, dtype=float)[None, :])
@@ -134,7 +131,7 @@ class ActiveModelCompensator:
                 r_wanted,
                 a_seed_deg=seed,
                 dir=direction,
-                payload_kg=None if payload is None else float(payload),
+                payload_kg=payload,
                 limits=self.limits,
                 mapping=self.mapping,
             )
@@ -156,7 +153,7 @@ class ActiveModelCompensator:
             "iterations": res.iterations,
             "mapping": self.mapping,
         }
-        sigma = model.predict_std_mm(res.a_deg, direction, None if payload is None else float(payload))
+        sigma = model.predict_std_mm(res.a_deg, direction, payload)
         if sigma is not None:  # 3-D 1-σ uncertainty of the model's TCP at the commanded axes
             info["predicted_sigma_mm"] = float(np.linalg.norm(sigma[0]))
         return CompensatedTarget(commanded, tuple(commanded[j] for j in self.joints), model_id, info)

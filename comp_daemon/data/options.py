@@ -77,8 +77,7 @@ def parse_units(text: str) -> tuple[LengthUnit, AngleUnit]:
     unknown = [p for p in parts if p not in _LENGTH_SCALE and p not in _ANGLE_SCALE]
     if unknown or len(parts) != 2 or len(lengths) != 1 or len(angles) != 1:
         raise ValueError(
-            f"--units {text!r}: expected a length unit (mm or m) and an angle unit (deg or rad), "
-            "e.g. 'm,rad'"
+            f"--units {text!r}: expected a length unit (mm or m) and an angle unit (deg or rad), e.g. 'm,rad'"
         )
     length: LengthUnit = "m" if lengths[0] == "m" else "mm"
     angle: AngleUnit = "rad" if angles[0] == "rad" else "deg"

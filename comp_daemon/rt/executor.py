@@ -5,9 +5,10 @@ Lifecycle of a target (the store's states)::
     queued → compensating → moving → settling → done
                   └───────────┴─────────┴──→ failed (reason)      shutdown ──→ interrupted
 
-1. *compensating*: the target is claimed from the queue (oldest first) and compensated by the
-   active model (``Compensator``, run in a worker thread: it may iterate a model and IK). A
-   compensator refuses a target by raising ``ValueError`` (:class:`CompensationError` and the
+1. *compensating*: the target is claimed from the queue (oldest first), its stored request read
+   back as a :class:`~comp_daemon.data.target.Target` (a request that is not one fails the target),
+   and compensated by the active model (``Compensator``, run in a worker thread: it may iterate a
+   model and IK). A compensator refuses a target by raising ``ValueError`` (:class:`CompensationError` and the
    compensation library's refusals — unreachable, near the wrist singularity, too large an axis
    change, outside the model's region — are such errors); the target then fails with the refusal's
    message as its reason and is never driven. Any other exception is a fault of the compensator:
@@ -46,6 +47,7 @@ from dataclasses import dataclass
 from typing import Any, Protocol
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.data.target import Target, TargetError
 from comp_daemon.rt.safety import Arrived, Event, Faulted, FaultKind, Settled
 
 __all__ = [
@@ -95,8 +97,8 @@ class CompensatedTarget:
     info: Mapping[str, Any] | None = None
 
 
-#: Compensates one target request (the store's ``request`` dict); runs in a worker thread.
-Compensator = Callable[[Mapping[str, Any]], CompensatedTarget]
+#: Compensates one target (read from the store's ``request`` record); runs in a worker thread.
+Compensator = Callable[[Target], CompensatedTarget]
 
 
 class MotionPort(Protocol):
@@ -227,6 +229,9 @@ class TargetExecutor:
                     if self._queue_fault is not None:
                         log.info("executor: the target queue takes writes again")
                         self._queue_fault = None
+                    if self.unsaved:  # the disk may have come back between the two writes: once more
+                        with contextlib.suppress(QueueWriteError):
+                            await self._save_unsaved()
                     self._drop_unsaved()
                 if target is not None:
                     outcome = await self.execute(target)
@@ -309,7 +314,11 @@ class TargetExecutor:
 
     async def _execute(self, tid: int, request: Mapping[str, Any]) -> TargetOutcome:
         try:
-            comp = await asyncio.to_thread(self.compensate, request)
+            wanted = Target.from_record(request)
+        except TargetError as exc:  # a queue row not written by the service's validation
+            return await self._finish(tid, "failed", f"the queued request is not a target: {exc}")
+        try:
+            comp = await asyncio.to_thread(self.compensate, wanted)
         except ModelMissingError as exc:
             return await self._finish(tid, "failed", f"{FaultKind.MODEL_MISSING}: {exc}")
         except ValueError as exc:  # a refusal: CompensationError, or the library's own refusals

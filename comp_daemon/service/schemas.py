@@ -16,6 +16,10 @@ from typing import Annotated, Any, Literal
 from fastapi.responses import Response
 from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
 
+from comp_daemon.data.columns import AXIS_COLUMNS as _AXES
+from comp_daemon.data.columns import TARGET_ABC_COLUMNS as _ABC
+from comp_daemon.data.columns import TARGET_XYZ_COLUMNS as _TCP
+from comp_daemon.data.target import Target
 from comp_daemon.models.effects import EFFECTS, effect_by_name
 from comp_daemon.models.registry import KINDS, MAX_ORDER
 from comp_daemon.service.store import (
@@ -284,9 +288,6 @@ class DiagnosisIn(BaseModel):
     )
 
 
-_AXES = ("a1", "a2", "a3", "a4", "a5", "a6")
-_TCP = ("tx", "ty", "tz")
-_ABC = ("ta", "tb", "tc")
 #: a JSON number, never a bool or a string (strict); finite (the model's allow_inf_nan)
 Number = Annotated[float, Field(strict=True)]
 #: a TCP coordinate (mm): no robot reaches 100 m; bounded so that a huge number is refused by name
@@ -328,7 +329,8 @@ class TargetIn(BaseModel):
     """One drilling point in exactly one form: axis values ``a1..a6`` (deg), or the wanted TCP
     ``tx, ty, tz`` (mm, robot base frame) with optional orientation ``ta, tb, tc`` (deg, KUKA A, B,
     C), as in a target file (docs/data-format.md). Values are JSON numbers (``true`` or ``"20"`` are
-    refused, not converted). Whether the robot reaches the point is checked when the batch is posted."""
+    refused, not converted). Whether the robot reaches the point is checked when the batch is posted.
+    The route works on the :class:`~comp_daemon.data.target.Target` it gives (:meth:`target`)."""
 
     model_config = ConfigDict(
         extra="forbid", allow_inf_nan=False, validate_default=True, json_schema_extra=_target_schema
@@ -370,6 +372,10 @@ class TargetIn(BaseModel):
         if group is not _AXES and any(data.get(k) is not None for k in _AXES):
             raise ValueError("gives both axis values a1..a6 and a TCP; give exactly one form")
         return value
+
+    def target(self) -> Target:
+        """The validated request as the one target type (its record is this model without nulls)."""
+        return Target.from_record(self.model_dump())
 
 
 class BatchIn(BaseModel):

@@ -13,13 +13,12 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-import numpy as np
 from fastapi import APIRouter, Depends, Query, Request, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.readers import parse_dataset
-from comp_daemon.data.table import Dataset
+from comp_daemon.data.target import targets_of_dataset
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.routes.targets import (
@@ -47,53 +46,26 @@ _BODY: dict[str, Any] = {
 }
 
 
-def file_records(dataset: Dataset) -> list[dict[str, Any]]:
-    """The targets of a target file as batch records (the fields of ``POST /api/batches``)."""
-    if dataset.a_deg is not None and dataset.target_xyz_mm is not None:
-        raise DatasetError(
-            "a queued target gives either axis values a1..a6 or a TCP tx, ty, tz, not both",
-            source=dataset.source,
-            row=int(dataset.row_numbers[0]),
-            column="tx",
-        )
-    payload = np.asarray(dataset.payload_kg, dtype=float)
-    records: list[dict[str, Any]] = []
-    for i in range(len(dataset)):
-        record: dict[str, Any] = {}
-        if dataset.pose_id is not None and dataset.pose_id[i]:
-            record["pose_id"] = dataset.pose_id[i]
-        if dataset.a_deg is not None:
-            record |= {f"a{k + 1}": float(v) for k, v in enumerate(dataset.a_deg[i])}
-        else:
-            assert dataset.target_xyz_mm is not None  # kind="targets": one of the two
-            record |= dict(zip(("tx", "ty", "tz"), map(float, dataset.target_xyz_mm[i]), strict=True))
-            if dataset.target_abc_deg is not None:
-                record |= dict(zip(("ta", "tb", "tc"), map(float, dataset.target_abc_deg[i]), strict=True))
-        if payload.size and payload[i] != 0.0:
-            record["payload_kg"] = float(payload[i])
-        records.append(record)
-    return records
-
-
 def _read(text: bytes, name: str, svc: ServiceState) -> list[dict[str, Any]]:
-    """Read and check the file; a refusal names the file's row (header = row 1) and column."""
+    """Read and check the file; a refusal names the file's row (header = row 1) and column. Returns
+    the targets' records (those ``POST /api/batches`` queues)."""
     dataset = parse_dataset(text, source=name, limits_deg=svc.robot.axis_limits_deg, kind="targets")
-    records = file_records(dataset)
+    targets = targets_of_dataset(dataset)
     limit = svc.settings.http.max_batch_targets
-    if len(records) > limit:
+    if len(targets) > limit:
         raise ApiError(
             422,
             "invalid_request",
-            f"{len(records)} targets is over the limit of {limit} per batch (http.max_batch_targets)",
+            f"{len(targets)} targets is over the limit of {limit} per batch (http.max_batch_targets)",
         )
     try:
-        validate_targets(records, svc.robot, svc.settings.compensation.limits())
+        validate_targets(targets, svc.robot, svc.settings.compensation.limits())
     except DatasetError as exc:
         index = (exc.row or 1) - 1
         raise DatasetError(
             exc.problem, source=name, row=int(dataset.row_numbers[index]), column=exc.column
         ) from None
-    return records
+    return [t.to_record() for t in targets]
 
 
 @router.post(

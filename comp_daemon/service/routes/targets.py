@@ -30,6 +30,7 @@ from fastapi import APIRouter, Depends, Header, Path, Query, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.dataset import DatasetError, dataset_from_records
+from comp_daemon.data.target import Target
 from comp_daemon.kinematics.inverse import UnreachableTargetError
 from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.models.compensation import (
@@ -79,28 +80,28 @@ IdempotencyKey = Annotated[
 _CHANGE_ERRORS: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}, 409: {"model": ErrorOut}}
 
 
-def validate_targets(
-    records: Sequence[dict[str, Any]], robot: RobotDescription, limits: CompensationLimits
-) -> None:
+def validate_targets(targets: Sequence[Target], robot: RobotDescription, limits: CompensationLimits) -> None:
     """Check every target as a target-file record, then that the robot reaches it (module docstring);
     raise ``DatasetError`` naming the first target at fault (1-based), the field and the problem."""
-    _check_records(records, robot.axis_limits_deg)
+    _check_records([t.to_record() for t in targets], robot.axis_limits_deg)
     problems: list[tuple[int, str, str]] = []  # (index, field, problem)
-    axes = [i for i, r in enumerate(records) if "a1" in r]
+    axes = [i for i, t in enumerate(targets) if t.axes_deg is not None]
     if axes:
-        a = np.array([[float(records[i][f"a{k + 1}"]) for k in range(6)] for i in axes])
+        a = np.array([targets[i].axes_deg for i in axes], dtype=float)
         problems += [(axes[r.index], "a5", r.reason) for r in wrist_refusals(robot, a, limits)]
     for oriented in (False, True):
-        rows = [i for i, r in enumerate(records) if "tx" in r and ("ta" in r) is oriented]
+        rows = [
+            i for i, t in enumerate(targets) if t.tcp_mm is not None and (t.abc_deg is not None) is oriented
+        ]
         if rows:
-            problems += _reach_problems(records, rows, oriented, robot, limits)
+            problems += _reach_problems(targets, rows, oriented, robot, limits)
     if problems:
         index, field, problem = min(problems)
         raise DatasetError(problem, source="batch", row=index + 1, column=field, row_label="target")
 
 
 def _reach_problems(
-    records: Sequence[dict[str, Any]],
+    targets: Sequence[Target],
     rows: list[int],
     oriented: bool,
     robot: RobotDescription,
@@ -108,14 +109,13 @@ def _reach_problems(
 ) -> list[tuple[int, str, str]]:
     """TCP targets: outside the robot's base, a nominal solution inside the axis limits, not near the
     wrist singularity."""
-    p = np.array([[float(records[i][k]) for k in ("tx", "ty", "tz")] for i in rows])
+    p = np.array([targets[i].tcp_mm for i in rows], dtype=float)
     inside = base_refusals(robot, p)
     if inside:
         return [(rows[r.index], "tx", r.reason) for r in inside]
     rot = None
     if oriented:
-        abc = np.array([[float(records[i][k]) for k in ("ta", "tb", "tc")] for i in rows])
-        rot = flange_rotation_of_tool_abc(abc)
+        rot = flange_rotation_of_tool_abc(np.array([targets[i].abc_deg for i in rows], dtype=float))
     try:
         a = nominal_solution(robot, p, rot)
     except UnreachableTargetError as exc:
@@ -212,16 +212,17 @@ async def post_batch(
             f"batch of {len(body.targets)} targets is over the limit of {limit} (http.max_batch_targets)",
             column="targets",
         )
-    records = [t.model_dump(exclude_none=True) for t in body.targets]
-    await svc.run(validate_targets, records, svc.robot, svc.settings.compensation.limits())
-    batch, targets, created = await svc.run(
+    targets = [t.target() for t in body.targets]
+    await svc.run(validate_targets, targets, svc.robot, svc.settings.compensation.limits())
+    records = [t.to_record() for t in targets]
+    batch, queued, created = await svc.run(
         svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
     )
     if created:
         _log.info("batch queued", batch_id=batch.id, size=batch.size, by=who.name)
     else:
         response.status_code = 200
-    return BatchOut.of(batch, targets, await svc.run(compensations, svc.store, targets))
+    return BatchOut.of(batch, queued, await svc.run(compensations, svc.store, queued))
 
 
 @router.get(
