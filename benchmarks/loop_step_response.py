@@ -113,11 +113,11 @@ async def run_lag(lag: int, n_targets: int, span_deg: float, seed: int) -> dict[
     try:
         async with asyncio.timeout(60):
             await daemon.started.wait()
-        runtime, store = daemon.runtime, daemon.store
+        runtime, store = daemon.realtime.runtime, daemon.store
         assert runtime is not None and store is not None and daemon.sim_info is not None
         while not runtime.rsi_alive():
             await asyncio.sleep(0.05)
-        await daemon.calibrate_gratings()
+        await daemon.gratings.calibrate()
         doc = model_document(NominalModel(daemon.robot), data_sha256="0" * 64, frame="base")
         model = await asyncio.to_thread(store.add_model, ModelDraft("nominal", None, doc, {}, None))
         await asyncio.to_thread(store.activate_model, model.id)

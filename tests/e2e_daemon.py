@@ -370,16 +370,16 @@ async def in_process_cell(
     try:
         async with asyncio.timeout(60):
             await daemon.started.wait()
-        await until(lambda: daemon.runtime is not None and daemon.runtime.rsi_alive(), 10)
+        await until(lambda: daemon.realtime.runtime is not None and daemon.realtime.runtime.rsi_alive(), 10)
         assert daemon.sim_info is not None
         home = np.array(daemon.sim_info.home_deg)
         poses = [
             tuple(home + np.r_[d * np.array([1.0, (-1.0) ** k, 0.5]), 0, 0, 0])
             for k, d in enumerate((-12.0, 0.0, 12.0))
         ]
-        await daemon.calibrate_gratings(poses, settle_cycles=15, sample_cycles=8)
+        await daemon.gratings.calibrate(poses, settle_cycles=15, sample_cycles=8)
         await asyncio.to_thread(activate_nominal, daemon)
-        await until(lambda: not daemon.readiness_reasons(), 10)
+        await until(lambda: not daemon.view.readiness_reasons(), 10)
         yield daemon
     finally:
         daemon.request_stop("tests over")

@@ -20,12 +20,12 @@ import numpy as np
 import pytest
 
 from comp_daemon.daemon.app import Daemon, SimOptions
-from comp_daemon.daemon.simcell import floats
 from comp_daemon.models.artifact import model_document
 from comp_daemon.models.base import NominalModel
 from comp_daemon.rt.safety import FaultKind, SafetyState
 from comp_daemon.service.config import load_settings
 from comp_daemon.service.store import ModelDraft
+from comp_daemon.sim_client import floats
 
 pytestmark = pytest.mark.slow
 
@@ -126,10 +126,10 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
     try:
         async with asyncio.timeout(60):
             await daemon.started.wait()
-        runtime, sim = daemon.runtime, daemon.sim
+        runtime, sim = daemon.realtime.runtime, daemon.sim
         assert runtime is not None and sim is not None and daemon.sim_info is not None
         await wait_for(runtime.rsi_alive, 10, "RSI telegrams")
-        reasons = daemon.readiness_reasons()
+        reasons = daemon.view.readiness_reasons()
         assert any("no grating calibration" in r for r in reasons)
 
         # seed 000 step 1 on the cell: three poses, each approached from both sides
@@ -139,13 +139,13 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
             pose = home.copy()
             pose[:3] += d * np.array([1.0, (-1.0) ** k, 0.5])
             poses.append(tuple(pose))
-        cal = await daemon.calibrate_gratings(poses, settle_cycles=15, sample_cycles=8)
+        cal = await daemon.gratings.calibrate(poses, settle_cycles=15, sample_cycles=8)
         assert cal.version == 1 and (tmp_path / "data" / "gratings" / "grating-cal-v0001.json").is_file()
         for m in cal.joints:
             assert m.n_readings == 6
             assert m.scale == pytest.approx(1.0, abs=5e-4)  # ratio error and radius within tolerance
             assert m.residual_max_deg < 0.02  # half the backlash, gravity deflection, noise
-        await wait_for(lambda: not daemon.readiness_reasons(), 5, "ready")
+        await wait_for(lambda: not daemon.view.readiness_reasons(), 5, "ready")
         await asyncio.to_thread(activate_nominal_model, daemon)
 
         async with httpx.AsyncClient(
@@ -174,7 +174,12 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
 
             # target 2: a CRC fault on A2 once it is under way → freeze, failed, no stop
             await wait_for(
-                lambda: daemon.executor is not None and daemon.executor.current_target_id == ids[1], 30, "t2"
+                lambda: (
+                    daemon.targets.executor is not None
+                    and daemon.targets.executor.current_target_id == ids[1]
+                ),
+                30,
+                "t2",
             )
             await sim.command("fault 2 bad_crc")
             second = await until_state(client, ids[1], {"done", "failed"}, 30)
@@ -201,7 +206,9 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
             # a converter unplugged between targets: the next target waits (nothing claimed, the
             # reason shown), and runs once the device is back and the reader has reconnected
             await sim.command("unplug 1")
-            await wait_for(lambda: any("grating A1" in r for r in daemon.readiness_reasons()), 5, "A1 gone")
+            await wait_for(
+                lambda: any("grating A1" in r for r in daemon.view.readiness_reasons()), 5, "A1 gone"
+            )
             r = await client.post(
                 "/api/batches", json={"targets": [targets[0]]}, headers={"Idempotency-Key": "integration-2"}
             )
@@ -209,7 +216,9 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
             fourth_id = r.json()["targets"][0]["id"]
             await asyncio.sleep(0.5)
             assert (await target_state(client, fourth_id))["state"] == "queued"
-            assert daemon.executor is not None and "grating A1" in (daemon.executor.blocked_reason or "")
+            assert daemon.targets.executor is not None and "grating A1" in (
+                daemon.targets.executor.blocked_reason or ""
+            )
             await sim.command("replug 1")
             fourth = await until_state(client, fourth_id, {"done", "failed"}, 30)
             assert fourth["state"] == "done", fourth["reason"]
@@ -217,13 +226,13 @@ async def test_daemon_on_the_simulated_cell(tmp_path: Path) -> None:
             snap = (await client.get("/api/status")).json()
             assert snap["daemon"]["state"] == "idle", snap["daemon"]
             # the RSI path ran in a process of its own, and the operator is told so
-            rtp = daemon.rtp
+            rtp = daemon.realtime.process
             assert rtp is not None and rtp.proc is not None and rtp.alive
             assert rtp.proc.pid != os.getpid()
             assert f"own process (pid {rtp.proc.pid})" in snap["daemon"]["loop"]["realtime"], snap["daemon"]
-            rsi_port = daemon.rsi_address[1] if daemon.rsi_address else -1
+            rsi_port = daemon.realtime.rsi_address[1] if daemon.realtime.rsi_address else -1
             assert udp_socket_holders(rsi_port) == {rtp.proc.pid}  # the child holds the RSI socket
-        stats = daemon.rsi_stats
+        stats = daemon.realtime.rsi_stats
         assert stats is not None and stats.handler_errors == 0 and stats.answered > 100
         assert stats.latency.count == stats.answered  # every reply's latency reached the daemon
     finally:

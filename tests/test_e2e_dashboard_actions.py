@@ -108,7 +108,7 @@ class Cell:
 
     async def idle(self, timeout_s: float = 60.0) -> None:
         """Until no target runs and the cell is ready for one."""
-        executor = self.daemon.executor
+        executor = self.daemon.targets.executor
         assert executor is not None
         async with self.client("viewer") as c:
 
@@ -120,7 +120,7 @@ class Cell:
             async with asyncio.timeout(timeout_s):
                 while await open_targets() or executor.current_target_id is not None:
                     await asyncio.sleep(0.1)
-        await until(lambda: not self.daemon.readiness_reasons(), 15)
+        await until(lambda: not self.daemon.view.readiness_reasons(), 15)
 
 
 @pytest_asyncio.fixture(loop_scope="module", scope="module")
@@ -320,10 +320,10 @@ async def test_banner_table_and_stop_box_agree_and_a_fault_is_reset_through_the_
         assert_agree(looks)
         assert any(look["banner"] == [1] for look in looks), looks[::10]
         assert looks[-1]["banner"] == [] and looks[-1]["table"] == [], looks[-1]
-        await until(lambda: not cell.daemon.readiness_reasons(), 15)
+        await until(lambda: not cell.daemon.view.readiness_reasons(), 15)
 
         # a stop fault latched in the loop: Stop = 1, the controller stops RSI
-        runtime = cell.daemon.runtime
+        runtime = cell.daemon.realtime.runtime
         assert runtime is not None
         reason = "the error on A2 grew from 0.002 to 0.009 deg while correcting"
         runtime.fault(FaultKind.DIVERGING, reason)
@@ -368,7 +368,7 @@ async def test_banner_table_and_stop_box_agree_and_a_fault_is_reset_through_the_
         assert page.errors == []
     finally:
         await page.close()
-    await until(lambda: not cell.daemon.readiness_reasons(), 20)
+    await until(lambda: not cell.daemon.view.readiness_reasons(), 20)
 
 
 # ---------------------------------------------------------------------------------------- gratings
@@ -378,7 +378,7 @@ async def test_an_engineer_calibrates_the_gratings_and_sees_the_progress(cell: C
     from playwright.async_api import expect
 
     await cell.idle()
-    runtime = cell.daemon.runtime
+    runtime = cell.daemon.realtime.runtime
     assert runtime is not None and runtime.calibration is not None
     version = runtime.calibration.version
     page = await cell.page("engineer")

@@ -52,8 +52,8 @@ class Cell:
 
     @property
     def runtime(self) -> Any:
-        assert self.daemon.runtime is not None
-        return self.daemon.runtime
+        assert self.daemon.realtime.runtime is not None
+        return self.daemon.realtime.runtime
 
     async def command(self, line: str) -> str:
         assert self.daemon.sim is not None
@@ -91,7 +91,7 @@ class Cell:
 
     async def correcting(self, tid: int, timeout_s: float = 30.0) -> None:
         """Until target ``tid`` is settling and the loop is sending corrections for it."""
-        executor = self.daemon.executor
+        executor = self.daemon.targets.executor
         assert executor is not None
         await until(
             lambda: (
@@ -127,16 +127,20 @@ async def cell(tmp_path_factory: pytest.TempPathFactory) -> AsyncIterator[Cell]:
             timeout=10.0,
         ) as client:
             yield Cell(daemon, client, np.array(daemon.sim_info.home_deg))
-    assert daemon.rsi_stats is not None and daemon.rsi_stats.handler_errors == 0
+    assert daemon.realtime.rsi_stats is not None and daemon.realtime.rsi_stats.handler_errors == 0
 
 
 @pytest_asyncio.fixture(loop_scope="module")
 async def idle(cell: Cell) -> Cell:
     """The cell between tests: nothing running, no grating fault, ready for a target."""
     await until(
-        lambda: cell.daemon.executor is not None and cell.daemon.executor.current_target_id is None, 30
+        lambda: (
+            cell.daemon.targets.executor is not None
+            and cell.daemon.targets.executor.current_target_id is None
+        ),
+        30,
     )
-    await until(lambda: not cell.daemon.readiness_reasons(), 15)
+    await until(lambda: not cell.daemon.view.readiness_reasons(), 15)
     return cell
 
 
@@ -172,9 +176,9 @@ async def test_garbled_and_foreign_telegrams_are_dropped_while_a_target_runs(
     idle: Cell, caplog: pytest.LogCaptureFixture
 ) -> None:
     cell = idle
-    stats = cell.daemon.rsi_stats  # the real-time process's counters, as the daemon mirrors them
-    assert stats is not None and cell.daemon.rsi_address is not None
-    address = cell.daemon.rsi_address
+    stats = cell.daemon.realtime.rsi_stats  # the real-time process's counters, as the daemon mirrors them
+    assert stats is not None and cell.daemon.realtime.rsi_address is not None
+    address = cell.daemon.realtime.rsi_address
     stats0 = {k: getattr(stats, k) for k in ("foreign", "garbled", "superseded", "answered")}
     (tid,) = await cell.post(1)
     await cell.correcting(tid)

@@ -182,7 +182,7 @@ async def test_daemon_acknowledges_a_latched_fault_and_refuses_calibration_witho
     assert view.acknowledge_fault("test") is None
     assert view.snapshot().state == "starting" and view.readiness_reasons() == ["the daemon is starting"]
     runtime = LoopRuntime({}, calibration=None, safety=SafetySettings(), loop=JointLoopSettings())
-    daemon.cell.runtime = runtime  # type: ignore[assignment]  # the loop itself, in place of its view
+    daemon.realtime.runtime = runtime  # type: ignore[assignment]  # the loop itself, in place of its view
     runtime.fault(FaultKind.DIVERGING, "A2 diverged")
     assert runtime.core.state is SafetyState.FAULT
     assert view.snapshot().state == "fault" and "A2 diverged" in (view.snapshot().hold_reason or "")

@@ -179,7 +179,7 @@ async def test_one_late_reply_count_and_one_ready_rule(tmp_path: Path, serve: Se
     of the real-time process; /ready, /api/status and the dashboard say not ready in FAULT."""
     daemon = Daemon(make_settings(tmp_path))
     runtime = LoopRuntime({}, calibration=None, safety=SafetySettings(), loop=JointLoopSettings())
-    daemon.cell.runtime = runtime  # type: ignore[assignment]  # the loop itself, in place of its view
+    daemon.realtime.runtime = runtime  # type: ignore[assignment]  # the loop itself, in place of its view
     _, store, url = await serve(daemon.view)
     model = store.add_model(ModelDraft(kind="kinematic", order=None, artifact={}, stats={}, dataset_id=None))
     store.activate_model(model.id)

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 
 from comp_daemon import cli
-from comp_daemon.rt.simcell import SimCellInfo, check_scenario, preset_scenarios
 from comp_daemon.sim.scenario import PRESET_SCENARIOS, load_scenario
+from comp_daemon.sim_client import SimCellInfo, check_scenario, preset_scenarios
 
 
 def test_presets_are_the_packaged_scenario_files() -> None:

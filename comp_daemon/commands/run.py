@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from comp_daemon.rt.simcell import check_scenario, preset_scenarios
+from comp_daemon.sim_client import check_scenario, preset_scenarios
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -177,13 +177,13 @@ async def _calibrate_when_running(daemon: object) -> None:
     assert isinstance(daemon, Daemon)
     log = get_logger("comp_daemon.run")
     await daemon.started.wait()
-    runtime = daemon.runtime
+    runtime = daemon.realtime.runtime
     for _ in range(600):  # up to 30 s for the first telegrams
         if runtime is not None and runtime.rsi_alive():
             break
         await asyncio.sleep(0.05)
     try:
-        cal = await daemon.calibrate_gratings()
+        cal = await daemon.gratings.calibrate()
     except Exception as exc:
         log.error(f"grating calibration failed: {exc}")
         return

@@ -22,7 +22,7 @@ import time
 from pathlib import Path
 from typing import TextIO
 
-from comp_daemon.rt.simcell import preset_scenarios
+from comp_daemon.sim_client import preset_scenarios
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -7,8 +7,12 @@ interpreter's lock. **This process** holds the rest on one event loop; nothing o
 store calls, compensation and percentile statistics run in worker threads, fits in the service's
 process pool. What it is made of:
 
-- the cell (:mod:`comp_daemon.daemon.cell`): the real-time process and the daemon's view of its
-  loop, the motion port, the target executor, the grating calibration, the simulated cell;
+- the real-time process and the daemon's mirror of its loop (:mod:`comp_daemon.daemon.realtime`);
+- the cell's ports: gratings and motion, configured (:mod:`comp_daemon.daemon.ports`) or those of
+  the simulated cell (:mod:`comp_daemon.daemon.simcell`);
+- the target executor and what it follows of the store (:mod:`comp_daemon.daemon.targets`);
+- the grating calibration (:mod:`comp_daemon.daemon.grating_calibrator`) and the RSI sessions
+  (:mod:`comp_daemon.daemon.rsi_sessions`);
 - telemetry (:mod:`comp_daemon.daemon.telemetry`): loop statistics, metrics, dashboard events;
 - the view the HTTP service reads (:mod:`comp_daemon.daemon.view`);
 - the HTTP service: uvicorn serving :func:`comp_daemon.service.api.create_app`.
@@ -39,7 +43,7 @@ import contextlib
 import gc
 import signal
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any
@@ -47,20 +51,23 @@ from typing import Any
 from comp_daemon import __version__
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.common.logs import get_logger
-from comp_daemon.daemon.cell import Cell, SimOptions
-from comp_daemon.daemon.rt_process import RealtimeProcess, RemoteRuntime
+from comp_daemon.daemon.grating_calibrator import GratingCalibrator
+from comp_daemon.daemon.ports import configured_ports
+from comp_daemon.daemon.realtime import Realtime
+from comp_daemon.daemon.rsi_sessions import RsiSessions
 from comp_daemon.daemon.sdnotify import Notifier, watchdog_interval_s
-from comp_daemon.daemon.simcell import SimCellInfo, SimCellProcess
+from comp_daemon.daemon.simcell import SimOptions, start_simulated_cell
+from comp_daemon.daemon.targets import Targets
 from comp_daemon.daemon.telemetry import Telemetry
 from comp_daemon.daemon.view import CellView
 from comp_daemon.robot.description import load_robot
-from comp_daemon.rt.executor import Compensator, TargetExecutor
-from comp_daemon.rt.grating_cal import GratingCalibration, load_latest_calibration
-from comp_daemon.rt.rsi_server import RsiServerStats
+from comp_daemon.rt.executor import Compensator
+from comp_daemon.rt.grating_cal import load_latest_calibration
 from comp_daemon.service.config import Settings
 from comp_daemon.service.events import EventBus
 from comp_daemon.service.store import Store
 from comp_daemon.service.store import files as store_files
+from comp_daemon.sim_client import SimCellInfo, SimCellProcess
 
 __all__ = ["Daemon", "SimOptions"]
 
@@ -68,7 +75,11 @@ log = get_logger(__name__)
 
 
 class Daemon:
-    """The assembled process; see the module docstring. ``view`` is what the HTTP service serves."""
+    """The assembled process; see the module docstring. ``view`` is what the HTTP service serves.
+
+    Its parts: ``realtime`` (the real-time process and the loop's mirror), ``sim`` / ``sim_info``
+    (the simulated cell, with ``--sim``), ``targets`` (the executor), ``gratings`` (the grating
+    calibration), ``rsi_sessions``, ``telemetry`` and ``view``."""
 
     def __init__(
         self,
@@ -91,18 +102,33 @@ class Daemon:
         self.data_dir = Path(settings.store.data_dir)
         self.state_path = self.data_dir / "daemon-state.json"
         self.bus = EventBus(settings.http.sse_queue_events)
-        self.cell = Cell(
+        #: the settings in force (``jobs.cpus`` filled in once the real-time CPU is known)
+        self.settings = settings
+        self.sim_options = sim
+        self.motion_address = motion_address
+        self.realtime = Realtime(
             settings,
-            self.robot,
-            sim=sim,
-            motion_address=motion_address,
-            compensator=compensator,
+            local=sim is not None,
             clock_ns=clock_ns,
             tick_s=tick_s,
             stop_grace_cycles=stop_grace_cycles,
         )
+        self.sim: SimCellProcess | None = None
+        self.sim_info: SimCellInfo | None = None
+        self.targets = Targets(self.robot, settings.compensation, compensator=compensator)
+        self.gratings = GratingCalibrator(
+            self.realtime,
+            self.robot,
+            self.data_dir / "gratings",
+            target_active=self._target_active,
+            on_finished=self.targets.wake,
+            record_event=self._record_event,
+        )
+        self.rsi_sessions = RsiSessions(
+            timeout_count=settings.rsi.timeout_count, record_event=self._record_event
+        )
         self.telemetry = Telemetry(self.bus, float(settings.rsi.cycle_ms))
-        self.view = CellView(self.cell, self.telemetry)
+        self.view = CellView(self.realtime, self.targets, self.gratings, self.rsi_sessions, self.telemetry)
         self.store: Store | None = None
         self.http_port: int | None = None
         self.started = asyncio.Event()
@@ -113,50 +139,18 @@ class Daemon:
         self._uvicorn: Any = None
         self._store_lock: store_files.StoreLock | None = None
         self._backup_task: asyncio.Task[None] | None = None
+        self._rsi_watch: asyncio.Task[None] | None = None
 
-    # ------------------------------------------------------------------------------ the cell's parts
+    # ------------------------------------------------------------------------------ between the parts
 
-    @property
-    def settings(self) -> Settings:
-        """The settings in force (``jobs.cpus`` filled in once the real-time CPU is known)."""
-        return self.cell.settings
+    def _target_active(self) -> bool:
+        """A target is armed in the loop or in the executor's hands."""
+        return self.realtime.target_armed() or self.targets.current() is not None
 
-    @property
-    def runtime(self) -> RemoteRuntime | None:
-        return self.cell.runtime
-
-    @property
-    def rtp(self) -> RealtimeProcess | None:
-        return self.cell.rtp
-
-    @property
-    def executor(self) -> TargetExecutor | None:
-        return self.cell.executor
-
-    @property
-    def sim(self) -> SimCellProcess | None:
-        return self.cell.sim
-
-    @property
-    def sim_info(self) -> SimCellInfo | None:
-        return self.cell.sim_info
-
-    @property
-    def rsi_address(self) -> tuple[str, int] | None:
-        return self.cell.rsi_address
-
-    @property
-    def rsi_stats(self) -> RsiServerStats | None:
-        return self.cell.rsi_stats
-
-    def readiness_reasons(self) -> list[str]:
-        return self.view.readiness_reasons()
-
-    async def calibrate_gratings(
-        self, poses: Sequence[Sequence[float]] | None = None, **options: Any
-    ) -> GratingCalibration:
-        """Seed 000's grating calibration on the cell (:meth:`Cell.calibrate_gratings`)."""
-        return await self.cell.calibrate_gratings(poses, **options)
+    async def _record_event(self, kind: str, message: dict[str, Any]) -> None:
+        """Into the store's event log (nothing before the store is open)."""
+        if self.store is not None:
+            await asyncio.to_thread(self.store.add_event, kind, message)
 
     # ------------------------------------------------------------------------------ lifecycle
 
@@ -177,7 +171,7 @@ class Daemon:
             self._freeze_startup_objects(collect=False)  # the service's own start-up objects too
             self.started.set()
             self.notifier.ready(f"comp-daemon {__version__}: loop running")
-            log.info(f"daemon: running (RSI on {self.rsi_address}, HTTP on {self.http_port})")
+            log.info(f"daemon: running (RSI on {self.realtime.rsi_address}, HTTP on {self.http_port})")
             await self._wait()
         finally:
             await self._shutdown()
@@ -205,42 +199,54 @@ class Daemon:
     async def _start(self) -> None:
         from comp_daemon.service.api import open_store
 
-        cell = self.cell
+        realtime, targets = self.realtime, self.targets
         self.data_dir.mkdir(parents=True, exist_ok=True)
         self._store_lock = store_files.StoreLock(self.settings.store.db_path).acquire()
         store = self.store = await asyncio.to_thread(open_store, self.settings)
-        cell.attach_store(store)
+        targets.attach(store)
         active = await asyncio.to_thread(store.active_model, with_artifact=False)
-        cell.active_model_id = None if active is None else active.id
-        calibration = await asyncio.to_thread(load_latest_calibration, cell.gratings_dir)
+        targets.active_model_id = None if active is None else active.id
+        calibration = await asyncio.to_thread(load_latest_calibration, self.gratings.directory)
 
         # 1. the real-time process with the RSI endpoint, and the job workers kept off its CPU
         self._freeze_startup_objects(collect=True)
-        await cell.start_realtime(on_lost=lambda reason: self.request_stop("task failed"))
+        self.settings = await realtime.start(on_lost=lambda reason: self.request_stop("task failed"))
         # 2. the HTTP service (heavy imports and the job pool start here, before any cycle runs)
         await self._start_http()
         # 3. the cell: simulated child or the configured ports, then the readers and the loop
-        await cell.start_cell(calibration)
+        if self.sim_options is not None:
+            address = realtime.rsi_address
+            assert address is not None
+            self.sim, ports = await start_simulated_cell(self.settings, self.sim_options, address[1])
+            self.sim_info = self.sim.info
+            self.rsi_sessions.controller_status = self.sim.controller_status
+            self.rsi_sessions.rearm_after_s = self.sim_options.rearm_after_s
+        else:
+            ports = configured_ports(self.settings, self.motion_address)
+        targets.motion = ports.motion
+        self.gratings.ports = ports
+        runtime = await realtime.start_loop(ports, calibration)
+        self._rsi_watch = asyncio.create_task(self.rsi_sessions.watch(realtime), name="rsi sessions")
         # 4. the executor and the supervisor
-        executor = cell.start_executor(self.view.readiness_reasons)
+        executor = targets.start(runtime, self.view.readiness_reasons)
         if executor is not None:
             self._tasks["executor"] = executor
         self._tasks["supervisor"] = asyncio.create_task(self._supervise(), name="supervisor")
         if self.settings.store.backup_interval_h > 0:
             self._backup_task = asyncio.create_task(self._backups(), name="store-backup")
-        if cell.sim is not None:
-            await cell.sim.rsi_on()  # the robot program's RSI_ON, once the daemon listens and runs
+        if self.sim is not None:
+            await self.sim.rsi_on()  # the robot program's RSI_ON, once the daemon listens and runs
         await asyncio.to_thread(
             store.add_event,
             "daemon.started",
             {
                 "version": __version__,
-                "sim": asdict(cell.sim_options) if cell.sim_options else None,
-                "rsi": list(self.rsi_address or ()),
+                "sim": asdict(self.sim_options) if self.sim_options else None,
+                "rsi": list(realtime.rsi_address or ()),
                 "http_port": self.http_port,
-                "gratings": sorted(cell.readers),
+                "gratings": sorted(realtime.readers),
                 "grating_calibration_version": None if calibration is None else calibration.version,
-                "realtime": cell.realtime_word(),
+                "realtime": realtime.word(),
             },
         )
 
@@ -283,15 +289,19 @@ class Daemon:
 
     async def _shutdown(self) -> None:
         self.notifier.stopping(f"stopping: {self._stop_reason or 'startup failed'}")
-        cell = self.cell
+        realtime = self.realtime
         # 1. no new targets; zero steps and Stop=1 from the next telegram; the target is reported
-        cell.stop_loop()
-        await cell.stop_executor(self._tasks.pop("executor", None))
+        self.targets.stop_claiming()
+        if self._rsi_watch is not None:
+            self._rsi_watch.cancel()  # the stop that follows is the daemon's own (daemon.stopped)
+        self.gratings.cancel()  # its moves end with the robot's Stop below
+        realtime.shutdown_loop()
+        await self.targets.stop(self._tasks.pop("executor", None))
         # 2. let the controller see Stop=1 for a few cycles, then stop listening
-        await cell.close_rsi()
+        await realtime.close_rsi()
         # 3. persist the loop's final state
-        if cell.runtime is not None:
-            doc = cell.final_state(self._stop_reason)
+        if realtime.runtime is not None:
+            doc = realtime.final_state(self._stop_reason)
             try:
                 await asyncio.to_thread(write_json_atomic, self.state_path, doc)
                 if self.store is not None:
@@ -304,7 +314,7 @@ class Daemon:
                 task.cancel()
                 with contextlib.suppress(asyncio.CancelledError, Exception):
                     await task
-        await cell.stop_realtime()
+        await realtime.stop()
         if self._uvicorn is not None:
             self._uvicorn.should_exit = True
             http = self._tasks.pop("http", None)
@@ -315,8 +325,10 @@ class Daemon:
                 except (TimeoutError, Exception):
                     log.exception("daemon: the HTTP service did not stop cleanly")
                     http.cancel()
-        await cell.stop_sim()
-        cell.detach_store()
+        if self.sim is not None:
+            code = await self.sim.stop()
+            log.info(f"daemon: simulated cell exited with {code}")
+        self.targets.detach()
         if self.store is not None:
             await asyncio.to_thread(self.store.close)
         if self._store_lock is not None:
@@ -378,16 +390,16 @@ class Daemon:
 
     def _healthy(self, tick_gap_s: float) -> bool:
         """Alive tasks, a real-time process that reports, and an event loop that keeps its schedule."""
-        if tick_gap_s > 1.0 or not self.cell.realtime_alive():
+        if tick_gap_s > 1.0 or not self.realtime.alive():
             return False
         return not any(t.done() for t in self._tasks.values())
 
     async def _telemetry(self) -> None:
-        cell = self.cell
-        runtime, stats = cell.runtime, cell.rsi_stats
+        realtime = self.realtime
+        runtime, stats = realtime.runtime, realtime.rsi_stats
         if runtime is None or stats is None:
             return
         await self.telemetry.update(
-            runtime, stats, cell.readers, realtime=cell.realtime_word(), state=self.view.state_word()
+            runtime, stats, realtime.readers, realtime=realtime.word(), state=self.view.state_word()
         )
         self.notifier.status(self.view.status_line())

@@ -16,8 +16,8 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from comp_daemon.daemon.simcell import line_command
 from comp_daemon.rt.executor import MotionError
+from comp_daemon.sim_client import line_command
 
 __all__ = ["LineMotionPort"]
 

@@ -35,6 +35,7 @@ Times are UNIX seconds (``time``) for the record and the daemon's monotonic ns c
 
 from __future__ import annotations
 
+import asyncio
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable
@@ -42,6 +43,7 @@ from dataclasses import asdict, dataclass, replace
 from typing import Any, Literal
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.daemon.realtime import Realtime
 from comp_daemon.rt.loop import LoopView
 from comp_daemon.rt.rsi_server import RsiServerStats
 from comp_daemon.rt.safety import SafetyState
@@ -131,6 +133,19 @@ class RsiSessions:
         self._endpoint_sessions = 0  # the endpoint's session count, as far as judged here
         self._rejected = {"stale_copy": 0, "other_sender": 0}
         self.sender: str | None = None  # the current session's sender, host:port
+
+    async def watch(self, realtime: Realtime, period_s: float = 0.1) -> None:
+        """Observe the real-time process's loop every ``period_s`` until cancelled (the daemon's
+        own stop is recorded as ``daemon.stopped``, not as an RSI stop)."""
+        while True:
+            await asyncio.sleep(period_s)
+            runtime, stats = realtime.runtime, realtime.rsi_stats
+            if runtime is None or stats is None or realtime.process is None:
+                continue
+            try:
+                await self.observe(runtime, stats, report_age_s=realtime.report_age_s())
+            except Exception:  # a recording failure must not end the watch
+                log.exception("daemon: recording the RSI session failed")
 
     async def observe(
         self, runtime: LoopView, stats: RsiServerStats, *, report_age_s: float | None = 0.0

@@ -1,10 +1,10 @@
 """What the HTTP service sees of the running daemon: :class:`CellView`.
 
 It implements :class:`~comp_daemon.service.daemon_view.DaemonView` (the state in a word, the
-snapshot with the joints and the loop statistics, why a target cannot start now) from the cell's
-mirrored loop and the telemetry's latest statistics, and
+snapshot with the joints and the loop statistics, why a target cannot start now) from the
+real-time process's mirrored loop, the executor and the telemetry's latest statistics, and
 :class:`~comp_daemon.service.daemon_view.DaemonControl` by handing the operator's actions (grating
-calibration, fault acknowledgement) to the cell; :meth:`CellView.rsi_report` adds the RSI stops
+calibration, fault acknowledgement) to the daemon's parts; :meth:`CellView.rsi_report` adds the RSI stops
 and restarts (``/api/status`` → ``rsi``). Every method returns at once: it reads attributes
 that the event loop replaces whole, no I/O, no waiting.
 """
@@ -15,7 +15,10 @@ import time
 from collections.abc import Sequence
 from typing import Any
 
-from comp_daemon.daemon.cell import Cell
+from comp_daemon.daemon.grating_calibrator import GratingCalibrator
+from comp_daemon.daemon.realtime import Realtime
+from comp_daemon.daemon.rsi_sessions import RsiSessions
+from comp_daemon.daemon.targets import Targets
 from comp_daemon.daemon.telemetry import Telemetry
 from comp_daemon.rt.safety import SafetyState
 from comp_daemon.service.daemon_view import DaemonSnapshot, JointStatus, LoopStats
@@ -28,19 +31,28 @@ _STALE = frozenset({"stale", "silent", "no_data"})
 class CellView:
     """The daemon as the HTTP service sees it; see the module docstring."""
 
-    def __init__(self, cell: Cell, telemetry: Telemetry) -> None:
-        self.cell = cell
+    def __init__(
+        self,
+        realtime: Realtime,
+        targets: Targets,
+        gratings: GratingCalibrator,
+        rsi_sessions: RsiSessions,
+        telemetry: Telemetry,
+    ) -> None:
+        self.realtime = realtime
+        self.targets = targets
+        self.gratings = gratings
+        self.rsi_sessions = rsi_sessions
         self.telemetry = telemetry
 
     def state_word(self) -> str:
-        cell = self.cell
-        runtime, executor = cell.runtime, cell.executor
+        runtime, executor = self.realtime.runtime, self.targets.executor
         if runtime is None:
             return "starting"
         core = runtime.core
         if core.state is SafetyState.STOPPING:
             return "stopped"
-        if cell.calibrating:
+        if self.gratings.calibrating:
             return "calibrating gratings"
         if core.state is SafetyState.FAULT:
             return "fault"
@@ -48,22 +60,22 @@ class CellView:
             return "holding" if core.state is SafetyState.SETTLED else executor.phase
         if core.state is SafetyState.SETTLED:
             return "holding"
-        sessions = cell.rsi_sessions
+        sessions = self.rsi_sessions
         stopped = bool(sessions.stops) and not sessions.running  # a recorded stop not yet re-armed
         return "idle" if runtime.rsi_alive() and not stopped else "waiting for RSI"
 
     def status_line(self) -> str:
         """The state word and the target in hand (systemd's STATUS=)."""
         status = self.state_word()
-        executor = self.cell.executor
-        if executor is not None and executor.current_target_id is not None:
-            status += f" (target {executor.current_target_id})"
+        current = self.targets.current()
+        if current is not None:
+            status += f" (target {current})"
         return status
 
     # ------------------------------------------------------------------------------ DaemonView
 
     def snapshot(self) -> DaemonSnapshot:
-        runtime, executor = self.cell.runtime, self.cell.executor
+        runtime, executor = self.realtime.runtime, self.targets.executor
         if runtime is None:
             return DaemonSnapshot(state="starting", time=time.time(), hold_reason="the daemon is starting")
         core = runtime.core
@@ -106,14 +118,13 @@ class CellView:
         )
 
     def readiness_reasons(self) -> list[str]:
-        cell = self.cell
-        runtime = cell.runtime
+        runtime = self.realtime.runtime
         if runtime is None:
             return ["the daemon is starting"]
         reasons = runtime.readiness_reasons()
-        if cell.motion is None:
+        if self.targets.motion is None:
             reasons.append("no motion port configured (run --motion HOST:PORT, or --sim)")
-        if cell.calibrating:
+        if self.gratings.calibrating:
             reasons.append("grating calibration in progress")
         return reasons
 
@@ -122,15 +133,18 @@ class CellView:
 
     def rsi_report(self) -> dict[str, Any]:
         """The RSI sessions: each stop with its cause, cycles, late replies and what happens next."""
-        return self.cell.rsi_sessions.report()
+        return self.rsi_sessions.report()
 
     # ------------------------------------------------------------------------------ DaemonControl
 
     def start_grating_calibration(self, poses_deg: Sequence[Sequence[float]] | None, by: str) -> None:
-        self.cell.start_grating_calibration(poses_deg, by)
+        self.gratings.start(poses_deg, by)
 
     def grating_status(self) -> dict[str, Any]:
-        return self.cell.grating_status()
+        return self.gratings.status()
 
     def acknowledge_fault(self, by: str) -> dict[str, Any] | None:
-        return self.cell.acknowledge_fault(by)
+        cleared = self.realtime.acknowledge_fault(by)
+        if cleared is not None:
+            self.targets.wake()  # the queue may go on
+        return cleared

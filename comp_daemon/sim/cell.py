@@ -6,7 +6,7 @@ joint on a pseudo-terminal (reachable through a stable symlink, as ``/dev/serial
 line) and the laser tracker. Being a separate process it has its own interpreter and scheduler, as
 the robot controller has on the line: the plant's physics never runs inside the daemon's RSI path,
 and a busy daemon makes the controller count late replies exactly as a real one would. The daemon
-(``comp-daemon run --sim``) and the trial start it through :class:`comp_daemon.rt.simcell.SimCellProcess`.
+(``comp-daemon run --sim``) and the trial start it through :class:`comp_daemon.sim_client.SimCellProcess`.
 
 Interfaces (all on 127.0.0.1):
 
@@ -23,7 +23,7 @@ the operator starts it), or at once with ``--rsi-on``. With ``--rearm-after-s S`
 restarts RSI S seconds after each stop (late replies, Stop=1, AXISCORRMON), as the operator does on
 the line; the motion port's ``status`` lists the stops with their causes. On start the cell prints
 one JSON line on stdout (ports, grating symlinks, converter geometry:
-:class:`comp_daemon.rt.simcell.SimCellInfo`) and then serves until SIGTERM/SIGINT, when it stops
+:class:`comp_daemon.sim_client.SimCellInfo`) and then serves until SIGTERM/SIGINT, when it stops
 RSI, unplugs the converters and exits 0. With ``--exit-with-parent`` (how the daemon starts it) it
 does the same when its stdin reaches end of file: the parent holds the pipe's other end, so a daemon
 killed with SIGKILL leaves no simulated cell behind sending telegrams. Logs go to stderr. A scenario
@@ -42,12 +42,12 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from comp_daemon.common.logs import configure_logging, get_logger
-from comp_daemon.rt.simcell import SimCellInfo
 from comp_daemon.sim.converter import ConverterConfig, ConverterFault, SimulatedConverter
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.rsi_controller import RsiControllerConfig, SimulatedRsiController, serve_lines
 from comp_daemon.sim.scenario import PRESET_SCENARIOS, Scenario, ScenarioError, load_scenario
 from comp_daemon.sim.tracker import LaserTracker
+from comp_daemon.sim_client import SimCellInfo
 
 __all__ = ["main"]
 

@@ -52,7 +52,7 @@ from comp_daemon.kinematics.params import (
 )
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.robot.description import RobotDescription, load_robot
-from comp_daemon.rt.simcell import preset_scenarios
+from comp_daemon.sim_client import preset_scenarios
 
 __all__ = [
     "PRESET_SCENARIOS",

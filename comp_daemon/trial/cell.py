@@ -39,8 +39,8 @@ import httpx
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.rt.simcell import SimCellInfo, SimCellProcess, floats, line_command
 from comp_daemon.sim.scenario import Scenario
+from comp_daemon.sim_client import SimCellInfo, SimCellProcess, floats, line_command
 
 __all__ = ["CellError", "CellSettings", "TrialCell"]
 

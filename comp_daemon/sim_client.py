@@ -4,7 +4,9 @@ The cell itself (hidden robot, simulated KR C4, grating converters on pseudo-ter
 tracker) is :mod:`comp_daemon.sim.cell`; this module starts it by module name
 (``python -m comp_daemon.sim.cell …``) and imports nothing of the simulator, so the daemon
 (``comp-daemon run --sim``) and the trial can bring a cell up while only the child loads the
-simulator. The child prints one JSON line on stdout once it is up (:class:`SimCellInfo`), then
+simulator. It sits in a layer of its own, below :mod:`comp_daemon.sim` (whose child prints the
+start-up line defined here) and outside it (the daemon, the trial and the commands import it, never
+the simulator). The child prints one JSON line on stdout once it is up (:class:`SimCellInfo`), then
 serves line ports on 127.0.0.1 (:func:`line_command`):
 
 - motion (the controller's command port): ``move A1 … A6``, ``rsi_on``, ``rsi_off``, ``status``
