@@ -41,7 +41,7 @@ from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from comp_daemon import __version__
 from comp_daemon.common.logs import get_logger
-from comp_daemon.data.columns import DatasetError
+from comp_daemon.data.columns import AXIS_COLUMNS, DatasetError
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service import metrics
 from comp_daemon.service.auth import AuthError, TokenTable
@@ -374,9 +374,9 @@ def _document_axis_limits(app: FastAPI, limits_deg: Any) -> None:
         bounds = [{"minimum": float(lo), "maximum": float(hi)} for lo, hi in limits_deg]
         models = schema.get("components", {}).get("schemas", {})
         target = models.get("TargetIn", {}).get("properties", {})
-        for j, bound in enumerate(bounds):
-            if f"a{j + 1}" in target:
-                target[f"a{j + 1}"].update(bound)
+        for name, bound in zip(AXIS_COLUMNS, bounds, strict=True):
+            if name in target:
+                target[name].update(bound)
         poses = models.get("GratingCalibrationIn", {}).get("properties", {}).get("poses", {})
         for form in poses.get("anyOf", [poses]):
             if form.get("type") == "array" and isinstance(form.get("items"), dict):
