@@ -75,6 +75,7 @@ from comp_daemon.models.registry import (
 )
 from comp_daemon.models.selection import selection_line
 from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign, PrepareOptions, prepare_campaign
+from comp_daemon.preparation.stations import judge_stations
 from comp_daemon.robot.description import PRESETS, RobotDescription, load_robot
 
 __all__ = ["read_data", "register"]
@@ -422,6 +423,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(split.message, file=sys.stderr)
     if prepared.still_axes:
         print(f"{dataset.source}: {prepared.still_axes}")
+    if prepared.stations is not None:
+        print(f"{dataset.source}: {prepared.stations.note}")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
     check = split.check_rows
     table: dict[str, dict[str, Any]] = {}
@@ -431,8 +434,10 @@ def _evaluate(args: argparse.Namespace) -> int:
     frame_warned = False
     options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
     judged = _fit_each(list(parsed), (prepared, robot, options, split.fit_rows, check), args.jobs)
+    predictions: dict[str, np.ndarray] = {}
     for token, outcome in judged:
         fitted, pred, t_fit, t_pred, outside = outcome
+        predictions[token] = pred
         identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
         if len(split.fit_rows) < identifiable:
             skipped[token] = (
@@ -494,6 +499,14 @@ def _evaluate(args: argparse.Namespace) -> int:
         if "check_rows_outside_range" in fits[name]
     }
     print(format_table2(table, timing, outside_by_model))
+    best = next((name for name in ranking if name in predictions), None)
+    station_lines, station_doc = (
+        ([], {})
+        if best is None
+        else judge_stations(dataset, np.asarray(check, dtype=np.int64), predictions[best], best)
+    )
+    for sentence in station_lines:
+        print(f"{dataset.source}: {sentence}")
     if extrapolated["rows"]:
         axes = ", ".join(f"{axis} {count}" for axis, count in extrapolated["per_axis"].items())
         print(
@@ -525,6 +538,8 @@ def _evaluate(args: argparse.Namespace) -> int:
                 "message": split.message,
             },
             "directions": directions,
+            "stations": None if prepared.stations is None else prepared.stations.to_json(),
+            "check_by_station": station_doc or None,
             "error_definition": "measured - predicted, mm; per axis signed mean/std and max |component|; "
             "3-D |error| mean/std/max/rms (seed 000 eq. 27)",
             "ranking": ranking,

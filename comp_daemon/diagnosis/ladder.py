@@ -44,11 +44,11 @@ Method (all choices on fit rows; check rows only report):
    effect (on all its selected joints) to everything before it, refitted on the fit rows; each step
    reports its check error. The best rejected candidate is appended as a step with
    ``significant: false``, so the report shows what the next effect would have bought.
-5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else the
-   spread of the mutual distances of several targets on the flange, else a declared tracker
-   uncertainty, else none (``None``). Never the fit residual. With three or more targets, ``where``
-   also gives the flange's position and orientation errors apart
-   (:mod:`comp_daemon.diagnosis.targets`).
+5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else a
+   declared tracker uncertainty (``--tracker-sigma-mm``, else the ``sigma_mm`` column), else the
+   spread of the mutual distances of several targets on the flange, else none (``None``). Never
+   the fit residual. With three or more targets, ``where`` also gives the flange's position and
+   orientation errors apart (:mod:`comp_daemon.diagnosis.targets`).
 6. Remainder structure. The final model's remainder (check rows; fit rows out of fold) against
    time or row order, axis values, payload, temperature and directions
    (:mod:`comp_daemon.diagnosis.structure`).
@@ -240,7 +240,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
 
     # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
     steps = _ladder(ctx, start, geo_fit, accepted, rejected, base_rms)
-    floor, floor_source = _noise_floor(obs, options.tracker_sigma_mm, dataset.reflectors_mm)
+    floor, floor_source = _noise_floor(obs, options.tracker_sigma_mm, dataset.reflectors_mm, dataset.sigma_mm)
     structure = _structure(ctx, dataset, steps)
     skipped = group_skips(reasons)
     by_joint = {j: [n for c in cands if c.joint == j and c not in reasons for n in c.names] for j in JOINTS}
@@ -391,24 +391,32 @@ def _ladder(
 
 
 def _noise_floor(
-    obs: Observations, tracker_sigma_mm: float | None, reflectors_mm: FloatArray | None = None
+    obs: Observations,
+    tracker_sigma_mm: float | None,
+    reflectors_mm: FloatArray | None = None,
+    sigma_mm: FloatArray | None = None,
 ) -> tuple[float | None, str | None]:
     """The noise floor (mm, 3-D RMS) and its source, from independent evidence only.
 
     Repeated poses first (they measure the tracker and the robot's repeatability together), else
-    the spread of the mutual distances of several targets on the flange (the tracker alone,
-    :func:`~comp_daemon.diagnosis.targets.noise_from_targets`: ``√3·σ̂``), else the tracker
-    uncertainty the user declares (σ per axis: ``√3·σ``), else ``(None, None)``. The fit residual
-    is never a noise floor: it is the quantity the diagnosis explains.
+    the uncertainty the user declares: ``--tracker-sigma-mm`` (σ per axis: ``√3·σ``), else the
+    rows' ``sigma_mm`` column (``√3·`` their RMS); a declared σ overrides the floor inferred from
+    targets, since the targets may be a 6-DOF probe's virtual reflectors, whose exact mutual
+    distances say nothing of the noise. Else the spread of the mutual distances of several targets
+    on the flange (the tracker alone, :func:`~comp_daemon.diagnosis.targets.noise_from_targets`:
+    ``√3·σ̂``), else ``(None, None)``. The fit residual is never a noise floor: it is the quantity
+    the diagnosis explains.
     """
     floor = _noise_floor_from_repeats(obs)
     if floor is not None:
         return floor, "repeats"
+    if tracker_sigma_mm is not None:
+        return math.sqrt(3.0) * tracker_sigma_mm, "declared"
+    if sigma_mm is not None:
+        return math.sqrt(3.0 * float(np.mean(np.square(sigma_mm)))), "declared"
     from_targets = noise_from_targets(reflectors_mm)
     if from_targets is not None:
         return from_targets[1], "targets"
-    if tracker_sigma_mm is not None:
-        return math.sqrt(3.0) * tracker_sigma_mm, "declared"
     return None, None
 
 

@@ -38,10 +38,10 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.fitting import FitRows
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.observations import MIN_STATION_ROWS, matrix_to_quat, quat_to_matrix
-from comp_daemon.models.registration import rigid_registration
+from comp_daemon.models.registration import frame_changes, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["Station", "Stations", "register_stations"]
+__all__ = ["Station", "Stations", "judge_stations", "register_stations"]
 
 FloatArray = NDArray[np.float64]
 
@@ -182,6 +182,27 @@ def register_stations(
         for s in range(len(labels))
     )
     return _mapped(dataset, index, ref_T), Stations(str(labels[ref]), stations, joint.rms_mm)
+
+
+def judge_stations(
+    dataset: Dataset, check_rows: NDArray[np.int64], predicted_mm: FloatArray, model: str
+) -> tuple[list[str], dict[str, Any]]:
+    """Each station's check error under ``model`` (its predictions ``predicted_mm`` of the check
+    rows), and the stations whose error jumps and a rigid motion of their rows alone removes, named
+    as frame changes (:func:`~comp_daemon.models.registration.frame_changes`): the sentences and the
+    JSON. Nothing without a ``station`` column of two or more stations among the check rows."""
+    if dataset.station is None or dataset.xyz_mm is None:
+        return [], {}
+    names = [dataset.station[int(i)] for i in check_rows]
+    judged = frame_changes(names, predicted_mm, dataset.xyz_mm[check_rows])
+    if not judged:
+        return [], {}
+    lines = [
+        f"check rows per station ({model}): "
+        + ", ".join(f"{j.station} {j.rms_mm:.4f} mm ({j.rows} rows)" for j in judged)
+    ]
+    lines += [j.describe() for j in judged if j.changed]
+    return lines, {"model": model, "stations": {j.station: j.to_json() for j in judged}}
 
 
 def _inverse(t: FloatArray) -> FloatArray:
