@@ -16,7 +16,12 @@ from comp_daemon.diagnosis import diagnose
 from comp_daemon.diagnosis.ladder import _noise_floor, observations_from_dataset
 from comp_daemon.kinematics.so3 import rotvec_to_matrix
 from comp_daemon.models.fitting import FitOptions
-from comp_daemon.models.observations import quat_to_matrix
+from comp_daemon.models.observations import (
+    matrix_to_quat,
+    orientation_weight,
+    probe_axis_points_mm,
+    quat_to_matrix,
+)
 from comp_daemon.models.registry import fit_spec, parse_model_name
 from comp_daemon.preparation.campaign import CampaignError, prepare_campaign
 from comp_daemon.robot.description import load_robot
@@ -160,3 +165,53 @@ def test_declared_sigma_sets_the_floor_over_a_probes_virtual_reflectors() -> Non
     without = dataclasses.replace(probe, sigma_mm=None)
     floor, source = _noise_floor(observations_from_dataset(without), None, without.reflectors_mm, None)
     assert source == "targets" and floor < 1e-6  # what the σ column overrides
+
+
+def test_diagnosis_takes_the_probe_orientation_and_the_stations(two_stations: Path, tmp_path: Path) -> None:
+    out = tmp_path / "diag.json"
+    assert main(["diagnose", str(two_stations), "--robot", "kr210", "--json", str(out)]) == 0
+    doc = json.loads(out.read_text())
+    assert "three further targets along its axes" in doc["frame"]["orientation"]
+    angles = {k: v["angle_deg"] for k, v in doc["frame"]["stations"]["stations"].items()}
+    assert sorted(angles.values()) == [0.0, pytest.approx(50.0, abs=0.05)]
+    assert doc["noise_floor_source"] == "declared"
+    assert doc["noise_floor_mm"] == pytest.approx(np.sqrt(3.0) * TRACKER_SIGMA_MM)
+    assert doc["steps"][0]["check_rms_mm"] < 3.0 * doc["noise_floor_mm"]
+
+
+def test_probe_axis_points_carry_a_rotation_with_the_stated_weight() -> None:
+    q = matrix_to_quat(rotvec_to_matrix(np.array([[0.3, -0.5, 0.2]])))
+    dtheta = np.array([2e-6, -1e-6, 3e-6])
+    turned = matrix_to_quat(rotvec_to_matrix(dtheta[None]) @ quat_to_matrix(q))
+    lever = orientation_weight(0.02, 0.01)
+    a = probe_axis_points_mm(np.zeros((1, 3)), q, lever)
+    b = probe_axis_points_mm(np.zeros((1, 3)), turned, lever)
+    moved2 = float(np.sum((a - b) ** 2))
+    assert moved2 == pytest.approx(2.0 * lever**2 * float(dtheta @ dtheta), rel=1e-4)
+    # at the probe's σ per axis, the points move as far as the position's σ per axis
+    assert lever * np.radians(0.01) * np.sqrt(2.0) == pytest.approx(0.02)
+
+
+def test_export_judges_the_check_rows_of_two_stations_each_in_its_frame(
+    two_stations: Path, tmp_path: Path
+) -> None:
+    model = tmp_path / "m.json"
+    assert (
+        main(["fit", str(two_stations), "--robot", "kr210", "--model", "kinematic", "--out", str(model)]) == 0
+    )
+    urdf = tmp_path / "cal.urdf"
+    argv = [
+        "export",
+        "params",
+        "--model",
+        str(model),
+        "--format",
+        "urdf",
+        "-o",
+        str(urdf),
+        "--data",
+        str(two_stations),
+    ]
+    assert main(argv) == 0
+    line = next(x for x in urdf.read_text().splitlines() if "check RMS" in x)
+    assert float(line.split("check RMS:")[1].split("mm")[0]) < 3.0 * np.sqrt(3.0) * TRACKER_SIGMA_MM

@@ -94,6 +94,7 @@ from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
+from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
 from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription
 
@@ -203,6 +204,9 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     start = FitResult(start_params, effects0, rms_nominal, 0, True)
     # every target: the further ones as rows of their own, at their place on the flange
     more = prepared.dataset.more_xyz_mm
+    probe = _probe_targets(prepared.dataset, options.tracker_sigma_mm, prepared.probe_sigma_deg)
+    if probe is not None:  # a 6-DOF probe's orientation: three further targets along its axes
+        more = probe if more is None else np.concatenate([more, probe], axis=1)
     obs_all, fit_all, check_all = obs, fit_rows, check_rows
     if more is not None:
         offsets = target_offsets_mm(mass, start, obs.take(fit_rows), more[fit_rows])
@@ -283,6 +287,8 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         noise_floor_source=floor_source,
         where=where,
         directions=prepared.directions,
+        stations=None if prepared.stations is None else prepared.stations.to_json(),
+        orientation=None if probe is None else _orientation_words(prepared.probe_sigma_deg),
         agreement=agreement,
         unnamed=[u.to_json() for u in unnamed],
         residual_structure=structure,
@@ -584,6 +590,28 @@ def _agreement(
         check_rows,
         predicted,
         dataset,
+    )
+
+
+def _probe_targets(
+    dataset: Dataset, tracker_sigma_mm: float | None, probe_sigma_deg: float
+) -> FloatArray | None:
+    """(n, 3, 3) a 6-DOF probe's orientation as points along its axes
+    (:func:`~comp_daemon.models.observations.probe_axis_points_mm`), at the lever that weighs it
+    against the positions by the declared σ (``--tracker-sigma-mm``, else the ``sigma_mm``
+    column, else the default); None without ``qw…qz``."""
+    if dataset.probe_q_wxyz is None or dataset.xyz_mm is None:
+        return None
+    sigma = tracker_sigma_mm if tracker_sigma_mm is not None else dataset.sigma_mm
+    lever = orientation_weight(sigma, probe_sigma_deg)
+    return probe_axis_points_mm(dataset.xyz_mm, dataset.probe_q_wxyz, lever)
+
+
+def _orientation_words(probe_sigma_deg: float) -> str:
+    return (
+        "a 6-DOF probe's orientation (qw..qz) enters the geometric step as three further targets "
+        f"along its axes, weighted against the positions by the declared sigmas (orientation "
+        f"{probe_sigma_deg:g} deg per axis)"
     )
 
 

@@ -165,6 +165,8 @@ class Diagnosis:
     time_nuisance: bool = False  # the effects were tested with a time nuisance in their base
     remainder_model: RemainderModel | None = None  # joint-space model of the remainder (kept or not)
     directions: Directions | None = None  # where the approach directions come from (the preparation)
+    stations: dict[str, Any] | None = None  # the tracker stations and how each was registered
+    orientation: str | None = None  # how a 6-DOF probe's orientation entered the geometric step
     agreement: Agreement | None = None  # whether the fit and check rows tell the same story
     # errors an effect stood in for that a flexible alternative of its driver explains better
     unnamed: list[dict[str, Any]] = field(default_factory=list)
@@ -199,6 +201,8 @@ class Diagnosis:
             "frame": {
                 "measured_in": self.frame,
                 "world_T_base": [[rounded(v, 9) for v in row] for row in self.world_T_base],
+                **({} if self.stations is None else {"stations": self.stations}),
+                **({} if self.orientation is None else {"orientation": self.orientation}),
             },
             **({} if self.directions is None else {"directions": self.directions.to_json()}),
             "clock": {
@@ -235,7 +239,9 @@ class Diagnosis:
                 "t_ref_c": self.options.t_ref_c,
                 "effects_tried": list(EFFECTS if self.options.effects is None else self.options.effects),
                 "time_nuisance": self.time_nuisance,
-                "noise_floor": "repeated poses, else the declared tracker uncertainty; not the fit residual",
+                "noise_floor": "repeated poses, else the declared tracker uncertainty (option, else "
+                "the sigma_mm column), else the spread of several targets' mutual distances; not the "
+                "fit residual",
                 "residual_structure": "binned means out of fold, permutation test, Holm over the variables",
                 "remainder_model": "Gaussian process in the axis values (a length scale per joint), kept "
                 "only if it lowers the k-fold CV error on the fit rows by 2 % or more at p < 0.01",

@@ -34,7 +34,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
@@ -43,9 +43,6 @@ from scipy.spatial.transform import Rotation
 from comp_daemon.kinematics.params import N_PARAMS
 from comp_daemon.kinematics.so3 import left_jacobian, rotvec_to_matrix, skew
 from comp_daemon.models.effects import twin_state
-
-if TYPE_CHECKING:
-    from comp_daemon.models.kinematic import KinematicProblem
 
 __all__ = [
     "DEFAULT_PROBE_SIGMA_DEG",
@@ -57,6 +54,8 @@ __all__ = [
     "angle_deg",
     "matrix_to_quat",
     "mean_rotation",
+    "orientation_weight",
+    "probe_axis_points_mm",
     "quat_to_matrix",
     "station_param_names",
 ]
@@ -101,6 +100,24 @@ def angle_deg(r_a: FloatArray, r_b: FloatArray) -> FloatArray:
     """(n,) the angle (deg) of the rotation between each pair of rotations (n, 3, 3)."""
     cos = (np.einsum("nij,nij->n", r_a, r_b) - 1.0) / 2.0
     return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def orientation_weight(sigma_mm: FloatArray | float | None, probe_sigma_deg: float) -> float:
+    """``σ_p/(σ_θ·√2)`` (mm/rad): the weight of the probe's axis differences against positions
+    (module docstring); ``σ_p`` the median of ``sigma_mm``, else :data:`DEFAULT_PROBE_SIGMA_MM`."""
+    if not (probe_sigma_deg > 0 and np.isfinite(probe_sigma_deg)):
+        raise ValueError(f"the probe's orientation sigma must be > 0 deg, got {probe_sigma_deg!r}")
+    sigma_p = DEFAULT_PROBE_SIGMA_MM if sigma_mm is None else float(np.median(sigma_mm))
+    return float(sigma_p / (np.radians(probe_sigma_deg) * np.sqrt(2.0)))
+
+
+def probe_axis_points_mm(xyz_mm: FloatArray, q_wxyz: FloatArray, lever_mm: float) -> FloatArray:
+    """(n, 3, 3) points ``lever_mm`` along the probe frame's x, y and z axes from its origin: the
+    orientation as three further targets on the flange. With the lever :func:`orientation_weight`,
+    a rotation error ``δθ`` moves them by ``2·lever²·|δθ|²`` in all, the weight of the module
+    docstring (their positions carry the origin's noise too)."""
+    rot = quat_to_matrix(q_wxyz)
+    return np.asarray(xyz_mm, dtype=float)[:, None, :] + lever_mm * np.swapaxes(rot, 1, 2)
 
 
 @dataclass(frozen=True)
@@ -154,12 +171,7 @@ class FrameObservations:
                 free = tuple(s for s in present if s != ref)
                 names = station_names or [str(s) for s in range(int(st.max()) + 1)]
                 labels = tuple(names[s] for s in free)
-        weight = 0.0
-        if probe_r is not None:
-            if not (probe_sigma_deg > 0 and np.isfinite(probe_sigma_deg)):
-                raise ValueError(f"the probe's orientation sigma must be > 0 deg, got {probe_sigma_deg!r}")
-            sigma_p = DEFAULT_PROBE_SIGMA_MM if sigma_mm is None else float(np.median(sigma_mm))
-            weight = sigma_p / (np.radians(probe_sigma_deg) * np.sqrt(2.0))
+        weight = 0.0 if probe_r is None else orientation_weight(sigma_mm, probe_sigma_deg)
         return cls(st if free else None, free, labels, probe_r, weight)
 
 
@@ -174,7 +186,7 @@ class ObservedProblem:
 
     def __init__(
         self,
-        inner: KinematicProblem,
+        inner: Any,  # a comp_daemon.models.kinematic.KinematicProblem (which imports this module)
         obs: FrameObservations,
         extra_idx: NDArray[np.intp] | None = None,
         mount0: FloatArray | None = None,
