@@ -58,6 +58,7 @@ from comp_daemon.models.evaluation import (
     registered_nominal,
 )
 from comp_daemon.models.fitting import FitOptions, FittedModel
+from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
@@ -188,7 +189,25 @@ def _common(parser: argparse.ArgumentParser) -> None:
         help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
         "(models with backlash then refuse the data)",
     )
+    parser.add_argument(
+        "--probe-sigma-deg",
+        type=_probe_sigma_arg,
+        default=DEFAULT_PROBE_SIGMA_DEG,
+        metavar="DEG",
+        help="a 6-DOF probe's orientation uncertainty (σ per axis, deg): weighs its qw..qz against the "
+        "positions in the kinematic calibration (default %(default)s)",
+    )
     reader_options(parser)
+
+
+def _probe_sigma_arg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected an angle in degrees > 0, got {text!r}")
+    return value
 
 
 def _prepare(
@@ -204,6 +223,7 @@ def _prepare(
         infer_directions=args.infer_dir,
         hold_out=hold_out,
         require_check=hold_out,
+        probe_sigma_deg=args.probe_sigma_deg,
     )
     try:
         return prepare_campaign(dataset, load_robot_cached(args), options)

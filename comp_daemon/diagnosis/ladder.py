@@ -188,6 +188,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
             min_fit_rows_for="parameters of the geometric step",
             seed=options.seed,
             check_fraction=options.check_fraction,
+            probe_sigma_deg=options.probe_sigma_deg,
         ),
     )
     obs = observations_from_dataset(prepared.dataset, prepared.dir_of(np.arange(len(dataset))))

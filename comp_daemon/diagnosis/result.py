@@ -20,6 +20,7 @@ from comp_daemon.diagnosis.fitting import FitResult, Observations
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.preparation.campaign import Directions
 from comp_daemon.robot.description import RobotDescription
 
@@ -61,6 +62,7 @@ class DiagnoseOptions:
     effects: tuple[str, ...] | None = None  # the effects to try (None: the whole catalogue)
     remainder_model: bool = True  # try the joint-space remainder model after the ladder
     infer_directions: bool = True  # without dir columns, approach directions from the pose order
+    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG  # a 6-DOF probe's orientation σ per axis
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -81,6 +83,8 @@ class DiagnoseOptions:
             math.isfinite(self.tracker_sigma_mm) and self.tracker_sigma_mm > 0.0
         ):
             raise ValueError(f"tracker_sigma_mm must be a number > 0, got {self.tracker_sigma_mm}")
+        if not (math.isfinite(self.probe_sigma_deg) and self.probe_sigma_deg > 0.0):
+            raise ValueError(f"probe_sigma_deg must be a number > 0, got {self.probe_sigma_deg}")
 
 
 @dataclass(frozen=True)
