@@ -215,3 +215,15 @@ def test_export_judges_the_check_rows_of_two_stations_each_in_its_frame(
     assert main(argv) == 0
     line = next(x for x in urdf.read_text().splitlines() if "check RMS" in x)
     assert float(line.split("check RMS:")[1].split("mm")[0]) < 3.0 * np.sqrt(3.0) * TRACKER_SIGMA_MM
+
+
+def test_a_station_with_too_few_fit_rows_is_refused_by_name(two_stations: Path, tmp_path: Path) -> None:
+    ds = read_dataset_file(two_stations)
+    assert ds.station is not None and ds.split is not None
+    b_fit = np.flatnonzero((np.asarray(ds.station) == "B") & (np.asarray(ds.split) == "fit"))
+    split = np.asarray(ds.split).copy()
+    split[b_fit[3:]] = "check"  # three fit rows left in station B
+    few = tmp_path / "few.csv"
+    write_dataset(dataclasses.replace(ds, split=split), few)
+    with pytest.raises(CampaignError, match=r"station B \(3\) fit rows: fewer than the 6"):
+        prepare_campaign(read_dataset_file(few), load_robot("kr210"))
