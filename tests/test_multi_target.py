@@ -285,9 +285,11 @@ def test_diagnosis_noise_floor_from_targets_and_flange_errors(tmp_path: Path) ->
     assert "orientation" in doc["where"]["summary"]
     page = render_report_html(diag)
     assert "flange (3 targets, check rows)" in page and "orientation (deg)" in page
-    # a declared uncertainty does not override the direct evidence of the targets
+    # an explicit declared uncertainty overrides the targets' evidence (which a probe's virtual
+    # reflectors, exact by construction, would turn into a floor of nothing)
     declared = diagnose(ds, sc.robot, DiagnoseOptions(tracker_sigma_mm=0.05))
-    assert declared.noise_floor_source == "targets"
+    assert declared.noise_floor_source == "declared"
+    assert declared.noise_floor_mm == pytest.approx(np.sqrt(3.0) * 0.05)
     # one target: no such evidence, and no flange section
     single = dataclasses.replace(ds, more_xyz_mm=None)
     plain = diagnose(single, sc.robot).to_json()

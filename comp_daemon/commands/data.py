@@ -94,7 +94,7 @@ def _check(args: argparse.Namespace) -> int:
     except DatasetError as exc:
         return _refuse(str(exc), exc.row, exc.column)
     if dataset.a_deg is not None and dataset.xyz_mm is not None:
-        units = millimetre_problem(robot, dataset.a_deg, dataset.xyz_mm)
+        units = millimetre_problem(robot, dataset.a_deg, dataset.xyz_mm, dataset.station)
         if units is not None:  # the rule fit and diagnose refuse by
             return _refuse(f"{dataset.source}: {units}", None, "x, y, z")
     summary: dict[str, Any] = {"ok": True, "robot": robot.name, "kind": args.kind, **dataset.summary()}

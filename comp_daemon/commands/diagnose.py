@@ -77,7 +77,16 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         type=float,
         metavar="S",
         help="the tracker's uncertainty (σ per axis, mm): the noise floor (√3·S, 3-D) when the data "
-        "have no repeated poses and no second target on the flange; without any, no noise floor is claimed",
+        "have no repeated poses (over a sigma_mm column and over the spread of several targets); "
+        "without any, no noise floor is claimed",
+    )
+    p.add_argument(
+        "--probe-sigma-deg",
+        type=float,
+        default=DiagnoseOptions().probe_sigma_deg,
+        metavar="DEG",
+        help="a 6-DOF probe's orientation uncertainty (σ per axis, deg): weighs its qw..qz against the "
+        "positions (default %(default)s)",
     )
     p.add_argument(
         "--effects",
@@ -110,6 +119,7 @@ def _run(args: argparse.Namespace) -> int:
         tracker_sigma_mm=args.tracker_sigma_mm,
         effects=effects,
         infer_directions=args.infer_dir,
+        probe_sigma_deg=args.probe_sigma_deg,
     )
     path = Path(args.data)
     # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
@@ -158,7 +168,8 @@ def _run(args: argparse.Namespace) -> int:
                 file=out,
             )
         floor = (
-            "no noise floor (no repeats, no second target, no --tracker-sigma-mm): not compared with noise"
+            "no noise floor (no repeats, no --tracker-sigma-mm or sigma_mm, no second target): "
+            "not compared with noise"
             if diag.noise_floor_mm is None
             else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
         )

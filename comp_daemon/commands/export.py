@@ -37,6 +37,7 @@ from comp_daemon.models.export.params import listing_of
 from comp_daemon.models.export.targets import TargetList, module_name, point_names
 from comp_daemon.models.export.urdf import urdf_text
 from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.preparation.campaign import CampaignError, PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import PRESETS, load_robot
 
 __all__ = ["register"]
@@ -110,14 +111,12 @@ def _check_rms_mm(loaded: LoadedModel, path: str, args: argparse.Namespace) -> f
         )
     except DatasetError as exc:
         raise UserError(str(exc)) from None
-    check = np.asarray(data.split_or_draw().check_rows)
-    if len(check) == 0:
-        raise UserError(f"{data.source}: no check rows")
-    assert data.a_deg is not None and data.xyz_mm is not None
-    dir_ = None if data.dir is None else data.dir[check].astype(float)
-    temp = None if data.temp_c is None else data.temp_c[check]
-    pred = model.predict_tcp_mm(data.a_deg[check], dir_, data.payload_kg[check], temp)
-    return float(np.sqrt(np.mean(np.sum((data.xyz_mm[check] - pred) ** 2, axis=1))))
+    try:  # the preparation every door shares: the split, the directions, each station's frame
+        prepared = prepare_campaign(data, model.robot, PrepareOptions(need_directions=True))
+    except CampaignError as exc:
+        raise UserError(str(exc)) from None
+    err = prepared.rows(prepared.check_rows).errors(model)
+    return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
 
 
 def _params(args: argparse.Namespace) -> int:

@@ -58,6 +58,7 @@ from comp_daemon.models.evaluation import (
     registered_nominal,
 )
 from comp_daemon.models.fitting import FitOptions, FittedModel
+from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
@@ -75,6 +76,7 @@ from comp_daemon.models.registry import (
 )
 from comp_daemon.models.selection import selection_line
 from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign, PrepareOptions, prepare_campaign
+from comp_daemon.preparation.stations import judge_stations
 from comp_daemon.robot.description import PRESETS, RobotDescription, load_robot
 
 __all__ = ["read_data", "register"]
@@ -187,7 +189,25 @@ def _common(parser: argparse.ArgumentParser) -> None:
         help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
         "(models with backlash then refuse the data)",
     )
+    parser.add_argument(
+        "--probe-sigma-deg",
+        type=_probe_sigma_arg,
+        default=DEFAULT_PROBE_SIGMA_DEG,
+        metavar="DEG",
+        help="a 6-DOF probe's orientation uncertainty (σ per axis, deg): weighs its qw..qz against the "
+        "positions in the kinematic calibration (default %(default)s)",
+    )
     reader_options(parser)
+
+
+def _probe_sigma_arg(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (np.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected an angle in degrees > 0, got {text!r}")
+    return value
 
 
 def _prepare(
@@ -203,6 +223,7 @@ def _prepare(
         infer_directions=args.infer_dir,
         hold_out=hold_out,
         require_check=hold_out,
+        probe_sigma_deg=args.probe_sigma_deg,
     )
     try:
         return prepare_campaign(dataset, load_robot_cached(args), options)
@@ -422,6 +443,8 @@ def _evaluate(args: argparse.Namespace) -> int:
         print(split.message, file=sys.stderr)
     if prepared.still_axes:
         print(f"{dataset.source}: {prepared.still_axes}")
+    if prepared.stations is not None:
+        print(f"{dataset.source}: {prepared.stations.note}")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
     check = split.check_rows
     table: dict[str, dict[str, Any]] = {}
@@ -431,8 +454,10 @@ def _evaluate(args: argparse.Namespace) -> int:
     frame_warned = False
     options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
     judged = _fit_each(list(parsed), (prepared, robot, options, split.fit_rows, check), args.jobs)
+    predictions: dict[str, np.ndarray] = {}
     for token, outcome in judged:
         fitted, pred, t_fit, t_pred, outside = outcome
+        predictions[token] = pred
         identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
         if len(split.fit_rows) < identifiable:
             skipped[token] = (
@@ -494,6 +519,14 @@ def _evaluate(args: argparse.Namespace) -> int:
         if "check_rows_outside_range" in fits[name]
     }
     print(format_table2(table, timing, outside_by_model))
+    best = next((name for name in ranking if name in predictions), None)
+    station_lines, station_doc = (
+        ([], {})
+        if best is None
+        else judge_stations(dataset, np.asarray(check, dtype=np.int64), predictions[best], best)
+    )
+    for sentence in station_lines:
+        print(f"{dataset.source}: {sentence}")
     if extrapolated["rows"]:
         axes = ", ".join(f"{axis} {count}" for axis, count in extrapolated["per_axis"].items())
         print(
@@ -525,6 +558,8 @@ def _evaluate(args: argparse.Namespace) -> int:
                 "message": split.message,
             },
             "directions": directions,
+            "stations": None if prepared.stations is None else prepared.stations.to_json(),
+            "check_by_station": station_doc or None,
             "error_definition": "measured - predicted, mm; per axis signed mean/std and max |component|; "
             "3-D |error| mean/std/max/rms (seed 000 eq. 27)",
             "ranking": ranking,

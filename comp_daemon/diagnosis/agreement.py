@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.data.table import Dataset
 from comp_daemon.diagnosis.fitting import Observations
-from comp_daemon.models.registration import rigid_registration
+from comp_daemon.models.registration import frame_changes, rigid_registration
 
 __all__ = ["Agreement", "fit_check_agreement"]
 
@@ -152,13 +152,17 @@ def _differences(
                 f"origin) removes {100 * share:.0f} % of their squared error — they look measured in "
                 "another frame (the tracker moved, or another station)"
             )
-    station = dataset.extra.get("station")
+    station = dataset.station
     if station is not None:
         fit_st = sorted({station[int(i)] for i in fit_rows})
         check_st = sorted({station[int(i)] for i in check_rows})
         if fit_st != check_st:
             details["stations"] = {"fit": fit_st, "check": check_st}
             words.append(f"station: fit rows from {', '.join(fit_st)}, check rows from {', '.join(check_st)}")
+        judged = frame_changes([station[int(i)] for i in check_rows], predicted_check_mm, measured)
+        if judged:
+            details["check_by_station"] = {j.station: j.to_json() for j in judged}
+        words += [j.describe() for j in judged if j.changed]
     # axis ranges
     lo, hi = obs.a_deg[fit_rows].min(axis=0), obs.a_deg[fit_rows].max(axis=0)
     a_check = obs.a_deg[check_rows]

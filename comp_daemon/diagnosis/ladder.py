@@ -44,11 +44,11 @@ Method (all choices on fit rows; check rows only report):
    effect (on all its selected joints) to everything before it, refitted on the fit rows; each step
    reports its check error. The best rejected candidate is appended as a step with
    ``significant: false``, so the report shows what the next effect would have bought.
-5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else the
-   spread of the mutual distances of several targets on the flange, else a declared tracker
-   uncertainty, else none (``None``). Never the fit residual. With three or more targets, ``where``
-   also gives the flange's position and orientation errors apart
-   (:mod:`comp_daemon.diagnosis.targets`).
+5. Noise floor. From independent evidence only (:func:`_noise_floor`): repeated poses, else a
+   declared tracker uncertainty (``--tracker-sigma-mm``, else the ``sigma_mm`` column), else the
+   spread of the mutual distances of several targets on the flange, else none (``None``). Never
+   the fit residual. With three or more targets, ``where`` also gives the flange's position and
+   orientation errors apart (:mod:`comp_daemon.diagnosis.targets`).
 6. Remainder structure. The final model's remainder (check rows; fit rows out of fold) against
    time or row order, axis values, payload, temperature and directions
    (:mod:`comp_daemon.diagnosis.structure`).
@@ -94,6 +94,7 @@ from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
+from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
 from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription
 
@@ -187,6 +188,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
             min_fit_rows_for="parameters of the geometric step",
             seed=options.seed,
             check_fraction=options.check_fraction,
+            probe_sigma_deg=options.probe_sigma_deg,
         ),
     )
     obs = observations_from_dataset(prepared.dataset, prepared.dir_of(np.arange(len(dataset))))
@@ -203,6 +205,9 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     start = FitResult(start_params, effects0, rms_nominal, 0, True)
     # every target: the further ones as rows of their own, at their place on the flange
     more = prepared.dataset.more_xyz_mm
+    probe = _probe_targets(prepared.dataset, options.tracker_sigma_mm, prepared.probe_sigma_deg)
+    if probe is not None:  # a 6-DOF probe's orientation: three further targets along its axes
+        more = probe if more is None else np.concatenate([more, probe], axis=1)
     obs_all, fit_all, check_all = obs, fit_rows, check_rows
     if more is not None:
         offsets = target_offsets_mm(mass, start, obs.take(fit_rows), more[fit_rows])
@@ -240,7 +245,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
 
     # 4. the ladder, 5. the noise floor, 6. the remainder's structure, 7. where the gap lies
     steps = _ladder(ctx, start, geo_fit, accepted, rejected, base_rms)
-    floor, floor_source = _noise_floor(obs, options.tracker_sigma_mm, dataset.reflectors_mm)
+    floor, floor_source = _noise_floor(obs, options.tracker_sigma_mm, dataset.reflectors_mm, dataset.sigma_mm)
     structure = _structure(ctx, dataset, steps)
     skipped = group_skips(reasons)
     by_joint = {j: [n for c in cands if c.joint == j and c not in reasons for n in c.names] for j in JOINTS}
@@ -283,6 +288,8 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         noise_floor_source=floor_source,
         where=where,
         directions=prepared.directions,
+        stations=None if prepared.stations is None else prepared.stations.to_json(),
+        orientation=None if probe is None else _orientation_words(prepared.probe_sigma_deg),
         agreement=agreement,
         unnamed=[u.to_json() for u in unnamed],
         residual_structure=structure,
@@ -391,24 +398,32 @@ def _ladder(
 
 
 def _noise_floor(
-    obs: Observations, tracker_sigma_mm: float | None, reflectors_mm: FloatArray | None = None
+    obs: Observations,
+    tracker_sigma_mm: float | None,
+    reflectors_mm: FloatArray | None = None,
+    sigma_mm: FloatArray | None = None,
 ) -> tuple[float | None, str | None]:
     """The noise floor (mm, 3-D RMS) and its source, from independent evidence only.
 
     Repeated poses first (they measure the tracker and the robot's repeatability together), else
-    the spread of the mutual distances of several targets on the flange (the tracker alone,
-    :func:`~comp_daemon.diagnosis.targets.noise_from_targets`: ``√3·σ̂``), else the tracker
-    uncertainty the user declares (σ per axis: ``√3·σ``), else ``(None, None)``. The fit residual
-    is never a noise floor: it is the quantity the diagnosis explains.
+    the uncertainty the user declares: ``--tracker-sigma-mm`` (σ per axis: ``√3·σ``), else the
+    rows' ``sigma_mm`` column (``√3·`` their RMS); a declared σ overrides the floor inferred from
+    targets, since the targets may be a 6-DOF probe's virtual reflectors, whose exact mutual
+    distances say nothing of the noise. Else the spread of the mutual distances of several targets
+    on the flange (the tracker alone, :func:`~comp_daemon.diagnosis.targets.noise_from_targets`:
+    ``√3·σ̂``), else ``(None, None)``. The fit residual is never a noise floor: it is the quantity
+    the diagnosis explains.
     """
     floor = _noise_floor_from_repeats(obs)
     if floor is not None:
         return floor, "repeats"
+    if tracker_sigma_mm is not None:
+        return math.sqrt(3.0) * tracker_sigma_mm, "declared"
+    if sigma_mm is not None:
+        return math.sqrt(3.0 * float(np.mean(np.square(sigma_mm)))), "declared"
     from_targets = noise_from_targets(reflectors_mm)
     if from_targets is not None:
         return from_targets[1], "targets"
-    if tracker_sigma_mm is not None:
-        return math.sqrt(3.0) * tracker_sigma_mm, "declared"
     return None, None
 
 
@@ -576,6 +591,28 @@ def _agreement(
         check_rows,
         predicted,
         dataset,
+    )
+
+
+def _probe_targets(
+    dataset: Dataset, tracker_sigma_mm: float | None, probe_sigma_deg: float
+) -> FloatArray | None:
+    """(n, 3, 3) a 6-DOF probe's orientation as points along its axes
+    (:func:`~comp_daemon.models.observations.probe_axis_points_mm`), at the lever that weighs it
+    against the positions by the declared σ (``--tracker-sigma-mm``, else the ``sigma_mm``
+    column, else the default); None without ``qw…qz``."""
+    if dataset.probe_q_wxyz is None or dataset.xyz_mm is None:
+        return None
+    sigma = tracker_sigma_mm if tracker_sigma_mm is not None else dataset.sigma_mm
+    lever = orientation_weight(sigma, probe_sigma_deg)
+    return probe_axis_points_mm(dataset.xyz_mm, dataset.probe_q_wxyz, lever)
+
+
+def _orientation_words(probe_sigma_deg: float) -> str:
+    return (
+        "a 6-DOF probe's orientation (qw..qz) enters the geometric step as three further targets "
+        f"along its axes, weighted against the positions by the declared sigmas (orientation "
+        f"{probe_sigma_deg:g} deg per axis)"
     )
 
 

@@ -20,6 +20,7 @@ from comp_daemon.diagnosis.fitting import FitResult, Observations
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.preparation.campaign import Directions
 from comp_daemon.robot.description import RobotDescription
 
@@ -61,6 +62,7 @@ class DiagnoseOptions:
     effects: tuple[str, ...] | None = None  # the effects to try (None: the whole catalogue)
     remainder_model: bool = True  # try the joint-space remainder model after the ladder
     infer_directions: bool = True  # without dir columns, approach directions from the pose order
+    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG  # a 6-DOF probe's orientation σ per axis
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -81,6 +83,8 @@ class DiagnoseOptions:
             math.isfinite(self.tracker_sigma_mm) and self.tracker_sigma_mm > 0.0
         ):
             raise ValueError(f"tracker_sigma_mm must be a number > 0, got {self.tracker_sigma_mm}")
+        if not (math.isfinite(self.probe_sigma_deg) and self.probe_sigma_deg > 0.0):
+            raise ValueError(f"probe_sigma_deg must be a number > 0, got {self.probe_sigma_deg}")
 
 
 @dataclass(frozen=True)
@@ -165,6 +169,8 @@ class Diagnosis:
     time_nuisance: bool = False  # the effects were tested with a time nuisance in their base
     remainder_model: RemainderModel | None = None  # joint-space model of the remainder (kept or not)
     directions: Directions | None = None  # where the approach directions come from (the preparation)
+    stations: dict[str, Any] | None = None  # the tracker stations and how each was registered
+    orientation: str | None = None  # how a 6-DOF probe's orientation entered the geometric step
     agreement: Agreement | None = None  # whether the fit and check rows tell the same story
     # errors an effect stood in for that a flexible alternative of its driver explains better
     unnamed: list[dict[str, Any]] = field(default_factory=list)
@@ -199,6 +205,8 @@ class Diagnosis:
             "frame": {
                 "measured_in": self.frame,
                 "world_T_base": [[rounded(v, 9) for v in row] for row in self.world_T_base],
+                **({} if self.stations is None else {"stations": self.stations}),
+                **({} if self.orientation is None else {"orientation": self.orientation}),
             },
             **({} if self.directions is None else {"directions": self.directions.to_json()}),
             "clock": {
@@ -235,7 +243,9 @@ class Diagnosis:
                 "t_ref_c": self.options.t_ref_c,
                 "effects_tried": list(EFFECTS if self.options.effects is None else self.options.effects),
                 "time_nuisance": self.time_nuisance,
-                "noise_floor": "repeated poses, else the declared tracker uncertainty; not the fit residual",
+                "noise_floor": "repeated poses, else the declared tracker uncertainty (option, else "
+                "the sigma_mm column), else the spread of several targets' mutual distances; not the "
+                "fit residual",
                 "residual_structure": "binned means out of fold, permutation test, Holm over the variables",
                 "remainder_model": "Gaussian process in the axis values (a length scale per joint), kept "
                 "only if it lowers the k-fold CV error on the fit rows by 2 % or more at p < 0.01",

@@ -68,6 +68,7 @@ from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.lm import LMResult
+from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG, quat_to_matrix
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.models.selection import Decision, Selection, judge, keep_all, select_kinematic_effects
 from comp_daemon.robot.description import RobotDescription
@@ -97,6 +98,8 @@ SELECTION_MAX_ROWS = 2000  # effects are selected on at most this many fit rows,
 #: as a full fit (the reference the tests compare with)
 FOLD_SHORTCUTS = True
 FrameChoice = Literal["auto", "base", "tracker"]
+#: identified parameters that are not the robot's: further targets, stations' frames, the probe's mount
+NOT_THE_ROBOT = ("target", "station_", "probe_")
 
 
 @dataclass(frozen=True, slots=True)
@@ -166,6 +169,10 @@ class FitRows:
     sigma_mm: NDArray[np.float64] | None = (
         None  # (n,) declared position σ per row (weights the kinematic fit)
     )
+    station: NDArray[np.intp] | None = None  # (n,) each row's tracker station (index into station_names)
+    station_names: tuple[str, ...] | None = None
+    probe_r: NDArray[np.float64] | None = None  # (n, 3, 3) a 6-DOF probe's measured rotations
+    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG  # the probe's orientation σ per axis
     n: int = field(init=False)
 
     def __post_init__(self) -> None:
@@ -195,6 +202,10 @@ class FitRows:
             None if self.temp_c is None else self.temp_c[rows],
             None if self.more_xyz_mm is None else self.more_xyz_mm[rows],
             None if self.sigma_mm is None else self.sigma_mm[rows],
+            None if self.station is None else self.station[rows],
+            self.station_names,
+            None if self.probe_r is None else self.probe_r[rows],
+            self.probe_sigma_deg,
         )
 
     def errors(self, model: ErrorModel) -> NDArray[np.float64]:
@@ -207,11 +218,17 @@ class FitRows:
         dataset: Dataset,
         rows: NDArray[np.intp] | slice = slice(None),
         unknown_dir: NDArray[np.bool_] | None = None,
+        probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG,
     ) -> FitRows:
         """These rows of a measurement data set (axis values and positions required);
-        ``unknown_dir`` (n, 6) marks approach directions that are not known (set to 0)."""
+        ``unknown_dir`` (n, 6) marks approach directions that are not known (set to 0);
+        ``probe_sigma_deg`` the orientation σ of the probe whose ``qw…qz`` the rows carry."""
         if dataset.a_deg is None or dataset.xyz_mm is None:
             raise ValueError(f"{dataset.source}: a fit needs a1..a6 and x, y, z")
+        station, names = None, None
+        if dataset.station is not None:
+            labels, index = np.unique(np.asarray(dataset.station, dtype=str), return_inverse=True)
+            station, names = np.asarray(index, dtype=np.intp).reshape(-1)[rows], tuple(str(s) for s in labels)
         return cls(
             dataset.a_deg[rows],
             dataset.xyz_mm[rows],
@@ -220,6 +237,10 @@ class FitRows:
             temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
             more_xyz_mm=None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[rows],
             sigma_mm=None if dataset.sigma_mm is None else dataset.sigma_mm[rows],
+            station=station,
+            station_names=names,
+            probe_r=None if dataset.probe_q_wxyz is None else quat_to_matrix(dataset.probe_q_wxyz[rows]),
+            probe_sigma_deg=probe_sigma_deg,
         )
 
 
@@ -320,20 +341,25 @@ def _kinematic(
         more_targets_mm=rows.more_xyz_mm,
         sigma_mm=rows.sigma_mm,
         report_ranks=report_ranks,
+        station=rows.station,
+        station_names=rows.station_names,
+        probe_r=rows.probe_r,
+        probe_sigma_deg=rows.probe_sigma_deg,
     )
 
 
 def _attach_tcp_covariance(kf: KinematicFit) -> None:
     """The parameter covariance of the TCP's prediction: with several targets, the block of the
-    geometric and effect parameters of the whole fit (the targets' offsets do not move the TCP)."""
-    if kf.targets == 1:
+    geometric and effect parameters of the whole fit (the targets' offsets, the stations' frames
+    and the probe's rotation on the flange do not move the TCP)."""
+    if kf.targets == 1 and not any(name.startswith(NOT_THE_ROBOT) for name in kf.identified):
         attach_covariance(kf.model, kf.identified, kf.values, kf.lm.jacobian, kf.lm.residual)
         return
     jac = kf.lm.jacobian
     if jac.shape[0] <= jac.shape[1]:
         return
     cov, s = covariance_from_fit(jac, kf.lm.residual)
-    keep = np.array([not name.startswith("target") for name in kf.identified])
+    keep = np.array([not name.startswith(NOT_THE_ROBOT) for name in kf.identified])
     kf.model.uncertainty = ParameterCovariance(
         tuple(n for n, k in zip(kf.identified, keep, strict=True) if k),
         kf.values[keep],
@@ -356,10 +382,28 @@ def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
             "more_targets_mm": kf.model.more_targets_mm.tolist(),
         }
     weighting = {"weighting": "rows weighted by 1/sigma_mm (weighted least squares)"} if kf.weighted else {}
+    observed: dict[str, Any] = {}
+    if kf.stations:
+        observed["stations"] = {
+            "registration": "each station's frame estimated jointly with the robot's parameters "
+            "(6 parameters per station beside the largest)",
+            "moved": {
+                name: {"angle_deg": _angle_deg(t), "shift_mm": float(np.linalg.norm(t[:3, 3]))}
+                for name, t in kf.stations.items()
+            },
+        }
+    if kf.orientation_rms_deg is not None:
+        observed["orientation"] = {
+            "observed": "6-DOF probe: orientation residuals weighted against the positions by the "
+            "declared sigmas",
+            "weight_mm_per_rad": kf.orientation_weight,
+            "rms_deg": kf.orientation_rms_deg,
+        }
     return {
         "rms_mm": kf.rms_mm,
         **targets,
         **weighting,
+        **observed,
         "effects": list(effects),
         "solver": lm_info(kf.lm),
         "identifiability": {**report_info(kf.report), "near_dependent": _near_dependent(kf)},
@@ -377,7 +421,12 @@ def _near_dependent(kf: KinematicFit) -> list[dict[str, Any]]:
     except ValueError:  # no more residuals than parameters: no covariance
         return []
     pairs = near_dependent_pairs(kf.identified, cov)
-    return [p for p in pairs if not all(name.startswith("base_") for name in p["pair"])]
+    frame = ("base_", "station_")
+    return [p for p in pairs if not all(name.startswith(frame) for name in p["pair"])]
+
+
+def _angle_deg(t: NDArray[np.float64]) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(t[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
 
 
 def _data_frame(robot: RobotDescription, rows: FitRows, options: FitOptions) -> Literal["base", "tracker"]:

@@ -63,6 +63,13 @@ from comp_daemon.models.effects import (
 )
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability, mdh_priority
 from comp_daemon.models.lm import LMResult, improved_lm
+from comp_daemon.models.observations import (
+    DEFAULT_PROBE_SIGMA_DEG,
+    FrameObservations,
+    ObservedProblem,
+    angle_deg,
+    mean_rotation,
+)
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
@@ -343,6 +350,11 @@ class KinematicFit:
     targets: int = 1  # targets per row the fit used (K)
     targets_rms_mm: float | None = None  # 3-D RMS residual over every target (None: the TCP only)
     weighted: bool = False  # rows weighted by 1/sigma_mm (weighted least squares)
+    #: per corrected station (its name): the (4, 4) rigid motion its measured points were moved by
+    stations: dict[str, NDArray[np.float64]] | None = None
+    orientation_rms_deg: float | None = None  # the probe's orientation residual (None: no probe)
+    probe_mount: NDArray[np.float64] | None = None  # (3, 3) the probe's rotation on the flange
+    orientation_weight: float | None = None  # mm/rad (observations module)
 
     def named_values(self) -> dict[str, float]:
         return {n: float(v) for n, v in zip(self.identified, self.values, strict=True)}
@@ -367,6 +379,10 @@ def calibrate_kinematic(
     more_targets_mm: NDArray[np.float64] | None = None,
     sigma_mm: NDArray[np.float64] | None = None,
     report_ranks: bool = True,
+    station: NDArray[np.intp] | None = None,
+    station_names: Sequence[str] | None = None,
+    probe_r: NDArray[np.float64] | None = None,
+    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG,
 ) -> KinematicFit:
     """Calibrate the robot's MDH parameters (and ``effects``) on measured TCP positions.
 
@@ -377,6 +393,10 @@ def calibrate_kinematic(
     offsets are identified with the rest (module docstring: 6-DOF with three or more targets).
     ``sigma_mm`` (n,): each row's declared position σ (the data set's column); the rows are then
     weighted by ``median(σ)/σ`` (weighted least squares; the RMS reported stays unweighted).
+    ``station`` (n,) each row's station index (names ``station_names``): every station with enough
+    rows but the largest gets its own rigid correction, estimated with the rest; ``probe_r``
+    (n, 3, 3) a 6-DOF probe's measured rotations, fitted with its unknown rotation on the flange and
+    weighted by ``probe_sigma_deg`` against the rows' position σ (:mod:`comp_daemon.models.observations`).
     ``report_ranks=False`` leaves the identifiability report's rank checks and condition number
     out (-1 and NaN; the identified parameters are the same): for fits whose report nobody reads,
     the folds of a cross-validation.
@@ -411,18 +431,37 @@ def calibrate_kinematic(
     ]
     n_more = 0 if more_meas is None else more_meas.shape[1]
     more_names = target_param_names(n_more)
-    all_names = (*PARAM_NAMES, *eff_names, *more_names)
+    weights = None if sigma_mm is None else _row_weights(sigma_mm, n)
+    obs = FrameObservations.of(
+        n,
+        station,
+        station_names,
+        None if probe_r is None else _rotations(probe_r, n),
+        sigma_mm,
+        probe_sigma_deg,
+    )
+    extra_names = obs.names if obs.active else []
+    all_names = (*PARAM_NAMES, *eff_names, *more_names, *extra_names)
     more_start = None
-    if more_meas is None:
-        _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
-    else:
+    mount0 = None
+    if more_meas is not None:
         more_start = _start_offsets(robot, start, eff0, a, dir_arr, payload_kg, temp_c, more_meas)
-        full = KinematicProblem(
+    if obs.probe_r is not None:
+        flange = twin_state(robot, start, eff0, a, dir_arr, payload_kg, temp_c).chain.world_T_frame[:, 6]
+        mount0 = mean_rotation(np.swapaxes(flange[:, :3, :3], 1, 2) @ obs.probe_r)
+
+    def problem_of(
+        geo: NDArray[np.intp],
+        effs: Sequence[str],
+        more_idx: NDArray[np.intp] | None,
+        extra_idx: NDArray[np.intp] | None,
+    ) -> KinematicProblem | ObservedProblem:
+        inner = KinematicProblem(
             robot,
             start,
             eff0,
-            np.arange(N_PARAMS),
-            eff_names,
+            geo,
+            effs,
             a,
             p_meas,
             dir_arr,
@@ -430,48 +469,56 @@ def calibrate_kinematic(
             temp_c,
             more_measured_mm=more_meas,
             more_start_mm=more_start,
+            more_idx=more_idx,
+            row_weights=weights,
         )
-        jac0 = full.jacobian(np.zeros(len(all_names)))
+        return ObservedProblem(inner, obs, extra_idx, mount0) if obs.active else inner
+
+    if more_meas is None and not obs.active:
+        _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
+    else:
+        jac0 = problem_of(np.arange(N_PARAMS), eff_names, None, None).jacobian(np.zeros(len(all_names)))
     report = analyze_identifiability(
         jac0,
         all_names,
-        candidates=[*geo_candidates, *eff_names, *more_names],
-        priority=_priority(start, eff_names, more_names),
+        candidates=[*geo_candidates, *eff_names, *more_names, *extra_names],
+        priority=_priority(start, eff_names, more_names, extra_names),
         rtol=rtol,
         check_rank=report_ranks,
         check_condition=report_ranks,
     )
     idx = report.identifiable_index
     n_eff = len(eff_names)
+    n_in = N_PARAMS + n_eff + len(more_names)
     geo_idx = idx[idx < N_PARAMS]
     eff_sel = [all_names[i] for i in idx[(idx >= N_PARAMS) & (idx < N_PARAMS + n_eff)]]
-    more_idx = idx[idx >= N_PARAMS + n_eff] - (N_PARAMS + n_eff)
-    problem = KinematicProblem(
-        robot,
-        start,
-        eff0,
-        geo_idx,
-        eff_sel,
-        a,
-        p_meas,
-        dir_arr,
-        payload_kg,
-        temp_c,
-        more_measured_mm=more_meas,
-        more_start_mm=more_start,
-        more_idx=more_idx,
-        row_weights=None if sigma_mm is None else _row_weights(sigma_mm, n),
-    )
+    more_idx = idx[(idx >= N_PARAMS + n_eff) & (idx < n_in)] - (N_PARAMS + n_eff)
+    problem = problem_of(geo_idx, eff_sel, more_idx, idx[idx >= n_in] - n_in)
+    inner = problem.inner if isinstance(problem, ObservedProblem) else problem
 
     x0 = np.zeros(idx.size)
     result = improved_lm(problem.residual, problem.jacobian, x0, x_scale="jac", max_iter=max_iter)
-    unweighted = result.residual if problem.weights is None else result.residual / problem.weights
-    params, eff, _ = problem.unpack(result.x)
-    more_fit = None if more_meas is None else problem.more_targets(result.x)
+    n_pos = 3 * n * (1 + n_more)
+    position = result.residual[:n_pos]
+    unweighted = position if inner.weights is None else position / inner.weights
+    x_in = result.x[: inner._cols.size + inner.more_idx.size]
+    params, eff, _ = inner.unpack(x_in)
+    more_fit = None if more_meas is None else inner.more_targets(x_in)
     model = KinematicModel(robot, params, eff if effects else None, registration, more_fit)
     std = _standard_errors(result.jacobian, result.residual)
     per_point = np.sum(unweighted.reshape(-1, n, 3) ** 2, axis=2)  # (K, n)
     rms = float(np.sqrt(np.mean(per_point[0])))
+    observed: dict[str, Any] = {}
+    if isinstance(problem, ObservedProblem):
+        motions = problem.station_motion(result.x)
+        observed["stations"] = {
+            name: _rigid(rot, t) for name, (rot, t) in zip(obs.labels, motions, strict=True)
+        }
+        if obs.probe_r is not None:
+            ang = angle_deg(problem.predicted_rotations(result.x), problem.measured_rotations(result.x))
+            observed["orientation_rms_deg"] = float(np.sqrt(np.mean(ang**2)))
+            observed["probe_mount"] = problem.mount(result.x)
+            observed["orientation_weight"] = obs.orientation_weight
     return KinematicFit(
         model=model,
         frame=chosen,
@@ -486,7 +533,21 @@ def calibrate_kinematic(
         targets=1 + n_more,
         targets_rms_mm=None if more_meas is None else float(np.sqrt(np.mean(per_point))),
         weighted=sigma_mm is not None,
+        **observed,
     )
+
+
+def _rigid(rot: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.float64]:
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = rot, t
+    return out
+
+
+def _rotations(probe_r: NDArray[np.float64], n: int) -> NDArray[np.float64]:
+    rot = np.asarray(probe_r, dtype=float)
+    if rot.shape != (n, 3, 3):
+        raise ValueError(f"probe rotations must have shape ({n}, 3, 3), got {rot.shape}")
+    return rot
 
 
 def _row_weights(sigma_mm: NDArray[np.float64], n: int) -> NDArray[np.float64]:
@@ -497,11 +558,20 @@ def _row_weights(sigma_mm: NDArray[np.float64], n: int) -> NDArray[np.float64]:
     return float(np.median(sigma)) / sigma
 
 
-def _priority(start: KinematicParams, eff_names: Sequence[str], more_names: Sequence[str]) -> tuple[str, ...]:
-    """MDH priority with the further targets' offsets offered right after the tool (the first target's)."""
+def _priority(
+    start: KinematicParams,
+    eff_names: Sequence[str],
+    more_names: Sequence[str],
+    extra_names: Sequence[str] = (),
+) -> tuple[str, ...]:
+    """MDH priority with the further targets' offsets (and the probe's rotation on the flange)
+    offered right after the tool (the first target's), and the stations' corrections first: a
+    station's frame is not the robot's, and nothing of the robot stands in for it."""
     order = list(mdh_priority(start, extra=eff_names))
     at = max(i for i, name in enumerate(order) if name.startswith("tool_")) + 1
-    return tuple(order[:at] + list(more_names) + order[at:])
+    stations = [name for name in extra_names if name.startswith("station_")]
+    mount = [name for name in extra_names if not name.startswith("station_")]
+    return tuple(stations + order[:at] + list(more_names) + mount + order[at:])
 
 
 def _start_offsets(

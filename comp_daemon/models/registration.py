@@ -14,7 +14,9 @@ model misses a real robot by millimetres, a tracker frame is off by far more tha
 
 from __future__ import annotations
 
-from typing import Literal
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -22,7 +24,9 @@ from numpy.typing import NDArray
 __all__ = [
     "BASE_FRAME_MAX_RMS_MM",
     "SCALE_RANGE",
+    "FrameChange",
     "detect_frame",
+    "frame_changes",
     "rigid_registration",
     "scale_problem",
     "transform_points",
@@ -99,8 +103,90 @@ def scale_problem(p_nominal_base_mm: NDArray[np.float64], p_measured_mm: NDArray
     hint = f" (in {unit}?)" if abs(np.log(ratio / factor)) < np.log(1.5) else ""
     if hint and unit == "metres":
         hint += "; a file in metres is read with --units m,deg (or m,rad)"
+    if ratio > 1.0:
+        hint += (
+            "; or rows from several tracker set-ups, each in its own frame: name them in a station "
+            "column (docs/data-format.md)"
+        )
     return (
         f"the measured x, y, z spread {ratio:.3g} times as far as the nominal TCP positions of the same "
         f"axis values ({measured:.4g} mm against {nominal:.4g} mm RMS about their centroids): they are "
         f"not millimetres of this robot{hint}; the campaign format (docs/data-format.md) asks for mm"
     )
+
+
+#: a station's check error above this multiple of the other stations' is a jump
+JUMP_FACTOR = 2.0
+#: a rigid motion of the station's check rows alone that removes more than this share of their
+#: squared error makes the jump a frame change
+FRAME_CHANGE_SHARE = 0.5
+
+
+@dataclass(frozen=True)
+class FrameChange:
+    """One station's check rows against the others': their error, and what a rigid motion of them
+    alone leaves (``registered_rms_mm``). ``changed``: the error jumps and the motion removes it."""
+
+    station: str
+    rows: int
+    rms_mm: float
+    others_rms_mm: float
+    registered_rms_mm: float
+    angle_deg: float
+    shift_mm: float
+    changed: bool
+
+    def describe(self) -> str:
+        return (
+            f"station {self.station}: its {self.rows} check rows are {self.rms_mm:.3f} mm RMS off against "
+            f"{self.others_rms_mm:.3f} mm on the other stations' check rows; a rigid motion of them alone "
+            f"({self.angle_deg:.3f}°, {self.shift_mm:.3f} mm at the origin) leaves "
+            f"{self.registered_rms_mm:.3f} mm: "
+            f"station {self.station}'s frame changed (the tracker moved during its session), not an effect "
+            "of the robot"
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "rows": self.rows,
+            "rms_mm": round(self.rms_mm, 6),
+            "others_rms_mm": round(self.others_rms_mm, 6),
+            "registered_rms_mm": round(self.registered_rms_mm, 6),
+            "angle_deg": round(self.angle_deg, 6),
+            "shift_mm": round(self.shift_mm, 6),
+            "frame_changed": self.changed,
+        }
+
+
+def frame_changes(
+    station: Sequence[str], predicted_mm: NDArray[np.float64], measured_mm: NDArray[np.float64]
+) -> list[FrameChange]:
+    """Each station's check rows (``station`` (n,) names, the model's ``predicted_mm`` and the
+    ``measured_mm`` (n, 3) of those rows) judged against the other stations' (:class:`FrameChange`);
+    empty with fewer than two stations. A station with fewer than 4 rows is not judged."""
+    names = np.asarray(station, dtype=str)
+    err2 = np.sum((np.asarray(measured_mm) - np.asarray(predicted_mm)) ** 2, axis=1)
+    labels = sorted(set(names.tolist()))
+    out: list[FrameChange] = []
+    if len(labels) < 2:
+        return out
+    for label in labels:
+        own = names == label
+        if own.sum() < 4:
+            continue
+        rms = float(np.sqrt(np.mean(err2[own])))
+        others = float(np.sqrt(np.mean(err2[~own])))
+        try:
+            t = rigid_registration(predicted_mm[own], measured_mm[own])
+        except ValueError:
+            continue
+        moved = transform_points(t, predicted_mm[own])
+        after = float(np.sqrt(np.mean(np.sum((measured_mm[own] - moved) ** 2, axis=1))))
+        angle = float(np.degrees(np.arccos(np.clip((np.trace(t[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
+        changed = rms > JUMP_FACTOR * others and after**2 < (1.0 - FRAME_CHANGE_SHARE) * rms**2
+        out.append(
+            FrameChange(
+                label, int(own.sum()), rms, others, after, angle, float(np.linalg.norm(t[:3, 3])), changed
+            )
+        )
+    return out

@@ -8,6 +8,8 @@ is :func:`comp_daemon.models.registration.scale_problem`.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from numpy.typing import NDArray
 
@@ -20,10 +22,23 @@ __all__ = ["millimetre_problem"]
 
 
 def millimetre_problem(
-    robot: RobotDescription, a_deg: NDArray[np.float64], xyz_mm: NDArray[np.float64]
+    robot: RobotDescription,
+    a_deg: NDArray[np.float64],
+    xyz_mm: NDArray[np.float64],
+    station: Sequence[str] | None = None,
 ) -> str | None:
     """A sentence when the measured ``xyz_mm`` (n, 3) at axis values ``a_deg`` (n, 6) cannot be
-    millimetres of ``robot`` (metres, centimetres, inches …), else None."""
+    millimetres of ``robot`` (metres, centimetres, inches …), else None. With ``station`` (n,),
+    each station's rows are judged apart (each is in its own frame; the sentence names it)."""
     nominal = KinematicParams.from_robot(robot)
     p_nominal_mm = tcp_position_mm(nominal, axes_deg_to_q_rad(np.asarray(a_deg, dtype=float), nominal.sign))
-    return scale_problem(p_nominal_mm, np.asarray(xyz_mm, dtype=float))
+    p = np.asarray(xyz_mm, dtype=float)
+    if station is None or len(set(station)) < 2:
+        return scale_problem(p_nominal_mm, p)
+    names = np.asarray(station, dtype=str)
+    for name in sorted(set(station)):
+        rows = names == name
+        problem = scale_problem(p_nominal_mm[rows], p[rows])
+        if problem is not None:
+            return f"station {name}: {problem}"
+    return None

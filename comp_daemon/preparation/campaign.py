@@ -21,6 +21,9 @@ What every door needs before it fits anything, decided once:
   millimetres of this robot (metres, inches) are refused here
   (:func:`~comp_daemon.models.units.millimetre_problem`, the rule ``data check`` applies).
 - **Targets**: how many reflectors each pose measures (``x, y, z`` and ``x2, y2, z2`` …).
+- **Stations**: with a ``station`` column naming two or more tracker set-ups, every station's rows
+  are brought into the reference station's frame, registered jointly with a kinematic calibration
+  (:mod:`comp_daemon.preparation.stations`); a station with check rows only on its own rows.
 
 Errors are :class:`CampaignError` (a ``ValueError``) naming the file and what is wrong.
 """
@@ -40,9 +43,11 @@ from comp_daemon.data.table import DEFAULT_CHECK_FRACTION, DEFAULT_SPLIT_SEED, D
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.fitting import FitRows, directions_of
+from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.models.registry import MIN_POSES
 from comp_daemon.models.units import millimetre_problem
+from comp_daemon.preparation.stations import Stations, register_stations
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -118,7 +123,8 @@ class PrepareOptions:
     ``hold_out``: draw check rows when the file has no ``split`` column (else every row is a fit
     row). ``require_check``: refuse a campaign without check rows. ``min_fit_rows`` and
     ``min_fit_rows_for``: the row floor and what needs it, in the refusal's words ("fewer than the
-    3 poses a fit needs").
+    3 poses a fit needs"). ``probe_sigma_deg``: a 6-DOF probe's orientation σ per axis, which weighs
+    its ``qw…qz`` against the positions (:mod:`comp_daemon.models.observations`).
     """
 
     frame: FrameChoice = "auto"
@@ -130,6 +136,7 @@ class PrepareOptions:
     min_fit_rows_for: str = "poses a fit needs"
     seed: int = DEFAULT_SPLIT_SEED
     check_fraction: float = DEFAULT_CHECK_FRACTION
+    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -143,7 +150,9 @@ class PreparedCampaign:
     ``dataset`` carries the directions (inferred ones filled in); ``data_sha256`` is the file's as
     read (before any inference). ``frame`` is where the positions were measured; ``world_T_base``
     (4, 4) the nominal twin's registration to them on the fit rows (identity in the base frame);
-    ``nominal_fit_rms_mm`` the registered nominal twin's RMS on the fit rows.
+    ``nominal_fit_rms_mm`` the registered nominal twin's RMS on the fit rows. ``stations``: with a
+    ``station`` column naming two or more, how each was registered (the data set's positions are
+    then in the reference station's frame, :mod:`comp_daemon.preparation.stations`).
     """
 
     dataset: Dataset
@@ -154,6 +163,8 @@ class PreparedCampaign:
     world_T_base: FloatArray
     nominal_fit_rms_mm: float
     still_axes: str | None
+    stations: Stations | None = None
+    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG
 
     @property
     def source(self) -> str:
@@ -180,11 +191,13 @@ class PreparedCampaign:
 
     def rows(self, rows: NDArray[np.int64]) -> FitRows:
         """The model-fitting view of ``rows`` (every target, the directions with unknown ones 0)."""
-        return FitRows.of(self.dataset, rows, self.directions.unknown)
+        return FitRows.of(self.dataset, rows, self.directions.unknown, self.probe_sigma_deg)
 
     def describe(self) -> list[str]:
-        """The sentences a door says about the preparation (directions, axes that stand still)."""
-        return [s for s in (self.directions.note, self.still_axes) if s]
+        """The sentences a door says about the preparation (directions, axes that stand still,
+        stations)."""
+        stations = None if self.stations is None else self.stations.note
+        return [s for s in (self.directions.note, self.still_axes, stations) if s]
 
 
 def prepare_campaign(
@@ -203,12 +216,17 @@ def prepare_campaign(
     fit_rows = np.asarray(split.fit_rows)
     nominal = KinematicParams.from_robot(robot)
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
-    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(dataset.a_deg[fit_rows], nominal.sign))
-    p_meas = dataset.xyz_mm[fit_rows]
-    scale = millimetre_problem(robot, dataset.a_deg, dataset.xyz_mm)  # data check's rule, on every row
+    scale = millimetre_problem(robot, dataset.a_deg, dataset.xyz_mm, dataset.station)  # data check's rule
     if scale is not None:
         raise CampaignError(f"{source}: {scale}")
     _check_floor(dataset, split, options)
+    try:
+        dataset, stations = register_stations(dataset, robot, fit_rows, options.probe_sigma_deg)
+    except ValueError as exc:
+        raise CampaignError(str(exc)) from None
+    assert dataset.a_deg is not None and dataset.xyz_mm is not None
+    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(dataset.a_deg[fit_rows], nominal.sign))
+    p_meas = dataset.xyz_mm[fit_rows]
     frame: Literal["base", "tracker"] = (
         detect_frame(p_nom, p_meas) if options.frame == "auto" else options.frame
     )
@@ -226,6 +244,8 @@ def prepare_campaign(
         world_T_base=world_T_base,
         nominal_fit_rms_mm=rms,
         still_axes=still_axes_note(dataset, fit_rows) if len(fit_rows) else None,
+        stations=stations,
+        probe_sigma_deg=options.probe_sigma_deg,
     )
 
 

@@ -14,6 +14,16 @@ box diagonal, each approached ``n_cycles`` times from three mutually perpendicul
 between the barycentres of the three directions; ``RP = l̄ + 3·S_l`` the repeatability of one
 direction (l: distances of the attained positions to their barycentre).
 
+A re-stationed tracker (``restation``): the tracker is moved half-way through the campaign (by
+measuring order, a second session): the rows from then on are station ``B``, measured in a frame
+turned by :data:`RESTATION_ANGLE_DEG` about the vertical and moved :data:`RESTATION_SHIFT_MM` from
+station ``A``'s (the scenario's tracker frame, or the robot base frame).
+
+A 6-DOF probe (``probe_sigma_deg``): the probe's frame sits on the flange with its origin at the TCP
+and a fixed hidden rotation (:data:`PROBE_MOUNT_ROTVEC`); each row gives its orientation
+(``qw…qz``, in the tracker's frame, turned by a normal rotation vector of ``probe_sigma_deg`` per
+axis) and ``sigma_mm``, the tracker's σ per axis.
+
 Several targets (``targets`` > 1): reflectors fixed to the flange beside the TCP
 (:func:`reflector_offsets_mm`), measured at every pose with independent tracker noise each and
 written as the columns ``x2, y2, z2`` … of the data set.
@@ -25,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 from scipy.stats import qmc
 
 from comp_daemon.data.dataset import Dataset
@@ -32,6 +43,7 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.inverse import solve_ik
 from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
+from comp_daemon.kinematics.so3 import rotvec_to_matrix
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.scenario import Scenario
 from comp_daemon.sim.tracker import LaserTracker
@@ -55,6 +67,11 @@ GRATING_RESOLUTION_MM = 50e-6
 DT_S = 0.012
 REFLECTOR_RADIUS_MM = 150.0
 MAX_TARGETS = 7
+#: the second station's frame: turned this much about the vertical and moved this far from the first
+RESTATION_ANGLE_DEG = 50.0
+RESTATION_SHIFT_MM = (3000.0, 4000.0, 0.0)  # 5 m
+#: the simulated 6-DOF probe's rotation on the flange (rotation vector, rad), unknown to the fits
+PROBE_MOUNT_ROTVEC = (0.2, -0.1, 0.7)
 
 
 def reflector_offsets_mm(tool_xyz_mm: NDArray[np.float64], targets: int) -> NDArray[np.float64]:
@@ -150,6 +167,7 @@ class Measurement:
     t_s: float
     temp_c: float
     more_xyz_mm: NDArray[np.float64] | None = None  # (K − 1, 3) tracker readings of further reflectors
+    probe_r: NDArray[np.float64] | None = None  # (3, 3) a 6-DOF probe's orientation, tracker frame
 
 
 def measure_at(
@@ -159,11 +177,13 @@ def measure_at(
     dwell_s: float,
     radius_mm: float,
     more_flange_xyz_mm: NDArray[np.float64] | None = None,
+    probe_sigma_deg: float | None = None,
 ) -> Measurement:
     """Move to ``a_deg``, settle, dwell, and measure (tracker, directions, gratings, time, temperature).
 
     ``more_flange_xyz_mm`` (K − 1, 3): further reflectors on the flange (flange frame), measured
-    with the TCP, each with its own tracker noise.
+    with the TCP, each with its own tracker noise. ``probe_sigma_deg``: a 6-DOF probe at the TCP
+    reports its orientation too (flange · :data:`PROBE_MOUNT_ROTVEC`, with that noise per axis).
     """
     plant.move_to(a_deg)
     plant.run_until_settled(DT_S)
@@ -178,6 +198,10 @@ def measure_at(
         measured, more = both[0], both[1:]
     else:
         measured = tracker.measure(true)
+    probe_r = None
+    if probe_sigma_deg is not None:
+        mount = rotvec_to_matrix(np.array(PROBE_MOUNT_ROTVEC))
+        probe_r = tracker.measure_rotation(plant.flange_rotation_true() @ mount, probe_sigma_deg)
     return Measurement(
         xyz_mm=measured,
         tcp_true_mm=true,
@@ -186,11 +210,17 @@ def measure_at(
         t_s=plant.time_s,
         temp_c=plant.temperature_c(),
         more_xyz_mm=more,
+        probe_r=probe_r,
     )
 
 
-def _tracker(scenario: Scenario, seed: int, in_tracker_frame: bool) -> LaserTracker:
+def _tracker(scenario: Scenario, seed: int, in_tracker_frame: bool, moved: bool = False) -> LaserTracker:
     frame = scenario.tracker_T_base() if in_tracker_frame else np.eye(4)
+    if moved:  # the second station
+        move = np.eye(4)
+        move[:3, :3] = rotvec_to_matrix(np.array([0.0, 0.0, np.radians(RESTATION_ANGLE_DEG)]))
+        move[:3, 3] = RESTATION_SHIFT_MM
+        frame = move @ frame
     return LaserTracker(scenario.noise.tracker_sigma_mm, frame, seed=seed)
 
 
@@ -203,6 +233,8 @@ def run_campaign(
     in_tracker_frame: bool = False,
     gratings: bool = True,
     targets: int | None = None,
+    restation: bool = False,
+    probe_sigma_deg: float | None = None,
 ) -> Dataset:
     """A measurement campaign of ``n`` poses (× ``repeats``) on the scenario's hidden robot.
 
@@ -211,8 +243,11 @@ def run_campaign(
     x, y, z in the tracker frame of ``[cell]`` instead of the robot base frame. ``gratings`` adds
     g columns for the scenario's grating joints. ``targets`` (default: the scenario's) reflectors
     on the flange are measured at every pose (:func:`reflector_offsets_mm`; the hidden robot's tool
-    is the first).
+    is the first). ``restation``: the tracker moves to a second station half-way (module
+    docstring); ``probe_sigma_deg``: a 6-DOF probe's orientation and ``sigma_mm`` on every row.
     """
+    if probe_sigma_deg is not None and not (probe_sigma_deg >= 0 and np.isfinite(probe_sigma_deg)):
+        raise ValueError(f"probe_sigma_deg: must be a finite number >= 0, got {probe_sigma_deg!r}")
     cam = scenario.campaign
     seed = cam.seed if seed is None else seed
     repeats = cam.repeats if repeats is None else repeats
@@ -229,6 +264,7 @@ def run_campaign(
 
     plant = RobotPlant.from_scenario(scenario, seed=seed + 1)
     tracker = _tracker(scenario, seed + 2, in_tracker_frame)
+    second = _tracker(scenario, seed + 3, in_tracker_frame, moved=True) if restation else tracker
     order_parts = []
     here = cam.home_deg
     for load in cam.payload_kg:
@@ -243,6 +279,7 @@ def run_campaign(
     rows_pose: list[int] = []
     rows_rep: list[int] = []
     meas: list[Measurement] = []
+    total = repeats * len(order)
     for rep in range(repeats):
         for pose in order:
             if plant.payload_kg != payload_of_pose[pose]:
@@ -250,11 +287,12 @@ def run_campaign(
             meas.append(
                 measure_at(
                     plant,
-                    tracker,
+                    second if 2 * len(meas) >= total else tracker,
                     poses.a_deg[pose],
                     scenario.motion.dwell_s,
                     scenario.cell.grating_radius_mm,
                     more_flange,
+                    probe_sigma_deg,
                 )
             )
             rows_pose.append(int(pose))
@@ -279,8 +317,17 @@ def run_campaign(
         target_xyz_mm=poses.target_xyz_mm[idx],
         target_abc_deg=poses.target_abc_deg[idx],
         more_xyz_mm=np.array([m.more_xyz_mm for m in meas]) if targets > 1 else None,
+        station=tuple("B" if 2 * k >= total else "A" for k in range(total)) if restation else None,
+        probe_q_wxyz=None if probe_sigma_deg is None else _quaternions([m.probe_r for m in meas]),
+        sigma_mm=None if probe_sigma_deg is None else np.full(total, scenario.noise.tracker_sigma_mm),
         source=f"sim:{scenario.name}:seed{seed}",
     )
+
+
+def _quaternions(rotations: list[NDArray[np.float64] | None]) -> NDArray[np.float64]:
+    """(n, 4) unit quaternions, w first (w ≥ 0), of the probe's measured rotations."""
+    q = Rotation.from_matrix(np.array(rotations, dtype=float)).as_quat(scalar_first=True)
+    return np.where(q[:, :1] < 0, -q, q)
 
 
 @dataclass(frozen=True, slots=True)

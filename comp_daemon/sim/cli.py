@@ -45,6 +45,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         action="store_true",
         help="report x, y, z in the tracker's own frame (the scenario's [cell] tracker pose)",
     )
+    sample.add_argument(
+        "--restation",
+        action="store_true",
+        help="move the tracker half-way through (a second session): station column A/B, station B's "
+        "frame turned 50 deg about the vertical and moved 5 m",
+    )
+    sample.add_argument(
+        "--probe-sigma-deg",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="measure with a 6-DOF probe: its orientation (qw..qz) with this noise per axis (deg), "
+        "and sigma_mm (the tracker's sigma) on every row",
+    )
     sample.add_argument("--no-gratings", action="store_true", help="leave out the g columns")
     sample.add_argument(
         "--targets",
@@ -90,8 +104,11 @@ def _sample(args: argparse.Namespace) -> int:
     _positive(args.repeats, "--repeats")
     _positive(args.targets, "--targets")
     if args.scenario in CAMPAIGN_SCENARIOS:
-        if args.targets is not None:
-            raise ValueError(f"--targets is for pose campaigns, not a {args.scenario} campaign")
+        for flag, value in (("--targets", args.targets), ("--probe-sigma-deg", args.probe_sigma_deg)):
+            if value is not None:
+                raise ValueError(f"{flag} is for pose campaigns, not a {args.scenario} campaign")
+        if args.restation:
+            raise ValueError(f"--restation is for pose campaigns, not a {args.scenario} campaign")
         return _sample_bars(args)
     scenario = _scenario(args)
     dataset = run_campaign(
@@ -102,6 +119,8 @@ def _sample(args: argparse.Namespace) -> int:
         in_tracker_frame=args.tracker_frame,
         gratings=not args.no_gratings,
         targets=args.targets,
+        restation=args.restation,
+        probe_sigma_deg=args.probe_sigma_deg,
     )
     write_dataset(dataset, args.out)
     assert dataset.split is not None

@@ -354,6 +354,10 @@ class RobotPlant:
         """(3,) true TCP in the robot base frame (mm)."""
         return self._twin().tcp_mm[0].copy()
 
+    def flange_rotation_true(self) -> NDArray[np.float64]:
+        """(3, 3) true orientation of the flange frame in the robot base frame."""
+        return self._twin().chain.world_T_frame[0, 6, :3, :3].copy()
+
     def points_true_mm(self, flange_xyz_mm: NDArray[np.float64]) -> NDArray[np.float64]:
         """(k, 3) true positions (robot base frame, mm) of points fixed to the flange at ``flange_xyz_mm``
         (k, 3, flange frame): further reflectors beside the TCP."""

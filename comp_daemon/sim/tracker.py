@@ -10,6 +10,8 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.kinematics.so3 import rotvec_to_matrix
+
 __all__ = ["DEFAULT_SIGMA_MM", "LaserTracker"]
 
 DEFAULT_SIGMA_MM = 0.01
@@ -37,6 +39,12 @@ class LaserTracker:
         """Exact (noise-free) transform of (n, 3) or (3,) points from the robot base frame."""
         p = np.asarray(base_p_mm, dtype=float)
         return p @ self.tracker_T_base[:3, :3].T + self.tracker_T_base[:3, 3]
+
+    def measure_rotation(self, base_r: NDArray[np.float64], sigma_deg: float) -> NDArray[np.float64]:
+        """A 6-DOF probe's orientation (3, 3 in the robot base frame) as the tracker reports it: in its
+        frame, turned by a random rotation of ``sigma_deg`` per axis (a normal rotation vector)."""
+        noise = rotvec_to_matrix(self._rng.standard_normal(3) * np.radians(sigma_deg))
+        return np.asarray(noise @ self.tracker_T_base[:3, :3] @ np.asarray(base_r, dtype=float))
 
     def measure(self, base_p_mm: NDArray[np.float64]) -> NDArray[np.float64]:
         """Measured positions (same shape as the input) in the tracker frame, mm."""
