@@ -3,6 +3,7 @@
 * The remainder's structure test computes the out-of-fold shares of every permutation at once; a
   direct loop (bin means on each fold's training rows, predicted on its held-out rows) gives the
   same shares and the same decisions.
+* A model's k fold solves are one batched call: each fold's least squares on the other folds.
 * The further targets of a pose share one twin: the gravity torques carry the payload at the TCP
   whichever reflector is measured (as the Gauss–Newton cost has it), and the shared Jacobian is
   exact (central differences of the twin's predictions).
@@ -18,7 +19,7 @@ from diagnosis_campaigns import FURTHER_TARGETS_MM, random_geometry, sample_pose
 
 from comp_daemon.diagnosis import structure
 from comp_daemon.diagnosis.fitting import Observations, linearize_targets, predict_mm
-from comp_daemon.diagnosis.stats import make_folds
+from comp_daemon.diagnosis.stats import LinearProblem, make_folds
 from comp_daemon.kinematics.params import N_PARAMS, TOOL_SLICE, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state
 from comp_daemon.robot.description import load_robot
@@ -181,3 +182,24 @@ def test_the_shared_jacobian_of_every_target_is_exact() -> None:
         numeric = (pred(params, effects, up) - pred(params, effects, down)) / 2e-3
         np.testing.assert_allclose(tcols[:, :, k], numeric, rtol=0.0, atol=1e-8)
     assert resid.shape == (len(obs), 3)
+
+
+def test_the_batched_fold_solves_are_the_folds_least_squares() -> None:
+    """Cross-validated error and out-of-fold residuals of a model: every fold's least squares on the
+    other folds' rows, predicted on its own."""
+    rng = np.random.default_rng(5)
+    n, m = 120, 9
+    jac = rng.normal(size=(n, 3, m)) * np.logspace(-3, 3, m)  # columns of very different scales
+    resid = jac[:, :, :4] @ rng.normal(size=4) + rng.normal(0.0, 0.1, (n, 3))
+    fold = make_folds(np.arange(n) // 3, 5, 1)
+    lp = LinearProblem(resid, jac, np.arange(n) // 3, fold)
+    for cols in ([0, 1, 2, 3], [1, 4, 7, 8], [5]):
+        sse, oof = 0.0, np.empty_like(resid)
+        for f in range(5):
+            train, test = fold != f, fold == f
+            step, *_ = np.linalg.lstsq(jac[train][:, :, cols].reshape(-1, len(cols)), resid[train].ravel())
+            oof[test] = resid[test] - jac[test][:, :, cols] @ step
+            sse += float(np.sum(oof[test] ** 2))
+        assert lp.cv_sse(cols) == pytest.approx(sse, rel=1e-9)
+        np.testing.assert_allclose(lp.oof_residuals(cols), oof, rtol=0.0, atol=1e-9)
+    assert lp.cv_sse([]) == pytest.approx(float(np.sum(resid**2)), rel=1e-12)
