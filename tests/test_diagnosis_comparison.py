@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 from diagnosis_campaigns import NOISE_FLOOR_MM, make_campaign
 
+from comp_daemon.cli import main
+from comp_daemon.data.dataset import write_dataset
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.comparison import AGREE_PCT, DEFAULT_MODELS
 from comp_daemon.models.fitting import FitOptions
@@ -83,3 +88,21 @@ def test_the_comparison_can_be_left_out_and_a_model_without_its_data_is_skipped(
     assert [m["model"] for m in cmp["models"]] == ["kinematic"]
     assert cmp["skipped"][0]["model"] == "kinematic+ratio+backlash"
     assert "dir" in cmp["skipped"][0]["reason"]
+
+
+def test_the_command_line_and_the_report_say_the_comparison(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    camp = make_campaign("irb120", 92, [("backlash", 2, 8 * NOISE_FLOOR_MM)], n_poses=90, repeat_fraction=0.0)
+    data, out, page = tmp_path / "c.csv", tmp_path / "d.json", tmp_path / "d.html"
+    write_dataset(camp.dataset, data)
+    argv = ["diagnose", str(data), "--robot", "irb120", "--json", str(out), "--report", str(page)]
+    assert main([*argv, "--compare-models", "kinematic,kriging"]) == 0
+    printed = capsys.readouterr().out
+    cmp = json.loads(out.read_text("utf-8"))["model_comparison"]
+    assert sorted(m["model"] for m in cmp["models"]) == ["kinematic", "kriging"]
+    assert f"models: {cmp['summary']}" in printed
+    assert "Beside the compensation models" in page.read_text("utf-8")
+    assert main([*argv, "--compare-models", "none"]) == 0
+    assert "model_comparison" not in json.loads(out.read_text("utf-8"))
+    assert "models: " not in capsys.readouterr().out
