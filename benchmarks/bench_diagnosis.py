@@ -14,6 +14,11 @@ robot with wrist errors, three reflectors on the flange, a 5 µm tracker; the no
 from the reflectors' mutual distances and ``where`` holds the flange's position and orientation
 errors).
 
+The diagnosis compares its ladder with compensation models fitted on the same rows (by default
+``kinematic+ratio+backlash`` and ``kriging``, counted in the time); ``--compare-models none`` times
+it without them, ``--compare-models kriging:aniso,...`` with others (``compare_models`` in the output
+gives each model's CPU seconds).
+
 Run: ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.bench_diagnosis``
 """
 
@@ -28,7 +33,7 @@ import time
 import numpy as np
 
 from benchmarks.machine import machine_info, machine_line
-from comp_daemon.diagnosis import diagnose
+from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.sim.campaign import run_campaign
 from comp_daemon.sim.scenario import load_scenario
@@ -42,6 +47,7 @@ def run(
     aim_s: float = 30,
     *,
     report_only: bool = False,
+    compare_models: tuple[str, ...] | None = None,
 ) -> dict[str, object]:
     sc = load_scenario(scenario)
     dataset = run_campaign(sc, n, seed=1, targets=targets)
@@ -50,10 +56,16 @@ def run(
     report_times, report_cpu = [], []
     diag = None
     page = ""
+    options = DiagnoseOptions() if compare_models is None else DiagnoseOptions(compare_models=compare_models)
     for k in range(repeats):
         t0, c0 = time.perf_counter(), time.process_time()
         if diag is None or not report_only:
-            diag = diagnose(dataset, sc.robot)
+            options = (
+                DiagnoseOptions()
+                if compare_models is None
+                else DiagnoseOptions(compare_models=compare_models)
+            )
+            diag = diagnose(dataset, sc.robot, options)
             times.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
         if report_only and k == 0:
@@ -71,6 +83,7 @@ def run(
         "noise_floor_mm": diag.noise_floor_mm,
         "noise_floor_source": diag.noise_floor_source,
         "steps": [f"{s.effect}{s.joints}" for s in diag.steps],
+        "compare_models": [] if diag.model_comparison is None else diag.model_comparison.to_json()["models"],
         "repeats": repeats,
         "best_s": round(min(times), 3),
         "median_s": round(float(np.median(times)), 3),
@@ -101,9 +114,25 @@ def main() -> None:
         action="store_true",
         help="diagnose once and time only the HTML report, --repeats times",
     )
+    parser.add_argument(
+        "--compare-models",
+        metavar="M1,M2",
+        default=None,
+        help="the diagnosis's compensation models compared with the ladder (default: the diagnosis's; "
+        "'none': no comparison)",
+    )
     args = parser.parse_args()
+    compare = None
+    if args.compare_models is not None:
+        compare = tuple(m for m in args.compare_models.split(",") if m and m != "none")
     result = run(
-        args.poses, args.repeats, args.scenario, args.targets, args.aim_s, report_only=args.report_only
+        args.poses,
+        args.repeats,
+        args.scenario,
+        args.targets,
+        args.aim_s,
+        report_only=args.report_only,
+        compare_models=compare,
     )
     size = result["report_bytes"]
     assert isinstance(size, int)

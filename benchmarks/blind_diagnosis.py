@@ -50,6 +50,7 @@ from diagnosis_campaigns import (
 )
 
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
+from comp_daemon.diagnosis.comparison import AGREE_PCT
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 
@@ -202,6 +203,16 @@ def run_time_case(case: dict[str, Any]) -> dict[str, Any]:
         "seconds": round(elapsed, 3),
         "unexplained_rms_mm": doc["unexplained_rms_mm"],
         "noise_floor_mm": doc["noise_floor_mm"],
+    }
+
+
+def _comparison_of(doc: dict[str, Any]) -> dict[str, Any] | None:
+    """The ladder beside the compensation models (``model_comparison``): the best and by how much."""
+    comparison = doc.get("model_comparison")
+    if comparison is None:
+        return None
+    return {
+        k: comparison[k] for k in ("agree", "best", "best_check_rms_mm", "better_pct", "ladder_check_rms_mm")
     }
 
 
@@ -373,6 +384,7 @@ def run_realistic_case(case: dict[str, Any]) -> dict[str, Any]:
         "seconds": round(elapsed, 3),
         "unexplained_rms_mm": doc["unexplained_rms_mm"],
         "noise_floor_mm": doc["noise_floor_mm"],
+        "model_comparison": _comparison_of(doc),
     }
 
 
@@ -515,9 +527,21 @@ def realistic_main(args: argparse.Namespace) -> None:
     print(f"{len(results)} realistic campaigns in {time.perf_counter() - t0:.0f} s")
     for r in results:
         verdict = "right" if r["hit"] else "WRONG"
-        print(f"  {verdict:5s} {r['name']:45s} seed {r['seed']} named {r['named']}")
+        models = r.get("model_comparison")
+        beside = (
+            ""
+            if not models or models["best"] is None
+            else f"; best model {models['best']} {models['better_pct']:+.0f} % vs the ladder"
+            + ("" if models["agree"] else " (disagree)")
+        )
+        print(f"  {verdict:5s} {r['name']:45s} seed {r['seed']} named {r['named']}{beside}")
     right = sum(r["hit"] for r in results)
     print(f"right: {right}/{len(results)}")
+    compared = [r["model_comparison"] for r in results if r.get("model_comparison")]
+    if compared:
+        agree = sum(bool(c["agree"]) for c in compared)
+        within = f"the ladder within {AGREE_PCT:g} % of (or below) the best model compared"
+        print(f"{within}: {agree}/{len(compared)}")
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
 

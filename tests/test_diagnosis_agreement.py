@@ -88,3 +88,8 @@ def test_an_error_outside_the_vocabulary_is_reported_by_its_axes_not_named_as_an
     found = doc["unnamed_errors"][0]
     assert found["driver_axis"] == 2 and 3 in found["joints"]
     assert "that no effect of the vocabulary names" in doc["where"]["summary"]
+    # a compensation model with ratio on every joint takes part of it: said, and why it is not named
+    beside = doc["model_comparison"]
+    assert beside["agree"] is False and beside["best"] == "kinematic+ratio+backlash"
+    assert "that the diagnosis does not name" in beside["lacks"]
+    assert "compensated, not named" in beside["summary"]

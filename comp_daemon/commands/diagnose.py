@@ -22,6 +22,7 @@ from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset_file
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
+from comp_daemon.diagnosis.comparison import DEFAULT_MODELS
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.models.effects import EFFECTS
@@ -100,6 +101,14 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
         "(backlash is then not tested)",
     )
+    p.add_argument(
+        "--compare-models",
+        metavar="M1,M2",
+        default=",".join(DEFAULT_MODELS),
+        help="compensation models (names as for evaluate --models) fitted on the same fit rows and "
+        "compared with the ladder on the check rows; 'none' to leave the comparison out "
+        "(default: %(default)s)",
+    )
     p.set_defaults(func=_run)
 
 
@@ -110,6 +119,9 @@ def _run(args: argparse.Namespace) -> int:
         raise UserError(
             f"--effects names no effect; give one or more of {', '.join(EFFECTS)}, or leave it out to try all"
         )
+    compare = tuple(m.strip() for m in args.compare_models.split(",") if m.strip())
+    if compare == ("none",):
+        compare = ()
     options = DiagnoseOptions(
         frame=args.frame,
         harmonics=args.harmonics,
@@ -120,6 +132,7 @@ def _run(args: argparse.Namespace) -> int:
         effects=effects,
         infer_directions=args.infer_dir,
         probe_sigma_deg=args.probe_sigma_deg,
+        compare_models=compare,
     )
     path = Path(args.data)
     # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
@@ -215,6 +228,8 @@ def _run(args: argparse.Namespace) -> int:
             )
         if diag.remainder_model is not None and diag.remainder_model.tried:
             print(diag.remainder_model.describe(), file=out)
+        if diag.model_comparison is not None:
+            print(f"models: {diag.model_comparison.describe()}", file=out)
     return 0
 
 

@@ -16,22 +16,29 @@ from __future__ import annotations
 import dataclasses
 from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.params import N_PARAMS, TOOL_SLICE, KinematicParams
-from comp_daemon.models.effects import EffectParams, MassModel, twin_jacobian, twin_state, twin_tcp_mm
+from comp_daemon.models.effects import (
+    EffectParams,
+    MassModel,
+    TwinState,
+    twin_jacobian_targets,
+    twin_state,
+)
 
 __all__ = [
     "FitResult",
     "Observations",
     "at_fit",
+    "by_poses",
     "fit_twin",
     "flange_mm",
     "linearize",
     "linearize_targets",
+    "on_flange",
     "predict_mm",
     "project_out",
     "seen_from_flange",
@@ -118,26 +125,61 @@ class Observations:
         return out
 
 
-def _at_target(params: KinematicParams, offset_mm: FloatArray | None) -> KinematicParams:
-    return params if offset_mm is None else dataclasses.replace(params, tool_xyz_mm=offset_mm)
+def _same_poses(a: Observations, b: Observations) -> bool:
+    """Whether two sets of rows are the same poses in the same order (one twin serves both)."""
+
+    def same(x: FloatArray | None, y: FloatArray | None) -> bool:
+        return (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
+
+    return (
+        np.array_equal(a.a_deg, b.a_deg)
+        and np.array_equal(a.payload_kg, b.payload_kg)
+        and same(a.dir, b.dir)
+        and same(a.temp_c, b.temp_c)
+        and same(a.clock, b.clock)
+    )
+
+
+def by_poses(
+    obs: Observations,
+) -> list[tuple[Observations, list[tuple[NDArray[np.int64], FloatArray | None]]]]:
+    """The targets grouped by the poses they were measured at: per group, the first target's
+    observations and each member's rows and place on the flange (None for the TCP). The targets of
+    a campaign share their poses, so there is one group and one twin evaluation for all of them."""
+    groups: list[tuple[Observations, list[tuple[NDArray[np.int64], FloatArray | None]]]] = []
+    for rows, sub, offset in obs.by_target():
+        group = next((g for g in groups if _same_poses(g[0], sub)), None)
+        if group is None:
+            groups.append((sub, [(rows, offset)]))
+        else:
+            group[1].append((rows, offset))
+    return groups
+
+
+def _twin(mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations) -> TwinState:
+    return twin_state(mass, params, effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock)
+
+
+def on_flange(st: TwinState, place_mm: FloatArray | None) -> FloatArray:
+    """(n, 3) the twin's position of a point at ``place_mm`` on the flange (None: the TCP)."""
+    if place_mm is None:
+        return st.tcp_mm
+    flange = st.chain.world_T_frame[:, 6]
+    out: FloatArray = flange[:, :3, :3] @ place_mm + flange[:, :3, 3]
+    return out
 
 
 def predict_mm(
     mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
 ) -> FloatArray:
-    """(n, 3) the twin's position of each row's target at the observed poses (mm, world frame)."""
+    """(n, 3) the twin's position of each row's target at the observed poses (mm, world frame).
+
+    The targets of one pose share one twin (its gravity torques with the payload at the TCP)."""
     out = np.empty((len(obs), 3))
-    for rows, sub, offset in obs.by_target():
-        out[rows] = twin_tcp_mm(
-            mass,
-            _at_target(params, offset),
-            effects,
-            sub.a_deg,
-            sub.dir,
-            sub.payload_kg,
-            sub.temp_c,
-            clock=sub.clock,
-        )
+    for sub, members in by_poses(obs):
+        st = _twin(mass, params, effects, sub)
+        for rows, offset in members:
+            out[rows] = on_flange(st, offset)
     return out
 
 
@@ -149,20 +191,22 @@ def _jacobians(
     obs: Observations,
 ) -> Iterator[tuple[NDArray[np.int64], FloatArray, FloatArray, FloatArray | None]]:
     """Per target: its rows, the twin's positions there and their Jacobian, and its place on the
-    flange (None for the TCP)."""
-    for rows, sub, offset in obs.by_target():
-        tcp, jac = twin_jacobian(
+    flange (None for the TCP); one twin per group of targets that share their poses."""
+    for sub, members in by_poses(obs):
+        parts = twin_jacobian_targets(
             mass,
-            _at_target(params, offset),
+            params,
             effects,
             list(names),
+            [offset for _, offset in members],
             sub.a_deg,
             sub.dir,
             sub.payload_kg,
             sub.temp_c,
             clock=sub.clock,
         )
-        yield rows, tcp, jac, offset
+        for (rows, offset), (tcp, jac) in zip(members, parts, strict=True):
+            yield rows, tcp, jac, offset
 
 
 def linearize(
@@ -290,22 +334,19 @@ def fit_twin(
             return float(np.sum(r * r)), obs
         offsets = np.array(obs.target_offsets_mm, dtype=float)
         sse = 0.0
-        first: tuple[Observations, Any] | None = None  # the targets share their poses: one twin
-        for rows, sub, offset in obs.by_target():
-            if first is not None and np.array_equal(first[0].a_deg, sub.a_deg):
-                st = first[1]
-            else:
-                st = twin_state(mass, p, e, sub.a_deg, sub.dir, sub.payload_kg, sub.temp_c, clock=sub.clock)
-                first = (sub, st)
-            if offset is None:
-                pred = st.tcp_mm
-            else:
-                flange = st.chain.world_T_frame[:, 6]
-                rot, origin = flange[:, :3, :3], flange[:, :3, 3]
-                place = seen_from_flange(rot, origin, sub.xyz_mm)
-                offsets[int(obs.target[rows[0]]) - 1] = place
-                pred = origin + rot @ place
-            sse += float(np.sum((sub.xyz_mm - pred) ** 2))
+        for sub, members in by_poses(obs):  # the targets share their poses: one twin
+            st = _twin(mass, p, e, sub)
+            flange = st.chain.world_T_frame[:, 6]
+            rot, origin = flange[:, :3, :3], flange[:, :3, 3]
+            for rows, offset in members:
+                measured = obs.xyz_mm[rows]
+                if offset is None:
+                    pred = st.tcp_mm
+                else:
+                    place = seen_from_flange(rot, origin, measured)
+                    offsets[int(obs.target[rows[0]]) - 1] = place
+                    pred = origin + rot @ place
+                sse += float(np.sum((measured - pred) ** 2))
         return sse, dataclasses.replace(obs, target_offsets_mm=offsets)
 
     cost, current = cost_of(params, effects)

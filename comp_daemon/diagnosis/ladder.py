@@ -76,6 +76,7 @@ from comp_daemon.diagnosis.candidates import (
     group_skips,
     unidentifiable_candidates,
 )
+from comp_daemon.diagnosis.comparison import compare_models
 from comp_daemon.diagnosis.fitting import (
     FitResult,
     Observations,
@@ -266,6 +267,18 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         where["summary"] += " " + flange_words(flange)
     remainder = _remainder(ctx, steps)
     where["summary"] = " ".join([where["summary"], *(u.describe() for u in unnamed), remainder.describe()])
+    comparison = None
+    if options.compare_models:  # 8. the compensation models on the same rows
+        comparison = compare_models(
+            prepared,
+            robot,
+            options.compare_models,
+            final_step(steps).check_rms_mm,
+            remainder,
+            [u.to_json() for u in unnamed],
+            folds=options.folds,
+            seed=options.seed,
+        )
     return Diagnosis(
         robot=robot,
         dataset=dataset,
@@ -296,6 +309,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         remainder_rows="check rows, and fit rows out of fold",
         time_nuisance=ctx.nuisance is not None,
         remainder_model=remainder,
+        model_comparison=comparison,
     )
 
 

@@ -223,6 +223,26 @@ def _remainder_html(diag: Diagnosis) -> str:
     return words + "<table>" + table + "</table>"
 
 
+def _comparison_html(diag: Diagnosis) -> str:
+    """The ladder beside the compensation models fitted on the same rows."""
+    comparison = diag.model_comparison
+    if comparison is None:
+        return "<p>No compensation model was compared (<code>--compare-models none</code>).</p>"
+    rows = [("the ladder (last significant step)", comparison.ladder_check_rms_mm, "")]
+    rows += [(m["model"], m["check_rms_mm"], f"{m['cpu_s']:.2f}") for m in comparison.models]
+    if comparison.remainder_check_rms_mm is not None:
+        rows.append(("the ladder + its joint-space remainder model", comparison.remainder_check_rms_mm, ""))
+    table = "".join(
+        f"<tr><td class=l>{_e(name)}</td><td>{_num(rms)}</td><td>{cpu}</td></tr>" for name, rms, cpu in rows
+    )
+    skipped = "".join(f"<li>{_e(s['model'])}: {_e(s['reason'])}</li>" for s in comparison.skipped)
+    return (
+        f"<p>{_e(comparison.describe())}</p><table><tr><th class=l>model</th>"
+        f"<th>check RMS (mm, {comparison.check_rows} rows)</th><th>fit CPU (s)</th></tr>{table}</table>"
+        + (f"<p>Not compared:</p><ul>{skipped}</ul>" if skipped else "")
+    )
+
+
 def _where_tables(where: dict[str, Any]) -> str:
     axis = where["axis_rms_mm"]
     out = [
@@ -311,6 +331,8 @@ def render_report_html(diag: Diagnosis) -> str:
         _structure_table(diag),
         "<h2>Joint-space remainder model</h2>",
         _remainder_html(diag),
+        "<h2>Beside the compensation models</h2>",
+        _comparison_html(diag),
         "<h2>Not tested</h2><ul>",
         skipped,
         "</ul>",

@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
 from comp_daemon.diagnosis.agreement import Agreement
+from comp_daemon.diagnosis.comparison import DEFAULT_MODELS, ModelComparison, check_model_names
 from comp_daemon.diagnosis.fitting import FitResult, Observations
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
@@ -63,6 +64,8 @@ class DiagnoseOptions:
     remainder_model: bool = True  # try the joint-space remainder model after the ladder
     infer_directions: bool = True  # without dir columns, approach directions from the pose order
     probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG  # a 6-DOF probe's orientation σ per axis
+    # compensation models fitted on the same rows and compared with the ladder (empty: none)
+    compare_models: tuple[str, ...] = DEFAULT_MODELS
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
@@ -79,6 +82,7 @@ class DiagnoseOptions:
             unknown = [e for e in self.effects if e not in EFFECTS]
             if unknown:
                 raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
+        object.__setattr__(self, "compare_models", check_model_names(self.compare_models))
         if self.tracker_sigma_mm is not None and not (
             math.isfinite(self.tracker_sigma_mm) and self.tracker_sigma_mm > 0.0
         ):
@@ -174,6 +178,8 @@ class Diagnosis:
     agreement: Agreement | None = None  # whether the fit and check rows tell the same story
     # errors an effect stood in for that a flexible alternative of its driver explains better
     unnamed: list[dict[str, Any]] = field(default_factory=list)
+    # the ladder beside compensation models fitted on the same rows (None: none compared)
+    model_comparison: ModelComparison | None = None
 
     @property
     def significant_steps(self) -> list[Step]:
@@ -230,6 +236,9 @@ class Diagnosis:
             "unnamed_errors": self.unnamed,
             "remainder_rows": self.remainder_rows,
             **({} if self.remainder_model is None else {"remainder_model": self.remainder_model.to_json()}),
+            **(
+                {} if self.model_comparison is None else {"model_comparison": self.model_comparison.to_json()}
+            ),
             "unidentifiable": self.unidentifiable,
             "skipped": self.skipped,
             "selection": self.selection,

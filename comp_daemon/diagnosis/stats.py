@@ -119,19 +119,31 @@ class LinearProblem:
         step = self.solve(cols)
         return float(self.rtr - step @ self.jtr[idx])
 
+    def _fold_steps(self, idx: IntArray) -> tuple[FloatArray, FloatArray, FloatArray]:
+        """Per fold, the model ``idx`` fitted without the fold: the scaled steps (k, p), and the
+        fold's own Gram matrices (k, p, p) and ``Jᵀr`` (k, p). The k solves are one batched call."""
+        fold_gram = self.fold_gram[:, idx][:, :, idx]
+        fold_jtr = self.fold_jtr[:, idx]
+        g_train = self.gram[np.ix_(idx, idx)] - fold_gram
+        b_train = self.jtr[idx] - fold_jtr
+        try:
+            steps = scipy.linalg.solve(g_train, b_train[:, :, None], assume_a="pos", check_finite=False)[
+                :, :, 0
+            ]
+        except (np.linalg.LinAlgError, scipy.linalg.LinAlgError):
+            steps = np.array([self._solve(g, b) for g, b in zip(g_train, b_train, strict=True)])
+        return np.asarray(steps), fold_gram, fold_jtr
+
     def cv_sse(self, cols: Sequence[int]) -> float:
         """Sum over folds of the held-out squared residuals (mm²) of the model ``cols``."""
         idx = np.asarray(cols, dtype=np.int64)
+        if len(idx) == 0:
+            return float(sum(float(v) for v in self.fold_rtr))
+        steps, fold_gram, fold_jtr = self._fold_steps(idx)
         total = 0.0
         for f in range(self.k):
-            if len(idx) == 0:
-                total += self.fold_rtr[f]
-                continue
-            g_train = self.gram[np.ix_(idx, idx)] - self.fold_gram[f][np.ix_(idx, idx)]
-            b_train = self.jtr[idx] - self.fold_jtr[f][idx]
-            step = self._solve(g_train, b_train)
-            g_test = self.fold_gram[f][np.ix_(idx, idx)]
-            total += self.fold_rtr[f] - 2.0 * step @ self.fold_jtr[f][idx] + step @ g_test @ step
+            step = steps[f]
+            total += self.fold_rtr[f] - 2.0 * step @ fold_jtr[f] + step @ fold_gram[f] @ step
         return float(total)
 
     def oof_residuals(self, cols: Sequence[int]) -> FloatArray:
@@ -140,12 +152,10 @@ class LinearProblem:
         out = self.r.copy()
         if len(idx) == 0:
             return out
+        steps, _, _ = self._fold_steps(idx)
         for f in range(self.k):
-            g_train = self.gram[np.ix_(idx, idx)] - self.fold_gram[f][np.ix_(idx, idx)]
-            b_train = self.jtr[idx] - self.fold_jtr[f][idx]
-            step = self._solve(g_train, b_train)
             rows = self.fold == f
-            out[rows] = self.r[rows] - self.jac[rows][:, :, idx] @ step
+            out[rows] = self.r[rows] - self.jac[rows][:, :, idx] @ steps[f]
         return out
 
     def cv_rms_mm(self, cols: Sequence[int]) -> float:

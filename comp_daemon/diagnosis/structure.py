@@ -52,6 +52,8 @@ N_PERMUTATIONS_FIRST = 199
 N_PERMUTATIONS = 2999
 #: the names of the time variables
 TIME_VARIABLES = ("t_s", "pose_order")
+#: permutations whose out-of-fold shares are computed together
+_BLOCK = 512
 
 
 @dataclass(frozen=True)
@@ -83,30 +85,41 @@ def _bins(values: FloatArray) -> IntArray:
 
 
 def _oof_shares(resid: FloatArray, bins: IntArray, fold: IntArray) -> FloatArray:
-    """Out-of-fold share of variance explained by the bin means, for each row of ``bins`` (P, n)."""
+    """Out-of-fold share of variance explained by the bin means, for each row of ``bins`` (P, n).
+
+    Every permutation at once: one pass per quantity (count, x, y, z) sums the rows per
+    (permutation, fold, bin); a fold's training means are the totals less the fold's own sums, and
+    its held-out squared error is ``Σ r² − Σ_k (2·m_k·S_k − m_k²·N_k)`` over the bins k of its rows
+    (``S_k``, ``N_k`` the fold's sum and count in bin k, ``m_k`` the training mean there). Done in
+    blocks of :data:`_BLOCK` permutations to bound the memory.
+    """
     n_perm = bins.shape[0]
     n_bins = int(bins.max()) + 1
-    sse = np.zeros(n_perm)
-    sst = 0.0
-    offset = (np.arange(n_perm) * n_bins)[:, None]
-    flat = (bins + offset).ravel()
-    for f in range(int(fold.max()) + 1):
-        train = fold != f
-        test = ~train
-        w = np.tile(train.astype(float), n_perm)
-        counts = np.bincount(flat, weights=w, minlength=n_perm * n_bins).reshape(n_perm, n_bins)
-        mean_train = resid[train].mean(axis=0)
-        sst += float(np.sum((resid[test] - mean_train) ** 2))
-        test_bins = bins[:, test] + offset
-        for c in range(3):
-            wc = np.tile(np.where(train, resid[:, c], 0.0), n_perm)
-            sums = np.bincount(flat, weights=wc, minlength=n_perm * n_bins).reshape(n_perm, n_bins)
-            means = np.divide(sums, counts, out=np.full_like(sums, mean_train[c]), where=counts > 0)
-            pred = means.ravel()[test_bins]
-            sse += np.sum((resid[test, c][None, :] - pred) ** 2, axis=1)
+    n_folds = int(fold.max()) + 1
+    held = [fold == f for f in range(n_folds)]
+    # per fold: the training mean (the prediction in a bin without training rows), Σ r² held out
+    mean_train = np.array([resid[~rows].mean(axis=0) for rows in held])  # (F, 3)
+    r2_held = sum(float(np.sum(resid[rows] ** 2)) for rows in held)
+    sst = sum(float(np.sum((resid[rows] - mean_train[f]) ** 2)) for f, rows in enumerate(held))
     if sst <= 0.0:
         return np.zeros(n_perm)
-    out: FloatArray = 1.0 - sse / sst
+    out = np.empty(n_perm)
+    cells = n_folds * n_bins
+    for start in range(0, n_perm, _BLOCK):
+        block = bins[start : start + _BLOCK]
+        p = block.shape[0]
+        key = (block + (fold * n_bins)[None, :] + (np.arange(p) * cells)[:, None]).ravel()
+        count = np.bincount(key, minlength=p * cells).reshape(p, n_folds, n_bins).astype(float)
+        count_train = count.sum(axis=1, keepdims=True) - count
+        gain = np.zeros(p)
+        for c in range(3):
+            sums = np.bincount(key, weights=np.tile(resid[:, c], p), minlength=p * cells)
+            sums = sums.reshape(p, n_folds, n_bins)
+            sums_train = sums.sum(axis=1, keepdims=True) - sums
+            fallback = np.broadcast_to(mean_train[None, :, c, None], sums.shape)
+            means = np.divide(sums_train, count_train, out=fallback.copy(), where=count_train > 0)
+            gain += np.sum(means * (2.0 * sums - means * count), axis=(1, 2))
+        out[start : start + p] = 1.0 - (r2_held - gain) / sst
     return out
 
 

@@ -26,6 +26,7 @@ from comp_daemon.models.effects.twin import (
     joint_output_axes_deg,
     twin_inputs,
     twin_jacobian,
+    twin_jacobian_targets,
     twin_state,
     twin_tcp_mm,
 )
@@ -46,6 +47,7 @@ __all__ = [
     "joint_output_axes_deg",
     "twin_inputs",
     "twin_jacobian",
+    "twin_jacobian_targets",
     "twin_state",
     "twin_tcp_mm",
 ]

@@ -30,7 +30,7 @@ column for industrial stiffness), which is left out as in every Gauss–Newton c
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -52,6 +52,7 @@ __all__ = [
     "joint_output_axes_deg",
     "twin_inputs",
     "twin_jacobian",
+    "twin_jacobian_targets",
     "twin_state",
     "twin_tcp_mm",
 ]
@@ -379,3 +380,41 @@ def twin_jacobian(
         robot_or_arrays, params, effects, names, a_deg, dir, payload_kg, temp_c, clock
     )
     return tcp, np.concatenate([geo, eff], axis=2)
+
+
+def twin_jacobian_targets(
+    robot_or_arrays: RobotDescription | MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: Sequence[str],
+    targets_mm: Sequence[FloatArray | None],
+    a_deg: FloatArray,
+    dir: FloatArray | None = None,
+    payload_kg: FloatArray | float = 0.0,
+    temp_c: FloatArray | None = None,
+    *,
+    clock: FloatArray | None = None,
+) -> list[tuple[FloatArray, FloatArray]]:
+    """:func:`twin_jacobian` of several points on the flange at the same poses, from one twin.
+
+    ``targets_mm`` holds each point's place in the flange frame (mm), None for the TCP (the tool
+    of ``params``). The twin (its effects, frames and the gravity torques, whose payload sits at the
+    TCP whichever point is measured) is evaluated once; each point's position and columns are then
+    those of :func:`twin_jacobian` with the point as the tool. Returns (position (n, 3), Jacobian
+    (n, 3, 39 + len(names))) per point, in the order given.
+    """
+    torques = _needs_torques(effects, names)
+    st = twin_state(
+        robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, with_torques=torques, clock=clock
+    )
+    flange = st.chain.world_T_frame[:, 6]
+    out = []
+    for place in targets_mm:
+        at, p = st, params
+        if place is not None:
+            p = replace(params, tool_xyz_mm=np.asarray(place, dtype=float))
+            tcp = flange[:, :3, :3] @ p.tool_xyz_mm + flange[:, :3, 3]
+            at = replace(st, chain=replace(st.chain, tcp_mm=tcp), tcp_mm=tcp)
+        geo = _geometric(p, effects, at)
+        out.append((at.tcp_mm, np.concatenate([geo, _effect_columns(p, effects, at, names, geo)], axis=2)))
+    return out
