@@ -24,12 +24,14 @@ from typing import Any
 
 import numpy as np
 
+from comp_daemon.commands.data import read_options_of
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.ballbar import BallbarCampaign
 from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS, read_table
 from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.columns import DatasetError
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
@@ -51,20 +53,21 @@ def nominal_tcp(robot: RobotDescription) -> Any:
     return lambda a_deg: tcp_position_mm(params, axes_deg_to_q_rad(a_deg, params.sign))
 
 
-def _header(path: str) -> list[str]:
+def _header(path: str, delimiter: str) -> list[str]:
     with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
-        first = next(csv.reader(io.StringIO(f.readline())), [])
+        first = next(csv.reader(io.StringIO(f.readline()), delimiter=delimiter), [])
     return [h.strip() for h in first]
 
 
-def is_campaign_file(path: str) -> bool:
-    """Whether a CSV file's header is that of a ballbar or cross-bar campaign (JSON: read whole)."""
+def is_campaign_file(path: str, options: ReadOptions | None = None) -> bool:
+    """Whether a CSV file's header (fields separated as ``options`` say) is that of a ballbar or
+    cross-bar campaign (JSON: read whole)."""
     try:
         if Path(path).suffix.lower() == ".json":
             from comp_daemon.data.bars import campaign_kind
 
-            return campaign_kind(read_table(path)) is not None
-        header = set(_header(path))
+            return campaign_kind(read_table(path, options=options)) is not None
+        header = set(_header(path, (options or ReadOptions()).delimiter))
     except (OSError, DatasetError):
         return False
     return bool(header & {*BALLBAR_MARKERS, *CROSSBAR_MARKERS})
@@ -73,7 +76,7 @@ def is_campaign_file(path: str) -> bool:
 def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     """``fit`` of a ballbar or cross-bar campaign (module docstring)."""
     try:
-        table = read_table(args.data, limits_deg=robot.axis_limits_deg)
+        table = read_table(args.data, limits_deg=robot.axis_limits_deg, options=read_options_of(args))
         campaign = campaign_of(table, tcp_mm=nominal_tcp(robot))
     except DatasetError as exc:
         raise UserError(str(exc)) from None
@@ -175,7 +178,7 @@ def evaluate_solvers(args: argparse.Namespace, robot: RobotDescription) -> int:
     if args.agents < 2 or args.iterations < 1 or not seeds:
         raise UserError("--agents must be >= 2, --iterations >= 1, --solver-seeds at least one seed")
     try:
-        table = read_table(args.data, limits_deg=robot.axis_limits_deg)
+        table = read_table(args.data, limits_deg=robot.axis_limits_deg, options=read_options_of(args))
         campaign = campaign_of(table, tcp_mm=nominal_tcp(robot), expect="ballbar")
     except DatasetError as exc:
         raise UserError(str(exc)) from None

@@ -326,7 +326,7 @@ def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    if is_campaign_file(args.data):  # ballbar or cross-bar: the campaign's own calibration
+    if is_campaign_file(args.data, read_options_of(args)):  # a ballbar or cross-bar campaign
         return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)

@@ -24,7 +24,9 @@ numbers are.
 read as a decimal point). ``--units LENGTH,ANGLE`` (``mm`` or ``m``; ``deg`` or ``rad``) scales the
 length columns (``x, y, z``, ``xK, yK, zK``, ``tx, ty, tz``, ``sigma_mm``) and the angle columns
 (``a1 … a6``, ``g1 … g6``, ``ta, tb, tc``) to mm and degrees before every other check, so limits,
-refusals and everything downstream see the data set's own units. Cells that are not plain numbers
+refusals and everything downstream see the data set's own units; in a ballbar or cross-bar campaign
+also its lengths (``bar_mm``, ``bar_nominal_mm``, ``cx, cy, cz``, ``bar_l_mm``; ``dr_um`` stays µm,
+and ``--decimal-comma`` reads ``dr_um``, ``arc`` and ``placement`` too). Cells that are not plain numbers
 are left as they are, for the reader to refuse them.
 
 ``--euler CONVENTION`` reads a 6-DOF probe's orientation from the Euler angle columns ``e1, e2,
@@ -54,6 +56,9 @@ from comp_daemon.data.euler import EULER_COLUMNS, EulerConvention, parse_euler
 from comp_daemon.data.table import Dataset
 
 __all__ = [
+    "CAMPAIGN_LENGTH_COLUMNS",
+    "CAMPAIGN_MARKERS",
+    "CAMPAIGN_NUMBER_COLUMNS",
     "DELIMITERS",
     "MIN_SPREAD",
     "ReadOptions",
@@ -64,6 +69,13 @@ __all__ = [
 DELIMITERS = {",": ",", ";": ";", "tab": "\t"}
 #: the spread (largest max − min of an axis column) above which a file is a campaign, not one pose
 MIN_SPREAD = 0.2
+#: the length columns of a ballbar or cross-bar campaign (:mod:`comp_daemon.data.bars`), scaled by
+#: ``--units`` and read with ``--decimal-comma`` in a file that has one of :data:`CAMPAIGN_MARKERS`
+CAMPAIGN_LENGTH_COLUMNS: tuple[str, ...] = ("bar_mm", "bar_nominal_mm", "cx", "cy", "cz", "bar_l_mm")
+#: their further number columns: read with ``--decimal-comma``, never scaled (``dr_um`` is µm by name)
+CAMPAIGN_NUMBER_COLUMNS: tuple[str, ...] = ("dr_um", "arc", "placement")
+#: the columns that make a file a ballbar or cross-bar campaign
+CAMPAIGN_MARKERS: tuple[str, ...] = ("bar_mm", "bar_nominal_mm", "dr_um", "placement", "socket", "bar_l_mm")
 
 LengthUnit = Literal["mm", "m"]
 AngleUnit = Literal["deg", "rad"]
@@ -163,11 +175,14 @@ class ReadOptions:
         euler = self._euler_columns(table)
         if not self.decimal_comma and length == 1.0 and angle == 1.0 and not euler:
             return table
+        campaign = any(name in table.columns for name in CAMPAIGN_MARKERS)
+        lengths = CAMPAIGN_LENGTH_COLUMNS if campaign else ()
+        numbers = (*lengths, *CAMPAIGN_NUMBER_COLUMNS) if campaign else ()
         own = None if self.euler is None else self.euler.unit
         euler_scale = angle if own is None else _ANGLE_SCALE[own]
         columns = dict(table.columns)
         for name, cells in table.columns.items():
-            if not (_numeric(name) or name in euler):
+            if not (_numeric(name) or name in euler or name in numbers):
                 continue
             out = list(cells)
             if self.decimal_comma:
@@ -183,7 +198,7 @@ class ReadOptions:
                         )
                     if _COMMA_NUMBER.fullmatch(cell):
                         out[i] = cell.replace(",", ".")
-            scale = euler_scale if name in euler else self._scale(name, length, angle)
+            scale = euler_scale if name in euler else self._scale(name, length, angle, lengths)
             if scale != 1.0:
                 out = [repr(float(c) * scale) if _PLAIN.fullmatch(c) else c for c in out]
             columns[name] = out
@@ -191,8 +206,10 @@ class ReadOptions:
         return self._quaternions(converted) if euler else converted
 
     @staticmethod
-    def _scale(name: str, length: float, angle: float) -> float:
-        return length if _length_column(name) else angle if _angle_column(name) else 1.0
+    def _scale(name: str, length: float, angle: float, lengths: tuple[str, ...]) -> float:
+        if _length_column(name) or name in lengths:
+            return length
+        return angle if _angle_column(name) else 1.0
 
     def _euler_columns(self, table: CellTable) -> tuple[str, ...]:
         """``e1, e2, e3`` when ``--euler`` reads them; a table the option does not fit is refused."""
