@@ -35,11 +35,11 @@ from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.kinematics.poe import PoeModel
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
 from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction, uncertainty_summary
 from comp_daemon.models.covariance import near_dependent_note
 from comp_daemon.models.evaluation import error_statistics
+from comp_daemon.models.poe import layout_twists, paper_layout
 from comp_daemon.models.solver_comparison import SolverProblem, compare_solvers, parse_solvers, solver_table
 from comp_daemon.models.uncertainty import repeat_uncertainty
 from comp_daemon.robot.description import RobotDescription
@@ -82,7 +82,10 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
         raise UserError(str(exc)) from None
     assert campaign is not None
     try:
-        fitted, check = fit_campaign(robot, campaign, model=args.model, seed=args.seed)
+        fix = bool(getattr(args, "fix_near_dependent", False))
+        fitted, check = fit_campaign(
+            robot, campaign, model=args.model, seed=args.seed, fix_near_dependent=fix
+        )
     except ValueError as exc:
         raise UserError(f"{campaign.source}: {exc}") from None
     info = dict(fitted.info)
@@ -95,6 +98,12 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     )
     for line in info["not_identifiable"]:
         print(f"  {line if line.startswith('not identifiable') else 'not identifiable: ' + line}")
+    for held in info.get("near_dependent_fixed", ()):
+        other = next(n for n in held["pair"] if n != held["fixed"])
+        print(
+            f"  held at zero: {held['fixed']} (near-dependent on {other}, r {held['correlation']:+.3f}, "
+            f"condition {held['condition']:.3g}; --fix-near-dependent)"
+        )
     note = near_dependent_note(info)
     if note:
         print(f"  {note}")
@@ -197,7 +206,7 @@ def evaluate_solvers(args: argparse.Namespace, robot: RobotDescription) -> int:
     check_rows, _ = _readings(campaign, check_rows)
     problem = SolverProblem(
         name=Path(campaign.source).name,
-        model=PoeModel.from_robot(robot),
+        model=layout_twists(robot, paper_layout(robot)),  # the layout fit_campaign identifies on
         pivot_mm=campaign.pivot_mm,
         a_fit=campaign.a_deg[fit_rows],
         bar_fit=campaign.bar_mm[fit_rows],

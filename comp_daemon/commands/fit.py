@@ -123,6 +123,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
     _common(fit)
     fit.add_argument("--out", required=True, help="model artifact to write (JSON)")
+    fit.add_argument(
+        "--fix-near-dependent",
+        action="store_true",
+        help="ballbar campaigns: hold the weaker parameter of each near-dependent pair (|correlation| > 0.9) "
+        "at zero and fit again (never a pivot offset); the pairs are named either way",
+    )
     fit.set_defaults(func=_fit)
 
     ev = subparsers.add_parser(

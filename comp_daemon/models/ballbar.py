@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -36,6 +37,7 @@ from comp_daemon.common.logs import get_logger
 from comp_daemon.kinematics.inverse import solve_ik_axes
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel, poe_chain, poe_error_jacobian
+from comp_daemon.models.covariance import near_dependent_pairs
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.poe import (
     NullDirection,
@@ -62,6 +64,7 @@ __all__ = [
     "plan_ballbar_axes",
     "sphere_point_mm",
     "to_canonical",
+    "weaker_of_pairs",
 ]
 
 _log = get_logger(__name__)
@@ -275,6 +278,13 @@ class BallbarFit:
     h_after_mm: float
     iterations: int
     reason: str
+    # near-dependent pairs resolved by holding one member at zero (fit_ballbar's fix_near_dependent)
+    fixed_pairs: tuple[dict[str, Any], ...] = ()
+
+    @property
+    def fitted_index(self) -> NDArray[np.intp]:
+        """The identifiable parameters the fit moved: without those of :attr:`fixed_pairs`."""
+        return _without(self.report.identifiable_index, {p["fixed"] for p in self.fixed_pairs})
 
     @property
     def rank(self) -> int:
@@ -308,11 +318,16 @@ def fit_ballbar(
     weights_are_inverse_variance: bool = False,
     theta0: NDArray[np.float64] | None = None,
     rtol: float = 1e-7,
+    fixed: Sequence[str] = (),
+    fix_near_dependent: bool = False,
 ) -> BallbarFit:
     """Identify POE errors and pivot offset from measured lengths ``bar_mm`` (n,), improved LM.
 
     ``weights`` (n,) multiply the squared residuals (e.g. ``1/u²``); ``theta0`` warm-starts (the
-    nested uncertainty loop). Only the identifiable columns move.
+    nested uncertainty loop); ``fixed`` names parameters held at zero besides the not identifiable
+    ones. Only the identifiable columns move. ``fix_near_dependent``: the near-dependent pairs of
+    the fit are resolved by holding one of each at zero and fitting again
+    (:func:`weaker_of_pairs`); :attr:`BallbarFit.fixed_pairs` names them.
     """
     a = np.atleast_2d(np.asarray(a_deg, dtype=float))
     measured = np.asarray(bar_mm, dtype=float)
@@ -324,12 +339,24 @@ def fit_ballbar(
         return (length - measured) * sw, jac * sw[:, None]
 
     report, null = ballbar_identifiability(model, a, pivot_mm, np.zeros(N_BALLBAR_PARAMS), rtol)
-    keep = report.identifiable_index
+    keep = _without(report.identifiable_index, fixed)
     start[np.setdiff1d(np.arange(N_BALLBAR_PARAMS), keep)] = 0.0
     h0 = float(np.sqrt(np.mean((ballbar_lengths_mm(model, a, start, pivot_mm) - measured) ** 2)))
     theta, std, cov, its, reason, _ = fit_least_squares_subset(
         fn, start, keep, inverse_variance=weights_are_inverse_variance
     )
+    fixed_pairs: tuple[dict[str, Any], ...] = ()
+    if fix_near_dependent:
+        _, jac = fn(theta)
+        fixed_pairs = weaker_of_pairs(keep, cov, np.linalg.norm(jac, axis=0))
+        if fixed_pairs:
+            held = {p["fixed"] for p in fixed_pairs}
+            keep = _without(keep, held)
+            start[[BALLBAR_PARAM_NAMES.index(n) for n in held]] = 0.0
+            theta, std, cov, more, reason, _ = fit_least_squares_subset(
+                fn, start, keep, inverse_variance=weights_are_inverse_variance
+            )
+            its += more
     h1 = float(np.sqrt(np.mean((ballbar_lengths_mm(model, a, theta, pivot_mm) - measured) ** 2)))
     _log.info("ballbar_fit", points=measured.size, rank=report.rank_svd, h_before_mm=h0, h_after_mm=h1)
     return BallbarFit(
@@ -342,7 +369,38 @@ def fit_ballbar(
         h_after_mm=h1,
         iterations=its,
         reason=reason,
+        fixed_pairs=fixed_pairs,
     )
+
+
+def _without(index: NDArray[np.intp], names: Sequence[str] | set[str]) -> NDArray[np.intp]:
+    return np.array([k for k in index if BALLBAR_PARAM_NAMES[k] not in names], dtype=np.intp)
+
+
+def weaker_of_pairs(
+    keep: NDArray[np.intp], cov: NDArray[np.float64], column_norms: NDArray[np.float64]
+) -> tuple[dict[str, Any], ...]:
+    """Which parameter of each near-dependent pair of a fit to hold at zero (one pass, strongest pair
+    first, each parameter at most once): ``({"pair", "correlation", "condition", "fixed"}, …)``.
+
+    The one held is the *weaker* of the pair: the one the lengths determine less, i.e. with the larger
+    variance in units of its own column (``cov_kk·|J_k|²``, the variance of the fit on unit columns).
+    A pivot offset is never the one held: where the ball was set down is an unknown of the set-up, of
+    millimetres, while the robot's errors are small; the robot's member of such a pair is held instead.
+    """
+    names = [BALLBAR_PARAM_NAMES[k] for k in keep]
+    pairs = near_dependent_pairs(names, cov[np.ix_(keep, keep)])
+    scaled = np.diag(cov) * column_norms**2
+    held: list[str] = []
+    out = []
+    for pair in pairs:
+        members = [n for n in pair["pair"] if n not in PIVOT_NAMES]
+        if not members or any(n in held for n in pair["pair"]):
+            continue
+        weaker = max(members, key=lambda n: scaled[BALLBAR_PARAM_NAMES.index(n)])
+        held.append(weaker)
+        out.append({**pair, "fixed": weaker})
+    return tuple(out)
 
 
 def to_canonical(theta: NDArray[np.float64], pivot_mm: ArrayLike) -> NDArray[np.float64]:
