@@ -14,9 +14,12 @@ X_o·Δθ1 to first order), a shift along z0 makes Δl1 + Δl2 indistinguishable
 POE dependencies (Δl1 ≡ Δl2, Δl5 ≡ Δl6, Δθ6 zero with the TCP on axis 6) and, with the tool held
 vertical, the parallel axes 2, 3, 5 (Δθ3 = Δθ5's effect plus a forearm shift), a single-orientation
 campaign identifies 9 (vertical tool) or 10 (tilted) of the 15; one orientation per arc with an
-off-axis TCP reaches 11. :func:`ballbar_identifiability` names the removed parameters in the spec's
-canonical order (pivot kept, then Δθ1 and Δl2 fixed) and the null directions; the fit keeps them at
-zero and reports them as "not identifiable" instead of returning arbitrary values.
+off-axis TCP reaches 11 (10 with the TCP on axis 6, as in the IRB 120 preset). Pairs that are
+identifiable but barely told apart are named by the campaign fit (near-dependent pairs) and, on
+request, the weaker of each held at zero (:func:`weaker_of_pairs`).
+:func:`ballbar_identifiability` names the removed parameters in the spec's canonical order (pivot
+kept, then Δθ1 and Δl2 fixed) and the null directions; the fit keeps them at zero and reports them
+as "not identifiable" instead of returning arbitrary values.
 
 Arcs (spec A.5): :func:`arc_through_points` is the circle through three points (bisector planes and
 the points' plane), sampled every 5° from P1 through P2 to P3. :func:`default_arcs` is the spec's
