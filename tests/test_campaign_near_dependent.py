@@ -59,3 +59,24 @@ def test_the_fix_lowers_the_held_out_arcs_bar_error_on_seed_002s_robot() -> None
     _, fixed = fit_campaign(scenario.robot, campaign, fix_near_dependent=True)
     before, after = kept["bar_error_rms_mm"]["after"], fixed["bar_error_rms_mm"]["after"]
     assert after < 0.8 * before  # measured: 0.064 -> 0.045 mm
+
+
+def test_the_ridge_pulls_the_errors_toward_zero_and_lowers_the_held_out_bar_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    scenario = load_scenario("irb120-geometric")
+    campaign = campaign_of(run_ballbar_campaign(scenario, arcs=5, seed=1, check_arcs=1))
+    assert campaign is not None
+    plain, kept = fit_campaign(scenario.robot, campaign)
+    ridged, ridge = fit_campaign(scenario.robot, campaign, ridge=True)
+    assert ridge["bar_error_rms_mm"]["after"] < 0.8 * kept["bar_error_rms_mm"]["after"]  # 0.064 -> 0.032 mm
+    assert plain.info["ridge"] is None and "5 mm of dl or 2 deg of dtheta" in ridged.info["ridge"]
+    dl4 = [abs(f.info["identified"]["dl4"]["value"]) for f in (plain, ridged)]
+    assert dl4[1] < 0.5 * dl4[0]
+    data, out = tmp_path / "bb.csv", tmp_path / "bb.json"
+    assert (
+        main(["sim", "sample", "--scenario", "ballbar", "--n", "3", "--seed", "1", "--out", str(data)]) == 0
+    )
+    capsys.readouterr()
+    assert main(["fit", str(data), "--robot", "irb120", "--model", "poe", "--out", str(out), "--ridge"]) == 0
+    assert "ridge (--ridge): each POE error pulled toward zero" in capsys.readouterr().out

@@ -82,9 +82,9 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
         raise UserError(str(exc)) from None
     assert campaign is not None
     try:
-        fix = bool(getattr(args, "fix_near_dependent", False))
+        fix, ridge = bool(getattr(args, "fix_near_dependent", False)), bool(getattr(args, "ridge", False))
         fitted, check = fit_campaign(
-            robot, campaign, model=args.model, seed=args.seed, fix_near_dependent=fix
+            robot, campaign, model=args.model, seed=args.seed, fix_near_dependent=fix, ridge=ridge
         )
     except ValueError as exc:
         raise UserError(f"{campaign.source}: {exc}") from None
@@ -98,6 +98,8 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     )
     for line in info["not_identifiable"]:
         print(f"  {line if line.startswith('not identifiable') else 'not identifiable: ' + line}")
+    if info.get("ridge"):
+        print(f"  ridge (--ridge): {info['ridge']}")
     for held in info.get("near_dependent_fixed", ()):
         other = next(n for n in held["pair"] if n != held["fixed"])
         print(

@@ -129,6 +129,12 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         help="ballbar campaigns: hold the weaker parameter of each near-dependent pair (|correlation| > 0.9) "
         "at zero and fit again (never a pivot offset); the pairs are named either way",
     )
+    fit.add_argument(
+        "--ridge",
+        action="store_true",
+        help="ballbar campaigns: pull every POE error toward zero (5 mm of dl or 2 deg of dtheta cost as "
+        "much as 1 mm of length residual on one reading); docs/seeds-002-003.md measures it",
+    )
     fit.set_defaults(func=_fit)
 
     ev = subparsers.add_parser(

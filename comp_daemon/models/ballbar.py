@@ -54,6 +54,7 @@ __all__ = [
     "PAPER_PIVOT_MM",
     "PAPER_RADIUS_MM",
     "PIVOT_NAMES",
+    "RIDGE_SCALES",
     "Arc",
     "BallbarFit",
     "arc_through_points",
@@ -323,6 +324,7 @@ def fit_ballbar(
     rtol: float = 1e-7,
     fixed: Sequence[str] = (),
     fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> BallbarFit:
     """Identify POE errors and pivot offset from measured lengths ``bar_mm`` (n,), improved LM.
 
@@ -330,7 +332,8 @@ def fit_ballbar(
     nested uncertainty loop); ``fixed`` names parameters held at zero besides the not identifiable
     ones. Only the identifiable columns move. ``fix_near_dependent``: the near-dependent pairs of
     the fit are resolved by holding one of each at zero and fitting again
-    (:func:`weaker_of_pairs`); :attr:`BallbarFit.fixed_pairs` names them.
+    (:func:`weaker_of_pairs`); :attr:`BallbarFit.fixed_pairs` names them. ``ridge``: each POE error
+    is also pulled toward zero by a row ``error / scale`` (mm), :data:`RIDGE_SCALES`.
     """
     a = np.atleast_2d(np.asarray(a_deg, dtype=float))
     measured = np.asarray(bar_mm, dtype=float)
@@ -339,7 +342,13 @@ def fit_ballbar(
 
     def fn(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         length, jac = ballbar_jacobian(model, a, theta, pivot_mm)
-        return (length - measured) * sw, jac * sw[:, None]
+        if not ridge:
+            return (length - measured) * sw, jac * sw[:, None]
+        w = np.concatenate([1.0 / _RIDGE, np.zeros(len(PIVOT_NAMES))])
+        return (
+            np.concatenate([(length - measured) * sw, w * theta]),
+            np.vstack([jac * sw[:, None], np.diag(w)]),
+        )
 
     report, null = ballbar_identifiability(model, a, pivot_mm, np.zeros(N_BALLBAR_PARAMS), rtol)
     keep = _without(report.identifiable_index, fixed)
@@ -374,6 +383,12 @@ def fit_ballbar(
         reason=reason,
         fixed_pairs=fixed_pairs,
     )
+
+
+#: the ridge option's scales: a POE error of this size costs as much as 1 mm of length residual on one
+#: reading (Δl mm, Δθ deg); the pivot offset is not pulled
+RIDGE_SCALES: tuple[float, float] = (5.0, 2.0)
+_RIDGE = np.array([RIDGE_SCALES[0]] * 6 + [np.radians(RIDGE_SCALES[1])] * 6)
 
 
 def _without(index: NDArray[np.intp], names: Sequence[str] | set[str]) -> NDArray[np.intp]:

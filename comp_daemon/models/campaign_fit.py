@@ -39,7 +39,13 @@ from comp_daemon.data.campaigns import Campaign
 from comp_daemon.data.crossbar import CrossbarCampaign
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
-from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, BallbarFit, ballbar_lengths_mm, fit_ballbar
+from comp_daemon.models.ballbar import (
+    BALLBAR_PARAM_NAMES,
+    RIDGE_SCALES,
+    BallbarFit,
+    ballbar_lengths_mm,
+    fit_ballbar,
+)
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.covariance import ParameterCovariance, covariance_from_fit, near_dependent_pairs
 from comp_daemon.models.crossbar import bar_errors_mm, calibrate_crossbar, check_plan, constraint_rows
@@ -101,6 +107,7 @@ def fit_ballbar_repeats(
     u_mm: NDArray[np.float64],
     pivot_mm: NDArray[np.float64],
     fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> tuple[BallbarFit, NDArray[np.float64], dict[str, Any]]:
     """The uncertainty mode of spec A.8 on one reading per pose with its standard uncertainty ``u_mm``.
 
@@ -109,7 +116,8 @@ def fit_ballbar_repeats(
     explain the readings to their uncertainty), the nested loop's parameters (the model's), and the
     report: u and b = 1.96·u, the unweighted and weighted fits side by side, every nested round.
     ``fix_near_dependent``: the weighted fit's near-dependent pairs are resolved as
-    :func:`~comp_daemon.models.ballbar.fit_ballbar` does, and the same parameters held in every fit.
+    :func:`~comp_daemon.models.ballbar.fit_ballbar` does, and the same parameters held in every fit;
+    ``ridge`` as there, in every fit.
     """
     b = Z_95 * u_mm
     w = weights_from_uncertainty(u_mm)
@@ -121,9 +129,10 @@ def fit_ballbar_repeats(
         weights=w,
         weights_are_inverse_variance=True,
         fix_near_dependent=fix_near_dependent,
+        ridge=ridge,
     )
     held = tuple(p["fixed"] for p in weighted.fixed_pairs)
-    unweighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm, fixed=held)
+    unweighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm, fixed=held, ridge=ridge)
     last = [weighted]
 
     def identify(values: NDArray[np.float64], warm: NDArray[np.float64] | None) -> NDArray[np.float64]:
@@ -138,6 +147,7 @@ def fit_ballbar_repeats(
             weights_are_inverse_variance=True,
             theta0=warm,
             fixed=held,
+            ridge=ridge,
         )
         return last[0].theta
 
@@ -229,12 +239,14 @@ def fit_ballbar_campaign(
     rows: NDArray[np.intp] | None = None,
     *,
     fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> FittedModel:
     """The ``poe`` model of a ballbar campaign's rows ``rows`` (default: all); a campaign of repeated
     poses in the uncertainty mode (module docstring). ``fix_near_dependent`` holds the weaker of each
     near-dependent pair at zero (:func:`comp_daemon.models.ballbar.weaker_of_pairs`); either way the
     pairs are named in ``info["identifiability"]["near_dependent"]`` and those held in
-    ``info["near_dependent_fixed"]``."""
+    ``info["near_dependent_fixed"]``. ``ridge`` pulls every POE error toward zero
+    (:data:`comp_daemon.models.ballbar.RIDGE_SCALES`; ``info["ridge"]`` states it)."""
     idx = np.arange(len(campaign)) if rows is None else np.asarray(rows)
     layout = paper_layout(robot)
     twists = layout_twists(robot, layout)
@@ -243,14 +255,16 @@ def fit_ballbar_campaign(
         idx, u, counts = _repeat_readings(campaign, idx)
         a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
         fit, theta, uncertainty = fit_ballbar_repeats(
-            twists, a, bar, u, campaign.pivot_mm, fix_near_dependent=fix_near_dependent
+            twists, a, bar, u, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
         )
         uncertainty["repeats"] = {"min": int(counts.min()), "max": int(counts.max())}
         h_after = _rms(ballbar_lengths_mm(twists, a, theta, campaign.pivot_mm) - bar)
         sigma = float(np.sqrt(np.mean(np.maximum(u, U_FLOOR_MM) ** 2)))  # per length, from the repeats
     else:
         a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
-        fit = fit_ballbar(twists, a, bar, campaign.pivot_mm, fix_near_dependent=fix_near_dependent)
+        fit = fit_ballbar(
+            twists, a, bar, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
+        )
         theta, h_after = fit.theta, fit.h_after_mm
     model = PoeErrorModel(robot, theta[:N_POE_PARAMS], np.eye(4), layout=layout)
     keep = fit.fitted_index
@@ -292,6 +306,12 @@ def fit_ballbar_campaign(
         },
         "not_identifiable": [d.describe() for d in fit.null_space],
         "near_dependent_fixed": list(fit.fixed_pairs),
+        "ridge": (
+            f"each POE error pulled toward zero: {RIDGE_SCALES[0]:g} mm of dl or {RIDGE_SCALES[1]:g} deg of "
+            "dtheta cost as much as 1 mm of length residual on one reading"
+            if ridge
+            else None
+        ),
         "identified": _identified([BALLBAR_PARAM_NAMES[i] for i in keep], theta[keep], fit.std[keep]),
         "frame": "robot base (nominal); a tracker frame is registered on tracker data",
     }
@@ -385,18 +405,21 @@ def fit_campaign(
     seed: int = 0,
     check_fraction: float = 0.0,
     fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> tuple[FittedModel, dict[str, Any]]:
     """Fit the model a campaign calibrates on its fit arcs / crosses, and judge it on the check ones.
 
     The split is the file's (whole arcs or placements), or drawn with ``check_fraction`` and
     ``seed``; the returned dict holds the rows used and the bar errors (mm) of the check arcs or
     crosses before (nominal) and after the calibration (empty without check rows).
-    ``fix_near_dependent`` (ballbar campaigns): :func:`fit_ballbar_campaign`'s.
+    ``fix_near_dependent`` and ``ridge`` (ballbar campaigns): :func:`fit_ballbar_campaign`'s.
     """
     if isinstance(campaign, BallbarCampaign):
         campaign_model("ballbar", model)
         fit_rows, check_rows, drawn = campaign.split(seed=seed, check_fraction=check_fraction)
-        fitted = fit_ballbar_campaign(robot, campaign, fit_rows, fix_near_dependent=fix_near_dependent)
+        fitted = fit_ballbar_campaign(
+            robot, campaign, fit_rows, fix_near_dependent=fix_near_dependent, ridge=ridge
+        )
         check: dict[str, Any] = {
             "fit_rows": int(fit_rows.size),
             "check_rows": int(check_rows.size),
