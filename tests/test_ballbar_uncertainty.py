@@ -15,7 +15,7 @@ from comp_daemon.cli import main
 from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.dataset import dataset_to_csv
-from comp_daemon.kinematics.poe import PoeModel
+from comp_daemon.kinematics.poe import irb120_table1
 from comp_daemon.models.artifact import load_model
 from comp_daemon.models.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
 from comp_daemon.models.ballbar_plan import TABLE5_ERRORS, ballbar_plan
@@ -26,7 +26,7 @@ from comp_daemon.robot.description import load_robot
 ROBOT = load_robot("irb120")
 PLAN = ballbar_plan(ROBOT, 3)
 TRUTH = np.concatenate([TABLE5_ERRORS, [0.8, -0.6, 0.5]])
-EXACT = ballbar_lengths_mm(PoeModel.from_robot(ROBOT), PLAN.a_deg, TRUTH, PAPER_PIVOT_MM)
+EXACT = ballbar_lengths_mm(irb120_table1(ROBOT), PLAN.a_deg, TRUTH, PAPER_PIVOT_MM)
 SIGMA_MM = 0.0035  # spec A.9's reading noise
 REPEATS = 5
 
@@ -76,7 +76,10 @@ def test_u_b_weights_and_the_nested_loop_are_reported_with_the_fit() -> None:
     assert nested["stop"] in ("converged", "unchanged", "max_rounds") and nested["rounds"]
     assert nested["rounds"][0]["corrected"] > 0
     if nested["stop"] == "converged":
-        assert nested["flagged"] == 0 and nested["max_abs_residual_over_b"] <= 0.25 + 1e-9
+        # converged: every residual within b/4, except those beyond b, flagged (model error or a
+        # reading whose u the repeats underestimated): a few of 103 at most
+        assert nested["flagged"] <= 0.05 * u.size
+        assert nested["flagged"] > 0 or nested["max_abs_residual_over_b"] <= 0.25 + 1e-9
     # weighted and unweighted fits side by side; the model carries the identified POE errors' covariance
     assert set(unc["weighted"]["identified"]) == set(unc["unweighted"]["identified"])
     cov = fitted.model.uncertainty

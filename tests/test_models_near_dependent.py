@@ -23,7 +23,9 @@ def test_pairs_by_correlation_strongest_first() -> None:
     pairs = near_dependent_pairs(["a", "b", "c", "d"], cov)
     assert [p["pair"] for p in pairs] == [["c", "d"], ["a", "b"]]
     assert pairs[0]["correlation"] == pytest.approx(-0.99)
-    assert describe_pairs(pairs) == "c ~ d (r -0.990), a ~ b (r +0.930)"
+    # the condition of a pair's correlation matrix: (1 + |r|) / (1 - |r|)
+    assert [p["condition"] for p in pairs] == pytest.approx([1.99 / 0.01, 1.93 / 0.07])
+    assert describe_pairs(pairs) == "c ~ d (r -0.990, condition 199), a ~ b (r +0.930, condition 27.6)"
     # a parameter the fit did not identify (zero variance) is in no pair
     cov[1, :] = cov[:, 1] = 0.0
     assert [p["pair"] for p in near_dependent_pairs(["a", "b", "c", "d"], cov)] == [["c", "d"]]
@@ -36,7 +38,7 @@ def test_seed002_ballbar_fit_flags_dl4_and_dtheta3(
     tmp_path: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
     """Seed 002's ballbar campaign on the IRB 120: dl4 and dtheta3 come out correlated by 0.94,
-    dl4 at -3.3 ± 0.4 mm where the robot's errors are 0.3 mm; the fit now says so by name."""
+    dl4 at -2.9 ± 0.4 mm where the robot's errors are 0.3 mm; the fit now says so by name."""
     data, model = tmp_path / "bb.csv", tmp_path / "bb.json"
     assert (
         main(["sim", "sample", "--scenario", "ballbar", "--n", "6", "--seed", "2", "--out", str(data)]) == 0

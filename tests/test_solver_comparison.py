@@ -12,7 +12,7 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.data.ballbar import ballbar_dataset
 from comp_daemon.data.dataset import dataset_to_csv
-from comp_daemon.kinematics.poe import PoeModel
+from comp_daemon.kinematics.poe import irb120_table1
 from comp_daemon.models.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
 from comp_daemon.models.ballbar_plan import TABLE5_ERRORS, ballbar_plan
 from comp_daemon.models.solver_comparison import (
@@ -56,7 +56,7 @@ def test_evaluate_solvers_cli_on_a_ballbar_campaign(
 ) -> None:
     plan = ballbar_plan(ROBOT, 4)
     truth = np.concatenate([TABLE5_ERRORS, [0.8, -0.6, 0.5]])
-    bar = ballbar_lengths_mm(PoeModel.from_robot(ROBOT), plan.a_deg, truth, PAPER_PIVOT_MM)
+    bar = ballbar_lengths_mm(irb120_table1(ROBOT), plan.a_deg, truth, PAPER_PIVOT_MM)
     data = tmp_path / "bb.csv"
     data.write_text(dataset_to_csv(ballbar_dataset(plan.a_deg, plan.arc, PAPER_PIVOT_MM, bar_mm=bar)))
     out = tmp_path / "runs.json"

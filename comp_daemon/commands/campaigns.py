@@ -24,20 +24,22 @@ from typing import Any
 
 import numpy as np
 
+from comp_daemon.commands.data import read_options_of
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.ballbar import BallbarCampaign
 from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS, read_table
 from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.columns import DatasetError
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.kinematics.poe import PoeModel
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
 from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction, uncertainty_summary
 from comp_daemon.models.covariance import near_dependent_note
 from comp_daemon.models.evaluation import error_statistics
+from comp_daemon.models.poe import layout_twists, paper_layout
 from comp_daemon.models.solver_comparison import SolverProblem, compare_solvers, parse_solvers, solver_table
 from comp_daemon.models.uncertainty import repeat_uncertainty
 from comp_daemon.robot.description import RobotDescription
@@ -51,20 +53,21 @@ def nominal_tcp(robot: RobotDescription) -> Any:
     return lambda a_deg: tcp_position_mm(params, axes_deg_to_q_rad(a_deg, params.sign))
 
 
-def _header(path: str) -> list[str]:
+def _header(path: str, delimiter: str) -> list[str]:
     with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
-        first = next(csv.reader(io.StringIO(f.readline())), [])
+        first = next(csv.reader(io.StringIO(f.readline()), delimiter=delimiter), [])
     return [h.strip() for h in first]
 
 
-def is_campaign_file(path: str) -> bool:
-    """Whether a CSV file's header is that of a ballbar or cross-bar campaign (JSON: read whole)."""
+def is_campaign_file(path: str, options: ReadOptions | None = None) -> bool:
+    """Whether a CSV file's header (fields separated as ``options`` say) is that of a ballbar or
+    cross-bar campaign (JSON: read whole)."""
     try:
         if Path(path).suffix.lower() == ".json":
             from comp_daemon.data.bars import campaign_kind
 
-            return campaign_kind(read_table(path)) is not None
-        header = set(_header(path))
+            return campaign_kind(read_table(path, options=options)) is not None
+        header = set(_header(path, (options or ReadOptions()).delimiter))
     except (OSError, DatasetError):
         return False
     return bool(header & {*BALLBAR_MARKERS, *CROSSBAR_MARKERS})
@@ -73,13 +76,16 @@ def is_campaign_file(path: str) -> bool:
 def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     """``fit`` of a ballbar or cross-bar campaign (module docstring)."""
     try:
-        table = read_table(args.data, limits_deg=robot.axis_limits_deg)
+        table = read_table(args.data, limits_deg=robot.axis_limits_deg, options=read_options_of(args))
         campaign = campaign_of(table, tcp_mm=nominal_tcp(robot))
     except DatasetError as exc:
         raise UserError(str(exc)) from None
     assert campaign is not None
     try:
-        fitted, check = fit_campaign(robot, campaign, model=args.model, seed=args.seed)
+        fix, ridge = bool(getattr(args, "fix_near_dependent", False)), bool(getattr(args, "ridge", False))
+        fitted, check = fit_campaign(
+            robot, campaign, model=args.model, seed=args.seed, fix_near_dependent=fix, ridge=ridge
+        )
     except ValueError as exc:
         raise UserError(f"{campaign.source}: {exc}") from None
     info = dict(fitted.info)
@@ -92,6 +98,14 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     )
     for line in info["not_identifiable"]:
         print(f"  {line if line.startswith('not identifiable') else 'not identifiable: ' + line}")
+    if info.get("ridge"):
+        print(f"  ridge (--ridge): {info['ridge']}")
+    for held in info.get("near_dependent_fixed", ()):
+        other = next(n for n in held["pair"] if n != held["fixed"])
+        print(
+            f"  held at zero: {held['fixed']} (near-dependent on {other}, r {held['correlation']:+.3f}, "
+            f"condition {held['condition']:.3g}; --fix-near-dependent)"
+        )
     note = near_dependent_note(info)
     if note:
         print(f"  {note}")
@@ -175,7 +189,7 @@ def evaluate_solvers(args: argparse.Namespace, robot: RobotDescription) -> int:
     if args.agents < 2 or args.iterations < 1 or not seeds:
         raise UserError("--agents must be >= 2, --iterations >= 1, --solver-seeds at least one seed")
     try:
-        table = read_table(args.data, limits_deg=robot.axis_limits_deg)
+        table = read_table(args.data, limits_deg=robot.axis_limits_deg, options=read_options_of(args))
         campaign = campaign_of(table, tcp_mm=nominal_tcp(robot), expect="ballbar")
     except DatasetError as exc:
         raise UserError(str(exc)) from None
@@ -194,7 +208,7 @@ def evaluate_solvers(args: argparse.Namespace, robot: RobotDescription) -> int:
     check_rows, _ = _readings(campaign, check_rows)
     problem = SolverProblem(
         name=Path(campaign.source).name,
-        model=PoeModel.from_robot(robot),
+        model=layout_twists(robot, paper_layout(robot)),  # the layout fit_campaign identifies on
         pivot_mm=campaign.pivot_mm,
         a_fit=campaign.a_deg[fit_rows],
         bar_fit=campaign.bar_mm[fit_rows],

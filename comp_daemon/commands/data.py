@@ -7,7 +7,7 @@ as ``fit`` and ``diagnose`` (:func:`comp_daemon.models.units.millimetre_problem`
 in ``.json`` are read as JSON records, anything else as CSV.
 
 :func:`reader_options` adds the options that say how a file from another tool is written
-(``--delimiter``, ``--decimal-comma``, ``--units``; :mod:`comp_daemon.data.options`) to every
+(``--delimiter``, ``--decimal-comma``, ``--units``, ``--euler``; :mod:`comp_daemon.data.options`) to every
 command that reads a campaign or a target file; :func:`read_options_of` turns them into
 :class:`~comp_daemon.data.options.ReadOptions`.
 """
@@ -55,7 +55,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def reader_options(parser: argparse.ArgumentParser) -> None:
-    """``--delimiter``, ``--decimal-comma`` and ``--units``: how the data file is written."""
+    """``--delimiter``, ``--decimal-comma``, ``--units`` and ``--euler``: how the data file is written."""
     group = parser.add_argument_group("how the data file is written (default: the data set format)")
     group.add_argument(
         "--delimiter",
@@ -76,11 +76,20 @@ def reader_options(parser: argparse.ArgumentParser) -> None:
         help="units of the file's positions (mm or m) and angles (deg or rad), e.g. m,rad; default mm,deg. "
         "Stating it also turns off the refusal of files that look like metres or radians",
     )
+    group.add_argument(
+        "--euler",
+        default=None,
+        metavar="CONVENTION",
+        help="a 6-DOF probe's orientation as Euler angles in columns e1, e2, e3 (the first, second, third "
+        "rotation), e.g. intrinsic-zyx (R = Rz(e1) Ry(e2) Rx(e3), KUKA's A, B, C) or extrinsic-xyz; "
+        "angles in --units' unit unless it ends in -deg or -rad. Read into qw, qx, qy, qz",
+    )
 
 
 def read_options_of(args: argparse.Namespace) -> ReadOptions:
-    """The :class:`ReadOptions` of a command's ``--delimiter``, ``--decimal-comma``, ``--units``."""
-    return ReadOptions.of(args.delimiter, args.decimal_comma, args.units)
+    """The :class:`ReadOptions` of a command's ``--delimiter``, ``--decimal-comma``, ``--units``,
+    ``--euler``."""
+    return ReadOptions.of(args.delimiter, args.decimal_comma, args.units, args.euler)
 
 
 def _check(args: argparse.Namespace) -> int:

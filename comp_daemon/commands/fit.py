@@ -125,6 +125,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
     _common(fit)
     fit.add_argument("--out", required=True, help="model artifact to write (JSON)")
+    fit.add_argument(
+        "--fix-near-dependent",
+        action="store_true",
+        help="ballbar campaigns: hold the weaker parameter of each near-dependent pair (|correlation| > 0.9) "
+        "at zero and fit again (never a pivot offset); the pairs are named either way",
+    )
+    fit.add_argument(
+        "--ridge",
+        action="store_true",
+        help="ballbar campaigns: pull every POE error toward zero (5 mm of dl or 2 deg of dtheta cost as "
+        "much as 1 mm of length residual on one reading); docs/seeds-002-003.md measures it",
+    )
     fit.set_defaults(func=_fit)
 
     ev = subparsers.add_parser(
@@ -347,7 +359,7 @@ def load_robot_cached(args: argparse.Namespace) -> RobotDescription:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    if is_campaign_file(args.data):  # ballbar or cross-bar: the campaign's own calibration
+    if is_campaign_file(args.data, read_options_of(args)):  # a ballbar or cross-bar campaign
         return fit_campaign_file(args, load_robot_cached(args))
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)

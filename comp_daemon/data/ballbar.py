@@ -31,6 +31,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from comp_daemon.data.bars import Columns, constant, group_split, read_table, whole_groups_split
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
 
 __all__ = [
@@ -183,11 +184,13 @@ def read_ballbar(
     fmt: Literal["csv", "json"] | None = None,
     source: str | None = None,
     limits_deg: ArrayLike | None = None,
+    options: ReadOptions | None = None,
     tcp_mm: TcpFunction | None = None,
     uncertainty: bool | None = None,
 ) -> BallbarCampaign:
-    """Read a ballbar campaign (CSV, or JSON records) from a path, bytes or text."""
-    table = read_table(path_or_data, fmt=fmt, source=source, limits_deg=limits_deg)
+    """Read a ballbar campaign (CSV, or JSON records) from a path, bytes or text, as ``options`` say
+    it is written."""
+    table = read_table(path_or_data, fmt=fmt, source=source, limits_deg=limits_deg, options=options)
     return ballbar_from_dataset(table, tcp_mm=tcp_mm, uncertainty=uncertainty)
 
 

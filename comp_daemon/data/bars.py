@@ -18,6 +18,7 @@ from numpy.typing import ArrayLike, NDArray
 from comp_daemon.data.cells import CellFaults, CellTable, parse_numbers
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.jsontext import load_json_records
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.readers import dataset_from_json, parse_dataset
 from comp_daemon.data.table import Dataset
 
@@ -49,9 +50,12 @@ def read_table(
     fmt: Literal["csv", "json"] | None = None,
     source: str | None = None,
     limits_deg: ArrayLike | None = None,
+    options: ReadOptions | None = None,
 ) -> Dataset:
     """The campaign's table: CSV (or JSON records, ``fmt="json"`` or a ``.json`` path) read by the
-    data set reader with every column kept; the axis columns a1..a6 are required."""
+    data set reader with every column kept; the axis columns a1..a6 are required. ``options``: how
+    the file is written (:class:`~comp_daemon.data.options.ReadOptions`; ``--units`` scales the bar
+    lengths and the pivot too)."""
     if isinstance(path_or_data, bytes | bytearray):
         raw, name = bytes(path_or_data), "<bytes>"
     elif isinstance(path_or_data, str) and ("\n" in path_or_data or "\r" in path_or_data):
@@ -65,9 +69,9 @@ def read_table(
     try:
         if fmt == "json":
             doc = load_json_records(raw, name)
-            ds = dataset_from_json(doc, source=name, limits_deg=limits_deg, kind="any")
+            ds = dataset_from_json(doc, source=name, limits_deg=limits_deg, kind="any", options=options)
         else:
-            ds = parse_dataset(raw, source=name, limits_deg=limits_deg, kind="any")
+            ds = parse_dataset(raw, source=name, limits_deg=limits_deg, kind="any", options=options)
     except DatasetError as exc:
         if exc.column == "a1" and exc.problem.startswith("required column missing"):
             raise DatasetError(

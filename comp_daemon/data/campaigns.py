@@ -14,6 +14,7 @@ from numpy.typing import ArrayLike
 from comp_daemon.data.ballbar import BallbarCampaign, TcpFunction, ballbar_from_dataset
 from comp_daemon.data.bars import CampaignKind, campaign_kind, read_table
 from comp_daemon.data.crossbar import CrossbarCampaign, crossbar_from_dataset
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
 
 __all__ = ["Campaign", "campaign_of", "read_campaign"]
@@ -43,11 +44,12 @@ def read_campaign(
     fmt: Literal["csv", "json"] | None = None,
     source: str | None = None,
     limits_deg: ArrayLike | None = None,
+    options: ReadOptions | None = None,
     tcp_mm: TcpFunction | None = None,
     expect: CampaignKind | None = None,
 ) -> Campaign:
     """A ballbar or cross-bar campaign from a file (CSV, or JSON records); a tracker data set is refused."""
-    table = read_table(path_or_data, fmt=fmt, source=source, limits_deg=limits_deg)
+    table = read_table(path_or_data, fmt=fmt, source=source, limits_deg=limits_deg, options=options)
     campaign = campaign_of(table, tcp_mm=tcp_mm, expect=expect)
     if campaign is None:
         raise ValueError(

@@ -25,6 +25,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from comp_daemon.data.bars import Columns, constant, group_split, read_table, whole_groups_split
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
 
 __all__ = [
@@ -132,9 +133,12 @@ def read_crossbar(
     fmt: Literal["csv", "json"] | None = None,
     source: str | None = None,
     limits_deg: ArrayLike | None = None,
+    options: ReadOptions | None = None,
 ) -> CrossbarCampaign:
-    """Read a cross-bar campaign (CSV, or JSON records) from a path, bytes or text."""
-    return crossbar_from_dataset(read_table(path_or_data, fmt=fmt, source=source, limits_deg=limits_deg))
+    """Read a cross-bar campaign (CSV, or JSON records) from a path, bytes or text, as ``options`` say
+    it is written."""
+    table = read_table(path_or_data, fmt=fmt, source=source, limits_deg=limits_deg, options=options)
+    return crossbar_from_dataset(table)
 
 
 def crossbar_dataset(

@@ -24,8 +24,14 @@ numbers are.
 read as a decimal point). ``--units LENGTH,ANGLE`` (``mm`` or ``m``; ``deg`` or ``rad``) scales the
 length columns (``x, y, z``, ``xK, yK, zK``, ``tx, ty, tz``, ``sigma_mm``) and the angle columns
 (``a1 … a6``, ``g1 … g6``, ``ta, tb, tc``) to mm and degrees before every other check, so limits,
-refusals and everything downstream see the data set's own units. Cells that are not plain numbers
+refusals and everything downstream see the data set's own units; in a ballbar or cross-bar campaign
+also its lengths (``bar_mm``, ``bar_nominal_mm``, ``cx, cy, cz``, ``bar_l_mm``; ``dr_um`` stays µm,
+and ``--decimal-comma`` reads ``dr_um``, ``arc`` and ``placement`` too). Cells that are not plain numbers
 are left as they are, for the reader to refuse them.
+
+``--euler CONVENTION`` reads a 6-DOF probe's orientation from the Euler angle columns ``e1, e2,
+e3`` in the stated convention and turns them into ``qw, qx, qy, qz`` (:mod:`comp_daemon.data.euler`);
+a file with ``e1, e2, e3`` beside ``x, y, z`` read without it is refused naming the option.
 """
 
 from __future__ import annotations
@@ -41,13 +47,18 @@ from comp_daemon.data.cells import CellTable
 from comp_daemon.data.columns import (
     ANGLE_COLUMNS,
     LENGTH_COLUMNS,
+    QUATERNION_COLUMNS,
     DatasetError,
     is_numeric_column,
     is_reflector_column,
 )
+from comp_daemon.data.euler import EULER_COLUMNS, EulerConvention, parse_euler
 from comp_daemon.data.table import Dataset
 
 __all__ = [
+    "CAMPAIGN_LENGTH_COLUMNS",
+    "CAMPAIGN_MARKERS",
+    "CAMPAIGN_NUMBER_COLUMNS",
     "DELIMITERS",
     "MIN_SPREAD",
     "ReadOptions",
@@ -58,6 +69,13 @@ __all__ = [
 DELIMITERS = {",": ",", ";": ";", "tab": "\t"}
 #: the spread (largest max − min of an axis column) above which a file is a campaign, not one pose
 MIN_SPREAD = 0.2
+#: the length columns of a ballbar or cross-bar campaign (:mod:`comp_daemon.data.bars`), scaled by
+#: ``--units`` and read with ``--decimal-comma`` in a file that has one of :data:`CAMPAIGN_MARKERS`
+CAMPAIGN_LENGTH_COLUMNS: tuple[str, ...] = ("bar_mm", "bar_nominal_mm", "cx", "cy", "cz", "bar_l_mm")
+#: their further number columns: read with ``--decimal-comma``, never scaled (``dr_um`` is µm by name)
+CAMPAIGN_NUMBER_COLUMNS: tuple[str, ...] = ("dr_um", "arc", "placement")
+#: the columns that make a file a ballbar or cross-bar campaign
+CAMPAIGN_MARKERS: tuple[str, ...] = ("bar_mm", "bar_nominal_mm", "dr_um", "placement", "socket", "bar_l_mm")
 
 LengthUnit = Literal["mm", "m"]
 AngleUnit = Literal["deg", "rad"]
@@ -106,6 +124,7 @@ class ReadOptions:
     length_unit: LengthUnit = "mm"
     angle_unit: AngleUnit = "deg"
     units_stated: bool = False  # --units was given: no guessing refusal on the units
+    euler: EulerConvention | None = None  # --euler: e1, e2, e3 are a probe's orientation
 
     def __post_init__(self) -> None:
         if self.delimiter not in DELIMITERS.values():
@@ -115,9 +134,14 @@ class ReadOptions:
 
     @classmethod
     def of(
-        cls, delimiter: str | None = None, decimal_comma: bool = False, units: str | None = None
+        cls,
+        delimiter: str | None = None,
+        decimal_comma: bool = False,
+        units: str | None = None,
+        euler: str | None = None,
     ) -> ReadOptions:
-        """The options as the command line states them (``delimiter`` by name: ``,``, ``;``, ``tab``)."""
+        """The options as the command line states them (``delimiter`` by name: ``,``, ``;``, ``tab``;
+        ``euler`` a convention, :func:`comp_daemon.data.euler.parse_euler`)."""
         if delimiter is not None and delimiter not in DELIMITERS:
             raise ValueError(f"--delimiter {delimiter!r}: expected one of {', '.join(map(repr, DELIMITERS))}")
         sep = DELIMITERS[delimiter] if delimiter is not None else (";" if decimal_comma else ",")
@@ -125,6 +149,8 @@ class ReadOptions:
         if units is not None:
             length, angle = parse_units(units)
             out = replace(out, length_unit=length, angle_unit=angle, units_stated=True)
+        if euler is not None:
+            out = replace(out, euler=parse_euler(euler))
         return out
 
     @property
@@ -136,18 +162,26 @@ class ReadOptions:
         sep = {",": "','", ";": "';'", "\t": "tab"}[self.delimiter]
         mark = "','" if self.decimal_comma else "'.'"
         units = f"lengths in {self.length_unit}, angles in {self.angle_unit}"
-        return f"fields by {sep}, decimal mark {mark}, {units}"
+        euler = f", probe orientation from e1, e2, e3 ({self.euler.name})" if self.euler else ""
+        return f"fields by {sep}, decimal mark {mark}, {units}{euler}"
 
     # ----------------------------------------------------------------------------------- cells
     def convert(self, table: CellTable) -> CellTable:
-        """The table with decimal commas read and lengths and angles scaled to mm and degrees."""
+        """The table with decimal commas read, lengths and angles scaled to mm and degrees and Euler
+        angles turned into quaternions."""
         length = _LENGTH_SCALE[self.length_unit]
         angle = _ANGLE_SCALE[self.angle_unit]
-        if not self.decimal_comma and length == 1.0 and angle == 1.0:
+        euler = self._euler_columns(table)
+        if not self.decimal_comma and length == 1.0 and angle == 1.0 and not euler:
             return table
+        campaign = any(name in table.columns for name in CAMPAIGN_MARKERS)
+        lengths = CAMPAIGN_LENGTH_COLUMNS if campaign else ()
+        numbers = (*lengths, *CAMPAIGN_NUMBER_COLUMNS) if campaign else ()
+        own = None if self.euler is None else self.euler.unit
+        euler_scale = angle if own is None else _ANGLE_SCALE[own]
         columns = dict(table.columns)
         for name, cells in table.columns.items():
-            if not _numeric(name):
+            if not (_numeric(name) or name in euler or name in numbers):
                 continue
             out = list(cells)
             if self.decimal_comma:
@@ -163,11 +197,70 @@ class ReadOptions:
                         )
                     if _COMMA_NUMBER.fullmatch(cell):
                         out[i] = cell.replace(",", ".")
-            scale = length if _length_column(name) else angle if _angle_column(name) else 1.0
+            scale = euler_scale if name in euler else self._scale(name, length, angle, lengths)
             if scale != 1.0:
                 out = [repr(float(c) * scale) if _PLAIN.fullmatch(c) else c for c in out]
             columns[name] = out
-        return replace(table, columns=columns)
+        converted = replace(table, columns=columns)
+        return self._quaternions(converted) if euler else converted
+
+    @staticmethod
+    def _scale(name: str, length: float, angle: float, lengths: tuple[str, ...]) -> float:
+        if _length_column(name) or name in lengths:
+            return length
+        return angle if _angle_column(name) else 1.0
+
+    def _euler_columns(self, table: CellTable) -> tuple[str, ...]:
+        """``e1, e2, e3`` when ``--euler`` reads them; a table the option does not fit is refused."""
+        present = [c for c in EULER_COLUMNS if c in table.columns]
+
+        def refuse(problem: str, column: str | None) -> DatasetError:
+            return DatasetError(problem, source=table.source, row=1, column=column, row_label=table.row_label)
+
+        if self.euler is None:
+            if len(present) == len(EULER_COLUMNS) and "x" in table.columns:
+                raise refuse(
+                    "columns e1, e2, e3 beside x, y, z are read as a 6-DOF probe's Euler angles only in a "
+                    "stated convention: read the file with --euler CONVENTION (e.g. --euler intrinsic-zyx)",
+                    "e1",
+                )
+            return ()
+        name = self.euler.name
+        if len(present) != len(EULER_COLUMNS):
+            missing = next(c for c in EULER_COLUMNS if c not in table.columns)
+            raise refuse(f"column missing: --euler {name} reads the probe's angles from e1, e2, e3", missing)
+        both = [c for c in QUATERNION_COLUMNS if c in table.columns]
+        if both:
+            raise refuse(
+                f"the probe orientation is given twice, as {both[0]}.. and as e1, e2, e3 (--euler {name}); "
+                "keep one",
+                both[0],
+            )
+        return EULER_COLUMNS
+
+    def _quaternions(self, table: CellTable) -> CellTable:
+        """The table with ``e1, e2, e3`` (degrees by now) replaced by ``qw, qx, qy, qz``."""
+        assert self.euler is not None
+        n = len(table.row_numbers)
+        e = np.zeros((n, 3))
+        for k, name in enumerate(EULER_COLUMNS):
+            for i, cell in enumerate(table.columns[name]):
+                if not _PLAIN.fullmatch(cell):
+                    raise DatasetError(
+                        f"{cell.strip()!r} is not a number (an Euler angle of --euler {self.euler.name})",
+                        source=table.source,
+                        row=table.row_numbers[i],
+                        column=name,
+                        row_label=table.row_label,
+                    )
+                e[i, k] = float(cell)
+        q = self.euler.quaternions(e)
+        columns = {c: cells for c, cells in table.columns.items() if c not in EULER_COLUMNS}
+        columns.update({c: [repr(float(v)) for v in q[:, k]] for k, c in enumerate(QUATERNION_COLUMNS)})
+        at = sum(h not in EULER_COLUMNS for h in table.header[: table.header.index(EULER_COLUMNS[0])])
+        rest = [h for h in table.header if h not in EULER_COLUMNS]
+        header = [*rest[:at], *QUATERNION_COLUMNS, *rest[at:]]
+        return replace(table, header=header, columns=columns)
 
     # ---------------------------------------------------------------------------------- values
     def check_units(self, data: Dataset) -> None:

@@ -14,9 +14,12 @@ X_o·Δθ1 to first order), a shift along z0 makes Δl1 + Δl2 indistinguishable
 POE dependencies (Δl1 ≡ Δl2, Δl5 ≡ Δl6, Δθ6 zero with the TCP on axis 6) and, with the tool held
 vertical, the parallel axes 2, 3, 5 (Δθ3 = Δθ5's effect plus a forearm shift), a single-orientation
 campaign identifies 9 (vertical tool) or 10 (tilted) of the 15; one orientation per arc with an
-off-axis TCP reaches 11. :func:`ballbar_identifiability` names the removed parameters in the spec's
-canonical order (pivot kept, then Δθ1 and Δl2 fixed) and the null directions; the fit keeps them at
-zero and reports them as "not identifiable" instead of returning arbitrary values.
+off-axis TCP reaches 11 (10 with the TCP on axis 6, as in the IRB 120 preset). Pairs that are
+identifiable but barely told apart are named by the campaign fit (near-dependent pairs) and, on
+request, the weaker of each held at zero (:func:`weaker_of_pairs`).
+:func:`ballbar_identifiability` names the removed parameters in the spec's canonical order (pivot
+kept, then Δθ1 and Δl2 fixed) and the null directions; the fit keeps them at zero and reports them
+as "not identifiable" instead of returning arbitrary values.
 
 Arcs (spec A.5): :func:`arc_through_points` is the circle through three points (bisector planes and
 the points' plane), sampled every 5° from P1 through P2 to P3. :func:`default_arcs` is the spec's
@@ -28,6 +31,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -36,6 +40,7 @@ from comp_daemon.common.logs import get_logger
 from comp_daemon.kinematics.inverse import solve_ik_axes
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel, poe_chain, poe_error_jacobian
+from comp_daemon.models.covariance import near_dependent_pairs
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.poe import (
     NullDirection,
@@ -49,6 +54,7 @@ __all__ = [
     "PAPER_PIVOT_MM",
     "PAPER_RADIUS_MM",
     "PIVOT_NAMES",
+    "RIDGE_SCALES",
     "Arc",
     "BallbarFit",
     "arc_through_points",
@@ -62,6 +68,7 @@ __all__ = [
     "plan_ballbar_axes",
     "sphere_point_mm",
     "to_canonical",
+    "weaker_of_pairs",
 ]
 
 _log = get_logger(__name__)
@@ -275,6 +282,13 @@ class BallbarFit:
     h_after_mm: float
     iterations: int
     reason: str
+    # near-dependent pairs resolved by holding one member at zero (fit_ballbar's fix_near_dependent)
+    fixed_pairs: tuple[dict[str, Any], ...] = ()
+
+    @property
+    def fitted_index(self) -> NDArray[np.intp]:
+        """The identifiable parameters the fit moved: without those of :attr:`fixed_pairs`."""
+        return _without(self.report.identifiable_index, {p["fixed"] for p in self.fixed_pairs})
 
     @property
     def rank(self) -> int:
@@ -308,11 +322,18 @@ def fit_ballbar(
     weights_are_inverse_variance: bool = False,
     theta0: NDArray[np.float64] | None = None,
     rtol: float = 1e-7,
+    fixed: Sequence[str] = (),
+    fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> BallbarFit:
     """Identify POE errors and pivot offset from measured lengths ``bar_mm`` (n,), improved LM.
 
     ``weights`` (n,) multiply the squared residuals (e.g. ``1/u²``); ``theta0`` warm-starts (the
-    nested uncertainty loop). Only the identifiable columns move.
+    nested uncertainty loop); ``fixed`` names parameters held at zero besides the not identifiable
+    ones. Only the identifiable columns move. ``fix_near_dependent``: the near-dependent pairs of
+    the fit are resolved by holding one of each at zero and fitting again
+    (:func:`weaker_of_pairs`); :attr:`BallbarFit.fixed_pairs` names them. ``ridge``: each POE error
+    is also pulled toward zero by a row ``error / scale`` (mm), :data:`RIDGE_SCALES`.
     """
     a = np.atleast_2d(np.asarray(a_deg, dtype=float))
     measured = np.asarray(bar_mm, dtype=float)
@@ -321,15 +342,33 @@ def fit_ballbar(
 
     def fn(theta: NDArray[np.float64]) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         length, jac = ballbar_jacobian(model, a, theta, pivot_mm)
-        return (length - measured) * sw, jac * sw[:, None]
+        if not ridge:
+            return (length - measured) * sw, jac * sw[:, None]
+        w = np.concatenate([1.0 / _RIDGE, np.zeros(len(PIVOT_NAMES))])
+        return (
+            np.concatenate([(length - measured) * sw, w * theta]),
+            np.vstack([jac * sw[:, None], np.diag(w)]),
+        )
 
     report, null = ballbar_identifiability(model, a, pivot_mm, np.zeros(N_BALLBAR_PARAMS), rtol)
-    keep = report.identifiable_index
+    keep = _without(report.identifiable_index, fixed)
     start[np.setdiff1d(np.arange(N_BALLBAR_PARAMS), keep)] = 0.0
     h0 = float(np.sqrt(np.mean((ballbar_lengths_mm(model, a, start, pivot_mm) - measured) ** 2)))
     theta, std, cov, its, reason, _ = fit_least_squares_subset(
         fn, start, keep, inverse_variance=weights_are_inverse_variance
     )
+    fixed_pairs: tuple[dict[str, Any], ...] = ()
+    if fix_near_dependent:
+        _, jac = fn(theta)
+        fixed_pairs = weaker_of_pairs(keep, cov, np.linalg.norm(jac, axis=0))
+        if fixed_pairs:
+            held = {p["fixed"] for p in fixed_pairs}
+            keep = _without(keep, held)
+            start[[BALLBAR_PARAM_NAMES.index(n) for n in held]] = 0.0
+            theta, std, cov, more, reason, _ = fit_least_squares_subset(
+                fn, start, keep, inverse_variance=weights_are_inverse_variance
+            )
+            its += more
     h1 = float(np.sqrt(np.mean((ballbar_lengths_mm(model, a, theta, pivot_mm) - measured) ** 2)))
     _log.info("ballbar_fit", points=measured.size, rank=report.rank_svd, h_before_mm=h0, h_after_mm=h1)
     return BallbarFit(
@@ -342,7 +381,44 @@ def fit_ballbar(
         h_after_mm=h1,
         iterations=its,
         reason=reason,
+        fixed_pairs=fixed_pairs,
     )
+
+
+#: the ridge option's scales: a POE error of this size costs as much as 1 mm of length residual on one
+#: reading (Δl mm, Δθ deg); the pivot offset is not pulled
+RIDGE_SCALES: tuple[float, float] = (5.0, 2.0)
+_RIDGE = np.array([RIDGE_SCALES[0]] * 6 + [np.radians(RIDGE_SCALES[1])] * 6)
+
+
+def _without(index: NDArray[np.intp], names: Sequence[str] | set[str]) -> NDArray[np.intp]:
+    return np.array([k for k in index if BALLBAR_PARAM_NAMES[k] not in names], dtype=np.intp)
+
+
+def weaker_of_pairs(
+    keep: NDArray[np.intp], cov: NDArray[np.float64], column_norms: NDArray[np.float64]
+) -> tuple[dict[str, Any], ...]:
+    """Which parameter of each near-dependent pair of a fit to hold at zero (one pass, strongest pair
+    first, each parameter at most once): ``({"pair", "correlation", "condition", "fixed"}, …)``.
+
+    The one held is the *weaker* of the pair: the one the lengths determine less, i.e. with the larger
+    variance in units of its own column (``cov_kk·|J_k|²``, the variance of the fit on unit columns).
+    A pivot offset is never the one held: where the ball was set down is an unknown of the set-up, of
+    millimetres, while the robot's errors are small; the robot's member of such a pair is held instead.
+    """
+    names = [BALLBAR_PARAM_NAMES[k] for k in keep]
+    pairs = near_dependent_pairs(names, cov[np.ix_(keep, keep)])
+    scaled = np.diag(cov) * column_norms**2
+    held: list[str] = []
+    out = []
+    for pair in pairs:
+        members = [n for n in pair["pair"] if n not in PIVOT_NAMES]
+        if not members or any(n in held for n in pair["pair"]):
+            continue
+        weaker = max(members, key=lambda n: scaled[BALLBAR_PARAM_NAMES.index(n)])
+        held.append(weaker)
+        out.append({**pair, "fixed": weaker})
+    return tuple(out)
 
 
 def to_canonical(theta: NDArray[np.float64], pivot_mm: ArrayLike) -> NDArray[np.float64]:

@@ -1,7 +1,9 @@
 """Kinematic models calibrated from ballbar and cross-bar campaigns (seeds 002 and 003).
 
 - :func:`fit_ballbar_campaign`: the ballbar lengths of a campaign (:mod:`comp_daemon.data.ballbar`)
-  identify the POE errors Δl, Δθ and the pivot offset (:func:`comp_daemon.models.ballbar.fit_ballbar`);
+  identify the POE errors Δl, Δθ and the pivot offset (:func:`comp_daemon.models.ballbar.fit_ballbar`)
+  on the paper's segment layout where the robot is its IRB 120 (Table 1,
+  :func:`comp_daemon.models.poe.paper_layout`), else one segment per joint point;
   the result is a ``poe`` model (:class:`~comp_daemon.models.poe_model.PoeErrorModel`) in the robot
   base frame, carrying the covariance of its identified errors. A campaign whose poses are measured
   repeatedly (``pose_id`` with ≥ 2 repeats each) is fitted in the uncertainty mode of spec A.8
@@ -37,12 +39,19 @@ from comp_daemon.data.campaigns import Campaign
 from comp_daemon.data.crossbar import CrossbarCampaign
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
-from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, BallbarFit, ballbar_lengths_mm, fit_ballbar
+from comp_daemon.models.ballbar import (
+    BALLBAR_PARAM_NAMES,
+    RIDGE_SCALES,
+    BallbarFit,
+    ballbar_lengths_mm,
+    fit_ballbar,
+)
 from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.covariance import ParameterCovariance, near_dependent_pairs
-from comp_daemon.models.crossbar import bar_errors_mm, calibrate_crossbar, check_plan
+from comp_daemon.models.covariance import ParameterCovariance, covariance_from_fit, near_dependent_pairs
+from comp_daemon.models.crossbar import bar_errors_mm, calibrate_crossbar, check_plan, constraint_rows
 from comp_daemon.models.fitting import FittedModel, report_info
 from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.models.poe import LAYOUTS, layout_twists, paper_layout
 from comp_daemon.models.poe_model import PoeErrorModel
 from comp_daemon.models.registration import rigid_registration, transform_points
 from comp_daemon.models.uncertainty import (
@@ -97,6 +106,8 @@ def fit_ballbar_repeats(
     reading_mm: NDArray[np.float64],
     u_mm: NDArray[np.float64],
     pivot_mm: NDArray[np.float64],
+    fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> tuple[BallbarFit, NDArray[np.float64], dict[str, Any]]:
     """The uncertainty mode of spec A.8 on one reading per pose with its standard uncertainty ``u_mm``.
 
@@ -104,25 +115,46 @@ def fit_ballbar_repeats(
     0.5 µm)², widened by the reduced χ² of the weighted fit when it exceeds 1: a model that does not
     explain the readings to their uncertainty), the nested loop's parameters (the model's), and the
     report: u and b = 1.96·u, the unweighted and weighted fits side by side, every nested round.
+    ``fix_near_dependent``: the weighted fit's near-dependent pairs are resolved as
+    :func:`~comp_daemon.models.ballbar.fit_ballbar` does, and the same parameters held in every fit;
+    ``ridge`` as there, in every fit.
     """
     b = Z_95 * u_mm
     w = weights_from_uncertainty(u_mm)
-    unweighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm)
-    weighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm, weights=w, weights_are_inverse_variance=True)
+    weighted = fit_ballbar(
+        twists,
+        a_deg,
+        reading_mm,
+        pivot_mm,
+        weights=w,
+        weights_are_inverse_variance=True,
+        fix_near_dependent=fix_near_dependent,
+        ridge=ridge,
+    )
+    held = tuple(p["fixed"] for p in weighted.fixed_pairs)
+    unweighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm, fixed=held, ridge=ridge)
     last = [weighted]
 
     def identify(values: NDArray[np.float64], warm: NDArray[np.float64] | None) -> NDArray[np.float64]:
         if warm is None:
             return weighted.theta
         last[0] = fit_ballbar(
-            twists, a_deg, values, pivot_mm, weights=w, weights_are_inverse_variance=True, theta0=warm
+            twists,
+            a_deg,
+            values,
+            pivot_mm,
+            weights=w,
+            weights_are_inverse_variance=True,
+            theta0=warm,
+            fixed=held,
+            ridge=ridge,
         )
         return last[0].theta
 
     nested = nested_identification(
         identify, lambda th: ballbar_lengths_mm(twists, a_deg, th, pivot_mm), reading_mm, b
     )
-    keep = last[0].report.identifiable_index
+    keep = weighted.fitted_index
     residual = reading_mm - ballbar_lengths_mm(twists, a_deg, nested.theta, pivot_mm)
     chi2 = float(np.sum(w * (reading_mm - ballbar_lengths_mm(twists, a_deg, weighted.theta, pivot_mm)) ** 2))
     chi2_nu = chi2 / max(reading_mm.size - keep.size, 1)
@@ -130,7 +162,11 @@ def fit_ballbar_repeats(
     scale = max(1.0, chi2_nu)
     # h_before of the first fit: the nominal model's, not the warm start's
     fit = replace(
-        last[0], cov=last[0].cov * scale, std=last[0].std * np.sqrt(scale), h_before_mm=weighted.h_before_mm
+        last[0],
+        cov=last[0].cov * scale,
+        std=last[0].std * np.sqrt(scale),
+        h_before_mm=weighted.h_before_mm,
+        fixed_pairs=weighted.fixed_pairs,
     )
     report: dict[str, Any] = {
         "method": "spec A.8: last repeat as the reading, u type A (n - 1), b = 1.96 u (95 %), "
@@ -198,26 +234,40 @@ def uncertainty_summary(info: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def fit_ballbar_campaign(
-    robot: RobotDescription, campaign: BallbarCampaign, rows: NDArray[np.intp] | None = None
+    robot: RobotDescription,
+    campaign: BallbarCampaign,
+    rows: NDArray[np.intp] | None = None,
+    *,
+    fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> FittedModel:
     """The ``poe`` model of a ballbar campaign's rows ``rows`` (default: all); a campaign of repeated
-    poses in the uncertainty mode (module docstring)."""
+    poses in the uncertainty mode (module docstring). ``fix_near_dependent`` holds the weaker of each
+    near-dependent pair at zero (:func:`comp_daemon.models.ballbar.weaker_of_pairs`); either way the
+    pairs are named in ``info["identifiability"]["near_dependent"]`` and those held in
+    ``info["near_dependent_fixed"]``. ``ridge`` pulls every POE error toward zero
+    (:data:`comp_daemon.models.ballbar.RIDGE_SCALES`; ``info["ridge"]`` states it)."""
     idx = np.arange(len(campaign)) if rows is None else np.asarray(rows)
-    twists = PoeModel.from_robot(robot)
+    layout = paper_layout(robot)
+    twists = layout_twists(robot, layout)
     uncertainty: dict[str, Any] | None = None
     if campaign.repeated:
         idx, u, counts = _repeat_readings(campaign, idx)
         a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
-        fit, theta, uncertainty = fit_ballbar_repeats(twists, a, bar, u, campaign.pivot_mm)
+        fit, theta, uncertainty = fit_ballbar_repeats(
+            twists, a, bar, u, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
+        )
         uncertainty["repeats"] = {"min": int(counts.min()), "max": int(counts.max())}
         h_after = _rms(ballbar_lengths_mm(twists, a, theta, campaign.pivot_mm) - bar)
         sigma = float(np.sqrt(np.mean(np.maximum(u, U_FLOOR_MM) ** 2)))  # per length, from the repeats
     else:
         a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
-        fit = fit_ballbar(twists, a, bar, campaign.pivot_mm)
+        fit = fit_ballbar(
+            twists, a, bar, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
+        )
         theta, h_after = fit.theta, fit.h_after_mm
-    model = PoeErrorModel(robot, theta[:N_POE_PARAMS], np.eye(4))
-    keep = fit.report.identifiable_index
+    model = PoeErrorModel(robot, theta[:N_POE_PARAMS], np.eye(4), layout=layout)
+    keep = fit.fitted_index
     poe_keep = [int(i) for i in keep if i < N_POE_PARAMS]
     if poe_keep and bar.size > keep.size:
         if uncertainty is None:
@@ -236,6 +286,7 @@ def fit_ballbar_campaign(
         "arcs": sorted({int(k) for k in campaign.arc[idx]}),
         "pivot_mm": campaign.pivot_mm.tolist(),
         "pivot_offset_mm": theta[N_POE_PARAMS:].tolist(),
+        "layout": LAYOUTS[layout],
         "rms_mm": h_after,
         "bar_rms_before_mm": fit.h_before_mm,
         "bar_rms_after_mm": h_after,
@@ -254,6 +305,13 @@ def fit_ballbar_campaign(
             ),
         },
         "not_identifiable": [d.describe() for d in fit.null_space],
+        "near_dependent_fixed": list(fit.fixed_pairs),
+        "ridge": (
+            f"each POE error pulled toward zero: {RIDGE_SCALES[0]:g} mm of dl or {RIDGE_SCALES[1]:g} deg of "
+            "dtheta cost as much as 1 mm of length residual on one reading"
+            if ridge
+            else None
+        ),
         "identified": _identified([BALLBAR_PARAM_NAMES[i] for i in keep], theta[keep], fit.std[keep]),
         "frame": "robot base (nominal); a tracker frame is registered on tracker data",
     }
@@ -286,6 +344,12 @@ def fit_crossbar_campaign(
     kept = np.setdiff1d(np.arange(a.shape[0]), np.asarray(fit.dropped, dtype=np.intp))
     after = bar_errors_mm(fit.params, a[kept], robot.sign, lengths[kept])
     report = fit.report
+    rows, rhs = constraint_rows(fit.params, a[kept], robot.sign, lengths[kept], weighted=weighted)
+    jac = rows[:, :, report.identifiable_index].reshape(-1, report.identifiable_index.size)
+    near: list[dict[str, Any]] = []
+    if jac.shape[0] > jac.shape[1]:  # the covariance of the last step's rows, at the solution
+        cov, _ = covariance_from_fit(jac, rhs.reshape(-1))
+        near = near_dependent_pairs(list(report.identifiable), cov)
     info: dict[str, Any] = {
         "kind": "crossbar",
         "campaign": "crossbar",
@@ -304,7 +368,7 @@ def fit_crossbar_campaign(
             "step_max": list(fit.step_max),
         },
         "dropped_crosses": [int(d) for d in fit.dropped],
-        "identifiability": report_info(report),
+        "identifiability": {**report_info(report), "near_dependent": near},
         "not_identifiable": list(fit.not_identified),
         "identified": {
             n: {"value": float(fit.dx[i])}
@@ -340,29 +404,34 @@ def fit_campaign(
     model: str | None = None,
     seed: int = 0,
     check_fraction: float = 0.0,
+    fix_near_dependent: bool = False,
+    ridge: bool = False,
 ) -> tuple[FittedModel, dict[str, Any]]:
     """Fit the model a campaign calibrates on its fit arcs / crosses, and judge it on the check ones.
 
     The split is the file's (whole arcs or placements), or drawn with ``check_fraction`` and
     ``seed``; the returned dict holds the rows used and the bar errors (mm) of the check arcs or
     crosses before (nominal) and after the calibration (empty without check rows).
+    ``fix_near_dependent`` and ``ridge`` (ballbar campaigns): :func:`fit_ballbar_campaign`'s.
     """
     if isinstance(campaign, BallbarCampaign):
         campaign_model("ballbar", model)
         fit_rows, check_rows, drawn = campaign.split(seed=seed, check_fraction=check_fraction)
-        fitted = fit_ballbar_campaign(robot, campaign, fit_rows)
+        fitted = fit_ballbar_campaign(
+            robot, campaign, fit_rows, fix_near_dependent=fix_near_dependent, ridge=ridge
+        )
         check: dict[str, Any] = {
             "fit_rows": int(fit_rows.size),
             "check_rows": int(check_rows.size),
             "drawn": drawn,
         }
         if check_rows.size:
-            twists = PoeModel.from_robot(robot)
+            assert isinstance(fitted.model, PoeErrorModel)
+            twists = fitted.model.twists
             a, bar = campaign.a_deg[check_rows], campaign.bar_mm[check_rows]
             before = (
                 ballbar_lengths_mm(twists, a, np.zeros(len(BALLBAR_PARAM_NAMES)), campaign.pivot_mm) - bar
             )
-            assert isinstance(fitted.model, PoeErrorModel)
             theta = np.concatenate([fitted.model.x, fitted.info["pivot_offset_mm"]])
             after = ballbar_lengths_mm(twists, a, theta, campaign.pivot_mm) - bar
             check["bar_error_rms_mm"] = {"before": _rms(before), "after": _rms(after)}

@@ -82,9 +82,11 @@ def covariance_from_fit(
 def near_dependent_pairs(
     names: Sequence[str], covariance: NDArray[np.float64], threshold: float = NEAR_DEPENDENT_CORRELATION
 ) -> list[dict[str, Any]]:
-    """``[{"pair": [a, b], "correlation": r}, …]`` for every pair of parameters whose estimates are
-    correlated beyond ``threshold`` in absolute value, the strongest first (parameters with zero
-    variance, i.e. not identified, are left out)."""
+    """``[{"pair": [a, b], "correlation": r, "condition": c}, …]`` for every pair of parameters whose
+    estimates are correlated beyond ``threshold`` in absolute value, the strongest first (parameters
+    with zero variance, i.e. not identified, are left out). ``c = (1 + |r|) / (1 − |r|)`` is the
+    condition number of the pair's correlation matrix: how much more the pair's worst-determined
+    combination (their difference, or sum) varies than its best one."""
     cov = np.asarray(covariance, dtype=float)
     std = np.sqrt(np.maximum(np.diag(cov), 0.0))
     ok = std > 0
@@ -93,10 +95,18 @@ def near_dependent_pairs(
     i, j = np.triu_indices(len(names), k=1)
     strong = np.flatnonzero(np.abs(corr[i, j]) > threshold)
     strong = strong[np.argsort(-np.abs(corr[i[strong], j[strong]]))]
-    return [
-        {"pair": [names[i[k]], names[j[k]]], "correlation": float(np.clip(corr[i[k], j[k]], -1.0, 1.0))}
-        for k in strong
-    ]
+    out: list[dict[str, Any]] = []
+    for k in strong:
+        r = float(np.clip(corr[i[k], j[k]], -1.0, 1.0))
+        pair = {"pair": [names[i[k]], names[j[k]]], "correlation": r}
+        out.append({**pair, "condition": _condition(pair)})
+    return out
+
+
+def _condition(pair: dict[str, Any]) -> float:
+    """(1 + |r|) / (1 − |r|) of a pair (:func:`near_dependent_pairs`; a stored pair may lack it)."""
+    r = abs(float(pair["correlation"]))
+    return float(pair.get("condition", (1.0 + r) / max(1.0 - r, 1e-15)))
 
 
 def near_dependent_note(info: dict[str, Any]) -> str | None:
@@ -112,8 +122,11 @@ def near_dependent_note(info: dict[str, Any]) -> str | None:
 
 
 def describe_pairs(pairs: Sequence[dict[str, Any]], limit: int = 6) -> str:
-    """``d5 ~ alpha5 (r -0.998), …`` of :func:`near_dependent_pairs` (the first ``limit``)."""
-    text = ", ".join(f"{p['pair'][0]} ~ {p['pair'][1]} (r {p['correlation']:+.3f})" for p in pairs[:limit])
+    """``d5 ~ alpha5 (r -0.998, condition 999), …`` of :func:`near_dependent_pairs` (the first ``limit``)."""
+    text = ", ".join(
+        f"{p['pair'][0]} ~ {p['pair'][1]} (r {p['correlation']:+.3f}, condition {_condition(p):.3g})"
+        for p in pairs[:limit]
+    )
     return text + (f" and {len(pairs) - limit} more" if len(pairs) > limit else "")
 
 

@@ -33,6 +33,7 @@ from comp_daemon.models.fitting import (
     report_info,
     select_effects,
 )
+from comp_daemon.models.poe import LAYOUTS
 from comp_daemon.models.poe_model import fit_poe
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.models.selection import keep_all
@@ -101,6 +102,7 @@ def fit_poe_kind(robot: RobotDescription, rows: FitRows, spec: ModelSpec, option
         if spec.paper
         else "a twist error per joint (dtheta, dwu, dwn, dpu, dpn, dlax) and the tool offset",
         "rms_mm": pf.rms_mm,
+        **({"layout": LAYOUTS[pf.model.layout]} if spec.paper else {}),
         "solver": {
             "method": "improved Levenberg-Marquardt (seed 000), columns scaled",
             "iterations": fit.iterations,

@@ -16,6 +16,13 @@ Identifiability (spec A.2 product rule). Some columns are structurally dependent
 depends on. :func:`null_directions` adds the null-space vectors of the normalised columns (largest
 four coefficients each), which is what a caller prints for "not identifiable".
 
+Segment layout. Which segments carry ``dl1..dl6`` is a choice of the model (:class:`PoeModel`):
+seed 002 names its own for the IRB 120 (Table 1 and spec A.2: 187 z, 103 z, 270 z, 70 z, 134 x,
+168 x), so that ``dl1..dl6`` are that robot's link-length errors; any other robot has one segment
+per joint point (:meth:`PoeModel.from_robot`). :func:`paper_layout` tells which a robot gets
+(``"table1"`` when Table 1's chain is this robot's kinematics, else ``"robot"``) and
+:func:`layout_twists` builds it; the paper's forms (``poe:paper``, a ballbar campaign's fit) use it.
+
 The fit iterates the identifiable columns with the improved Levenberg–Marquardt method of
 :mod:`comp_daemon.models.lm` (columns scaled); the removed parameters stay at zero. The standard
 uncertainty of each fitted parameter is ``s·sqrt(diag((JᵀWJ)⁻¹))`` with ``s²`` the weighted residual
@@ -26,6 +33,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Literal
 
 import numpy as np
 from numpy.typing import NDArray
@@ -35,6 +43,7 @@ from comp_daemon.kinematics.poe import (
     N_POE_PARAMS,
     POE_PARAM_NAMES,
     PoeModel,
+    irb120_table1,
     poe_chain,
     poe_error_jacobian,
 )
@@ -42,15 +51,19 @@ from comp_daemon.kinematics.so3 import left_jacobian, rotvec_to_matrix, skew
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
 from comp_daemon.models.lm import improved_lm
 from comp_daemon.models.registration import rigid_registration
+from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "BASE_NAMES",
+    "LAYOUTS",
     "POE_PRIORITY",
     "NullDirection",
     "PoeFit",
     "fit_least_squares_subset",
     "fit_poe_positions",
+    "layout_twists",
     "null_directions",
+    "paper_layout",
     "poe_identifiability",
     "poe_world_jacobian",
     "poe_world_position_mm",
@@ -58,6 +71,35 @@ __all__ = [
 ]
 
 _log = get_logger(__name__)
+
+PoeLayout = Literal["robot", "table1"]
+#: the segment layouts, by the name an artifact stores: one segment per joint point, or seed 002's
+#: Table 1 (the IRB 120)
+LAYOUTS: dict[str, str] = {
+    "robot": "one segment per joint point of the robot file",
+    "table1": "seed 002's Table 1 (IRB 120: 187 z, 103 z, 270 z, 70 z, 134 x, 168 x)",
+}
+#: Table 1's chain must put the TCP within this of the robot file's at every test pose
+_LAYOUT_TOL_MM = 1e-6
+
+
+def layout_twists(robot: RobotDescription, layout: PoeLayout) -> PoeModel:
+    """The POE chain of ``robot`` with the segment ``layout`` (module docstring)."""
+    return irb120_table1(robot) if layout == "table1" else PoeModel.from_robot(robot)
+
+
+def paper_layout(robot: RobotDescription) -> PoeLayout:
+    """``"table1"`` when seed 002's Table 1 chain is ``robot``'s kinematics (the IRB 120: the TCP
+    within 1e-6 mm of the robot file's chain over poses spread across the axis ranges), else
+    ``"robot"``."""
+    try:
+        table1 = irb120_table1(robot)
+    except ValueError:
+        return "robot"
+    lim = robot.axis_limits_deg
+    a = np.random.default_rng(0).uniform(lim[:, 0], lim[:, 1], (20, 6))
+    same = np.abs(poe_chain(table1, a).tcp_mm - poe_chain(PoeModel.from_robot(robot), a).tcp_mm)
+    return "table1" if float(same.max()) < _LAYOUT_TOL_MM else "robot"
 
 BASE_NAMES: tuple[str, ...] = ("base_x", "base_y", "base_z", "base_rx", "base_ry", "base_rz")
 # kept first … offered last (fixed first when dependent): spec A.2's order Δθ6, Δl1, Δl5, then Δθ1, Δl2

@@ -5,7 +5,9 @@
 nominal), in its fitted base frame ``world_T_base``, carrying either the paper's 12 errors
 ``dl1..dl6`` (mm) and ``dtheta1..dtheta6`` (rad) (``poe:paper``) or a full twist error per joint and
 a tool offset error (``poe``, :mod:`comp_daemon.models.poe_twist`: 39 errors, the dependent ones
-removed by name)::
+removed by name). The paper's 12 sit on seed 002's own segment layout (Table 1) where the robot is
+its IRB 120, else on one segment per joint point (``layout``, stored in the artifact when it is
+Table 1's; :func:`comp_daemon.models.poe.paper_layout`)::
 
     TCP_world = world_T_base · p_POE(A; x)
 
@@ -40,8 +42,12 @@ from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.models.poe import (
     BASE_NAMES,
+    LAYOUTS,
     PoeFit,
+    PoeLayout,
     fit_poe_positions,
+    layout_twists,
+    paper_layout,
     poe_world_jacobian,
     poe_world_position_mm,
 )
@@ -72,6 +78,7 @@ class PoeErrorModel(ErrorModel):
         world_T_base: NDArray[np.float64],
         registration: NDArray[np.float64] | None = None,
         twist: NDArray[np.float64] | None = None,
+        layout: PoeLayout = "robot",
     ) -> None:
         self.robot = robot
         self.x = finite_array(x, (N_POE_PARAMS,), "POE errors x")
@@ -80,7 +87,10 @@ class PoeErrorModel(ErrorModel):
             raise ValueError("a POE model carries the 12 paper errors or the twist errors, not both")
         self.world_T_base = finite_array(world_T_base, (4, 4), "world_T_base")
         self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
-        self.twists = PoeModel.from_robot(robot)
+        if self.twist is not None and layout != "robot":
+            raise ValueError("the twist errors are fitted on the robot file's layout")
+        self.layout: PoeLayout = layout
+        self.twists: PoeModel = layout_twists(robot, layout)
 
     def predict_tcp_mm(
         self,
@@ -137,6 +147,8 @@ class PoeErrorModel(ErrorModel):
             "x": self.x.tolist(),
             "world_T_base": self.world_T_base.tolist(),
         }
+        if self.layout != "robot":  # an artifact without it has the robot file's layout
+            out["layout"] = self.layout
         if self.twist is not None:
             out["twist_names"] = list(TWIST_PARAM_NAMES)
             out["twist"] = self.twist.tolist()
@@ -161,7 +173,12 @@ class PoeErrorModel(ErrorModel):
             if twist_names != list(TWIST_PARAM_NAMES):
                 raise ValueError(f"model field 'twist_names': expected {list(TWIST_PARAM_NAMES)}")
             twist = finite_array(payload["twist"], (N_TWIST_PARAMS,), "model field 'twist'")
-        return cls(robot, x, frame, registration, twist)
+        layout = payload.get("layout", "robot")
+        if layout not in LAYOUTS:
+            raise ValueError(f"model field 'layout': expected one of {', '.join(LAYOUTS)}, got {layout!r}")
+        if layout != paper_layout(robot) and layout != "robot":
+            raise ValueError(f"model field 'layout': {layout!r} is not a layout of the robot {robot.name}")
+        return cls(robot, x, frame, registration, twist, layout)
 
 
 @dataclass(frozen=True, slots=True)
@@ -181,20 +198,22 @@ def fit_poe(
     form: Literal["twist", "paper"] = "twist",
 ) -> PoeErrorFit:
     """The POE errors and the base frame from measured TCPs ``p_mm`` (n, 3) at ``a_deg`` (n, 6):
-    the twist errors and the tool offset error (``form="twist"``) or the paper's 12 (``"paper"``);
+    the twist errors and the tool offset error (``form="twist"``) or the paper's 12 (``"paper"``, on
+    seed 002's Table 1 layout where the robot is the paper's IRB 120,
+    :func:`~comp_daemon.models.poe.paper_layout`);
     ``registration`` is the frame the model reports as its measurement frame (identity on base-frame
     data). The model carries the fit's parameter covariance when there are residual degrees of freedom."""
     a = as_axes(a_deg)
     p = np.asarray(p_mm, dtype=float)
-    poe = PoeModel.from_robot(robot)
     fit: PoeFit | PoeTwistFit
     if form == "twist":
-        fit = fit_poe_twists(poe, a, p)
+        fit = fit_poe_twists(PoeModel.from_robot(robot), a, p)
         model = PoeErrorModel(robot, np.zeros(N_POE_PARAMS), fit.world_T_base, registration, fit.errors)
     else:
-        fit = fit_poe_positions(poe, a, p, fit_base=True)
+        layout = paper_layout(robot)
+        fit = fit_poe_positions(layout_twists(robot, layout), a, p, fit_base=True)
         assert fit.world_T_base is not None  # fit_base
-        model = PoeErrorModel(robot, fit.x, fit.world_T_base, registration)
+        model = PoeErrorModel(robot, fit.x, fit.world_T_base, registration, layout=layout)
     residual = (model.predict_tcp_mm(a) - p).reshape(-1)
     kept = tuple(fit.names[i] for i in fit.report.identifiable_index)
     jac = model.parameter_jacobian(a, kept).reshape(-1, len(kept))

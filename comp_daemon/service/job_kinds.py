@@ -201,6 +201,9 @@ def _run_campaign_fit(
         "campaign": info["campaign"],
         "rank": info["rank"],
         "not_identifiable": info["not_identifiable"],
+        # pairs the instrument barely tells apart: named by correlation and condition
+        "near_dependent": info["identifiability"].get("near_dependent", []),
+        "near_dependent_fixed": info.get("near_dependent_fixed", []),
         "rows": {"fit": check["fit_rows"], "check": check["check_rows"]},
         "split": "the file's split (whole arcs / placements)"
         if table.split is not None

@@ -39,6 +39,7 @@ from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS, campaign_ki
 from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.dataset import DatasetError, dataset_from_json, dataset_to_csv, parse_dataset
 from comp_daemon.data.jsontext import load_json_records
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.service.orphans import exit_with_parent
 
 __all__ = [
@@ -96,29 +97,45 @@ class CheckedUpload:
     summary: dict[str, Any]
 
 
-def check_upload(data: bytes, fmt: UploadFormat, name: str, limits: Any, kind: UploadKind) -> CheckedUpload:
+def check_upload(
+    data: bytes,
+    fmt: UploadFormat,
+    name: str,
+    limits: Any,
+    kind: UploadKind,
+    options: ReadOptions | None = None,
+) -> CheckedUpload:
     """Parse and validate an upload against the robot's axis ``limits``; render and summarise it.
 
-    ``name`` is the data set's name (a JSON ``{"name": …, "records": …}`` may give another).
-    Raises :class:`UploadRefused`.
+    ``name`` is the data set's name (a JSON ``{"name": …, "records": …}`` may give another);
+    ``options`` how the file is written (the query's ``delimiter``, ``decimal_comma``, ``units``,
+    ``euler``): what is stored is the converted data set, in mm and degrees. Raises
+    :class:`UploadRefused`.
     """
+    options = options or ReadOptions()
     campaign = None
     try:
         if fmt == "csv":
-            as_kind = "any" if _campaign_header(data) else kind
-            ds = parse_dataset(data, source=name, limits_deg=limits, min_rows=1, kind=as_kind)
+            as_kind = "any" if _campaign_header(data, options.delimiter) else kind
+            ds = parse_dataset(
+                data, source=name, limits_deg=limits, min_rows=1, kind=as_kind, options=options
+            )
         else:
             doc = load_json_records(data, name)
             name = (doc.name or name)[:200]
             keys = set(doc.records[0]) if doc.records and isinstance(doc.records[0], dict) else set()
             as_kind = "any" if keys & _MARKERS else kind
-            ds = dataset_from_json(doc, source=name, limits_deg=limits, min_rows=1, kind=as_kind)
+            ds = dataset_from_json(
+                doc, source=name, limits_deg=limits, min_rows=1, kind=as_kind, options=options
+            )
         if campaign_kind(ds) is not None:
             campaign = campaign_of(ds)
     except DatasetError as exc:
         raise UploadRefused.of(exc) from None
     del data
     summary = ds.summary()
+    if not options.is_default:
+        summary["read_as"] = options.describe()
     if campaign is not None:
         summary["campaign"] = campaign_kind(ds)
     return CheckedUpload(name, dataset_to_csv(ds), ds.content_sha256, len(ds), summary)
@@ -127,20 +144,24 @@ def check_upload(data: bytes, fmt: UploadFormat, name: str, limits: Any, kind: U
 _MARKERS = frozenset((*BALLBAR_MARKERS, *CROSSBAR_MARKERS))
 
 
-def _campaign_header(data: bytes) -> bool:
-    """Whether the first line of a CSV body names a ballbar or cross-bar column."""
+def _campaign_header(data: bytes, delimiter: str = ",") -> bool:
+    """Whether the first line of a CSV body (fields separated by ``delimiter``) names a ballbar or
+    cross-bar column."""
     first = bytes(data[: data.find(b"\n") if b"\n" in data[:65536] else 65536])
     names = {
-        cell.strip().strip('"') for cell in first.decode("utf-8", "replace").removeprefix("\ufeff").split(",")
+        cell.strip().strip('"')
+        for cell in first.decode("utf-8", "replace").removeprefix("\ufeff").split(delimiter)
     }
     return bool(names & _MARKERS)
 
 
-def _check_file(path: str, fmt: UploadFormat, name: str, limits: Any, kind: UploadKind) -> CheckedUpload:
+def _check_file(
+    path: str, fmt: UploadFormat, name: str, limits: Any, kind: UploadKind, options: ReadOptions | None
+) -> CheckedUpload:
     """:func:`check_upload` of a spooled body (in the checking process)."""
     with open(path, "rb") as f:
         data = f.read()
-    return check_upload(data, fmt, name, limits, kind)
+    return check_upload(data, fmt, name, limits, kind, options)
 
 
 class Spool:
@@ -237,10 +258,16 @@ class UploadChecker:
         self._pool: ProcessPoolExecutor | None = None
 
     async def check(
-        self, spool: Spool, fmt: UploadFormat, name: str, limits: Any, kind: UploadKind
+        self,
+        spool: Spool,
+        fmt: UploadFormat,
+        name: str,
+        limits: Any,
+        kind: UploadKind,
+        options: ReadOptions | None = None,
     ) -> CheckedUpload:
         if spool.in_memory:
-            return await asyncio.to_thread(check_upload, spool.data(), fmt, name, limits, kind)
+            return await asyncio.to_thread(check_upload, spool.data(), fmt, name, limits, kind, options)
         path = await asyncio.to_thread(spool.path)
         if self._pool is None:
             self._pool = ProcessPoolExecutor(
@@ -250,7 +277,7 @@ class UploadChecker:
                 initializer=exit_with_parent,
                 initargs=(os.getpid(),),
             )
-        future = self._pool.submit(_check_file, path, fmt, name, limits, kind)
+        future = self._pool.submit(_check_file, path, fmt, name, limits, kind, options)
         return await asyncio.wrap_future(future)
 
     def shutdown(self) -> None:

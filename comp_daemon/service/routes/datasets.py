@@ -29,6 +29,7 @@ from starlette.types import Receive, Scope, Send
 from comp_daemon.common.logs import get_logger
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
+from comp_daemon.service.routes.read_options import OPTION_FIELDS, ReadingQuery, merged, options_of
 from comp_daemon.service.schemas import MAX_ID, DatasetOut, ErrorOut, json_array
 from comp_daemon.service.state import ApiError, ServiceState, get_state
 from comp_daemon.service.store.artifacts import DatasetContent
@@ -58,8 +59,13 @@ _UPLOAD_BODY: dict[str, Any] = {
                     "properties": {
                         "file": {"type": "string", "format": "binary"},
                         "name": {"type": "string", "maxLength": 200},
+                        # how the file is written, as the query parameters of the same names
+                        "delimiter": {"type": "string", "enum": [",", ";", "tab"]},
+                        "decimal_comma": {"type": "boolean"},
+                        "units": {"type": "string", "maxLength": 20},
+                        "euler": {"type": "string", "maxLength": 40},
                     },
-                    "additionalProperties": False,  # the form takes these two parts only
+                    "additionalProperties": False,  # the form takes these parts only
                 }
             },
             "text/csv": {"schema": {"type": "string"}},
@@ -121,6 +127,7 @@ async def upload_dataset(
     request: Request,
     svc: State,
     who: Engineer,
+    reading: ReadingQuery,
     name: Annotated[str | None, Query(min_length=1, max_length=200)] = None,
     kind: Annotated[
         Literal["measurement", "any"],
@@ -132,6 +139,7 @@ async def upload_dataset(
         raise ApiError(
             415, "unsupported_media_type", "send text/csv, application/json or multipart/form-data"
         )
+    options_of(reading)  # a wrong option is refused before the body is read
     checker: UploadChecker = request.app.state.uploads
     limit = svc.settings.http.max_upload_bytes
     declared = request.headers.get("content-length", "")
@@ -146,9 +154,10 @@ async def upload_dataset(
             retry_after_s=2,
         )
     try:
-        fmt, source, spool = await _receive(request, limit, name, ctype)
+        fmt, source, spool, fields = await _receive(request, limit, name, ctype)
         try:
-            checked = await checker.check(spool, fmt, source, svc.robot.axis_limits_deg, kind)
+            options = options_of(merged(reading, fields))
+            checked = await checker.check(spool, fmt, source, svc.robot.axis_limits_deg, kind, options)
         except UploadRefused as exc:
             raise ApiError(422, "invalid_dataset", exc.message, **exc.where) from None
         finally:
@@ -170,13 +179,13 @@ async def upload_dataset(
 
 async def _receive(
     request: Request, limit: int, name: str | None, ctype: str
-) -> tuple[Literal["csv", "json"], str, Spool]:
-    """(format, data set name, body) of an upload."""
+) -> tuple[Literal["csv", "json"], str, Spool, dict[str, str]]:
+    """(format, data set name, body, the form's reader options) of an upload."""
     if ctype != "multipart/form-data":
         spool = await _spool(request, limit)
         fmt: Literal["csv", "json"] = "json" if ctype == "application/json" else "csv"
-        return fmt, (name or "upload").strip()[:200] or "upload", spool
-    form = await request.form(max_files=1, max_fields=4, max_part_size=64 * 1024)
+        return fmt, (name or "upload").strip()[:200] or "upload", spool, {}
+    form = await request.form(max_files=1, max_fields=4 + len(OPTION_FIELDS), max_part_size=64 * 1024)
     try:
         part = form.get("file")
         if not isinstance(part, UploadFile):
@@ -196,9 +205,10 @@ async def _receive(
         is_json = (part.filename or "").lower().endswith(".json") or (part.content_type or "").endswith(
             "json"
         )
+        fields = {k: v for k in OPTION_FIELDS if isinstance(v := form.get(k), str)}
     finally:
         await form.close()
-    return ("json" if is_json else "csv"), (name or "upload").strip()[:200] or "upload", spool
+    return ("json" if is_json else "csv"), (name or "upload").strip()[:200] or "upload", spool, fields
 
 
 @router.get("/datasets", response_model=list[DatasetOut], summary="List data sets (newest first)")

@@ -6,7 +6,9 @@ optional ``ta, tb, tc``; ``payload_kg`` when given). It is read by the project's
 file is answered 422 with the reader's message and the file's row (header = row 1) and column; then
 every target is checked as ``POST /api/batches`` checks it (reach, wrist singularity), and a refusal
 there names the file's row too. Nothing of a refused file is queued. The ``Idempotency-Key`` rule is
-that of ``POST /api/batches`` (the same key and file: the same batch, 200).
+that of ``POST /api/batches`` (the same key and file: the same batch, 200). A file from another
+tool is read with the query parameters ``delimiter``, ``decimal_comma``, ``units`` (:mod:`.read_options`;
+``euler`` too, though a target file has no probe).
 """
 
 from __future__ import annotations
@@ -17,10 +19,12 @@ from fastapi import APIRouter, Depends, Query, Request, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.columns import DatasetError
+from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.readers import parse_dataset
 from comp_daemon.data.target import targets_of_dataset
 from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
+from comp_daemon.service.routes.read_options import ReadingQuery, options_of
 from comp_daemon.service.routes.targets import (
     IdempotencyKey,
     compensations,
@@ -46,10 +50,13 @@ _BODY: dict[str, Any] = {
 }
 
 
-def _read(text: bytes, name: str, svc: ServiceState) -> list[dict[str, Any]]:
-    """Read and check the file; a refusal names the file's row (header = row 1) and column. Returns
-    the targets' records (those ``POST /api/batches`` queues)."""
-    dataset = parse_dataset(text, source=name, limits_deg=svc.robot.axis_limits_deg, kind="targets")
+def _read(text: bytes, name: str, svc: ServiceState, options: ReadOptions) -> list[dict[str, Any]]:
+    """Read (as ``options`` say the file is written) and check the file; a refusal names the file's
+    row (header = row 1) and column. Returns the targets' records (those ``POST /api/batches``
+    queues)."""
+    dataset = parse_dataset(
+        text, source=name, limits_deg=svc.robot.axis_limits_deg, kind="targets", options=options
+    )
     targets = targets_of_dataset(dataset)
     limit = svc.settings.http.max_batch_targets
     if len(targets) > limit:
@@ -91,8 +98,10 @@ async def post_target_file(
     svc: State,
     who: Operator,
     idempotency_key: IdempotencyKey,
+    reading: ReadingQuery,
     name: Annotated[str, Query(min_length=1, max_length=200, description="the file's name")] = "targets.csv",
 ) -> BatchOut:
+    options = options_of(reading)  # refused before the body is read
     ctype = request.headers.get("content-type", "").split(";")[0].strip().lower()
     if ctype not in _CSV_TYPES:
         raise ApiError(415, "unsupported_media_type", "send the target file as text/csv")
@@ -104,7 +113,7 @@ async def post_target_file(
             raise ApiError(
                 413, "too_large", f"upload over the limit of {limit} bytes (http.max_upload_bytes)"
             )
-    records = await svc.run(_read, bytes(body), name, svc)
+    records = await svc.run(_read, bytes(body), name, svc, options)
     batch, targets, created = await svc.run(
         svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
     )
