@@ -52,7 +52,7 @@ from __future__ import annotations
 import numpy as np
 
 from comp_daemon.kinematics.forward import Chain
-from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.params import BASE_SLICE, KinematicParams
 from comp_daemon.models.effects.base import (
     ChainStage,
     Effect,
@@ -239,6 +239,7 @@ COMPLIANCE = Effect(
 MIN_TEMP_SPREAD_K = 0.5
 #: indices of the a and d columns in the 39 geometric columns (5 per joint: theta, d, a, alpha, beta)
 _AD_COLUMNS = np.r_[1:30:5, 2:30:5]
+BASE_ROTATION_COLUMNS = slice(BASE_SLICE.start + 3, BASE_SLICE.stop)  # the base frame's rotation vector
 
 
 def _growth(values: Values, x: TwinInputs) -> FloatArray:
@@ -347,7 +348,13 @@ def _drift_apply(values: Values, x: TwinInputs, params: KinematicParams, ch: Cha
 
 
 def _drift_geometric(values: Values, x: TwinInputs, geo: FloatArray) -> None:
-    return None  # a translation of the whole chain does not change the geometric columns
+    # the drift translates the chain after the base frame: a rotation of the base turns the TCP
+    # about the base origin but not the drift, so the base-rotation columns (taken at the drifted
+    # TCP) lose e_k × shift; the other columns do not see a translation of the whole chain
+    shift = _drift_mm(values, x)
+    if np.any(shift):
+        turned = np.cross(np.eye(3)[None, :, :], shift[:, None, :])  # [i, k] = e_k × shift_i
+        geo[:, :, BASE_ROTATION_COLUMNS] -= turned.transpose(0, 2, 1)
 
 
 def _drift_column(
