@@ -62,11 +62,8 @@ from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
     MAX_ORDER,
-    MissingColumnError,
     ModelSpec,
-    UndeterminedModelError,
     UnknownModelError,
-    fit_spec,
     get_kind,
     parse_model_name,
     undetermined_reason,
@@ -74,7 +71,14 @@ from comp_daemon.models.registry import (
     with_order,
 )
 from comp_daemon.models.selection import selection_line
-from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign, PrepareOptions, prepare_campaign
+from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign
+from comp_daemon.preparation.pipeline import (
+    FitRequest,
+    fit_prepared,
+    fit_rows_checked,
+    prepare_fit,
+    prepare_for_models,
+)
 from comp_daemon.robot.description import PRESETS, RobotDescription, load_robot
 
 __all__ = ["read_data", "register"]
@@ -193,19 +197,17 @@ def _common(parser: argparse.ArgumentParser) -> None:
 def _prepare(
     dataset: Dataset, specs: list[ModelSpec], args: argparse.Namespace, *, hold_out: bool
 ) -> PreparedCampaign:
-    """The campaign prepared for these models (:func:`comp_daemon.preparation.prepare_campaign`):
-    directions inferred from the pose order when a model needs them and the file has none (unless
-    ``--no-infer-dir``), the split (drawn when ``hold_out``), the row floor and the frame; the
-    refusals as :class:`UserError`."""
-    options = PrepareOptions(
-        frame=args.frame,
-        need_directions=any(uses_directions(s) for s in specs),
-        infer_directions=args.infer_dir,
-        hold_out=hold_out,
-        require_check=hold_out,
-    )
+    """The campaign prepared for these models (:func:`comp_daemon.preparation.pipeline.prepare_for_models`),
+    the refusals as :class:`UserError`."""
     try:
-        return prepare_campaign(dataset, load_robot_cached(args), options)
+        return prepare_for_models(
+            dataset,
+            load_robot_cached(args),
+            specs,
+            frame=args.frame,
+            infer_directions=args.infer_dir,
+            hold_out=hold_out,
+        )
     except CampaignError as exc:
         raise UserError(str(exc)) from None
 
@@ -230,13 +232,6 @@ def read_data(
         raise UserError(str(exc)) from None
 
 
-def _fit_rows(
-    prepared: PreparedCampaign, spec: ModelSpec, args: argparse.Namespace, rows: np.ndarray
-) -> FittedModel:
-    options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
-    return _fit_checked(prepared, spec, load_robot_cached(args), options, rows)
-
-
 def _fit_checked(
     prepared: PreparedCampaign,
     spec: ModelSpec,
@@ -244,14 +239,12 @@ def _fit_checked(
     options: FitOptions,
     rows: np.ndarray,
 ) -> FittedModel:
-    """``fit_spec`` on the prepared campaign's rows, its refusals as :class:`UserError` naming the
-    data set."""
+    """The pipeline's fit of ``spec`` on ``rows`` (:func:`comp_daemon.preparation.pipeline.fit_rows_checked`),
+    its refusals as :class:`UserError` naming the data set."""
     try:
-        return fit_spec(spec, robot, prepared.rows(rows), options)
-    except (MissingColumnError, UndeterminedModelError) as exc:
-        raise UserError(f"{prepared.source}: {exc}") from None
-    except np.linalg.LinAlgError as exc:
-        raise UserError(f"{prepared.source}: the {spec.name} fit failed ({exc})") from None
+        return fit_rows_checked(prepared, spec, robot, options, rows)
+    except CampaignError as exc:
+        raise UserError(str(exc)) from None
 
 
 Judged = tuple[FittedModel, np.ndarray, float, float, int | None]  # fit, check predictions, times
@@ -331,27 +324,24 @@ def _fit(args: argparse.Namespace) -> int:
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
     dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
-    reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
-    if reason is not None:
-        raise UserError(f"{dataset.source}: {len(dataset)} data rows; {reason}")
-    prepared = _prepare(dataset, [spec], args, hold_out=False)
-    for sentence in prepared.describe():
-        print(f"{dataset.source}: {sentence}")
-    directions = prepared.directions.note
-    rows = prepared.fit_rows
-    with progress(f"fitting {spec.name} on {len(rows)} rows"):
-        fitted = _fit_rows(prepared, spec, args, rows)
-    fit_info = dict(fitted.info)
-    fit_info["model"] = spec.name
-    fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
-    fit_info["data_source"] = dataset.source
-    if directions:
-        fit_info["directions"] = directions
-    if spec.kind == "kinematic" and len(rows) < fitted.info["identifiability"]["identifiable"]:
-        raise UserError(
-            f"{dataset.source}: {len(rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
-            "identifiable parameters"
-        )
+    request = FitRequest(
+        spec,
+        frame=args.frame,
+        infer_directions=args.infer_dir,
+        hold_out=False,
+        cv_folds=args.folds,
+        seed=args.seed,
+    )
+    try:
+        prepared = prepare_fit(dataset, robot, request)
+        for sentence in prepared.describe():
+            print(f"{dataset.source}: {sentence}")
+        rows = prepared.fit_rows
+        with progress(f"fitting {spec.name} on {len(rows)} rows"):
+            outcome = fit_prepared(prepared, robot, request)
+    except CampaignError as exc:
+        raise UserError(str(exc)) from None
+    fitted, fit_info = outcome.fitted, outcome.info
     save_model(fitted.model, args.out, data_sha256=prepared.data_sha256, frame=fitted.frame, fit=fit_info)
     order = f", order {fitted.model.order}" if fitted.model.order is not None else ""
     extra = ""
