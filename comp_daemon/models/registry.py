@@ -44,10 +44,9 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
 from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
-from comp_daemon.models.effects import EFFECTS, effect_by_name, effect_param_names
+from comp_daemon.models.effects import EFFECTS, TRANSMISSION_EFFECTS, effect_by_name, effect_param_names
 from comp_daemon.models.fitting import (
     DEFAULT_CHEBYSHEV_ORDER,
-    SEED001_EFFECTS,
     FitOptions,
     FitRows,
     FittedModel,
@@ -157,7 +156,7 @@ def _kriging_parameters(spec: ModelSpec) -> int:
 
 
 def _kriging_backlash_parameters(spec: ModelSpec) -> int:
-    effects = tuple(dict.fromkeys((*SEED001_EFFECTS, *spec.effects)))
+    effects = tuple(dict.fromkeys((*TRANSMISSION_EFFECTS, *spec.effects)))
     return _kinematic_parameters(ModelSpec("kinematic", effects))
 
 
