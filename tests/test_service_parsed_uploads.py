@@ -135,3 +135,29 @@ def test_one_sniffer_of_the_campaign_header(head: bytes | str, kind: str | None,
     assert sniff_campaign_file(path) == kind
     assert sniff_campaign_file(tmp_path / "missing.csv") is None
     assert header_kind(["bar_mm", "placement"]) == "ballbar"
+
+
+def test_a_kept_json_upload_is_the_data_set_its_stored_text_gives(monkeypatch: pytest.MonkeyPatch) -> None:
+    from comp_daemon.data import table
+
+    rows = [line.split(",") for line in campaign_csv(12).splitlines()]
+    header = rows[0]
+    records = [{k: c if k == "split" else float(c) for k, c in zip(header, r, strict=True)} for r in rows[1:]]
+    checked = check_upload(json.dumps(records).encode(), "json", "j", None, "measurement")
+    assert checked.dataset is not None and checked.dataset.row_label == "record"
+    parsed = ParsedDatasets()
+    parsed.put(3, checked.dataset)
+    kept = parsed.get(3, checked.sha256)
+    assert kept is not None
+    again = parse_dataset(checked.content, source="dataset 3", min_rows=1)
+    assert kept == again and kept.row_label == again.row_label == "row"
+    assert list(kept.row_numbers) == list(again.row_numbers)
+
+    def no_rendering(dataset: Dataset) -> str:
+        raise AssertionError("the canonical CSV was rendered again")
+
+    monkeypatch.setattr(table, "_render_csv", no_rendering)
+    import pickle
+
+    arrived = pickle.loads(pickle.dumps(kept))  # as a job's argument reaches the worker
+    assert arrived.content_sha256 == checked.sha256 and arrived.source == "dataset 3"

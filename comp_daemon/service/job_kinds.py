@@ -1,11 +1,12 @@
 """The job kinds the service runs in its process pool: ``fit`` and ``diagnosis``.
 
-Worker functions take plain, picklable arguments (the data set as canonical CSV text, the robot's
+Worker functions take picklable arguments (the data set as canonical CSV text, or for a fit the
+data set as its upload parsed it, :class:`comp_daemon.service.uploads.ParsedDatasets`; the robot's
 preset name or path) and return JSON-ready dicts; they never touch the store. Parent-side hooks
 turn a fit's result into a stored model.
 
-A fit is the model registry's fit (:func:`comp_daemon.models.registry.fit_spec`) on the data set's
-fit rows (the ``split`` column, or a reproducible draw), judged with seed 000's Table 2
+A fit is the fit pipeline of ``comp-daemon fit`` (:mod:`comp_daemon.preparation.pipeline`) on the
+data set's fit rows (the ``split`` column, or a reproducible draw), judged with seed 000's Table 2
 (:func:`comp_daemon.models.evaluation.error_statistics`) on the check rows next to the nominal
 twin (registered to the data's frame); the model is stored as its artifact document
 (:func:`comp_daemon.models.artifact.model_document`), which the daemon loads back bit-exact. Model

@@ -56,7 +56,7 @@ __all__ = [
 ]
 
 SPOOL_MEMORY_BYTES = 1 << 20  # a body beyond this goes to a temporary file (and its check to a process)
-PARSED_MAX_ROWS = 200_000  # rows of parsed uploads kept for the fits that follow (~650 B each, ~130 MB)
+PARSED_MAX_ROWS = 100_000  # rows of parsed uploads kept for the fits that follow (~650 B each: ~65 MB)
 UploadFormat = Literal["csv", "json"]
 UploadKind = Literal["measurement", "any"]
 
