@@ -17,7 +17,7 @@ from comp_daemon.data.bars import header_kind, sniff_campaign, sniff_campaign_fi
 from comp_daemon.data.dataset import parse_dataset
 from comp_daemon.data.table import Dataset
 from comp_daemon.service.api import create_app, open_store
-from comp_daemon.service.job_kinds import run_fit
+from comp_daemon.service.job_kinds import run_diagnosis, run_fit
 from comp_daemon.service.uploads import ParsedDatasets, check_upload
 
 
@@ -61,8 +61,14 @@ async def test_fit_after_upload_takes_the_parsed_data_set(tmp_path: Path) -> Non
                 stored = (
                     await client.get(f"/api/datasets/{dataset_id}/content", headers=auth("viewer"))
                 ).text
+                d = await client.post(
+                    "/api/diagnoses", json={"dataset_id": dataset_id}, headers=auth("engineer")
+                )
+                assert d.status_code == 202, d.text
+                await client.post(f"/api/jobs/{d.json()['id']}/cancel", headers=auth("engineer"))
     finally:
         store.close()
+    assert isinstance(launched[1][0], Dataset)  # the diagnosis job too
     data = launched[0][0]
     assert isinstance(data, Dataset), "the fit job was handed the CSV text to parse again"
     again = parse_dataset(stored, source=f"dataset {dataset_id}", min_rows=1)
@@ -80,7 +86,7 @@ def _timeless(stats: dict[str, Any]) -> str:
 
 
 def test_run_fit_of_a_parsed_data_set_calls_no_parser(monkeypatch: pytest.MonkeyPatch) -> None:
-    text = campaign_csv(40)
+    text = campaign_csv(60)
     checked = check_upload(text.encode(), "csv", "c", None, "measurement")
     assert checked.dataset is not None
     parsed = ParsedDatasets()
@@ -94,8 +100,10 @@ def test_run_fit_of_a_parsed_data_set_calls_no_parser(monkeypatch: pytest.Monkey
     monkeypatch.setattr(readers, "parse_dataset", refuse)
     monkeypatch.setattr("comp_daemon.data.dataset.parse_dataset", refuse)
     done = run_fit(kept, "kr210", "kinematic", None, 7, progress=_quiet)
-    assert done["stats"]["rows"] == {"fit": 30, "check": 10}
+    assert done["stats"]["rows"] == {"fit": 45, "check": 15}
     assert done["artifact"]["data_sha256"] == checked.sha256
+    report = run_diagnosis(kept, "kr210", 7, progress=_quiet)["report"]
+    assert report["data"] == {"source": "dataset 7", "content_sha256": checked.sha256}
 
 
 def test_parsed_data_sets_are_keyed_by_content_and_bounded() -> None:

@@ -85,7 +85,6 @@ def run_fit(
     directions from the pose order when the model needs them, and the stats' ``directions`` says so.
     """
     from comp_daemon.data.bars import campaign_kind, read_table, sniff_campaign
-    from comp_daemon.data.dataset import parse_dataset
     from comp_daemon.models.evaluation import error_statistics
     from comp_daemon.models.fitting import FitOptions, ModelSpec
     from comp_daemon.models.registry import fit_spec, parse_model_name, with_order
@@ -96,19 +95,12 @@ def run_fit(
     robot = load_robot(robot_name)
     progress(0.02, "reading the data set")
     source = f"dataset {dataset_id}"
-    if isinstance(data, str):
-        if sniff_campaign(data) is not None:
-            table = read_table(
-                data.encode("utf-8"), fmt="csv", source=source, limits_deg=robot.axis_limits_deg
-            )
-            return _run_campaign_fit(table, robot, model, progress)
-        ds = parse_dataset(
-            data, source=source, limits_deg=robot.axis_limits_deg, min_rows=1, kind="measurement"
-        )
-    else:
-        ds = data
-        if campaign_kind(ds) is not None:
-            return _run_campaign_fit(ds, robot, model, progress)
+    if isinstance(data, str) and sniff_campaign(data) is not None:
+        table = read_table(data.encode("utf-8"), fmt="csv", source=source, limits_deg=robot.axis_limits_deg)
+        return _run_campaign_fit(table, robot, model, progress)
+    if not isinstance(data, str) and campaign_kind(data) is not None:
+        return _run_campaign_fit(data, robot, model, progress)
+    ds = _measurement(data, source, robot)
     request = FitRequest(spec, infer_directions=infer_dir, hold_out=True)
     prepared = prepare_fit(ds, robot, request)
     progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
@@ -142,6 +134,20 @@ def run_fit(
         "fit": outcome.info,
     }
     return {"stats": stats, "artifact": outcome.artifact()}
+
+
+def _measurement(data: str | Dataset, source: str, robot: Any) -> Dataset:
+    """The measurement data set a job works on: as its upload parsed it, or its stored text parsed
+    by the upload's rules (the robot's axis limits; a1..a6 and x, y, z required). A kept data set
+    without axis values or positions is read from its text too, whose reader says what is missing."""
+    from comp_daemon.data.dataset import dataset_to_csv, parse_dataset
+
+    if not isinstance(data, str) and data.a_deg is not None and data.xyz_mm is not None:
+        return data
+    text = data if isinstance(data, str) else dataset_to_csv(data)
+    return parse_dataset(
+        text, source=source, limits_deg=robot.axis_limits_deg, min_rows=1, kind="measurement"
+    )
 
 
 def _run_campaign_fit(table: Dataset, robot: Any, model: str, progress: Progress) -> dict[str, Any]:
@@ -194,13 +200,13 @@ def fit_done(job: JobRecord, result: Mapping[str, Any]) -> ModelDraft:
 
 
 def diagnosis_job_args(
-    csv_text: str, robot: str, dataset_id: int, tracker_sigma_mm: float | None = None
+    data: str | Dataset, robot: str, dataset_id: int, tracker_sigma_mm: float | None = None
 ) -> tuple[Any, ...]:
-    return (csv_text, robot, dataset_id, tracker_sigma_mm)
+    return (data, robot, dataset_id, tracker_sigma_mm)
 
 
 def run_diagnosis(
-    csv_text: str,
+    data: str | Dataset,
     robot_name: str,
     dataset_id: int,
     tracker_sigma_mm: float | None = None,
@@ -210,16 +216,15 @@ def run_diagnosis(
     """The diagnosis of ``docs/diagnosis-output.md`` on the data set: JSON report and HTML report.
 
     ``tracker_sigma_mm`` is the tracker uncertainty the engineer declares (σ per axis, mm): the
-    noise floor when the data have no repeated poses.
+    noise floor when the data have no repeated poses. ``data``: as for :func:`run_fit`.
     """
-    from comp_daemon.data.dataset import parse_dataset
     from comp_daemon.diagnosis import DiagnoseOptions, diagnose
     from comp_daemon.diagnosis.report import render_report_html
     from comp_daemon.robot.description import load_robot
 
     robot = load_robot(robot_name)
     progress(0.02, "reading the data set")
-    ds = parse_dataset(csv_text, source=f"dataset {dataset_id}", limits_deg=robot.axis_limits_deg, min_rows=1)
+    ds = _measurement(data, f"dataset {dataset_id}", robot)
     progress(0.05, "diagnosing")
     diagnosis = diagnose(ds, robot, DiagnoseOptions(tracker_sigma_mm=tracker_sigma_mm))
     progress(0.9, "writing the report")
