@@ -441,8 +441,8 @@ def test_compensate_maps_onto_joints_1_to_3_with_the_seed000_option(
     args = ["compensate", str(model_path), str(tmp_path / "program.csv")]
     assert main([*args, "--out", str(tmp_path / "six.csv")]) == 0
     assert "(six-axis mapping)" in capsys.readouterr().out
-    assert main([*args, "--out", str(tmp_path / "seed000.csv"), "--mapping", "seed000"]) == 0
-    assert "(seed000 mapping)" in capsys.readouterr().out
+    assert main([*args, "--out", str(tmp_path / "seed000.csv"), "--mapping", "three-axis"]) == 0
+    assert "(three-axis mapping)" in capsys.readouterr().out
     six, seed000 = (read_dataset(tmp_path / f"{k}.csv", kind="targets") for k in ("six", "seed000"))
     assert six.a_deg is not None and seed000.a_deg is not None
     np.testing.assert_allclose(seed000.a_deg[:, 3:], program[:, 3:], atol=1e-9)  # the wrist stays
@@ -457,7 +457,7 @@ def test_compensate_maps_onto_joints_1_to_3_with_the_seed000_option(
         "--out",
         str(tmp_path / "x.csv"),
         "--mapping",
-        "seed000",
+        "three-axis",
         "--max-axis-change-deg",
         "0.001",
     ]
@@ -465,11 +465,20 @@ def test_compensate_maps_onto_joints_1_to_3_with_the_seed000_option(
     assert "would change by" in capsys.readouterr().err
     with pytest.raises(SystemExit):
         main([*args, "--out", str(tmp_path / "x.csv"), "--mapping", "paper"])
+    # the former name is read as the new one, and the note names it
+    assert main([*args, "--out", str(tmp_path / "old.csv"), "--mapping", "seed000"]) == 0
+    captured = capsys.readouterr()
+    assert "(three-axis mapping)" in captured.out
+    assert "the joint mapping 'seed000' is now called 'three-axis'" in captured.err
+    assert read_dataset(tmp_path / "old.csv", kind="targets") == seed000
 
 
 def test_the_mapping_is_a_compensation_setting() -> None:
     assert Settings().compensation.mapping == "six-axis"
-    assert load_settings(None, compensation={"mapping": "seed000"}).compensation.mapping == "seed000"
+    assert load_settings(None, compensation={"mapping": "three-axis"}).compensation.mapping == "three-axis"
+    with pytest.warns(FutureWarning, match="'seed000' is now called 'three-axis'.*write 'three-axis'"):
+        old = load_settings(None, compensation={"mapping": "seed000"})  # an old configuration file
+    assert old.compensation.mapping == "three-axis"
     with pytest.raises(ValueError, match="mapping"):
         load_settings(None, compensation={"mapping": "paper"})
     example = Path(__file__).resolve().parents[1] / "config.example.toml"

@@ -158,9 +158,9 @@ def test_the_seed000_mapping_keeps_the_wrist_of_the_nominal_solution(store: Stor
     request = Target(axes_deg=tuple(HOME))
     six = ActiveModelCompensator(store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME))(request)
     seed000 = ActiveModelCompensator(
-        store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME), mapping="seed000"
+        store, robot, [0, 1, 2], current_axes=lambda: tuple(HOME), mapping="three-axis"
     )(request)
-    assert seed000.info is not None and seed000.info["mapping"] == "seed000"
+    assert seed000.info is not None and seed000.info["mapping"] == "three-axis"
     np.testing.assert_allclose(seed000.commanded_deg[3:], HOME[3:], atol=1e-9)
     assert np.abs(np.subtract(six.commanded_deg[3:], HOME[3:])).max() > 1e-4
     for out in (six, seed000):  # both put the model's predicted TCP on the nominal one
@@ -168,5 +168,5 @@ def test_the_seed000_mapping_keeps_the_wrist_of_the_nominal_solution(store: Stor
             KinematicParams.from_robot(robot), axes_deg_to_q_rad(np.array([HOME]), robot.sign)
         )
         np.testing.assert_allclose(model.predict_tcp_mm(np.array([out.commanded_deg])), wanted, atol=1e-5)
-    with pytest.raises(ValueError, match="mapping must be one of six-axis, seed000"):
+    with pytest.raises(ValueError, match="mapping must be one of six-axis, three-axis"):
         ActiveModelCompensator(store, robot, [0, 1, 2], mapping="paper")  # type: ignore[arg-type]

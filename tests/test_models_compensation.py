@@ -153,7 +153,7 @@ def test_seed000_mapping_moves_only_joints_1_to_3_onto_the_target(index: int) ->
     assert len(a_nominal) > 10
     wanted, rot = nominal_targets(model, a_nominal)
     wide = CompensationLimits(max_axis_change_deg=2.0)  # the test models' errors reach 3.4 mm
-    result = compensate(model, wanted, rot, a_seed_deg=a_nominal, mapping="seed000", limits=wide)
+    result = compensate(model, wanted, rot, a_seed_deg=a_nominal, mapping="three-axis", limits=wide)
     assert result.converged and result.residual_mm.max() < 1e-6
     wanted_world = wanted @ model.registration[:3, :3].T + model.registration[:3, 3]
     assert np.linalg.norm(model.predict_tcp_mm(result.a_deg) - wanted_world, axis=1).max() < 1e-6
@@ -171,10 +171,10 @@ def test_first_step_of_the_seed000_mapping_is_the_papers_feed_forward() -> None:
     a_nominal = _well_conditioned(model, _axes(40, 12))
     wanted, _ = nominal_targets(model, a_nominal)
     wide = CompensationLimits(max_axis_change_deg=2.0)
-    one = compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", max_iter=1, limits=wide)
+    one = compensate(model, wanted, a_seed_deg=a_nominal, mapping="three-axis", max_iter=1, limits=wide)
     np.testing.assert_allclose(one.a_deg, feed_forward(model, a_nominal).a_deg, atol=1e-12)
     assert not one.converged  # one step leaves the second-order remainder
-    full = compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", limits=wide)
+    full = compensate(model, wanted, a_seed_deg=a_nominal, mapping="three-axis", limits=wide)
     assert full.residual_mm.max() < 1e-6 < one.residual_mm.max()
 
 
@@ -183,21 +183,21 @@ def test_the_limits_apply_to_the_seed000_mapping() -> None:
     a_nominal = _well_conditioned(model, _axes(20, 14))
     wanted, _ = nominal_targets(model, a_nominal)
     wide = CompensationLimits(max_axis_change_deg=2.0)
-    free = compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", limits=wide)
+    free = compensate(model, wanted, a_seed_deg=a_nominal, mapping="three-axis", limits=wide)
     worst = float(np.abs(free.da_deg).max())
     tight = CompensationLimits(max_axis_change_deg=0.5 * worst)
     with pytest.raises(CompensationRefused, match="would change by") as caught:
-        compensate(model, wanted, a_seed_deg=a_nominal, mapping="seed000", limits=tight)
+        compensate(model, wanted, a_seed_deg=a_nominal, mapping="three-axis", limits=tight)
     assert all(r.axis in (1, 2, 3) for r in caught.value.refusals)
     # the validity region of the Chebyshev model: a target beyond its sampled A1 range is refused
     beyond = a_nominal[:1].copy()
     beyond[0, 0] = model.range_deg[0][1] + 30.0  # type: ignore[attr-defined]
     p, r = nominal_targets(model, beyond)
     with pytest.raises(CompensationRefused, match="validity region"):
-        compensate(model, p, r, a_seed_deg=beyond, mapping="seed000")
+        compensate(model, p, r, a_seed_deg=beyond, mapping="three-axis")
 
 
 def test_an_unknown_mapping_is_an_error() -> None:
     model = NominalModel(KR)
-    with pytest.raises(ValueError, match="six-axis, seed000"):
+    with pytest.raises(ValueError, match="six-axis, three-axis"):
         compensate(model, np.array([[1800.0, 0.0, 1200.0]]), mapping="paper")  # type: ignore[arg-type]

@@ -17,8 +17,6 @@
 from __future__ import annotations
 
 import argparse
-import csv
-import io
 from pathlib import Path
 from typing import Any
 
@@ -28,70 +26,48 @@ from comp_daemon.commands.data import read_options_of
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.ballbar import BallbarCampaign
-from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS, read_table
+from comp_daemon.data.bars import read_table, sniff_campaign_file
 from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
-from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
-from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction, uncertainty_summary
+from comp_daemon.models.campaign_fit import registered_prediction, uncertainty_summary
 from comp_daemon.models.covariance import near_dependent_note
 from comp_daemon.models.evaluation import error_statistics
 from comp_daemon.models.poe import layout_twists, paper_layout
 from comp_daemon.models.solver_comparison import SolverProblem, compare_solvers, parse_solvers, solver_table
 from comp_daemon.models.uncertainty import repeat_uncertainty
+from comp_daemon.preparation.campaign import CampaignError
+from comp_daemon.preparation.pipeline import calibrate_campaign, nominal_tcp
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["evaluate_calibrated", "evaluate_solvers", "fit_campaign_file", "is_campaign_file", "nominal_tcp"]
 
 
-def nominal_tcp(robot: RobotDescription) -> Any:
-    """The robot description's TCP (n, 3) of axis values (n, 6): the readers' 5 mm pivot check."""
-    params = KinematicParams.from_robot(robot)
-    return lambda a_deg: tcp_position_mm(params, axes_deg_to_q_rad(a_deg, params.sign))
-
-
-def _header(path: str, delimiter: str) -> list[str]:
-    with open(path, encoding="utf-8-sig", errors="replace", newline="") as f:
-        first = next(csv.reader(io.StringIO(f.readline()), delimiter=delimiter), [])
-    return [h.strip() for h in first]
-
-
 def is_campaign_file(path: str, options: ReadOptions | None = None) -> bool:
-    """Whether a CSV file's header (fields separated as ``options`` say) is that of a ballbar or
-    cross-bar campaign (JSON: read whole)."""
-    try:
-        if Path(path).suffix.lower() == ".json":
-            from comp_daemon.data.bars import campaign_kind
-
-            return campaign_kind(read_table(path, options=options)) is not None
-        header = set(_header(path, (options or ReadOptions()).delimiter))
-    except (OSError, DatasetError):
-        return False
-    return bool(header & {*BALLBAR_MARKERS, *CROSSBAR_MARKERS})
+    """Whether a file is a ballbar or cross-bar campaign (by its header, its fields separated as
+    ``options`` say: the forms' one sniffer)."""
+    return sniff_campaign_file(path, options) is not None
 
 
 def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
-    """``fit`` of a ballbar or cross-bar campaign (module docstring)."""
+    """``fit`` of a ballbar or cross-bar campaign (module docstring), through the fit pipeline's
+    :func:`comp_daemon.preparation.pipeline.calibrate_campaign`."""
     try:
         table = read_table(args.data, limits_deg=robot.axis_limits_deg, options=read_options_of(args))
-        campaign = campaign_of(table, tcp_mm=nominal_tcp(robot))
-    except DatasetError as exc:
-        raise UserError(str(exc)) from None
-    assert campaign is not None
-    try:
-        fix, ridge = bool(getattr(args, "fix_near_dependent", False)), bool(getattr(args, "ridge", False))
-        fitted, check = fit_campaign(
-            robot, campaign, model=args.model, seed=args.seed, fix_near_dependent=fix, ridge=ridge
+        outcome = calibrate_campaign(
+            table,
+            robot,
+            args.model,
+            seed=args.seed,
+            fix_near_dependent=bool(getattr(args, "fix_near_dependent", False)),
+            ridge=bool(getattr(args, "ridge", False)),
         )
-    except ValueError as exc:
-        raise UserError(f"{campaign.source}: {exc}") from None
-    info = dict(fitted.info)
-    info.update(model=fitted.model.kind, data_source=campaign.source, campaign_check=check)
-    info["data_rows_used"] = "fit rows" if campaign.rows.split is not None else "all rows"
-    save_model(fitted.model, args.out, data_sha256=table.content_sha256, frame=fitted.frame, fit=info)
+    except (DatasetError, CampaignError) as exc:
+        raise UserError(str(exc)) from None
+    fitted, check, info = outcome.fitted, outcome.check, outcome.info
+    save_model(fitted.model, args.out, data_sha256=outcome.data_sha256, frame=fitted.frame, fit=info)
     print(
         f"{info['campaign']} campaign -> {fitted.model.kind} model: {check['fit_rows']} rows, "
         f"rank {info['rank']} of {info['parameters']}, residual RMS {info['rms_mm']:.4f} mm -> {args.out}"

@@ -37,11 +37,13 @@ from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.compensation import (
     DEFAULT_LIMITS,
     MAPPINGS,
+    RENAMED_MAPPINGS,
     CompensationLimits,
     CompensationRefused,
     CompensationResult,
     compensate,
     nominal_targets,
+    renamed_mapping_note,
 )
 from comp_daemon.preparation.campaign import prepare_directions
 from comp_daemon.robot.description import load_robot
@@ -108,11 +110,22 @@ def compensation_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--mapping",
-        choices=MAPPINGS,
+        type=_mapping_arg,
         default="six-axis",
-        help="six-axis: inverse kinematics of every axis (default); seed000: seed 000's mapping of the "
-        "predicted error onto joints 1-3, the wrist from the nominal solution",
+        metavar="{" + ",".join(MAPPINGS) + "}",
+        help="six-axis: inverse kinematics of every axis (default); three-axis: seed 000's mapping of "
+        "the predicted error onto joints 1-3, the wrist from the nominal solution (formerly seed000)",
     )
+
+
+def _mapping_arg(text: str) -> str:
+    """A joint mapping; a former name (:data:`RENAMED_MAPPINGS`) is read as its new one, with a note."""
+    if text in RENAMED_MAPPINGS:
+        print(f"--mapping: {renamed_mapping_note(text)}", file=sys.stderr)
+        return RENAMED_MAPPINGS[text]
+    if text not in MAPPINGS:
+        raise argparse.ArgumentTypeError(f"expected one of {', '.join(MAPPINGS)}, got {text!r}")
+    return text
 
 
 def _compensate(args: argparse.Namespace) -> int:

@@ -30,6 +30,7 @@ import sys
 import time
 from collections.abc import Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
 from typing import Any, Literal
 
 import numpy as np
@@ -63,11 +64,8 @@ from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
     MAX_ORDER,
-    MissingColumnError,
     ModelSpec,
-    UndeterminedModelError,
     UnknownModelError,
-    fit_spec,
     get_kind,
     parse_model_name,
     undetermined_reason,
@@ -75,7 +73,14 @@ from comp_daemon.models.registry import (
     with_order,
 )
 from comp_daemon.models.selection import selection_line
-from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign, PrepareOptions, prepare_campaign
+from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign
+from comp_daemon.preparation.pipeline import (
+    FitRequest,
+    fit_prepared,
+    fit_rows_checked,
+    prepare_fit,
+    prepare_for_models,
+)
 from comp_daemon.preparation.stations import judge_stations
 from comp_daemon.robot.description import PRESETS, RobotDescription, load_robot
 
@@ -225,20 +230,18 @@ def _probe_sigma_arg(text: str) -> float:
 def _prepare(
     dataset: Dataset, specs: list[ModelSpec], args: argparse.Namespace, *, hold_out: bool
 ) -> PreparedCampaign:
-    """The campaign prepared for these models (:func:`comp_daemon.preparation.prepare_campaign`):
-    directions inferred from the pose order when a model needs them and the file has none (unless
-    ``--no-infer-dir``), the split (drawn when ``hold_out``), the row floor and the frame; the
-    refusals as :class:`UserError`."""
-    options = PrepareOptions(
-        frame=args.frame,
-        need_directions=any(uses_directions(s) for s in specs),
-        infer_directions=args.infer_dir,
-        hold_out=hold_out,
-        require_check=hold_out,
-        probe_sigma_deg=args.probe_sigma_deg,
-    )
+    """The campaign prepared for these models (:func:`comp_daemon.preparation.pipeline.prepare_for_models`),
+    the refusals as :class:`UserError`."""
     try:
-        return prepare_campaign(dataset, load_robot_cached(args), options)
+        return prepare_for_models(
+            dataset,
+            load_robot_cached(args),
+            specs,
+            frame=args.frame,
+            infer_directions=args.infer_dir,
+            hold_out=hold_out,
+            probe_sigma_deg=args.probe_sigma_deg,
+        )
     except CampaignError as exc:
         raise UserError(str(exc)) from None
 
@@ -263,13 +266,6 @@ def read_data(
         raise UserError(str(exc)) from None
 
 
-def _fit_rows(
-    prepared: PreparedCampaign, spec: ModelSpec, args: argparse.Namespace, rows: np.ndarray
-) -> FittedModel:
-    options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
-    return _fit_checked(prepared, spec, load_robot_cached(args), options, rows)
-
-
 def _fit_checked(
     prepared: PreparedCampaign,
     spec: ModelSpec,
@@ -277,14 +273,12 @@ def _fit_checked(
     options: FitOptions,
     rows: np.ndarray,
 ) -> FittedModel:
-    """``fit_spec`` on the prepared campaign's rows, its refusals as :class:`UserError` naming the
-    data set."""
+    """The pipeline's fit of ``spec`` on ``rows`` (:func:`comp_daemon.preparation.pipeline.fit_rows_checked`),
+    its refusals as :class:`UserError` naming the data set."""
     try:
-        return fit_spec(spec, robot, prepared.rows(rows), options)
-    except (MissingColumnError, UndeterminedModelError) as exc:
-        raise UserError(f"{prepared.source}: {exc}") from None
-    except np.linalg.LinAlgError as exc:
-        raise UserError(f"{prepared.source}: the {spec.name} fit failed ({exc})") from None
+        return fit_rows_checked(prepared, spec, robot, options, rows)
+    except CampaignError as exc:
+        raise UserError(str(exc)) from None
 
 
 Judged = tuple[FittedModel, np.ndarray, float, float, int | None]  # fit, check predictions, times
@@ -364,27 +358,25 @@ def _fit(args: argparse.Namespace) -> int:
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
     dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
-    reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
-    if reason is not None:
-        raise UserError(f"{dataset.source}: {len(dataset)} data rows; {reason}")
-    prepared = _prepare(dataset, [spec], args, hold_out=False)
-    for sentence in prepared.describe():
-        print(f"{dataset.source}: {sentence}")
-    directions = prepared.directions.note
-    rows = prepared.fit_rows
-    with progress(f"fitting {spec.name} on {len(rows)} rows"):
-        fitted = _fit_rows(prepared, spec, args, rows)
-    fit_info = dict(fitted.info)
-    fit_info["model"] = spec.name
-    fit_info["data_rows_used"] = "fit rows" if dataset.split is not None else "all rows"
-    fit_info["data_source"] = dataset.source
-    if directions:
-        fit_info["directions"] = directions
-    if spec.kind == "kinematic" and len(rows) < fitted.info["identifiability"]["identifiable"]:
-        raise UserError(
-            f"{dataset.source}: {len(rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
-            "identifiable parameters"
-        )
+    request = FitRequest(
+        spec,
+        frame=args.frame,
+        infer_directions=args.infer_dir,
+        hold_out=False,
+        cv_folds=args.folds,
+        seed=args.seed,
+        probe_sigma_deg=args.probe_sigma_deg,
+    )
+    try:
+        prepared = prepare_fit(dataset, robot, request)
+        for sentence in prepared.describe():
+            print(f"{dataset.source}: {sentence}")
+        rows = prepared.fit_rows
+        with progress(f"fitting {spec.name} on {len(rows)} rows"):
+            outcome = fit_prepared(prepared, robot, request)
+    except CampaignError as exc:
+        raise UserError(str(exc)) from None
+    fitted, fit_info = outcome.fitted, outcome.info
     save_model(fitted.model, args.out, data_sha256=prepared.data_sha256, frame=fitted.frame, fit=fit_info)
     order = f", order {fitted.model.order}" if fitted.model.order is not None else ""
     extra = ""
@@ -422,35 +414,37 @@ def _evaluate_specs(args: argparse.Namespace) -> list[tuple[str, ModelSpec]]:
     return [(t, _parse_model(t, args.order if get_kind(_head(t)).takes_order else None)) for t in tokens]
 
 
+@dataclass
+class _Evaluation:
+    """What ``evaluate`` gathers per model: Table 2 on the check rows, the fit's information, the
+    times, and the models left out with the reason."""
+
+    table: dict[str, dict[str, Any]] = field(default_factory=dict)
+    fits: dict[str, dict[str, Any]] = field(default_factory=dict)
+    timing: dict[str, dict[str, float]] = field(default_factory=dict)
+    skipped: dict[str, str] = field(default_factory=dict)
+    predictions: dict[str, np.ndarray] = field(default_factory=dict)  # on the check rows
+    station_lines: list[str] = field(default_factory=list)  # a station whose check rows jump
+    station_doc: dict[str, Any] = field(default_factory=dict)  # the check rows' error per station
+
+
 def _evaluate(args: argparse.Namespace) -> int:
     if args.solvers is not None:
         return evaluate_solvers(args, load_robot_cached(args))
-    parsed = _evaluate_specs(args)
     robot = load_robot_cached(args)
     dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
-    # a model the rows cannot determine is left out by name; the evaluation goes on with the rest
-    skipped = {
-        t: reason
-        for t, spec in parsed
-        if (reason := undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)) is not None
-    }
-    parsed = [(t, spec) for t, spec in parsed if t not in skipped]
-    if not parsed:
-        reasons = "; ".join(f"{t}: {r}" for t, r in skipped.items())
-        raise UserError(f"{dataset.source}: {len(dataset)} data rows; no model can be evaluated ({reasons})")
-    for token, reason in skipped.items():
-        print(f"{dataset.source}: left out {token}: {reason}")
+    ev = _Evaluation()
+    parsed = _determinable(_evaluate_specs(args), robot, dataset, ev)
     prepared = _prepare(dataset, [spec for _, spec in parsed], args, hold_out=True)
     dataset, split = prepared.dataset, prepared.split
-    directions = prepared.directions.note
-    if directions:
-        print(f"{dataset.source}: {directions}")
+    if prepared.directions.note:
+        print(f"{dataset.source}: {prepared.directions.note}")
     if args.models.strip() == "all" and dataset.dir is None:
         no_dir = {t: "no dir1..dir6 columns (--no-infer-dir)" for t, spec in parsed if uses_directions(spec)}
         parsed = [(t, spec) for t, spec in parsed if t not in no_dir]
         if no_dir:
             print(f"{dataset.source}: left out (no dir columns): {', '.join(no_dir)}", file=sys.stderr)
-        skipped.update(no_dir)
+        ev.skipped.update(no_dir)
     if split.drawn:
         print(split.message, file=sys.stderr)
     if prepared.still_axes:
@@ -458,87 +452,137 @@ def _evaluate(args: argparse.Namespace) -> int:
     if prepared.stations is not None:
         print(f"{dataset.source}: {prepared.stations.note}")
     assert dataset.a_deg is not None and dataset.xyz_mm is not None
+    extrapolated = outside_fit_ranges(dataset.a_deg[split.fit_rows], dataset.a_deg[split.check_rows])
+    _judge(parsed, prepared, robot, args, extrapolated["rows"], ev)
+    if "nominal" in ev.table:  # beside the raw nominal row, the one that does not count unknown targets
+        _judge_registered_nominal(prepared, robot, extrapolated["rows"], ev)
+    if args.calibrated:
+        t0 = time.perf_counter()
+        check = split.check_rows
+        calibrated, calibrated_fits = evaluate_calibrated(
+            args.calibrated, robot, dataset, split.fit_rows, check
+        )
+        for name in calibrated:
+            ev.table[name] = calibrated[name]
+            ev.fits[name] = calibrated_fits[name]
+            ev.timing[name] = {
+                "fit_s": 0.0,
+                "predict_s": time.perf_counter() - t0,
+                "predict_rows": len(check),
+            }
+    ranking = sorted(ev.table, key=lambda name: ev.table[name]["3d"]["rms"])
+    ev.table = {name: ev.table[name] for name in ranking}
+    best = next((name for name in ranking if name in ev.predictions), None)
+    if best is not None:  # each station's check rows judged by the best model
+        check_rows = np.asarray(prepared.split.check_rows, dtype=np.int64)
+        ev.station_lines, ev.station_doc = judge_stations(
+            prepared.dataset, check_rows, ev.predictions[best], best
+        )
+    _print_evaluation(prepared, ev, ranking, extrapolated)
+    if args.json:
+        _write_json(args.json, _evaluation_document(prepared, robot, ev, ranking))
+    return 0
+
+
+def _determinable(
+    parsed: list[tuple[str, ModelSpec]], robot: RobotDescription, dataset: Dataset, ev: _Evaluation
+) -> list[tuple[str, ModelSpec]]:
+    """The models the rows can determine; the others are left out by name (``ev.skipped``) and the
+    evaluation goes on with the rest, refused when none is left."""
+    for t, spec in parsed:
+        reason = undetermined_reason(spec, robot, len(dataset), dataset.payload_kg)
+        if reason is not None:
+            ev.skipped[t] = reason
+    if len(ev.skipped) == len(parsed):
+        reasons = "; ".join(f"{t}: {r}" for t, r in ev.skipped.items())
+        raise UserError(f"{dataset.source}: {len(dataset)} data rows; no model can be evaluated ({reasons})")
+    for token, reason in ev.skipped.items():
+        print(f"{dataset.source}: left out {token}: {reason}")
+    return [(t, spec) for t, spec in parsed if t not in ev.skipped]
+
+
+def _judge(
+    parsed: list[tuple[str, ModelSpec]],
+    prepared: PreparedCampaign,
+    robot: RobotDescription,
+    args: argparse.Namespace,
+    extrapolated_rows: int,
+    ev: _Evaluation,
+) -> None:
+    """Each model fitted on the fit rows (``--jobs`` processes) and judged on the check rows; one
+    with fewer fit rows than identifiable parameters is left out."""
+    dataset, split = prepared.dataset, prepared.split
+    assert dataset.xyz_mm is not None
     check = split.check_rows
-    table: dict[str, dict[str, Any]] = {}
-    fits: dict[str, dict[str, Any]] = {}
-    timing: dict[str, dict[str, float]] = {}
-    extrapolated = outside_fit_ranges(dataset.a_deg[split.fit_rows], dataset.a_deg[check])
     frame_warned = False
     options = FitOptions(frame=prepared.frame, cv_folds=args.folds, seed=args.seed)
-    judged = _fit_each(list(parsed), (prepared, robot, options, split.fit_rows, check), args.jobs)
-    predictions: dict[str, np.ndarray] = {}
-    for token, outcome in judged:
+    for token, outcome in _fit_each(parsed, (prepared, robot, options, split.fit_rows, check), args.jobs):
         fitted, pred, t_fit, t_pred, outside = outcome
-        predictions[token] = pred
+        ev.predictions[token] = pred
         identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
         if len(split.fit_rows) < identifiable:
-            skipped[token] = (
+            ev.skipped[token] = (
                 f"{len(split.fit_rows)} fit rows for {identifiable} identifiable parameters: not determined"
             )
-            print(f"{dataset.source}: left out {token}: {skipped[token]}")
+            print(f"{dataset.source}: left out {token}: {ev.skipped[token]}")
             continue
-        table[token] = error_statistics(dataset.xyz_mm[check], pred)
-        timing[token] = {"fit_s": t_fit, "predict_s": t_pred, "predict_rows": len(check)}
-        fits[token] = {"frame": fitted.frame, **fitted.info}
+        ev.table[token] = error_statistics(dataset.xyz_mm[check], pred)
+        ev.timing[token] = {"fit_s": t_fit, "predict_s": t_pred, "predict_rows": len(check)}
+        ev.fits[token] = {"frame": fitted.frame, **fitted.info}
         if "frame_warning" in fitted.info and not frame_warned:  # the same for every model: once
             print(f"{dataset.source}: {fitted.info['frame_warning']}")
             frame_warned = True
         if "mass_warning" in fitted.info:
             print(f"{dataset.source}: {token}: {fitted.info['mass_warning']}")
         if outside is not None:
-            fits[token]["check_rows_outside_range"] = outside
+            ev.fits[token]["check_rows_outside_range"] = outside
         elif token != "nominal":
-            fits[token]["check_rows_outside_range"] = extrapolated["rows"]
-    if "nominal" in table:  # beside the raw nominal row, the one that does not count unknown targets
-        t0 = time.perf_counter()
-        fit_rows = split.fit_rows
-        more = None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[fit_rows]
-        reg_model, reg_info = registered_nominal(
-            robot, dataset.a_deg[fit_rows], dataset.xyz_mm[fit_rows], more
-        )
-        t1 = time.perf_counter()
-        table[REGISTERED_NOMINAL] = error_statistics(
-            dataset.xyz_mm[check], reg_model.predict_tcp_mm(dataset.a_deg[check])
-        )
-        fits[REGISTERED_NOMINAL] = {
-            "frame": "registered",
-            **reg_info,
-            "check_rows_outside_range": extrapolated["rows"],
-        }
-        timing[REGISTERED_NOMINAL] = {
-            "fit_s": t1 - t0,
-            "predict_s": time.perf_counter() - t1,
-            "predict_rows": len(check),
-        }
-    if args.calibrated:
-        t0 = time.perf_counter()
-        calibrated, calibrated_fits = evaluate_calibrated(
-            args.calibrated, robot, dataset, split.fit_rows, check
-        )
-        for name in calibrated:
-            table[name] = calibrated[name]
-            fits[name] = calibrated_fits[name]
-            timing[name] = {"fit_s": 0.0, "predict_s": time.perf_counter() - t0, "predict_rows": len(check)}
-    ranking = sorted(table, key=lambda name: table[name]["3d"]["rms"])
-    table = {name: table[name] for name in ranking}
+            ev.fits[token]["check_rows_outside_range"] = extrapolated_rows
+
+
+def _judge_registered_nominal(
+    prepared: PreparedCampaign, robot: RobotDescription, extrapolated_rows: int, ev: _Evaluation
+) -> None:
+    """The nominal twin registered to the measurements on the fit rows, judged on the check rows."""
+    dataset, fit_rows, check = prepared.dataset, prepared.split.fit_rows, prepared.split.check_rows
+    assert dataset.a_deg is not None and dataset.xyz_mm is not None
+    t0 = time.perf_counter()
+    more = None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[fit_rows]
+    reg_model, reg_info = registered_nominal(robot, dataset.a_deg[fit_rows], dataset.xyz_mm[fit_rows], more)
+    t1 = time.perf_counter()
+    ev.table[REGISTERED_NOMINAL] = error_statistics(
+        dataset.xyz_mm[check], reg_model.predict_tcp_mm(dataset.a_deg[check])
+    )
+    ev.fits[REGISTERED_NOMINAL] = {
+        "frame": "registered",
+        **reg_info,
+        "check_rows_outside_range": extrapolated_rows,
+    }
+    ev.timing[REGISTERED_NOMINAL] = {
+        "fit_s": t1 - t0,
+        "predict_s": time.perf_counter() - t1,
+        "predict_rows": len(check),
+    }
+
+
+def _print_evaluation(
+    prepared: PreparedCampaign, ev: _Evaluation, ranking: list[str], extrapolated: dict[str, Any]
+) -> None:
+    """Table 2 in ``ranking`` order, the extrapolation, what each selection kept, seed 000's figures."""
+    source, split = prepared.source, prepared.split
+    check = split.check_rows
     print(
-        f"{dataset.source}: {len(split.fit_rows)} fit rows, {len(check)} check rows; "
+        f"{source}: {len(split.fit_rows)} fit rows, {len(check)} check rows; "
         "error = measured - model (mm); sorted by the check rows' 3-D RMS"
     )
     outside_by_model = {
-        name: fits[name]["check_rows_outside_range"]
+        name: ev.fits[name]["check_rows_outside_range"]
         for name in ranking
-        if "check_rows_outside_range" in fits[name]
+        if "check_rows_outside_range" in ev.fits[name]
     }
-    print(format_table2(table, timing, outside_by_model))
-    best = next((name for name in ranking if name in predictions), None)
-    station_lines, station_doc = (
-        ([], {})
-        if best is None
-        else judge_stations(dataset, np.asarray(check, dtype=np.int64), predictions[best], best)
-    )
-    for sentence in station_lines:
-        print(f"{dataset.source}: {sentence}")
+    print(format_table2(ev.table, ev.timing, outside_by_model))
+    for sentence in ev.station_lines:
+        print(f"{source}: {sentence}")
     if extrapolated["rows"]:
         axes = ", ".join(f"{axis} {count}" for axis, count in extrapolated["per_axis"].items())
         print(
@@ -547,7 +591,7 @@ def _evaluate(args: argparse.Namespace) -> int:
             f"ranges ({axes}); 'outside' counts them per model (a fitted polynomial or kriging model "
             "is not to be trusted there)"
         )
-    chosen = {name: selection_line(fits[name]) for name in ranking}
+    chosen = {name: selection_line(ev.fits[name]) for name in ranking}
     if any(chosen.values()):
         print("kept and dropped out of fold on the fit rows (the check rows unseen):")
         for name, line in chosen.items():
@@ -557,32 +601,36 @@ def _evaluate(args: argparse.Namespace) -> int:
         f"{k} " + "/".join(f"{s} {v:.2f}" for s, v in row.items()) for k, row in SEED000_TABLE2_MM.items()
     )
     print(f"for reference, seed 000's published Table 2 (its own KR210 campaign of 104 points, 3-D): {ref}")
-    if args.json:
-        doc = {
-            "data": dataset.source,
-            "data_sha256": prepared.data_sha256,
-            "robot": {"name": robot.name, "sha256": robot.sha256},
-            "split": {
-                "drawn": split.drawn,
-                "seed": split.seed,
-                "fit_rows": len(split.fit_rows),
-                "check_rows": len(check),
-                "message": split.message,
-            },
-            "directions": directions,
-            "stations": None if prepared.stations is None else prepared.stations.to_json(),
-            "check_by_station": station_doc or None,
-            "error_definition": "measured - predicted, mm; per axis signed mean/std and max |component|; "
-            "3-D |error| mean/std/max/rms (seed 000 eq. 27)",
-            "ranking": ranking,
-            "table2": table,
-            "timing": {name: timing[name] for name in ranking},
-            "skipped": skipped,
-            "fits": fits,
-            "seed000_table2_mm": SEED000_TABLE2_MM,
-        }
-        _write_json(args.json, doc)
-    return 0
+
+
+def _evaluation_document(
+    prepared: PreparedCampaign, robot: RobotDescription, ev: _Evaluation, ranking: list[str]
+) -> dict[str, Any]:
+    """``evaluate --json``'s document."""
+    split = prepared.split
+    return {
+        "data": prepared.source,
+        "data_sha256": prepared.data_sha256,
+        "robot": {"name": robot.name, "sha256": robot.sha256},
+        "split": {
+            "drawn": split.drawn,
+            "seed": split.seed,
+            "fit_rows": len(split.fit_rows),
+            "check_rows": len(split.check_rows),
+            "message": split.message,
+        },
+        "directions": prepared.directions.note,
+        "stations": None if prepared.stations is None else prepared.stations.to_json(),
+        "check_by_station": ev.station_doc or None,
+        "error_definition": "measured - predicted, mm; per axis signed mean/std and max |component|; "
+        "3-D |error| mean/std/max/rms (seed 000 eq. 27)",
+        "ranking": ranking,
+        "table2": ev.table,
+        "timing": {name: ev.timing[name] for name in ranking},
+        "skipped": ev.skipped,
+        "fits": ev.fits,
+        "seed000_table2_mm": SEED000_TABLE2_MM,
+    }
 
 
 def _head(token: str) -> str:

@@ -7,8 +7,9 @@ same cell rules (:mod:`comp_daemon.data.cells`) and the same errors naming row a
 
 from __future__ import annotations
 
+import csv
 import os
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Literal
 
@@ -27,7 +28,10 @@ __all__ = [
     "CROSSBAR_MARKERS",
     "CampaignKind",
     "campaign_kind",
+    "header_kind",
     "read_table",
+    "sniff_campaign",
+    "sniff_campaign_file",
 ]
 
 CampaignKind = Literal["ballbar", "crossbar"]
@@ -35,13 +39,48 @@ BALLBAR_MARKERS: tuple[str, ...] = ("bar_mm", "bar_nominal_mm", "dr_um")
 CROSSBAR_MARKERS: tuple[str, ...] = ("placement", "socket", "bar_l_mm")
 
 
-def campaign_kind(dataset: Dataset) -> CampaignKind | None:
-    """``ballbar`` or ``crossbar`` when the table carries that form's columns, else ``None``."""
-    if any(name in dataset.extra for name in BALLBAR_MARKERS):
+def header_kind(names: Iterable[str]) -> CampaignKind | None:
+    """``ballbar`` or ``crossbar`` when the column names hold that form's markers
+    (:data:`BALLBAR_MARKERS`, :data:`CROSSBAR_MARKERS`), else ``None``: the one test of a campaign's
+    form, on a file's header (:func:`sniff_campaign`) or a table's columns (:func:`campaign_kind`)."""
+    present = {name.strip() for name in names}
+    if present.intersection(BALLBAR_MARKERS):
         return "ballbar"
-    if any(name in dataset.extra for name in CROSSBAR_MARKERS):
+    if present.intersection(CROSSBAR_MARKERS):
         return "crossbar"
     return None
+
+
+def campaign_kind(dataset: Dataset) -> CampaignKind | None:
+    """``ballbar`` or ``crossbar`` when the table carries that form's columns, else ``None``."""
+    return header_kind(dataset.extra)
+
+
+SNIFF_BYTES = 65536  # a header longer than this is not a campaign's
+
+
+def sniff_campaign(data: bytes | bytearray | str, delimiter: str = ",") -> CampaignKind | None:
+    """The form a CSV body's first line (fields separated by ``delimiter``) names
+    (:func:`header_kind`), the rest unread."""
+    head = data[:SNIFF_BYTES]
+    text = head.decode("utf-8", "replace") if isinstance(head, bytes | bytearray) else head
+    first = text.splitlines()[0] if text else ""
+    return header_kind(next(csv.reader([first.removeprefix("\ufeff")], delimiter=delimiter), []))
+
+
+def sniff_campaign_file(
+    path: str | os.PathLike[str], options: ReadOptions | None = None
+) -> CampaignKind | None:
+    """The form of a campaign file: a CSV file's first line (:func:`sniff_campaign`, fields
+    separated as ``options`` say); a ``.json`` file is read whole. ``None`` for a file that cannot
+    be read (its reader will say why)."""
+    try:
+        if Path(path).suffix.lower() == ".json":
+            return campaign_kind(read_table(path, options=options))
+        with open(path, "rb") as f:
+            return sniff_campaign(f.read(SNIFF_BYTES), (options or ReadOptions()).delimiter)
+    except (OSError, DatasetError):
+        return None
 
 
 def read_table(

@@ -313,10 +313,19 @@ class Dataset:
         return hash(self._canonical_csv)
 
     def __reduce__(self) -> tuple[Any, ...]:
-        """Pickle by value (e.g. to a worker process); the copy is validated again on arrival."""
+        """Pickle by value (e.g. to a worker process); the copy is validated again on arrival and
+        keeps the canonical CSV text when it was rendered (its hash needs no second rendering)."""
         values = {f.name: getattr(self, f.name) for f in dataclasses.fields(self)}
         values["extra"] = dict(self.extra)
-        return (_rebuild, (values,))
+        return (_rebuild, (values, self.__dict__.get("_canonical_csv")))
+
+    def renamed(self, source: str) -> Dataset:
+        """The same content under the name ``source``, its rows numbered as in its canonical CSV
+        (header row 1): the data set as a reader of that text would give it, the rendered text kept."""
+        out = dataclasses.replace(self, source=source, row_numbers=np.zeros(0, np.int64), row_label="row")
+        if "_canonical_csv" in self.__dict__:
+            out.__dict__["_canonical_csv"] = self.__dict__["_canonical_csv"]
+        return out
 
     def _text_columns(self) -> list[tuple[str, Sequence[str]]]:
         """(name, cells) for every column written, in the stable order of the spec's table."""
@@ -509,8 +518,11 @@ class Dataset:
         }
 
 
-def _rebuild(values: dict[str, Any]) -> Dataset:
-    return Dataset(**values)
+def _rebuild(values: dict[str, Any], canonical_csv: str | None = None) -> Dataset:
+    dataset = Dataset(**values)
+    if canonical_csv is not None:  # the content it was rendered from: the same arrays, the same text
+        dataset.__dict__["_canonical_csv"] = canonical_csv
+    return dataset
 
 
 @dataclass(frozen=True)

@@ -93,7 +93,7 @@ from comp_daemon.diagnosis.structure import StructureResult, describe_structure,
 from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets, target_offsets_mm
 from comp_daemon.diagnosis.where import Baseline, locate
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
-from comp_daemon.models.effects import EffectParams, MassModel
+from comp_daemon.models.effects import TIME_EFFECTS, EffectParams, MassModel
 from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
 from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
@@ -482,10 +482,6 @@ def _search_step(ctx: Context, geo_fit: FitResult) -> tuple[float, int]:
         if float(drop.max()) > best:
             best, best_at = float(drop.max()), float(t0)
     return best_at, len(positions)
-
-
-#: the effects of the catalogue that are functions of the campaign clock
-TIME_EFFECTS = ("drift", "step")
 
 
 #: temperature and clock this correlated on the fit rows are collinear drivers

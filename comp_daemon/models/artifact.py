@@ -2,8 +2,8 @@
 
 Document (``format`` = ``comp-daemon-model``, ``format_version`` = 1)::
 
-    kind            the model class's kind: "nominal" | "kinematic" | "chebyshev" | "kriging" |
-                    "compliance" (:data:`comp_daemon.models.registry.ARTIFACT_KINDS`)
+    kind            the model class's kind, a key of :data:`comp_daemon.models.registry.ARTIFACT_KINDS`
+                    (the registry's model classes; ``GET /api/fits/kinds`` gives each kind's)
     order           Chebyshev order (null for the others)
     robot           {"name", "sha256", "description"}: the robot description the model belongs to,
                     embedded so that the artifact stands alone; its hash is RobotDescription.sha256

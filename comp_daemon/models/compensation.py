@@ -28,7 +28,8 @@ Two joint mappings (``mapping``; the daemon's ``[compensation] mapping``):
 
 - ``"six-axis"`` (default): step 2 above, every axis from the inverse kinematics on the model's
   chain.
-- ``"seed000"``: seed 000's closed loop (§2.2) — the wrist (joints 4–6) stays at the nominal
+- ``"three-axis"`` (called ``"seed000"`` before, a name still read with a warning:
+  :data:`RENAMED_MAPPINGS`): seed 000's closed loop (§2.2) — the wrist (joints 4–6) stays at the nominal
   solution and only joints 1–3 move: starting from the nominal solution, the model's predicted
   error ``ΔP`` (predicted − wanted) is mapped to joints 1–3 by :func:`joint_mapping` and the joint
   targets become ``θ − Δθ``, repeated from the new command until the predicted TCP is within
@@ -94,6 +95,7 @@ from comp_daemon.robot.description import RobotDescription
 __all__ = [
     "DEFAULT_LIMITS",
     "MAPPINGS",
+    "RENAMED_MAPPINGS",
     "CompensationLimits",
     "CompensationRefused",
     "CompensationResult",
@@ -109,6 +111,7 @@ __all__ = [
     "nominal_solution",
     "nominal_targets",
     "region_refusals",
+    "renamed_mapping_note",
     "sampling_range_deg",
     "wrist_angle_deg",
     "wrist_refusals",
@@ -117,8 +120,19 @@ __all__ = [
 MAPPED_JOINTS = (1, 2, 3)
 
 #: How a compensated target becomes axis values (module docstring, *joint mappings*).
-JointMapping = Literal["six-axis", "seed000"]
+JointMapping = Literal["six-axis", "three-axis"]
 MAPPINGS: tuple[str, ...] = get_args(JointMapping)
+#: former names of the mappings, read as the new one with a warning that names it
+RENAMED_MAPPINGS: dict[str, JointMapping] = {"seed000": "three-axis"}
+
+
+def renamed_mapping_note(old: str) -> str:
+    """The words that tell a user of a former mapping name (:data:`RENAMED_MAPPINGS`) its new one."""
+    return (
+        f"the joint mapping {old!r} is now called {RENAMED_MAPPINGS[old]!r} (what it does: joints 1-3 "
+        f"take the correction, the wrist stays at the nominal solution); {old!r} is read as "
+        f"{RENAMED_MAPPINGS[old]!r} for now: write {RENAMED_MAPPINGS[old]!r}"
+    )
 
 
 def axis_limits_q_rad(robot: RobotDescription) -> NDArray[np.float64]:
@@ -407,13 +421,15 @@ def compensate(
     ``a_seed_deg`` (n, 6) or (6,): where the nominal inverse kinematics starts (the nominal
     program's axis values, or the robot's current ones); default the middle of every axis range.
     The compensated commands start from the nominal solution, are found by ``mapping`` (module
-    docstring: ``"six-axis"`` or ``"seed000"``) and are checked against ``limits``.
+    docstring: ``"six-axis"`` or ``"three-axis"``) and are checked against ``limits``.
     Raises :class:`UnreachableTargetError` naming unreachable targets and
     :class:`CompensationRefused` naming refused ones (every refused target of the call).
     """
     target = np.atleast_2d(np.asarray(target_p_base_mm, dtype=float))
     if target.ndim != 2 or target.shape[1] != 3:
         raise ValueError(f"target positions must have shape (n, 3), got {np.shape(target_p_base_mm)}")
+    if mapping in RENAMED_MAPPINGS:
+        raise ValueError(f"mapping {mapping!r} is now called {RENAMED_MAPPINGS[mapping]!r}")
     if mapping not in MAPPINGS:
         raise ValueError(f"mapping must be one of {', '.join(MAPPINGS)}, got {mapping!r}")
     n = target.shape[0]
@@ -433,7 +449,7 @@ def compensate(
     reg = model.registration
     wanted = transform_points(reg, target)
     params: KinematicParams = model.ik_params()
-    if mapping == "seed000":
+    if mapping == "three-axis":
         a_final, predicted, iterations, converged = _joint_mapping_iteration(
             model, params, a_nominal, wanted, dir, payload_kg, temp_c, tol_mm, max_iter
         )

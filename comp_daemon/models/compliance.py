@@ -57,6 +57,7 @@ from comp_daemon.kinematics.so3 import left_jacobian, skew
 from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability, mdh_priority
+from comp_daemon.models.kinematic import mdh_payload, params_from_payload
 from comp_daemon.models.lm import LMResult, improved_lm
 from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
@@ -158,14 +159,7 @@ class ComplianceModel(ErrorModel):
             "tool_xyz_mm": self.params.tool_xyz_mm.tolist(),
         }
         if self.geometric:
-            p = self.params
-            out["mdh"] = {
-                "theta_offset_rad": p.theta_offset_rad.tolist(),
-                "d_mm": p.d_mm.tolist(),
-                "a_mm": p.a_mm.tolist(),
-                "alpha_rad": p.alpha_rad.tolist(),
-                "beta_rad": p.beta_rad.tolist(),
-            }
+            out["mdh"] = mdh_payload(self.params)
         return out
 
     @classmethod
@@ -180,16 +174,8 @@ class ComplianceModel(ErrorModel):
             geometry = None
             mdh = payload.get("mdh")
             if mdh is not None:
-                nominal = KinematicParams.from_robot(robot)
-                geometry = KinematicParams(
-                    theta_offset_rad=finite_array(mdh["theta_offset_rad"], (6,), "mdh.theta_offset_rad"),
-                    d_mm=finite_array(mdh["d_mm"], (6,), "mdh.d_mm"),
-                    a_mm=finite_array(mdh["a_mm"], (6,), "mdh.a_mm"),
-                    alpha_rad=finite_array(mdh["alpha_rad"], (6,), "mdh.alpha_rad"),
-                    beta_rad=finite_array(mdh["beta_rad"], (6,), "mdh.beta_rad"),
-                    sign=nominal.sign,
-                    tool_xyz_mm=finite_array(payload["tool_xyz_mm"], (3,), "tool_xyz_mm"),
-                    world_T_base=finite_array(payload["world_T_base"], (4, 4), "world_T_base"),
+                geometry = params_from_payload(
+                    robot, mdh, payload["tool_xyz_mm"], payload["world_T_base"], prefix="mdh."
                 )
             return cls(
                 robot,

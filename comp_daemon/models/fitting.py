@@ -64,6 +64,7 @@ from comp_daemon.models.covariance import (
     covariance_from_fit,
     near_dependent_pairs,
 )
+from comp_daemon.models.effects import TRANSMISSION_EFFECTS
 from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
@@ -91,7 +92,6 @@ __all__ = [
 ]
 
 DEFAULT_CHEBYSHEV_ORDER = 3  # seed 000 fits m = 3
-SEED001_EFFECTS = ("ratio", "backlash")
 SELECTION_MAX_ROWS = 2000  # effects are selected on at most this many fit rows, drawn at random
 #: the cross-validation folds of a selection skip what only a reported fit needs (the identifiability
 #: report's rank checks): the same kept parts and held-out errors, at less cost; False runs every fold
@@ -635,5 +635,5 @@ def fit_kriging_backlash_kind(
 ) -> FittedModel:
     """Seed 001 §2: direction-aware kriging on the kinematic + ratio + backlash calibration (and
     the spec's further effects, e.g. ``kriging-backlash+compliance``)."""
-    effects = tuple(dict.fromkeys((*SEED001_EFFECTS, *spec.effects)))
+    effects = tuple(dict.fromkeys((*TRANSMISSION_EFFECTS, *spec.effects)))
     return _fit_kriging(robot, rows, spec, options, effects, "aware")

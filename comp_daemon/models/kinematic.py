@@ -42,7 +42,7 @@ Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`)
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, replace
 from typing import Any, ClassVar, Literal
 
@@ -74,7 +74,6 @@ from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
-    "SEED001_EFFECTS",
     "KinematicFit",
     "KinematicModel",
     "KinematicProblem",
@@ -82,7 +81,6 @@ __all__ = [
     "target_param_names",
 ]
 
-SEED001_EFFECTS: tuple[str, ...] = ("ratio", "backlash")
 FrameChoice = Literal["auto", "base", "tracker"]
 
 
@@ -140,11 +138,7 @@ class KinematicModel(ErrorModel):
     def to_payload(self) -> dict[str, Any]:
         p = self.params
         out: dict[str, Any] = {
-            "theta_offset_rad": p.theta_offset_rad.tolist(),
-            "d_mm": p.d_mm.tolist(),
-            "a_mm": p.a_mm.tolist(),
-            "alpha_rad": p.alpha_rad.tolist(),
-            "beta_rad": p.beta_rad.tolist(),
+            **mdh_payload(p),
             "tool_xyz_mm": p.tool_xyz_mm.tolist(),
             "world_T_base": p.world_T_base.tolist(),
             "effects": None,
@@ -169,17 +163,7 @@ class KinematicModel(ErrorModel):
         order: int | None,
         registration: NDArray[np.float64],
     ) -> KinematicModel:
-        nominal = KinematicParams.from_robot(robot)
-        params = KinematicParams(
-            theta_offset_rad=_floats(payload["theta_offset_rad"], (6,), "theta_offset_rad"),
-            d_mm=_floats(payload["d_mm"], (6,), "d_mm"),
-            a_mm=_floats(payload["a_mm"], (6,), "a_mm"),
-            alpha_rad=_floats(payload["alpha_rad"], (6,), "alpha_rad"),
-            beta_rad=_floats(payload["beta_rad"], (6,), "beta_rad"),
-            sign=nominal.sign,
-            tool_xyz_mm=_floats(payload["tool_xyz_mm"], (3,), "tool_xyz_mm"),
-            world_T_base=_floats(payload["world_T_base"], (4, 4), "world_T_base"),
-        )
+        params = params_from_payload(robot, payload, payload["tool_xyz_mm"], payload["world_T_base"])
         effects = None
         eff = payload.get("effects")
         if eff is not None:
@@ -192,6 +176,29 @@ class KinematicModel(ErrorModel):
         if more is not None:
             more = _floats(more, (len(more), 3), "more_targets_mm")
         return cls(robot, params, effects, registration, more)
+
+
+MDH_FIELDS = ("theta_offset_rad", "d_mm", "a_mm", "alpha_rad", "beta_rad")  # a model's MDH geometry
+
+
+def mdh_payload(params: KinematicParams) -> dict[str, list[float]]:
+    """The MDH geometry of ``params`` as an artifact stores it (:data:`MDH_FIELDS`, one list each)."""
+    return {name: getattr(params, name).tolist() for name in MDH_FIELDS}
+
+
+def params_from_payload(
+    robot: RobotDescription, mdh: Mapping[str, Any], tool_xyz_mm: Any, world_T_base: Any, *, prefix: str = ""
+) -> KinematicParams:
+    """The :class:`KinematicParams` of an artifact's MDH geometry (:func:`mdh_payload`), tool and
+    base frame, with the robot description's joint signs; a missing field is a ``KeyError``, a
+    field of the wrong shape or not finite a ``ValueError`` naming it (``prefix`` + name)."""
+    geometry = {name: _floats(mdh[name], (6,), prefix + name) for name in MDH_FIELDS}
+    return KinematicParams(
+        **geometry,
+        sign=KinematicParams.from_robot(robot).sign,
+        tool_xyz_mm=_floats(tool_xyz_mm, (3,), "tool_xyz_mm"),
+        world_T_base=_floats(world_T_base, (4, 4), "world_T_base"),
+    )
 
 
 def _floats(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:

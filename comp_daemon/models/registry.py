@@ -44,10 +44,9 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel
 from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
 from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
-from comp_daemon.models.effects import EFFECTS, effect_by_name, effect_param_names
+from comp_daemon.models.effects import EFFECTS, TRANSMISSION_EFFECTS, effect_by_name, effect_param_names
 from comp_daemon.models.fitting import (
     DEFAULT_CHEBYSHEV_ORDER,
-    SEED001_EFFECTS,
     FitOptions,
     FitRows,
     FittedModel,
@@ -85,7 +84,9 @@ __all__ = [
     "max_parameters",
     "model_from_payload",
     "parse_model_name",
+    "too_few_rows_reason",
     "undetermined_reason",
+    "unloaded_reason",
     "uses_directions",
     "with_order",
 ]
@@ -155,7 +156,7 @@ def _kriging_parameters(spec: ModelSpec) -> int:
 
 
 def _kriging_backlash_parameters(spec: ModelSpec) -> int:
-    effects = tuple(dict.fromkeys((*SEED001_EFFECTS, *spec.effects)))
+    effects = tuple(dict.fromkeys((*TRANSMISSION_EFFECTS, *spec.effects)))
     return _kinematic_parameters(ModelSpec("kinematic", effects))
 
 
@@ -400,23 +401,23 @@ def uses_compliance(spec: ModelSpec) -> bool:
     return spec.kind == "compliance" or "compliance" in spec.effects
 
 
-def undetermined_reason(
-    spec: ModelSpec, robot: RobotDescription, n_rows: int, payload_kg: Any = 0.0
-) -> str | None:
-    """Why ``n_rows`` rows with these payloads cannot determine ``spec`` on ``robot``, as a sentence
-    naming the model; None when they can.
-
-    - fewer rows than the model has parameters before the identifiability analysis
-      (:func:`max_parameters`, the campaign format's floor);
-    - a compliance (``compliance``, ``+compliance``) on a robot description without link masses
-      and rows without a payload: no torque loads the joints, so C2, C3 would be fitted on nothing.
-    """
+def too_few_rows_reason(spec: ModelSpec, n_rows: int) -> str | None:
+    """Why ``n_rows`` rows cannot determine ``spec``: fewer rows than the model has parameters
+    before the identifiability analysis (:func:`max_parameters`, the campaign format's floor),
+    as a sentence naming the model; None when they are enough."""
     needed = max_parameters(spec)
     if n_rows < needed:
         return (
             f"the {spec.name} model has {needed} parameters; {n_rows} rows leave it undetermined "
             f"(it needs at least {needed} rows)"
         )
+    return None
+
+
+def unloaded_reason(spec: ModelSpec, robot: RobotDescription, payload_kg: Any = 0.0) -> str | None:
+    """Why a compliance (``compliance``, ``+compliance``) is not determined on ``robot`` with these
+    payloads: no link masses in the description and no row with a payload, so no torque loads the
+    joints and C2, C3 would be fitted on nothing; None when something loads them (or no compliance)."""
     if (
         uses_compliance(spec)
         and not np.any(robot.link_mass_kg > 0)
@@ -430,19 +431,27 @@ def undetermined_reason(
     return None
 
 
+def undetermined_reason(
+    spec: ModelSpec, robot: RobotDescription, n_rows: int, payload_kg: Any = 0.0
+) -> str | None:
+    """Why ``n_rows`` rows with these payloads cannot determine ``spec`` on ``robot``, as a sentence
+    naming the model (:func:`too_few_rows_reason`, then :func:`unloaded_reason`); None when they can."""
+    return too_few_rows_reason(spec, n_rows) or unloaded_reason(spec, robot, payload_kg)
+
+
 def fit_spec(
     spec: ModelSpec, robot: RobotDescription, rows: FitRows, options: FitOptions | None = None
 ) -> FittedModel:
     """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack,
     :class:`UndeterminedModelError` when a compliance has no masses and no payload to load the joints
-    (:func:`undetermined_reason`; the row floor is the doors' to apply, on the data set), or when the
+    (:func:`unloaded_reason`; the row floor is the doors' to apply, on the data set), or when the
     measured positions are not millimetres of this robot
     (:func:`comp_daemon.models.units.millimetre_problem`, the rule ``data check`` applies too)."""
     kind = get_kind(spec.kind)
     for column in kind.needed_columns(spec):
         if getattr(rows, column) is None:
             raise MissingColumnError(f"the {spec.name} model needs the {_column_label(column)} column(s)")
-    reason = undetermined_reason(spec, robot, max_parameters(spec), rows.payload_kg)
+    reason = unloaded_reason(spec, robot, rows.payload_kg)
     if reason is not None:
         raise UndeterminedModelError(reason)
     scale = millimetre_problem(robot, rows.a_deg, rows.xyz_mm)

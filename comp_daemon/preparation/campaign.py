@@ -12,8 +12,8 @@ What every door needs before it fits anything, decided once:
   (:meth:`comp_daemon.data.table.Dataset.split_or_draw`), or, for a fit without a judgement
   (``hold_out=False``), the fit rows alone.
 - **Row floor**: at least ``min_fit_rows`` fit rows (:data:`comp_daemon.models.registry.MIN_POSES`
-  by default, the diagnosis asks for its geometric step's parameters), with the advice of how many
-  rows to give when the check rows were drawn.
+  by default and at the least, the one floor of every door; the diagnosis asks for its geometric
+  step's parameters), with the advice of how many rows to give when the check rows were drawn.
 - **Frame**: the measurements are in the robot base frame when the nominal TCPs lie within
   :data:`~comp_daemon.models.registration.BASE_FRAME_MAX_RMS_MM` RMS of them on the fit rows, else
   in a tracker's frame, registered by the rigid motion that best maps the nominal TCPs onto them
@@ -141,6 +141,10 @@ class PrepareOptions:
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
             raise ValueError(f"frame must be auto, base or tracker, got {self.frame!r}")
+        if self.min_fit_rows < MIN_POSES:  # the one floor: a door may ask for more, never for less
+            raise ValueError(
+                f"min_fit_rows must be at least MIN_POSES ({MIN_POSES}), got {self.min_fit_rows}"
+            )
 
 
 @dataclass(frozen=True)
@@ -230,11 +234,10 @@ def prepare_campaign(
     frame: Literal["base", "tracker"] = (
         detect_frame(p_nom, p_meas) if options.frame == "auto" else options.frame
     )
-    world_T_base = (
-        rigid_registration(p_nom, p_meas) if frame == "tracker" and len(fit_rows) >= 3 else np.eye(4)
-    )
+    # past the floor there are at least MIN_POSES fit rows: enough to register the frame on
+    world_T_base = rigid_registration(p_nom, p_meas) if frame == "tracker" else np.eye(4)
     p_reg = p_nom @ world_T_base[:3, :3].T + world_T_base[:3, 3]
-    rms = float(np.sqrt(np.mean(np.sum((p_meas - p_reg) ** 2, axis=1)))) if len(fit_rows) else 0.0
+    rms = float(np.sqrt(np.mean(np.sum((p_meas - p_reg) ** 2, axis=1))))
     return PreparedCampaign(
         dataset=dataset,
         data_sha256=data_sha256,

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import contextvars
 import ipaddress
+import warnings
 from collections.abc import Iterator
 from contextlib import contextmanager
 from enum import IntEnum
@@ -30,7 +31,13 @@ from pydantic_settings import (
     TomlConfigSettingsSource,
 )
 
-from comp_daemon.models.compensation import DEFAULT_LIMITS, CompensationLimits, JointMapping
+from comp_daemon.models.compensation import (
+    DEFAULT_LIMITS,
+    RENAMED_MAPPINGS,
+    CompensationLimits,
+    JointMapping,
+    renamed_mapping_note,
+)
 
 __all__ = [
     "REMOVED_REALTIME_KEYS",
@@ -346,14 +353,26 @@ class CompensationSettings(_Section):
     ``wrist_singularity_deg``: targets whose axes 4 and 6 are nearer than this to in line (|A5|) are
     refused; ``hull_margin_deg``: how far beyond the sampled axis ranges of the model a target may lie;
     ``mapping``: how a compensated target becomes axis values, ``"six-axis"`` (inverse kinematics of
-    every axis) or ``"seed000"`` (seed 000's mapping onto joints 1–3, the wrist from the nominal
-    solution); the limits apply to both.
+    every axis) or ``"three-axis"`` (seed 000's mapping onto joints 1–3, the wrist from the nominal
+    solution); the limits apply to both. Its former name ``"seed000"`` is still read, as
+    ``"three-axis"``, with a warning that names the new one (an old configuration file keeps the
+    cell running; the warning says what to write).
     """
 
     max_axis_change_deg: float = Field(default=DEFAULT_LIMITS.max_axis_change_deg, gt=0, le=10.0)
     wrist_singularity_deg: float = Field(default=DEFAULT_LIMITS.wrist_singularity_deg, ge=0, lt=90.0)
     hull_margin_deg: float = Field(default=DEFAULT_LIMITS.hull_margin_deg, ge=0, le=360.0)
     mapping: JointMapping = "six-axis"
+
+    @field_validator("mapping", mode="before")
+    @classmethod
+    def _former_mapping_name(cls, value: Any) -> Any:
+        if isinstance(value, str) and value in RENAMED_MAPPINGS:
+            warnings.warn(
+                f"[compensation] mapping: {renamed_mapping_note(value)}", FutureWarning, stacklevel=2
+            )
+            return RENAMED_MAPPINGS[value]
+        return value
 
     def limits(self) -> CompensationLimits:
         return CompensationLimits(self.max_axis_change_deg, self.wrist_singularity_deg, self.hull_margin_deg)

@@ -1,11 +1,12 @@
 """The job kinds the service runs in its process pool: ``fit`` and ``diagnosis``.
 
-Worker functions take plain, picklable arguments (the data set as canonical CSV text, the robot's
+Worker functions take picklable arguments (the data set as canonical CSV text, or for a fit the
+data set as its upload parsed it, :class:`comp_daemon.service.uploads.ParsedDatasets`; the robot's
 preset name or path) and return JSON-ready dicts; they never touch the store. Parent-side hooks
 turn a fit's result into a stored model.
 
-A fit is the model registry's fit (:func:`comp_daemon.models.registry.fit_spec`) on the data set's
-fit rows (the ``split`` column, or a reproducible draw), judged with seed 000's Table 2
+A fit is the fit pipeline of ``comp-daemon fit`` (:mod:`comp_daemon.preparation.pipeline`) on the
+data set's fit rows (the ``split`` column, or a reproducible draw), judged with seed 000's Table 2
 (:func:`comp_daemon.models.evaluation.error_statistics`) on the check rows next to the nominal
 twin (registered to the data's frame); the model is stored as its artifact document
 (:func:`comp_daemon.models.artifact.model_document`), which the daemon loads back bit-exact. Model
@@ -29,12 +30,15 @@ of seed 000 Fig. 11).
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from comp_daemon.service.jobs import JobKind
 from comp_daemon.service.store import JobRecord, ModelDraft
+
+if TYPE_CHECKING:
+    from comp_daemon.data.table import Dataset
 
 __all__ = [
     "DIAGNOSIS",
@@ -57,13 +61,13 @@ Progress = Callable[..., None]
 
 
 def fit_job_args(
-    csv_text: str, robot: str, model: str, order: int | None, dataset_id: int, *, infer_dir: bool = True
+    data: str | Dataset, robot: str, model: str, order: int | None, dataset_id: int, *, infer_dir: bool = True
 ) -> tuple[Any, ...]:
-    return (csv_text, robot, model, order, dataset_id, infer_dir)
+    return (data, robot, model, order, dataset_id, infer_dir)
 
 
 def run_fit(
-    csv_text: str,
+    data: str | Dataset,
     robot_name: str,
     model: str,
     order: int | None,
@@ -74,66 +78,41 @@ def run_fit(
 ) -> dict[str, Any]:
     """Fit ``model`` on the fit rows of the data set, judge it and the nominal twin on the check rows.
 
-    ``infer_dir``: a data set without ``dir`` columns gets the approach directions from the pose
-    order when the model needs them; the campaign is prepared as every door prepares it
-    (:func:`comp_daemon.preparation.prepare_campaign`), and the stats' ``directions`` says so.
+    ``data`` is the data set as parsed at its upload (:class:`ParsedDatasets`), or its stored
+    canonical CSV text, parsed here, when the service no longer holds it. The fit is the pipeline
+    ``comp-daemon fit`` runs (:mod:`comp_daemon.preparation.pipeline`), with check rows drawn when
+    the file has no split; ``infer_dir``: a data set without ``dir`` columns gets the approach
+    directions from the pose order when the model needs them, and the stats' ``directions`` says so.
     """
-    from comp_daemon.data.dataset import parse_dataset
-    from comp_daemon.models.artifact import model_document
+    from comp_daemon.data.bars import campaign_kind, read_table, sniff_campaign
     from comp_daemon.models.evaluation import error_statistics
     from comp_daemon.models.fitting import FitOptions, ModelSpec
-    from comp_daemon.models.registry import (
-        fit_spec,
-        parse_model_name,
-        undetermined_reason,
-        uses_directions,
-        with_order,
-    )
-    from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
+    from comp_daemon.models.registry import fit_spec, parse_model_name, with_order
+    from comp_daemon.preparation.pipeline import FitRequest, fit_prepared, prepare_fit
     from comp_daemon.robot.description import load_robot
 
     spec = with_order(parse_model_name(model), order)
     robot = load_robot(robot_name)
     progress(0.02, "reading the data set")
     source = f"dataset {dataset_id}"
-    if _is_campaign(csv_text):
-        return _run_campaign_fit(csv_text, robot, model, source, progress)
-    ds = parse_dataset(
-        csv_text,
-        source=source,
-        limits_deg=robot.axis_limits_deg,
-        min_rows=1,
-        kind="measurement",
-    )
-    reason = undetermined_reason(spec, robot, len(ds), ds.payload_kg)
-    if reason is not None:  # the same sentence as the command line's, naming the model
-        raise ValueError(f"{source}: {len(ds)} data rows; {reason}")
-    prepared = prepare_campaign(
-        ds, robot, PrepareOptions(need_directions=uses_directions(spec), infer_directions=infer_dir)
-    )
-    ds, split, directions = prepared.dataset, prepared.split, prepared.directions.note
-    fit_rows, check_rows = prepared.fit_rows, prepared.check_rows
-
+    if isinstance(data, str) and sniff_campaign(data) is not None:
+        table = read_table(data.encode("utf-8"), fmt="csv", source=source, limits_deg=robot.axis_limits_deg)
+        return _run_campaign_fit(table, robot, model, progress)
+    if not isinstance(data, str) and campaign_kind(data) is not None:
+        return _run_campaign_fit(data, robot, model, progress)
+    ds = _measurement(data, source, robot)
+    request = FitRequest(spec, infer_directions=infer_dir, hold_out=True)
+    prepared = prepare_fit(ds, robot, request)
     progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
-    train = prepared.rows(fit_rows)
-    try:
-        fitted = fit_spec(spec, robot, train, FitOptions(frame=prepared.frame))
-    except ValueError as exc:
-        raise ValueError(f"{source}: {exc}") from None
-    if spec.kind == "kinematic" and len(fit_rows) < fitted.info["identifiability"]["identifiable"]:
-        raise ValueError(
-            f"{source}: {len(fit_rows)} fit rows for {fitted.info['identifiability']['identifiable']} "
-            "identifiable parameters"
-        )
+    outcome = fit_prepared(prepared, robot, request)
+    fitted, split = outcome.fitted, prepared.split
     progress(0.9, "judging on the check rows")
+    train = prepared.rows(prepared.fit_rows)
     nominal = fit_spec(ModelSpec("nominal"), robot, train, FitOptions(frame=prepared.frame))
-    check = prepared.rows(check_rows)
+    check = prepared.rows(prepared.check_rows)
     pred_model = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
     pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
     p_check = check.xyz_mm
-    info = {**fitted.info, "model": spec.name, "data_source": ds.source, "data_rows_used": "fit rows"}
-    if directions:
-        info["directions"] = directions
     stats = {
         "model": model,
         "kind": spec.kind,
@@ -141,9 +120,9 @@ def run_fit(
         "effects": list(spec.effects),
         "order": fitted.model.order,
         "frame": fitted.frame,
-        "rows": {"fit": len(fit_rows), "check": len(check_rows)},
+        "rows": {"fit": len(prepared.fit_rows), "check": len(prepared.check_rows)},
         "split": split.message,
-        "directions": directions,
+        "directions": prepared.directions.note,
         "table2": {
             "nominal": error_statistics(p_check, pred_nominal),
             "model": error_statistics(p_check, pred_model),
@@ -152,45 +131,38 @@ def run_fit(
             "nominal": np.linalg.norm(p_check - pred_nominal, axis=1).round(6).tolist(),
             "model": np.linalg.norm(p_check - pred_model, axis=1).round(6).tolist(),
         },
-        "fit": info,
+        "fit": outcome.info,
     }
-    artifact = model_document(fitted.model, data_sha256=prepared.data_sha256, frame=fitted.frame, fit=info)
-    return {"stats": stats, "artifact": artifact}
+    return {"stats": stats, "artifact": outcome.artifact()}
 
 
-def _is_campaign(csv_text: str) -> bool:
-    """Whether a stored data set is a ballbar or cross-bar campaign (by its header's columns)."""
-    from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS
+def _measurement(data: str | Dataset, source: str, robot: Any) -> Dataset:
+    """The measurement data set a job works on: as its upload parsed it, or its stored text parsed
+    by the upload's rules (the robot's axis limits; a1..a6 and x, y, z required). A kept data set
+    without axis values or positions is read from its text too, whose reader says what is missing."""
+    from comp_daemon.data.dataset import dataset_to_csv, parse_dataset
 
-    header = {h.strip().strip('"') for h in csv_text.split("\n", 1)[0].split(",")}
-    return bool(header & {*BALLBAR_MARKERS, *CROSSBAR_MARKERS})
+    if not isinstance(data, str) and data.a_deg is not None and data.xyz_mm is not None:
+        return data
+    text = data if isinstance(data, str) else dataset_to_csv(data)
+    return parse_dataset(
+        text, source=source, limits_deg=robot.axis_limits_deg, min_rows=1, kind="measurement"
+    )
 
 
-def _run_campaign_fit(
-    csv_text: str, robot: Any, model: str, source: str, progress: Progress
-) -> dict[str, Any]:
+def _run_campaign_fit(table: Dataset, robot: Any, model: str, progress: Progress) -> dict[str, Any]:
     """A ballbar campaign calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
-    (:func:`comp_daemon.models.campaign_fit.fit_campaign`); the stats give the rank reached, the
-    directions the instrument cannot see, with a ``split`` the bar errors of the check arcs or
-    crosses before and after, and for a ballbar campaign of repeated poses its uncertainty report
-    (``uncertainty``, spec A.8)."""
-    from comp_daemon.data.bars import read_table
-    from comp_daemon.data.campaigns import campaign_of
-    from comp_daemon.kinematics.forward import tcp_position_mm
-    from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-    from comp_daemon.models.artifact import model_document
-    from comp_daemon.models.campaign_fit import fit_campaign, uncertainty_summary
+    (:func:`comp_daemon.preparation.pipeline.calibrate_campaign`, as ``comp-daemon fit`` does); the
+    stats give the rank reached, the directions the instrument cannot see, with a ``split`` the bar
+    errors of the check arcs or crosses before and after, and for a ballbar campaign of repeated
+    poses its uncertainty report (``uncertainty``, spec A.8)."""
+    from comp_daemon.data.bars import campaign_kind
+    from comp_daemon.models.campaign_fit import uncertainty_summary
+    from comp_daemon.preparation.pipeline import calibrate_campaign
 
-    params = KinematicParams.from_robot(robot)
-    table = read_table(csv_text.encode("utf-8"), fmt="csv", source=source, limits_deg=robot.axis_limits_deg)
-    campaign = campaign_of(table, tcp_mm=lambda a: tcp_position_mm(params, axes_deg_to_q_rad(a, params.sign)))
-    assert campaign is not None
-    progress(0.05, f"calibrating from the {type(campaign).__name__}")
-    try:
-        fitted, check = fit_campaign(robot, campaign, model=model)
-    except ValueError as exc:
-        raise ValueError(f"{source}: {exc}") from None
-    info = {**fitted.info, "model": fitted.model.kind, "data_source": source, "campaign_check": check}
+    progress(0.05, f"calibrating from the {campaign_kind(table)} campaign")
+    outcome = calibrate_campaign(table, robot, model)
+    fitted, check, info = outcome.fitted, outcome.check, outcome.info
     stats = {
         "model": model,
         "kind": fitted.model.kind,
@@ -213,8 +185,7 @@ def _run_campaign_fit(
         "uncertainty": uncertainty_summary(info),
         "fit": info,
     }
-    artifact = model_document(fitted.model, data_sha256=table.content_sha256, frame=fitted.frame, fit=info)
-    return {"stats": stats, "artifact": artifact}
+    return {"stats": stats, "artifact": outcome.artifact()}
 
 
 def fit_done(job: JobRecord, result: Mapping[str, Any]) -> ModelDraft:
@@ -232,13 +203,13 @@ def fit_done(job: JobRecord, result: Mapping[str, Any]) -> ModelDraft:
 
 
 def diagnosis_job_args(
-    csv_text: str, robot: str, dataset_id: int, tracker_sigma_mm: float | None = None
+    data: str | Dataset, robot: str, dataset_id: int, tracker_sigma_mm: float | None = None
 ) -> tuple[Any, ...]:
-    return (csv_text, robot, dataset_id, tracker_sigma_mm)
+    return (data, robot, dataset_id, tracker_sigma_mm)
 
 
 def run_diagnosis(
-    csv_text: str,
+    data: str | Dataset,
     robot_name: str,
     dataset_id: int,
     tracker_sigma_mm: float | None = None,
@@ -248,16 +219,15 @@ def run_diagnosis(
     """The diagnosis of ``docs/diagnosis-output.md`` on the data set: JSON report and HTML report.
 
     ``tracker_sigma_mm`` is the tracker uncertainty the engineer declares (σ per axis, mm): the
-    noise floor when the data have no repeated poses.
+    noise floor when the data have no repeated poses. ``data``: as for :func:`run_fit`.
     """
-    from comp_daemon.data.dataset import parse_dataset
     from comp_daemon.diagnosis import DiagnoseOptions, diagnose
     from comp_daemon.diagnosis.report import render_report_html
     from comp_daemon.robot.description import load_robot
 
     robot = load_robot(robot_name)
     progress(0.02, "reading the data set")
-    ds = parse_dataset(csv_text, source=f"dataset {dataset_id}", limits_deg=robot.axis_limits_deg, min_rows=1)
+    ds = _measurement(data, f"dataset {dataset_id}", robot)
     progress(0.05, "diagnosing")
     diagnosis = diagnose(ds, robot, DiagnoseOptions(tracker_sigma_mm=tracker_sigma_mm))
     progress(0.9, "writing the report")

@@ -251,8 +251,8 @@ class FitIn(BaseModel):
     dataset_id: int = Field(ge=1, le=MAX_ID)
     model: str = Field(
         json_schema_extra={"pattern": MODEL_NAME_PATTERN},
-        description="a model kind of GET /api/fits/kinds (nominal, kinematic, chebyshev, kriging, "
-        "kriging-backlash, compliance); kinematic+ratio+backlash adds seed 001's joint effects; "
+        description=f"a model kind of GET /api/fits/kinds ({', '.join(KINDS)}); "
+        "kinematic+ratio+backlash adds seed 001's joint effects; "
         "chebyshev:m or chebyshev:cv; kriging:k=64 (local neighbourhoods), kriging:aniso (per-joint "
         "ranges), kriging-backlash+compliance (an effect on the kriging's base)",
         min_length=1,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import asyncio
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, ParamSpec, TypeVar
 
 from fastapi import Request
@@ -16,6 +16,7 @@ from comp_daemon.service.daemon_view import DaemonView
 from comp_daemon.service.events import EventBus
 from comp_daemon.service.jobs import JobRunner
 from comp_daemon.service.store import Store
+from comp_daemon.service.uploads import ParsedDatasets
 
 __all__ = ["ApiError", "ServiceState", "get_state"]
 
@@ -43,6 +44,7 @@ class ServiceState:
     tokens: TokenTable
     runner: JobRunner
     robot: RobotDescription
+    parsed: ParsedDatasets = field(default_factory=ParsedDatasets)  # uploads as parsed, for the fits
 
     async def run(self, fn: Callable[P, T], *args: P.args, **kwargs: P.kwargs) -> T:
         """Run a blocking call (a store method, a parser) in a worker thread."""

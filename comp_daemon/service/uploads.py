@@ -31,20 +31,24 @@ import contextlib
 import multiprocessing
 import os
 import tempfile
+import threading
+from collections import OrderedDict
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import dataclass
 from typing import IO, Any, Literal
 
-from comp_daemon.data.bars import BALLBAR_MARKERS, CROSSBAR_MARKERS, campaign_kind
+from comp_daemon.data.bars import campaign_kind, header_kind, sniff_campaign
 from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.dataset import DatasetError, dataset_from_json, dataset_to_csv, parse_dataset
 from comp_daemon.data.jsontext import load_json_records
 from comp_daemon.data.options import ReadOptions
+from comp_daemon.data.table import Dataset
 from comp_daemon.service.orphans import exit_with_parent
 
 __all__ = [
     "SPOOL_MEMORY_BYTES",
     "CheckedUpload",
+    "ParsedDatasets",
     "Spool",
     "UploadBudget",
     "UploadChecker",
@@ -53,6 +57,7 @@ __all__ = [
 ]
 
 SPOOL_MEMORY_BYTES = 1 << 20  # a body beyond this goes to a temporary file (and its check to a process)
+PARSED_MAX_ROWS = 100_000  # rows of parsed uploads kept for the fits that follow (~650 B each: ~65 MB)
 UploadFormat = Literal["csv", "json"]
 UploadKind = Literal["measurement", "any"]
 
@@ -88,13 +93,52 @@ def _refused(message: str, where: dict[str, Any]) -> UploadRefused:
 
 @dataclass(frozen=True, slots=True)
 class CheckedUpload:
-    """What is stored of an accepted upload."""
+    """What is stored of an accepted upload, and the data set as parsed when a fit can take it as
+    it is (a measurement data set or a ballbar / cross-bar campaign; :class:`ParsedDatasets`)."""
 
     name: str
     content: str  # canonical CSV
     sha256: str
     rows: int
     summary: dict[str, Any]
+    dataset: Dataset | None = None
+
+
+class ParsedDatasets:
+    """The data sets parsed at their upload, kept for the fit jobs that follow, so that a fit of a
+    just-uploaded data set does not parse its stored CSV again.
+
+    Keyed by data set id and content hash (a data set whose stored text differs is not the one
+    kept); the newest are kept, at most ``max_rows`` rows in all. Thread-safe. The service starts
+    empty: after a restart a fit parses the stored text, with the same result.
+    """
+
+    def __init__(self, max_rows: int = PARSED_MAX_ROWS) -> None:
+        self.max_rows = max_rows
+        self._kept: OrderedDict[int, tuple[str, Dataset]] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def put(self, dataset_id: int, dataset: Dataset) -> None:
+        """Keep ``dataset`` (as parsed at its upload) for the stored data set ``dataset_id``."""
+        kept = dataset.renamed(f"dataset {dataset_id}")  # the name a job gives the stored text
+        with self._lock:
+            self._kept[dataset_id] = (dataset.content_sha256, kept)
+            self._kept.move_to_end(dataset_id)
+            while sum(len(d) for _, d in self._kept.values()) > self.max_rows:
+                self._kept.popitem(last=False)
+
+    def get(self, dataset_id: int, sha256: str) -> Dataset | None:
+        """The data set kept for ``dataset_id`` when its content hash is ``sha256``, else None."""
+        with self._lock:
+            kept = self._kept.get(dataset_id)
+            if kept is None or kept[0] != sha256:
+                return None
+            self._kept.move_to_end(dataset_id)
+            return kept[1]
+
+    def forget(self, dataset_id: int) -> None:
+        with self._lock:
+            self._kept.pop(dataset_id, None)
 
 
 def check_upload(
@@ -116,7 +160,7 @@ def check_upload(
     campaign = None
     try:
         if fmt == "csv":
-            as_kind = "any" if _campaign_header(data, options.delimiter) else kind
+            as_kind = "any" if sniff_campaign(data, options.delimiter) is not None else kind
             ds = parse_dataset(
                 data, source=name, limits_deg=limits, min_rows=1, kind=as_kind, options=options
             )
@@ -124,7 +168,7 @@ def check_upload(
             doc = load_json_records(data, name)
             name = (doc.name or name)[:200]
             keys = set(doc.records[0]) if doc.records and isinstance(doc.records[0], dict) else set()
-            as_kind = "any" if keys & _MARKERS else kind
+            as_kind = "any" if header_kind(keys) is not None else kind
             ds = dataset_from_json(
                 doc, source=name, limits_deg=limits, min_rows=1, kind=as_kind, options=options
             )
@@ -138,21 +182,10 @@ def check_upload(
         summary["read_as"] = options.describe()
     if campaign is not None:
         summary["campaign"] = campaign_kind(ds)
-    return CheckedUpload(name, dataset_to_csv(ds), ds.content_sha256, len(ds), summary)
-
-
-_MARKERS = frozenset((*BALLBAR_MARKERS, *CROSSBAR_MARKERS))
-
-
-def _campaign_header(data: bytes, delimiter: str = ",") -> bool:
-    """Whether the first line of a CSV body (fields separated by ``delimiter``) names a ballbar or
-    cross-bar column."""
-    first = bytes(data[: data.find(b"\n") if b"\n" in data[:65536] else 65536])
-    names = {
-        cell.strip().strip('"')
-        for cell in first.decode("utf-8", "replace").removeprefix("\ufeff").split(delimiter)
-    }
-    return bool(names & _MARKERS)
+    fit_ready = campaign is not None or (ds.a_deg is not None and ds.xyz_mm is not None)
+    return CheckedUpload(
+        name, dataset_to_csv(ds), ds.content_sha256, len(ds), summary, ds if fit_ready else None
+    )
 
 
 def _check_file(

@@ -346,7 +346,7 @@ class _Trial(TrialSession):
 
     async def seed000_run(self, model_id: int, nominal_id: int) -> PointRun:
         """The Chebyshev targets with seed 000's joint mapping (:mod:`comp_daemon.models.compensation`,
-        ``mapping="seed000"``): the model's artifact, fetched over HTTP, compensates the targets as the
+        ``mapping="three-axis"``): the model's artifact, fetched over HTTP, compensates the targets as the
         daemon would (seeded from the nominal axis values, the approach directions of the joints
         without gratings, the default limits), and the compensated commands go to the daemon as
         targets under the nominal model, which gives axis values back unchanged: the joint loop holds
@@ -356,7 +356,7 @@ class _Trial(TrialSession):
         direction = tg.dir.copy()
         direction[:, [j - 1 for j in self.scenario.cell.grating_joints]] = 0.0
         commands, reasons = await asyncio.to_thread(
-            compensate_each, model, tg, direction, self.plan.payload_kg, "seed000"
+            compensate_each, model, tg, direction, self.plan.payload_kg, "three-axis"
         )
         order = self.sizes.chebyshev_order
         run = PointRun.empty(

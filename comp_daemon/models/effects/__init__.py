@@ -17,7 +17,13 @@ of :mod:`~comp_daemon.models.effects.catalogue`; how the twin composes them by s
 """
 
 from comp_daemon.models.effects.base import Effect, EffectData, ParamArray, TwinInputs
-from comp_daemon.models.effects.catalogue import EFFECT_CATALOGUE, EFFECTS, effect_by_name
+from comp_daemon.models.effects.catalogue import (
+    EFFECT_CATALOGUE,
+    EFFECTS,
+    TIME_EFFECTS,
+    TRANSMISSION_EFFECTS,
+    effect_by_name,
+)
 from comp_daemon.models.effects.params import EffectParams, effect_param_names
 from comp_daemon.models.effects.twin import (
     MassModel,
@@ -34,6 +40,8 @@ from comp_daemon.models.effects.twin import (
 __all__ = [
     "EFFECTS",
     "EFFECT_CATALOGUE",
+    "TIME_EFFECTS",
+    "TRANSMISSION_EFFECTS",
     "Effect",
     "EffectData",
     "EffectParams",

@@ -464,6 +464,10 @@ STEP = Effect(
 EFFECT_CATALOGUE: tuple[Effect, ...] = (BACKLASH, RATIO, CYCLIC, COMPLIANCE, THERMAL, DRIFT, STEP)
 #: the effect names (the vocabulary of docs/diagnosis-output.md), in catalogue order
 EFFECTS: tuple[str, ...] = tuple(e.name for e in EFFECT_CATALOGUE)
+#: the effects that are functions of the campaign clock (they need it: ``required`` names ``clock``)
+TIME_EFFECTS: tuple[str, ...] = tuple(e.name for e in EFFECT_CATALOGUE if "clock" in e.required)
+#: the transmission's effects, ratio and backlash (seed 001 §1): the base of the kriging-backlash kind
+TRANSMISSION_EFFECTS: tuple[str, ...] = (RATIO.name, BACKLASH.name)
 _BY_NAME = {e.name: e for e in EFFECT_CATALOGUE}
 
 

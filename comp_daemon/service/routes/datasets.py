@@ -173,6 +173,8 @@ async def upload_dataset(
         rows=checked.rows,
         summary=checked.summary,
     )
+    if checked.dataset is not None:
+        svc.parsed.put(record.id, checked.dataset)
     _log.info("dataset stored", dataset_id=record.id, rows=record.rows, by=who.name)
     return DatasetOut.of(record)
 
@@ -296,5 +298,6 @@ async def get_dataset_content(dataset_id: DatasetId, svc: State, who: Viewer) ->
 )
 async def delete_dataset(dataset_id: DatasetId, svc: State, who: Engineer) -> Response:
     await svc.run(svc.store.delete_dataset, dataset_id)
+    svc.parsed.forget(dataset_id)
     _log.info("dataset deleted", dataset_id=dataset_id, by=who.name)
     return Response(status_code=204)

@@ -52,7 +52,8 @@ async def start_diagnosis(body: DiagnosisIn, svc: State, who: Engineer) -> JobOu
         job_kinds.DIAGNOSIS,
         {"dataset_id": body.dataset_id, "by": who.name, "tracker_sigma_mm": body.tracker_sigma_mm},
         body.dataset_id,
-        lambda csv: job_kinds.diagnosis_job_args(csv, robot_name, body.dataset_id, body.tracker_sigma_mm),
+        lambda data: job_kinds.diagnosis_job_args(data, robot_name, body.dataset_id, body.tracker_sigma_mm),
+        parsed=True,
     )
     _log.info("diagnosis queued", job_id=job.id, dataset_id=body.dataset_id, by=who.name)
     return JobOut.of(job, with_result=False)

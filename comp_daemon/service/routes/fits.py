@@ -43,17 +43,30 @@ _NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorOut}}
 
 
 async def launch_job(
-    svc: ServiceState, kind: str, params: dict[str, Any], dataset_id: int, make_args: Any
+    svc: ServiceState,
+    kind: str,
+    params: dict[str, Any],
+    dataset_id: int,
+    make_args: Any,
+    *,
+    parsed: bool = False,
 ) -> JobRecord:
-    """Create the job row and hand it to the pool; ``make_args(csv_text)`` builds the function's args."""
+    """Create the job row and hand it to the pool; ``make_args(data)`` builds the function's args
+    from the stored CSV text, or, with ``parsed``, from the data set as parsed at its upload when
+    the service still holds it (:class:`comp_daemon.service.uploads.ParsedDatasets`)."""
     if not svc.runner.has_kind(kind):
         raise ApiError(503, "unavailable", f"{kind} jobs are not available in this service")
-    dataset = await svc.run(svc.store.get_dataset, dataset_id, with_content=True)
+    data: Any = None
+    if parsed:  # the stored hash picks the parsed data set; the text is not read
+        record = await svc.run(svc.store.get_dataset, dataset_id, with_content=False)
+        data = svc.parsed.get(dataset_id, record.sha256)
+    if data is None:
+        data = (await svc.run(svc.store.get_dataset, dataset_id, with_content=True)).content or ""
     job = await svc.run(
         svc.store.create_job, kind, params, dataset_id=dataset_id, max_pending=svc.settings.jobs.max_pending
     )
     try:
-        await svc.run(svc.runner.launch, job, make_args(dataset.content or ""))
+        await svc.run(svc.runner.launch, job, make_args(data))
     except Exception:
         await svc.run(svc.store.fail_job, job.id, "could not be started (the job pool is not running)")
         raise
@@ -86,9 +99,10 @@ async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
         job_kinds.FIT,
         params,
         body.dataset_id,
-        lambda csv: job_kinds.fit_job_args(
-            csv, robot_name, body.model, body.order, body.dataset_id, infer_dir=body.infer_dir
+        lambda data: job_kinds.fit_job_args(
+            data, robot_name, body.model, body.order, body.dataset_id, infer_dir=body.infer_dir
         ),
+        parsed=True,
     )
     _log.info("fit queued", job_id=job.id, model=body.model, order=body.order, by=who.name)
     return JobOut.of(job)
