@@ -50,7 +50,12 @@ the worst 20 replies and the 20 longest stretches of telegrams left without one 
 endpoint answers only the newest), each with what was going on when it came: a sampler reads every 50 ms the
 real-time process's ``/proc`` state (running or sleeping, the CPU it ran on, its voluntary and
 involuntary context switches since the last sample), the number of runnable tasks on the machine,
-and the load's own state (which fit was running, which HTTP request was in flight).
+and the load's own state (which fit was running, which HTTP request was in flight); and, from the
+real-time process's own per-cycle trace (``COMP_DAEMON_RT_TRACE``, :mod:`comp_daemon.rt.cycle_trace`,
+joined by IPOC), what held that reply: the wait from the kernel's receive time to the callback, the
+time in the callback, and since the previous reply the process's CPU time (the collector's share),
+its wait for its CPU, context switches and page faults, with the cause in words; the causes of all
+late and unanswered telegrams are counted (``late_causes``).
 """
 
 from __future__ import annotations
