@@ -50,7 +50,12 @@ the worst 20 replies and the 20 longest stretches of telegrams left without one 
 endpoint answers only the newest), each with what was going on when it came: a sampler reads every 50 ms the
 real-time process's ``/proc`` state (running or sleeping, the CPU it ran on, its voluntary and
 involuntary context switches since the last sample), the number of runnable tasks on the machine,
-and the load's own state (which fit was running, which HTTP request was in flight).
+and the load's own state (which fit was running, which HTTP request was in flight); and, from the
+real-time process's own per-cycle trace (``COMP_DAEMON_RT_TRACE``, :mod:`comp_daemon.rt.cycle_trace`,
+joined by IPOC), what held that reply: the wait from the kernel's receive time to the callback, the
+time in the callback, and since the previous reply the process's CPU time (the collector's share),
+its wait for its CPU, context switches and page faults, with the cause in words; the causes of all
+late and unanswered telegrams are counted (``late_causes``).
 """
 
 from __future__ import annotations
@@ -84,6 +89,7 @@ import httpx
 import numpy as np
 
 from benchmarks.machine import machine_info, machine_line
+from comp_daemon.rt import cycle_trace
 from comp_daemon.rt.rsi_codec import SenReply, build_sen
 from comp_daemon.rt.scheduling import apply_scheduling, resolve_cpu
 
@@ -569,6 +575,67 @@ class Sampler:
         )
 
 
+class RtTrace:
+    """The real-time process's own per-cycle trace (:mod:`comp_daemon.rt.cycle_trace`), looked up by
+    IPOC: for a reply, what held it up between the kernel and the receive callback."""
+
+    def __init__(self, table: dict[str, np.ndarray], cycle_ms: int) -> None:
+        order = np.argsort(table["ipoc"], kind="stable")
+        self.t = {k: v[order] for k, v in table.items()}
+        self.cycle_ns = cycle_ms * 1_000_000
+
+    @classmethod
+    def load(cls, path: Path, cycle_ms: int) -> RtTrace | None:
+        if not path.exists():
+            return None
+        with np.load(path) as z:
+            return cls({k: z[k] for k in z.files}, cycle_ms)
+
+    def row(self, ipoc: int) -> dict[str, int] | None:
+        """The row of the reply that answered ``ipoc``, or that superseded it (the next answered)."""
+        i = int(np.searchsorted(self.t["ipoc"], ipoc))
+        if i >= self.t["ipoc"].size:
+            return None
+        return {k: int(v[i]) for k, v in self.t.items()}
+
+    def cause(self, r: dict[str, int]) -> str:
+        """The largest share of the wait from the kernel's arrival to the callback, in words."""
+        wait = r["entry_ns"] - r["kernel_first_ns"]
+        if wait < self.cycle_ns / 4:
+            return "in the callback" if r["sent_ns"] - r["entry_ns"] > self.cycle_ns / 4 else "not held up"
+        shares = {
+            "the collector": r["gc_ns"],
+            "busy in other callbacks": r["cpu_ns"] - r["gc_ns"],
+            "runnable, its CPU taken": r["run_delay_ns"],
+        }
+        what, ns = max(shares.items(), key=lambda kv: kv[1])
+        if ns >= wait / 2:
+            return what
+        return "asleep: the datagram reached the kernel, not the socket, or the machine was held"
+
+    def describe(self, r: dict[str, int] | None) -> str:
+        if r is None:
+            return "not in the trace"
+        ms = 1e-6
+        wait, inside = r["entry_ns"] - r["kernel_first_ns"], r["sent_ns"] - r["entry_ns"]
+        return (
+            f"[rt: answered IPOC {r['ipoc']}, {r['taken']} taken; kernel → callback "
+            f"{wait * ms:.2f} ms, callback {inside * ms:.2f} ms; "
+            f"since the last reply: CPU {r['cpu_ns'] * ms:.2f} ms (collector {r['gc_ns'] * ms:.2f} ms, "
+            f"gen {r['gc_gen']}), waited runnable {r['run_delay_ns'] * ms:.2f} ms, "
+            f"{r['involuntary']} involuntary / {r['voluntary']} voluntary switches, "
+            f"{r['faults']} page faults → {self.cause(r)}]"
+        )
+
+    def causes(self, ipocs: np.ndarray) -> dict[str, int]:
+        """How many of these telegrams (late or unanswered) each cause held up."""
+        out: Counter[str] = Counter()
+        for k in ipocs:
+            r = self.row(int(k))
+            out["not in the trace" if r is None else self.cause(r)] += 1
+        return dict(out.most_common())
+
+
 #: upper bounds (ms) of the wire-latency histogram; the last bucket is open
 HISTOGRAM_MS = (0.1, 0.2, 0.3, 0.5, 0.75, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 24.0)
 
@@ -582,45 +649,40 @@ def _histogram(ms: np.ndarray, missing: int) -> dict[str, int]:
     return out
 
 
-def _worst(
-    ipoc: np.ndarray, sent: np.ndarray, reply: np.ndarray, sampler: Sampler | None, n: int = 20
-) -> list[dict[str, Any]]:
-    """The ``n`` slowest replies that came, oldest first within equal latency."""
-    lat = np.where(reply > 0, (reply - sent) / 1e6, -np.inf)
-    order = [i for i in np.argsort(-lat, kind="stable")[:n] if np.isfinite(lat[i])]
-    t0 = int(sent[0]) if sent.size else 0
-    return [
-        {
-            "ipoc": int(ipoc[i]),
-            "at_s": round((int(sent[i]) - t0) / 1e9, 3),
-            "latency_ms": None if not np.isfinite(lat[i]) else round(float(lat[i]), 3),
-            "context": sampler.around(int(sent[i])) if sampler is not None else "",
-        }
-        for i in order
-    ]
+@dataclass
+class _Wire:
+    """The relay's record of the daemon's telegrams, with what was going on around each."""
 
+    ipoc: np.ndarray
+    sent: np.ndarray
+    reply: np.ndarray
+    sampler: Sampler | None
+    trace: RtTrace | None
 
-def _unanswered(
-    ipoc: np.ndarray, sent: np.ndarray, reply: np.ndarray, sampler: Sampler | None, n: int = 20
-) -> list[dict[str, Any]]:
-    """The ``n`` longest stretches of consecutive telegrams without a reply (the endpoint answers
-    the newest after a stall, so a wait of more than a cycle shows here, not as a late reply)."""
-    missing = np.flatnonzero(reply == 0)
-    if missing.size == 0:
-        return []
-    breaks = np.flatnonzero(np.diff(missing) != 1) + 1
-    stretches = np.split(missing, breaks)
-    stretches.sort(key=len, reverse=True)
-    t0 = int(sent[0])
-    return [
-        {
-            "ipoc": int(ipoc[run[0]]),
-            "telegrams": int(run.size),
-            "at_s": round((int(sent[run[0]]) - t0) / 1e9, 3),
-            "context": sampler.around(int(sent[run[0]])) if sampler is not None else "",
+    def _about(self, i: int) -> dict[str, Any]:
+        t0 = int(self.sent[0])
+        return {
+            "ipoc": int(self.ipoc[i]),
+            "at_s": round((int(self.sent[i]) - t0) / 1e9, 3),
+            "context": self.sampler.around(int(self.sent[i])) if self.sampler is not None else "",
+            "rt": self.trace.describe(self.trace.row(int(self.ipoc[i]))) if self.trace is not None else "",
         }
-        for run in stretches[:n]
-    ]
+
+    def worst(self, n: int = 20) -> list[dict[str, Any]]:
+        """The ``n`` slowest replies that came, oldest first within equal latency."""
+        lat = np.where(self.reply > 0, (self.reply - self.sent) / 1e6, -np.inf)
+        order = [i for i in np.argsort(-lat, kind="stable")[:n] if np.isfinite(lat[i])]
+        return [self._about(int(i)) | {"latency_ms": round(float(lat[i]), 3)} for i in order]
+
+    def unanswered(self, n: int = 20) -> list[dict[str, Any]]:
+        """The ``n`` longest stretches of consecutive telegrams without a reply (the endpoint answers
+        the newest after a stall, so a wait of more than a cycle shows here, not as a late reply)."""
+        missing = np.flatnonzero(self.reply == 0)
+        if missing.size == 0:
+            return []
+        stretches = np.split(missing, np.flatnonzero(np.diff(missing) != 1) + 1)
+        stretches.sort(key=len, reverse=True)
+        return [self._about(int(run[0])) | {"telegrams": int(run.size)} for run in stretches[:n]]
 
 
 # ------------------------------------------------------------------------------------ one run
@@ -732,6 +794,7 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
     ctx = mp.get_context("spawn")
     recording, finished, relay_ready, echo_ready = ctx.Event(), ctx.Event(), ctx.Event(), ctx.Event()
     out = root / "relay.npz"
+    trace_path = root / "rt-trace.npz"
     # the echo where the daemon's real-time process runs ([realtime] cpu = "auto"), at its priority
     echo_cpu = resolve_cpu("auto")
     echo = ctx.Process(
@@ -767,11 +830,15 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
         cell_at = (opts.controller_priority, opts.controller_cpu)
         with _cell(root, cycle_ms, relay_port, *cell_at) as (_cell_proc, cell):
             cfg = _config(root, cell, cycle_ms, http_port, daemon_rsi, opts)
+            env = os.environ | {
+                cycle_trace.ENV_PATH: str(trace_path),
+                cycle_trace.ENV_CYCLES: str(cycles + 200_000),  # + calibration and the first fit
+            }
             with (root / "daemon.log").open("wb") as log:
                 daemon = subprocess.Popen(
                     [sys.executable, "-m", "comp_daemon", "run", "--config", str(cfg),
                      "--motion", f"127.0.0.1:{cell['motion_port']}", "--calibrate-gratings"],
-                    stdout=log, stderr=subprocess.STDOUT,
+                    stdout=log, stderr=subprocess.STDOUT, env=env,
                 )  # fmt: skip
             base = f"http://127.0.0.1:{http_port}"
             _wait(lambda: httpx.get(f"{base}/health").status_code == 200, 60, "the daemon's HTTP service")
@@ -848,6 +915,9 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
 
     rec = np.load(out)
     sent, reply, arrive = rec["t_sent"], rec["t_reply"], rec["t_arrive"]
+    trace = RtTrace.load(trace_path, cycle_ms)
+    late_mask = (reply == 0) | (reply - sent > cycle_ms * 1_000_000)
+    wire = _Wire(rec["ipoc"], sent, reply, sampler, trace)
     answered = reply > 0
     # a telegram the relay forwarded less than half a cycle before the next one (the relay itself
     # was held up) arrives at the daemon with its successor queued behind it: only the newest is
@@ -879,8 +949,9 @@ def run(cycle_ms: int, opts: Options) -> dict[str, Any]:
         },
         over_1ms=int(np.sum(lat_ms > 1.0)),
         histogram=_histogram(lat_ms, int(np.sum(~answered))),
-        worst=_worst(rec["ipoc"], sent, reply, sampler),
-        unanswered=_unanswered(rec["ipoc"], sent, reply, sampler),
+        worst=wire.worst(),
+        unanswered=wire.unanswered(),
+        late_causes=trace.causes(rec["ipoc"][late_mask]) if trace is not None else {},
         relay_forward_ms_p99=_pct(relay_ms, 99),
         steal_s=round(steal_s, 2),
         platform_floor=platform,
@@ -947,6 +1018,8 @@ def _report(r: dict[str, Any]) -> str:
         f"{r['loadavg_end']}; daemon exit {r['daemon_exit']}\n"
         f"   platform: {r['steal_s']} s of CPU time stolen by the hypervisor; {_floor_text(r)}\n"
         f"   reply latency on the wire (relay side): {_histogram_text(r['histogram'])}\n"
+        f"   what held up the late and unanswered telegrams (the real-time process's trace): "
+        f"{r['late_causes'] or 'no trace'}\n"
         f"   the worst {len(r['worst'])} replies:\n{_worst_text(r['worst'])}\n"
         f"   the longest {len(r['unanswered'])} stretches without a reply:\n"
         f"{_unanswered_text(r['unanswered'])}"
@@ -957,6 +1030,7 @@ def _unanswered_text(rows: list[dict[str, Any]]) -> str:
     return (
         "\n".join(
             f"     IPOC {w['ipoc']} at {w['at_s']:9.3f} s: {w['telegrams']} telegram(s) — {w['context']}"
+            f"\n       {w['rt']}"
             for w in rows
         )
         or "     none"
@@ -970,6 +1044,7 @@ def _histogram_text(h: dict[str, int]) -> str:
 def _worst_text(rows: list[dict[str, Any]]) -> str:
     return "\n".join(
         f"     IPOC {w['ipoc']} at {w['at_s']:9.3f} s: {w['latency_ms']:.3f} ms — {w['context']}"
+        f"\n       {w['rt']}"
         for w in rows
     )
 

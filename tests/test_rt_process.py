@@ -31,6 +31,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from test_daemon_executor import Clock, Grating, Robot, calibration
+from test_rt_encoder_reader import Angles
 
 from comp_daemon.daemon.rt_process import ReaderMirror, RealtimeProcess, RemoteRuntime
 from comp_daemon.rt.controller import JointLoopSettings
@@ -47,6 +48,7 @@ from comp_daemon.rt.rsi_codec import SenReply, build_rob, parse_sen
 from comp_daemon.rt.rsi_server import RsiServerConfig
 from comp_daemon.rt.safety import Faulted, FaultKind, SafetySettings, SafetyState
 from comp_daemon.rt.scheduling import apply_scheduling, other_cpus, request_wakeup_latency, resolve_cpu
+from comp_daemon.sim.converter import ConverterConfig, SimulatedConverter
 
 HOME = (10.0, -90.0, 90.0, 0.0, 30.0, 0.0)
 
@@ -413,6 +415,60 @@ async def test_child_logs_reach_the_daemon_loggers(
             for r in caplog.records
         )
     )
+
+
+def _epoll_sets(pid: int) -> list[set[str]]:
+    """What each epoll instance of process ``pid`` watches: the targets of the watched descriptors
+    (``/dev/pts/3``, ``socket:[1234]``, …), from ``/proc/PID/fdinfo``."""
+    sets = []
+    for fd in os.listdir(f"/proc/{pid}/fd"):
+        with contextlib.suppress(OSError):
+            if os.readlink(f"/proc/{pid}/fd/{fd}") != "anon_inode:[eventpoll]":
+                continue
+            info = Path(f"/proc/{pid}/fdinfo/{fd}").read_text()
+            watched = set()
+            for line in info.splitlines():
+                if line.startswith("tfd:"):
+                    with contextlib.suppress(OSError):
+                        watched.add(os.readlink(f"/proc/{pid}/fd/{int(line.split()[1])}"))
+            sets.append(watched)
+    return sets
+
+
+def _udp_socket(pid: int, port: int) -> str:
+    """``socket:[inode]`` of the UDP socket bound to ``port`` in process ``pid``."""
+    for line in Path(f"/proc/{pid}/net/udp").read_text().splitlines()[1:]:
+        fields = line.split()
+        if int(fields[1].split(":")[1], 16) == port:
+            return f"socket:[{fields[9]}]"
+    raise AssertionError(f"no UDP socket on port {port}")
+
+
+@pytest.mark.skipif(not Path("/proc/self/fdinfo").is_dir(), reason="Linux /proc")
+async def test_the_rsi_endpoint_never_waits_on_a_grating_tty(tmp_path: Path) -> None:
+    """A tty poll can wait in the kernel for a normal-priority worker (flush_work in n_tty_poll):
+    the event loop that answers RSI must not poll the gratings' ttys, only the readers' own may."""
+    conv = SimulatedConverter(
+        ConverterConfig(1, 1000.0, 0.0, link_path=str(tmp_path / "grating-j1")), Angles()
+    )
+    conv.start()
+    proc = RealtimeProcess(RtStart(rsi=RsiServerConfig(controller_host="127.0.0.1", bind_port=0)))
+    await proc.start()
+    try:
+        await proc.start_loop(loop_start(conv.port))
+        assert proc.proc is not None
+        pid, tty = proc.proc.pid, os.path.realpath(conv.port)
+        rsi = _udp_socket(pid, proc.info["rsi_address"][1])
+        await until(lambda: conv.replies >= 20 and any(tty in s for s in _epoll_sets(pid)), 10.0)
+        sets = _epoll_sets(pid)
+        assert [s for s in sets if rsi in s and tty in s] == [], sets
+        assert any(rsi in s for s in sets) and any(tty in s for s in sets), sets
+        ctl = controller_of(proc)
+        assert len(ctl.run(10)) == 10  # and the endpoint answers meanwhile
+        ctl.close()
+    finally:
+        assert await proc.stop() == 0
+        conv.close()
 
 
 async def test_samples_round_trip(rtp: RealtimeProcess) -> None:

@@ -7,19 +7,24 @@ The real processes on a real full disk and on damaged files are in test_e2e_stor
 
 from __future__ import annotations
 
+import asyncio
 import json
 import os
 import sqlite3
+import time
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
-from service_client import in_process_service
+from service_client import in_process_service, job_done
 from test_service_api import auth, campaign_csv, make_settings
 
 from comp_daemon.cli import main as cli_main
+from comp_daemon.service import jobs as jobs_module
 from comp_daemon.service.api import open_store
 from comp_daemon.service.store import Store, StoreDamagedError, StoreError, StoreFullError
+from comp_daemon.service.store import base as store_base
 from comp_daemon.service.store import files as store_files
 
 
@@ -204,3 +209,97 @@ def test_store_commands(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> N
     assert cli_main(["store", "check", "--data-dir", data_dir]) == 0
     assert cli_main(["store", "restore", "--data-dir", data_dir, "--backup", str(tmp_path / "nope")]) == 2
     assert "no backup file" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------------------ a job on a full disk
+
+
+async def _store_reasons(client: httpx.AsyncClient) -> list[str]:
+    r = await client.get("/ready")
+    return [s for s in r.json()["reasons"] if s.startswith("store not writable")]
+
+
+async def _until(cond: Any, limit_s: float) -> Any:
+    deadline = time.monotonic() + limit_s
+    while time.monotonic() < deadline:
+        value = await cond()
+        if value:
+            return value
+        await asyncio.sleep(0.1)
+    raise AssertionError("condition not reached in time")
+
+
+async def test_a_fit_finishing_on_a_full_disk_fails_naming_it_and_ready_says_so(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(jobs_module, "_FULL_RETRY_S", 0.2, raising=False)  # absent before the fix
+    settings = make_settings(tmp_path, jobs={"workers": 1})
+    db = str(settings.store.db_path)
+    async with in_process_service(settings) as (client, store):
+        up = await client.post(
+            "/api/datasets",
+            params={"name": "kept"},
+            content=campaign_csv(60, seed=3),
+            headers={**auth("engineer"), "Content-Type": "text/csv"},
+        )
+        assert up.status_code == 201, up.text
+        assert await _store_reasons(client) == []
+        finish = store.finish_job
+
+        def finish_on_a_full_disk(*args: Any, **kwargs: Any) -> Any:
+            _fill_pages(store)  # the disk fills up while the fit runs: its result needs room
+            return finish(*args, **kwargs)
+
+        monkeypatch.setattr(store, "finish_job", finish_on_a_full_disk)
+        r = await client.post(
+            "/api/fits", json={"dataset_id": up.json()["id"], "model": "kinematic"}, headers=auth("engineer")
+        )
+        assert r.status_code == 202, r.text
+        job_id = r.json()["id"]
+        (reason,) = await _until(lambda: _store_reasons(client), 90.0)
+        assert reason.startswith(f"store not writable: disk full: cannot write {db} (")
+        assert (await client.get("/ready")).status_code == 503
+        _lift(store)  # room again
+        job = await job_done(client, job_id, limit_s=20.0)
+        assert job["state"] == "failed", job
+        assert job["error"].startswith(
+            f"the job's result could not be stored: disk full: cannot write {db} ("
+        )
+        assert job["error"].endswith("run the job again once there is room")
+        await _until(lambda: _not(_store_reasons(client)), 5.0)
+        # nothing lost: the data set is there, no half-stored model, and the store takes writes
+        listed = await client.get("/api/datasets", headers=auth("viewer"))
+        assert [d["name"] for d in listed.json()] == ["kept"]
+        assert (await client.get("/api/models", headers=auth("viewer"))).json() == []
+        assert store.quick_check() == []
+
+
+async def _not(awaitable: Any) -> bool:
+    return not await awaitable
+
+
+def test_write_problem_says_when_the_store_cannot_write_and_when_it_can_again(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    store = Store(tmp_path / "s.sqlite3")
+    assert store.write_problem() is None
+    _fill_pages(store)
+    with pytest.raises(StoreFullError):
+        for i in range(2000):
+            store.add_event("filler", {"i": i, "pad": "x" * 5000})
+    problem = store.write_problem()
+    assert problem is not None and problem.startswith(
+        f"store not writable: disk full: cannot write {store.path}"
+    )
+    count = len(store.list_events(limit=5000))
+    monkeypatch.setattr(store_base, "PROBE_INTERVAL_S", 0.0)
+    assert store.write_problem() == problem  # the trial write fails as well
+    _lift(store)
+    assert store.write_problem() is None  # the trial write works: writable again, before any real write
+    assert len(store.list_events(limit=5000)) == count  # the trial left nothing behind
+    # too little free space on the disk: not writable whatever the last write did
+    monkeypatch.setattr(store_base, "free_bytes", lambda path: 4096)
+    assert store.write_problem() == (
+        f"store not writable: only 4096 bytes free on the disk of {store.path}; free space on that disk"
+    )
+    store.close()

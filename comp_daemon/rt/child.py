@@ -3,9 +3,11 @@
 On one interpreter the RSI reply would share the GIL with the HTTP side: any C call that holds it (a
 request body validated, a page of rows decoded, a collector pass) would delay the reply by its
 length. So the whole real-time path runs in this child process of the daemon: the UDP endpoint
-answering in its receive callback (:mod:`comp_daemon.rt.rsi_server`), one reader task per grating
-(:mod:`comp_daemon.rt.encoder_reader`) and the :class:`~comp_daemon.rt.loop.LoopRuntime`, all on
-one event loop, while the daemon keeps the service, the executor and the store.
+answering in its receive callback (:mod:`comp_daemon.rt.rsi_server`) and the
+:class:`~comp_daemon.rt.loop.LoopRuntime` on one event loop, one reader task per grating
+(:mod:`comp_daemon.rt.encoder_reader`) on a second event loop in a thread of its own (a tty poll can
+wait in the kernel for a normal-priority worker: :mod:`comp_daemon.rt.reader_thread`), while the
+daemon keeps the service, the executor and the store.
 
 The daemon starts it as ``python -m comp_daemon.rt.child --fd N`` (N: its end of a socket pair;
 the daemon's side is :mod:`comp_daemon.daemon.rt_process`). The child:
@@ -40,6 +42,7 @@ import os
 import signal
 import socket
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from dataclasses import replace
@@ -48,6 +51,7 @@ from typing import Any, BinaryIO
 import structlog
 
 from comp_daemon.common.logs import get_logger, plain_line
+from comp_daemon.rt import cycle_trace
 from comp_daemon.rt.encoder_reader import EncoderReader
 from comp_daemon.rt.link import (
     COMMANDS,
@@ -59,6 +63,7 @@ from comp_daemon.rt.link import (
     StateReport,
 )
 from comp_daemon.rt.loop import CycleSample, LoopRuntime
+from comp_daemon.rt.reader_thread import ReaderThread
 from comp_daemon.rt.rsi_codec import RobTelegram, SenReply
 from comp_daemon.rt.rsi_server import RsiServerProtocol, start_rsi_server
 from comp_daemon.rt.safety import Event, Fault, Faulted, FaultKind, Reaction, SafetyState
@@ -100,15 +105,23 @@ class _LinkLogHandler(logging.Handler):
     def __init__(self, link: LinkProtocol) -> None:
         super().__init__()
         self.link = link
+        self.loop = asyncio.get_running_loop()
+        self.loop_thread = threading.get_ident()
         self.setFormatter(logging.Formatter("%(message)s"))
 
     def emit(self, record: logging.LogRecord) -> None:
         try:
             text = self.format(record)
-            if not self.link.send(("log", record.name, record.levelno, text)):
-                sys.stderr.write(f"comp-daemon rt: {logging.getLevelName(record.levelno)} {text}\n")
+            if threading.get_ident() == self.loop_thread:
+                self._send(record.name, record.levelno, text)
+            else:  # the grating readers' thread: the link is written from its own loop only
+                self.loop.call_soon_threadsafe(self._send, record.name, record.levelno, text)
         except Exception:
             self.handleError(record)
+
+    def _send(self, name: str, level: int, text: str) -> None:
+        if not self.link.send(("log", name, level, text)):
+            sys.stderr.write(f"comp-daemon rt: {logging.getLevelName(level)} {text}\n")
 
 
 class RtChild:
@@ -122,7 +135,7 @@ class RtChild:
         self.rsi: RsiServerProtocol | None = None
         self.rsi_transport: asyncio.DatagramTransport | None = None
         self.readers: dict[int, EncoderReader] = {}
-        self.reader_tasks: list[asyncio.Task[None]] = []
+        self.reader_thread: ReaderThread | None = None
         self.tasks: list[asyncio.Task[Any]] = []
         self.applied = 0
         self.done = asyncio.Event()
@@ -134,6 +147,7 @@ class RtChild:
         self._push_scheduled = False
         self._marks = {"latency": 0, "jitter": 0, "telegrams": 0, "faults": 0}
         self._sen_type = "ImFree"
+        self.trace: cycle_trace.CycleTrace | None = None
 
     # ---------------------------------------------------------------------------- the RSI handler
 
@@ -333,10 +347,14 @@ class RtChild:
                 notes.append(note)
         self._push_period_ns = int(cfg.push_period_s * 1e9)
         self._sen_type = cfg.rsi.sen_type
+        try:
+            self.trace = cycle_trace.from_environment()
+        except ValueError as exc:
+            raise RtProcessError(str(exc)) from None
         gc.collect()
         gc.freeze()  # the child's start-up objects: out of every later collector pass
         self.rsi_transport, self.rsi = await start_rsi_server(
-            self.handle, cfg.rsi, on_new_session=self._new_session
+            self.handle, cfg.rsi, on_new_session=self._new_session, trace=self.trace
         )
         host, port = self.rsi_transport.get_extra_info("sockname")[:2]
         self.tasks.append(self.loop.create_task(self._report_idle(), name="rt-report"))
@@ -359,9 +377,12 @@ class RtChild:
         }
         runtime = spec.build(LoopRuntime, readers, time.perf_counter_ns)
         self.readers = readers
+        # the readers poll their ttys on a thread of their own (comp_daemon.rt.reader_thread): a
+        # tty poll can wait in the kernel for a normal-priority worker, and must not hold a reply
+        self.reader_thread = ReaderThread()
         for reader in readers.values():
             reader.next_telegram_ns = runtime.next_telegram_ns
-            self.reader_tasks.append(reader.start())
+            await self.reader_thread.start(reader)
         self.runtime = runtime
         self.tasks.append(self.loop.create_task(self._forward_events(runtime), name="rt-events"))
         self.tasks.append(self.loop.create_task(self._tick(runtime, self.start_cfg.tick_s), name="rt-tick"))
@@ -393,9 +414,12 @@ class RtChild:
         self.done.set()
 
     async def _stop_readers(self) -> None:
+        thread = self.reader_thread
+        if thread is None:
+            return
         for reader in self.readers.values():
             with contextlib.suppress(Exception):
-                await reader.stop()
+                await thread.stop(reader)
 
     async def close(self) -> None:
         for task in list(self.tasks):
@@ -404,8 +428,18 @@ class RtChild:
         if self.rsi_transport is not None:
             self.rsi_transport.close()
         await self._stop_readers()
+        if self.reader_thread is not None:
+            self.reader_thread.close()
         if self._pm_qos is not None:
             self._pm_qos.close()
+        if self.trace is not None:
+            self.trace.close()
+            try:
+                self.trace.write()
+            except OSError as exc:
+                sys.stderr.write(
+                    f"comp-daemon rt: could not write the cycle trace to {self.trace.path}: {exc}\n"
+                )
         self.link.close()
 
 

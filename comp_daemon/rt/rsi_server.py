@@ -61,6 +61,7 @@ from typing import Any, cast
 import numpy as np
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.rt.cycle_trace import CycleTrace
 from comp_daemon.rt.rsi_codec import RobTelegram, RsiProtocolError, SenReply, build_sen, parse_rob
 
 __all__ = [
@@ -243,8 +244,10 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
         *,
         clock: Clock = time.perf_counter_ns,
         on_new_session: SessionHook | None = None,
+        trace: CycleTrace | None = None,
     ):
         self.handler = handler
+        self.trace = trace  # the per-cycle trace (comp_daemon.rt.cycle_trace), when asked for
         self.config = config
         self.clock = clock
         self.on_new_session = on_new_session
@@ -275,6 +278,8 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
                 trsock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, self.config.receive_buffer_bytes)
             self._drain_sock = trsock.dup()  # same kernel receive queue; already non-blocking
             self._drain_sock.setblocking(False)
+            if self.trace is not None:
+                self.trace.attach(self._drain_sock)
 
     def connection_lost(self, exc: Exception | None) -> None:
         if self._drain_sock is not None:
@@ -290,6 +295,9 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
 
     def datagram_received(self, data: bytes, addr: tuple[str | Any, int]) -> None:
         t_rx = self.clock()
+        trace = self.trace
+        if trace is not None:
+            entry, kernel_first = trace.entry(), trace.kernel_stamp()
         self.stats.received += 1
         batch: list[_Valid] = []
         self._take(data, addr, batch)
@@ -297,8 +305,8 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
             self._drain(batch)
         if batch:
             newest = self._choose(batch, t_rx)
-            if newest is not None:
-                self._answer(newest[0], newest[1], t_rx)
+            if newest is not None and self._answer(newest[0], newest[1], t_rx) and trace is not None:
+                trace.record(newest[0].ipoc, kernel_first, trace.kernel_stamp(), entry, len(batch))
 
     # internals -----------------------------------------------------------------------------------
 
@@ -416,7 +424,8 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
                     f"address while the session of {stats.session_sender} runs ({stats.other_sender} so far)"
                 )
 
-    def _answer(self, telegram: RobTelegram, addr: tuple[str, int], t_rx: int) -> None:
+    def _answer(self, telegram: RobTelegram, addr: tuple[str, int], t_rx: int) -> bool:
+        """Build and send the reply; False when the endpoint has closed."""
         stats = self.stats
         try:
             reply = self.handler(telegram)
@@ -432,7 +441,7 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
             )
         transport = self.transport
         if transport is None:
-            return
+            return False
         transport.sendto(datagram, addr)
         t_tx = self.clock()
         stats.answered += 1
@@ -451,6 +460,7 @@ class RsiServerProtocol(asyncio.DatagramProtocol):
                 if cycles > 1:
                     stats.ipoc_skipped += cycles - 1
         self._last_ipoc, self._last_rx_ns = telegram.ipoc, t_rx
+        return True
 
 
 async def start_rsi_server(
@@ -459,10 +469,11 @@ async def start_rsi_server(
     *,
     clock: Clock = time.perf_counter_ns,
     on_new_session: SessionHook | None = None,
+    trace: CycleTrace | None = None,
 ) -> tuple[asyncio.DatagramTransport, RsiServerProtocol]:
     """Bind the UDP endpoint (``bind_port`` 0 picks a free port) and return (transport, protocol)."""
     loop = asyncio.get_running_loop()
-    protocol = RsiServerProtocol(handler, config, clock=clock, on_new_session=on_new_session)
+    protocol = RsiServerProtocol(handler, config, clock=clock, on_new_session=on_new_session, trace=trace)
     transport, _ = await loop.create_datagram_endpoint(
         lambda: protocol, local_addr=(config.bind_host, config.bind_port), family=socket.AF_INET
     )

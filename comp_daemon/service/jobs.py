@@ -46,7 +46,7 @@ from comp_daemon.common.threads import set_numeric_threads
 from comp_daemon.service.config import JobSettings
 from comp_daemon.service.metrics import JOBS_FINISHED
 from comp_daemon.service.orphans import exit_with_parent
-from comp_daemon.service.store import ConflictError, JobRecord, ModelDraft, Store, StoreError
+from comp_daemon.service.store import ConflictError, JobRecord, ModelDraft, Store, StoreError, StoreFullError
 
 __all__ = ["JobCancelled", "JobKind", "JobRunner", "ProgressReporter", "json_safe"]
 
@@ -54,6 +54,7 @@ _log = get_logger("comp_daemon.jobs")
 _CANCEL_SLOTS = 256
 _PROGRESS_MIN_INTERVAL_S = 0.2
 _KILL_RETRY_S = 0.25
+_FULL_RETRY_S = 5.0  # marking a job failed on a full disk: the next try
 
 
 class JobCancelled(Exception):
@@ -458,6 +459,35 @@ class JobRunner:
                 self._store_outcome(job, outcome)
             except ConflictError as exc:  # cancelled or timed out meanwhile
                 _log.info("job result discarded", reason=str(exc))
+            except StoreFullError as exc:
+                self._fail_on_full_disk(job, exc)
+
+    def _fail_on_full_disk(self, job: JobRecord, exc: StoreFullError) -> None:
+        """The job's outcome could not be stored for a full disk: the job fails with that sentence.
+        Should even that small write fail, it is tried again every ``_FULL_RETRY_S`` until it is
+        stored (a job must not stay ``running``); a restart's recovery marks it too."""
+        message = f"the job's result could not be stored: {exc}; run the job again once there is room"
+        try:
+            self.store.fail_job(job.id, message)
+        except ConflictError:
+            return
+        except StoreFullError:
+            _log.error("job could not be marked failed: the disk is full; trying again", kind=job.kind)
+            if self._loop is not None and not self._closing:
+                with contextlib.suppress(RuntimeError):  # the loop has closed
+                    self._loop.call_soon_threadsafe(
+                        self._loop.call_later,
+                        _FULL_RETRY_S,
+                        self._in_thread,
+                        self._fail_on_full_disk,
+                        job,
+                        exc,
+                    )
+            return
+        JOBS_FINISHED.labels(kind=job.kind, state="failed").inc()
+        _log.warning(
+            "job failed: its result could not be stored, the disk is full", kind=job.kind, error=str(exc)
+        )
 
     def _store_outcome(self, job: JobRecord, outcome: tuple[Any, ...]) -> None:
         status = outcome[0]
@@ -466,6 +496,8 @@ class JobRunner:
             kind = self._kinds.get(job.kind)
             try:
                 draft = kind.on_done(job, result) if kind is not None and kind.on_done is not None else None
+            except StoreFullError:
+                raise  # the job fails naming the disk (_complete), not as an internal error
             except Exception:
                 error_id = uuid.uuid4().hex[:12]
                 _log.exception("job result could not be stored", error_id=error_id)

@@ -14,7 +14,9 @@ Requests that need a build meanwhile all wait for the same one.
 running, a stop fault latched, an encoder stale, no grating calibration, no motion port, a
 calibration in progress), a fault of any kind still latched (``state`` is ``fault``: the next
 target clears a freeze fault, an operator clears a stop fault with ``POST /api/loop/reset-fault``),
-and no active model. Ready means no reason.
+no active model, and a store that cannot write ("store not writable: …", from
+:meth:`~comp_daemon.service.store.Store.write_problem`: a full disk, said until a write works
+again). Ready means no reason.
 """
 
 from __future__ import annotations
@@ -49,9 +51,13 @@ class RsiReporter(Protocol):
         ...
 
 
-def readiness_reasons(daemon_reasons: list[str], snapshot: DaemonSnapshot, model_active: bool) -> list[str]:
+def readiness_reasons(
+    daemon_reasons: list[str], snapshot: DaemonSnapshot, model_active: bool, store_problem: str | None = None
+) -> list[str]:
     """Why the service is not ready (empty: ready); see the module docstring."""
     reasons = list(daemon_reasons)
+    if store_problem is not None:
+        reasons.append(store_problem)
     if snapshot.state == "fault" and not any("fault latched" in r for r in reasons):
         reasons.append(
             f"{FAULT_LATCHED} ({snapshot.hold_reason or 'no detail'}); the next target clears it, "
@@ -90,8 +96,8 @@ class StatusBoard:
         generation = self._generation
         snapshot = svc.daemon.snapshot()
         daemon_reasons = list(svc.daemon.readiness_reasons())
-        counts, active, jobs = await svc.run(self._store_part)
-        reasons = readiness_reasons(daemon_reasons, snapshot, active is not None)
+        counts, active, jobs, store_problem = await svc.run(self._store_part)
+        reasons = readiness_reasons(daemon_reasons, snapshot, active is not None, store_problem)
         doc = {
             "version": __version__,
             "robot": svc.robot.name,
@@ -115,15 +121,17 @@ class StatusBoard:
         self.built_at = time.monotonic()
         self._built_generation = generation
 
-    def _store_part(self) -> tuple[dict[str, int], dict[str, Any] | None, dict[str, int]]:
-        """Target counts, the active model (summary) and job counts, in one worker thread."""
+    def _store_part(self) -> tuple[dict[str, int], dict[str, Any] | None, dict[str, int], str | None]:
+        """Target counts, the active model (summary), job counts and whether the store can write, in
+        one worker thread."""
         store = self.svc.store
+        store_problem = store.write_problem()
         counts = store.target_counts()
         active = store.active_model(with_artifact=False)
         running = len(store.list_jobs(state="running", limit=50))
         queued = len(store.list_jobs(state="queued", limit=50))
         model = ModelOut.of(active, summary=True).model_dump() if active is not None else None
-        return counts, model, {"running": running, "queued": queued}
+        return counts, model, {"running": running, "queued": queued}, store_problem
 
     async def current(self) -> dict[str, Any]:
         """The latest snapshot, built here after a store change or if older than four intervals."""

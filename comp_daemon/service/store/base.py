@@ -7,6 +7,7 @@ The tables' operations are in the modules beside this one, each a subclass of :c
 from __future__ import annotations
 
 import errno
+import math
 import os
 import sqlite3
 import threading
@@ -71,6 +72,12 @@ def free_bytes(path: Path) -> int | None:
     return int(st.f_bavail * st.f_frsize)
 
 
+#: less free space than this on the store's disk and the store says it cannot write (write_problem)
+MIN_FREE_BYTES = 1 << 20
+#: the trial write of write_problem: its size, and how often at most it runs
+PROBE_BYTES = 64 * 1024
+PROBE_INTERVAL_S = 1.0
+
 #: SQLite's primary result codes that mean "the file could not be written": full, or an I/O error
 #: (SQLite reports some ENOSPC failures, e.g. growing the -shm file, as I/O errors)
 _SQLITE_FULL = 13
@@ -128,6 +135,8 @@ class StoreBase:
         self.path = Path(path)
         self._clock = clock
         self._lock = threading.RLock()
+        self._full: StoreFullError | None = None  # the last write failed for space, none since worked
+        self._probed_at = -math.inf  # monotonic s of the last trial write (write_problem)
         self._listeners: list[EventListener] = []
         self._pending: list[EventRecord] = []
         try:
@@ -220,10 +229,60 @@ class StoreBase:
                 full = disk_full_error(exc, self.path)
                 if full is None:
                     raise
+                self._full = full
                 raise full from exc
+            except StoreFullError as exc:
+                self._full = exc
+                raise
             events, self._pending = self._pending, []
             listeners = list(self._listeners)
         self._notify(listeners, events)
+
+    def write_problem(self) -> str | None:
+        """Why the store cannot write now, in one sentence starting "store not writable"; None if it can.
+
+        Not writable: less than :data:`MIN_FREE_BYTES` free on the store's disk, or a write failed
+        for a full disk and no trial write has worked since. A trial write (a :data:`PROBE_BYTES`
+        row inserted and rolled back: the pages it needs are allocated, nothing is kept) runs at most
+        every :data:`PROBE_INTERVAL_S` while so, so the store says it can write again within that
+        time once room was made. A small write that still fits (a job marked failed) does not count:
+        the next data set or model may not.
+        """
+        free = free_bytes(self.path)
+        if free is not None and free < MIN_FREE_BYTES and str(self.path) != ":memory:":
+            return (
+                f"store not writable: only {free} bytes free on the disk of {self.path}; "
+                "free space on that disk"
+            )
+        with self._lock:
+            full = self._full
+            if full is None:
+                return None
+            now = time.monotonic()
+            if now - self._probed_at >= PROBE_INTERVAL_S:
+                self._probed_at = now
+                full = self._trial_write()
+                self._full = full
+        return None if full is None else f"store not writable: {full}"
+
+    def _trial_write(self) -> StoreFullError | None:
+        """Insert a :data:`PROBE_BYTES` event and roll it back; the full-disk error it met, if any."""
+        conn = self._conn
+        try:
+            conn.execute("BEGIN IMMEDIATE")
+            try:
+                conn.execute(
+                    "INSERT INTO events (time, kind, message) VALUES (?, 'store.probe', ?)",
+                    (self._clock(), "x" * PROBE_BYTES),
+                )
+            finally:
+                self._rollback()
+        except (OSError, sqlite3.Error) as exc:
+            full = disk_full_error(exc, self.path)
+            if full is None:
+                raise
+            return full
+        return None
 
     def _rollback(self) -> None:
         if not self._conn.in_transaction:
