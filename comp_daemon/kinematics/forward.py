@@ -61,13 +61,15 @@ def chain(params: KinematicParams, q_rad: NDArray[np.float64]) -> Chain:
     c, s = np.cos(theta), np.sin(theta)
     ca, sa = np.cos(params.alpha_rad), np.sin(params.alpha_rad)
     cb, sb = np.cos(params.beta_rad), np.sin(params.beta_rad)
-    # every frame's axes and origin as rows of n values: axes[f, k, j] is component j of axis k
-    # (x, y, z) of frame f over the poses, so that each step works on whole rows
-    axes = np.empty((7, 3, 3, n))
-    origin = np.empty((7, 3, n))
+    # every frame as rows of n values, (7, 4, 4, n): each step of the chain works on whole rows;
+    # axes[f, k, j] is component j of axis k (x, y, z) of frame f, origin[f, j] that of its origin
+    stacked = np.empty((7, 4, 4, n))
+    stacked[:, 3, :3] = 0.0
+    stacked[:, 3, 3] = 1.0
+    axes = stacked[:, :3, :3].transpose(0, 2, 1, 3)
+    origin = stacked[:, :3, 3]
     base = np.asarray(params.world_T_base, dtype=float)
-    axes[0] = base[:3, :3].T[:, :, None]
-    origin[0] = base[:3, 3, None]
+    stacked[0] = base[:, :, None]
     x_prime = np.empty((6, 3, n))
     y_beta = np.empty((6, 3, n))
     turned = np.empty((3, 3, n))  # the previous frame's axes turned by Rz(theta): x', y', z
@@ -91,17 +93,16 @@ def chain(params: KinematicParams, q_rad: NDArray[np.float64]) -> Chain:
         y_beta[i] = ca[i] * yp + sa[i] * z_axis
         # the new axes: column k of (turned axes) · M, i.e. Σ_j M[j, k] · turned axis j (element by
         # element, no BLAS: a pose's frames do not depend on the other poses of the batch)
-        axes[i + 1] = np.sum(m.T[:, :, None, None] * turned, axis=1)
+        for k in range(3):
+            new_axis = np.multiply(turned[0], m[0, k], out=axes[i + 1, k])
+            if m[1, k] != 0.0:
+                new_axis += turned[1] * m[1, k]
+            new_axis += turned[2] * m[2, k]
         origin[i + 1] = origin[i] + params.a_mm[i] * xp + params.d_mm[i] * z_axis
-    frames = np.empty((n, 7, 4, 4))
-    frames[:, :, :3, :3] = axes.transpose(3, 0, 2, 1)
-    frames[:, :, :3, 3] = origin.transpose(2, 0, 1)
-    frames[:, :, 3, :3] = 0.0
-    frames[:, :, 3, 3] = 1.0
     tool = np.asarray(params.tool_xyz_mm, dtype=float)
     tcp = (origin[6] + np.sum(tool[:, None, None] * axes[6], axis=0)).T
     return Chain(
-        world_T_frame=frames,
+        world_T_frame=stacked.transpose(3, 0, 1, 2),  # a view, pose first
         x_prime=x_prime.transpose(2, 0, 1),
         y_beta=y_beta.transpose(2, 0, 1),
         tcp_mm=np.ascontiguousarray(tcp),
