@@ -53,6 +53,27 @@ class Chain:
     tcp_mm: NDArray[np.float64]  # (n, 3)
 
 
+def _combine(out: NDArray[np.float64], terms: tuple[tuple[float, NDArray[np.float64]], ...]) -> None:
+    """``out`` = Σ coefficient · row over ``terms``, in their order, without the terms whose
+    coefficient is 0 and without multiplying by 1 (the same values, fewer passes over the rows)."""
+    first = True
+    for coef, row in terms:
+        if coef == 0.0:
+            continue
+        if first:
+            if coef == 1.0:
+                out[...] = row
+            else:
+                np.multiply(row, coef, out=out)
+            first = False
+        elif coef == 1.0:
+            out += row
+        else:
+            out += row * coef
+    if first:
+        out[...] = 0.0
+
+
 def chain(params: KinematicParams, q_rad: NDArray[np.float64]) -> Chain:
     """Forward kinematics of n poses with every intermediate frame kept (for Jacobians)."""
     q = _as_batch(q_rad)
@@ -72,33 +93,23 @@ def chain(params: KinematicParams, q_rad: NDArray[np.float64]) -> Chain:
     stacked[0] = base[:, :, None]
     x_prime = np.empty((6, 3, n))
     y_beta = np.empty((6, 3, n))
-    turned = np.empty((3, 3, n))  # the previous frame's axes turned by Rz(theta): x', y', z
+    y_turned = np.empty((3, n))
     for i in range(6):
         # link i: rotation Rz(theta) M with M = Rx(alpha) Ry(beta), translation Rz(theta)·(a, 0, d);
         # the axes of Rz(theta) in the previous frame are x' = x c + y s, y' = −x s + y c, z
-        m = np.array(
-            [
-                [cb[i], 0.0, sb[i]],
-                [sa[i] * sb[i], ca[i], -sa[i] * cb[i]],
-                [-ca[i] * sb[i], sa[i], ca[i] * cb[i]],
-            ]
-        )
         x_axis, y_axis, z_axis = axes[i]
-        xp = np.multiply(x_axis, c[i], out=turned[0])
+        xp = np.multiply(x_axis, c[i], out=x_prime[i])
         xp += y_axis * s[i]
-        yp = np.multiply(y_axis, c[i], out=turned[1])
+        yp = np.multiply(y_axis, c[i], out=y_turned)
         yp -= x_axis * s[i]
-        turned[2] = z_axis
-        x_prime[i] = xp
-        y_beta[i] = ca[i] * yp + sa[i] * z_axis
-        # the new axes: column k of (turned axes) · M, i.e. Σ_j M[j, k] · turned axis j (element by
-        # element, no BLAS: a pose's frames do not depend on the other poses of the batch)
-        for k in range(3):
-            new_axis = np.multiply(turned[0], m[0, k], out=axes[i + 1, k])
-            if m[1, k] != 0.0:
-                new_axis += turned[1] * m[1, k]
-            new_axis += turned[2] * m[2, k]
-        origin[i + 1] = origin[i] + params.a_mm[i] * xp + params.d_mm[i] * z_axis
+        # the new axes: column k of (x', y', z) · M, element by element (no BLAS: a pose's frames do
+        # not depend on the other poses of the batch); M's middle column is (0, cos α, sin α), the
+        # axis beta turns about
+        _combine(axes[i + 1, 0], ((cb[i], xp), (sa[i] * sb[i], yp), (-ca[i] * sb[i], z_axis)))
+        _combine(y_beta[i], ((ca[i], yp), (sa[i], z_axis)))
+        axes[i + 1, 1] = y_beta[i]
+        _combine(axes[i + 1, 2], ((sb[i], xp), (-sa[i] * cb[i], yp), (ca[i] * cb[i], z_axis)))
+        _combine(origin[i + 1], ((1.0, origin[i]), (params.a_mm[i], xp), (params.d_mm[i], z_axis)))
     tool = np.asarray(params.tool_xyz_mm, dtype=float)
     tcp = (origin[6] + np.sum(tool[:, None, None] * axes[6], axis=0)).T
     return Chain(
