@@ -32,8 +32,9 @@ import numpy as np
 from benchmarks.machine import machine_line
 from comp_daemon.data.dataset import Dataset, read_dataset
 from comp_daemon.models.evaluation import error_statistics
-from comp_daemon.models.fitting import FitOptions, FitRows, directions_of, infer_fit_directions
+from comp_daemon.models.fitting import FitOptions
 from comp_daemon.models.registry import ALL_MODELS, fit_spec, parse_model_name, uses_directions
+from comp_daemon.preparation.campaign import PreparedCampaign, PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription, load_robot
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -69,33 +70,30 @@ def campaign(name: str, workdir: Path) -> tuple[Path, str]:
     return path, robot
 
 
-def prepared(path: Path, robot: RobotDescription) -> tuple[Dataset, Any, Any, Any]:
-    """The data set as ``evaluate`` prepares it: directions inferred when missing, the split."""
+def prepared(path: Path, robot: RobotDescription) -> PreparedCampaign:
+    """The campaign as ``evaluate --models all`` prepares it: directions inferred when missing, the
+    split, the frame."""
     ds = read_dataset(path, limits_deg=robot.axis_limits_deg, min_rows=0, kind="measurement")
-    unknown = None
-    if ds.dir is None:
-        ds, unknown, _ = infer_fit_directions(ds)
-    split = ds.split_or_draw()
-    return ds, unknown, split.fit_rows, split.check_rows
+    return prepare_campaign(ds, robot, PrepareOptions(need_directions=True))
 
 
-def bench_model(
-    token: str, robot: RobotDescription, ds: Dataset, unknown: Any, fit_rows: Any, check: Any, profile: int
-) -> dict[str, Any]:
+def bench_model(token: str, robot: RobotDescription, camp: PreparedCampaign, profile: int) -> dict[str, Any]:
     spec = parse_model_name(token)
+    ds: Dataset = camp.dataset
     if uses_directions(spec) and ds.dir is None:
         return {"model": token, "skipped": "no directions"}
-    train = FitRows.of(ds, fit_rows, unknown)
+    check = camp.check_rows
+    train = camp.rows(camp.fit_rows)
     prof = cProfile.Profile(time.process_time) if profile else None  # CPU time: less disturbed by load
     c0, t0 = time.process_time(), time.perf_counter()
     if prof is not None:
         prof.enable()
-    fitted = fit_spec(spec, robot, train, FitOptions())
+    fitted = fit_spec(spec, robot, train, FitOptions(frame=camp.frame))
     if prof is not None:
         prof.disable()
     cpu, wall = time.process_time() - c0, time.perf_counter() - t0
     assert ds.a_deg is not None and ds.xyz_mm is not None
-    dir_check = None if ds.dir is None else directions_of(ds, check, unknown)
+    dir_check = camp.dir_of(check)
     temp = None if ds.temp_c is None else ds.temp_c[check]
     pred = fitted.model.predict_tcp_mm(ds.a_deg[check], dir_check, ds.payload_kg[check], temp)
     stats = error_statistics(ds.xyz_mm[check], pred)
@@ -128,14 +126,15 @@ def main() -> None:
     opts = ap.parse_args()
     path, robot_name = campaign(opts.campaign, opts.workdir)
     robot = load_robot(robot_name)
-    ds, unknown, fit_rows, check = prepared(path, robot)
+    camp = prepared(path, robot)
+    ds, fit_rows, check = camp.dataset, camp.fit_rows, camp.check_rows
     models = list(ALL_MODELS) if opts.models == "all" else [m.strip() for m in opts.models.split(",")]
     print(machine_line())
     print(f"{opts.campaign}: {len(ds)} rows ({len(fit_rows)} fit, {len(check)} check)")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     results = []
     for token in models:
-        r = bench_model(token, robot, ds, unknown, fit_rows, check, opts.profile)
+        r = bench_model(token, robot, camp, opts.profile)
         results.append(r)
         if "skipped" in r:
             print(f"{token:<36s} skipped: {r['skipped']}")

@@ -44,3 +44,14 @@ async def job_done(client: httpx.AsyncClient, job_id: int, limit_s: float = 90.0
             return dict(job)
         await asyncio.sleep(0.1)
     raise AssertionError(f"job {job_id} did not finish")
+
+
+async def upload_dataset(client: httpx.AsyncClient, csv_text: str, name: str) -> int:
+    """Store a data set as an engineer; its id."""
+    up = await client.post(
+        f"/api/datasets?name={name}",
+        content=csv_text,
+        headers={**auth("engineer"), "Content-Type": "text/csv"},
+    )
+    assert up.status_code == 201, up.text
+    return int(up.json()["id"])

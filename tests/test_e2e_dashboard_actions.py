@@ -463,3 +463,28 @@ async def test_an_ended_job_says_so_and_ladder_steps_are_named_with_their_joints
         assert page.errors == []
     finally:
         await page.close()
+
+
+RUNNING_FIT = {
+    **JOB, "id": 2, "kind": "fit", "state": "running", "progress": 0.05, "params": {"model": "chebyshev:cv"},
+    "message": "fitting chebyshev:cv (order by cross-validation): cross-validation fits 12 of 50, 38 to go",
+}  # fmt: skip
+
+
+async def test_a_running_fit_says_which_model_and_how_many_steps_remain(cell: Cell) -> None:
+    """A fit job making its cross-validation fits: the note names the model and the step, the line
+    under the bar how many are done and remain; an ended job has no such line."""
+    from playwright.async_api import expect
+
+    page = await cell.page("viewer", {"/api/jobs?limit=15": [RUNNING_FIT, JOB]})
+    try:
+        rows = page.locator("#jobs tbody tr")
+        await expect(rows).to_have_count(2, timeout=10_000)
+        await expect(rows.nth(0).locator("td.reason")).to_have_text(
+            "fitting chebyshev:cv (order by cross-validation) — cross-validation fits"
+        )
+        await expect(rows.nth(0).get_by_test_id("job-step")).to_have_text("12/50, 38 to go")
+        await expect(rows.nth(1).get_by_test_id("job-step")).to_have_count(0)
+        assert page.errors == []
+    finally:
+        await page.close()

@@ -1,8 +1,9 @@
 """The fits' shortcuts change nothing a user sees: on several small campaigns every model keeps and
 drops the same parts, with the same held-out gains, and predicts the check rows to 1e-6 mm, with the
 shortcuts (``fitting.FOLD_SHORTCUTS``, the identifiability analysis's Gram–Schmidt on a preallocated
-basis) and without them (every cross-validation fold a full fit, the basis grown column by column as
-before)."""
+basis, the base calibration shared by the kinds built on it) and without them (every
+cross-validation fold a full fit, the basis grown column by column as before, every kind
+calibrating its own base)."""
 
 from __future__ import annotations
 
@@ -26,8 +27,9 @@ CAMPAIGNS = {  # name: (scenario, robot, poses, extra sample options)
     "kr210-cell": ("kr210-cell", "kr210", 120, []),
     "kr210-backlash": ("kr210-backlash", "kr210", 100, []),
 }
-MODELS = (  # those whose fits select their parts out of fold (kriging-backlash: the same selection)
+MODELS = (  # those whose fits select their parts out of fold; a kriging kind after its base's kind
     "kinematic+ratio+backlash+compliance",
+    "kriging-backlash+compliance",
     "compliance",
 )
 
@@ -42,6 +44,13 @@ def campaigns(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
         assert main([*argv, *extra]) == 0
         out[name] = path
     return out
+
+
+def _reference(m: pytest.MonkeyPatch) -> None:
+    """Every shortcut off: full folds, no shared base calibration."""
+    m.setattr(fitting, "FOLD_SHORTCUTS", False)
+    m.setattr(fitting, "BASE_FITS_KEPT", 0)
+    fitting.forget_base_fits()
 
 
 def _fit_and_check(path: Path, robot_name: str, model: str) -> dict[str, Any]:
@@ -103,7 +112,7 @@ def test_shortcuts_keep_the_selection_and_the_check_errors(
     for model in MODELS:
         fast = _fit_and_check(campaigns[campaign], robot, model)
         with monkeypatch.context() as m:
-            m.setattr(fitting, "FOLD_SHORTCUTS", False)
+            _reference(m)
             ref = _fit_and_check(campaigns[campaign], robot, model)
         sel_fast, sel_ref = fast["info"].get("selection"), ref["info"].get("selection")
         where = f"{campaign}, {model}"
@@ -118,3 +127,34 @@ def test_shortcuts_keep_the_selection_and_the_check_errors(
                 assert a["rms_without_mm"] == pytest.approx(b["rms_without_mm"], abs=1e-6), where
         assert abs(fast["check_rms"] - ref["check_rms"]) < 1e-6, where
         assert np.max(np.abs(fast["pred"] - ref["pred"])) < 1e-6, where
+
+
+@pytest.mark.slow
+def test_a_kriging_kind_takes_its_base_calibration_from_the_kinematic_kind(
+    campaigns: dict[str, Path], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """``evaluate --models all`` fits ``kinematic+ratio+backlash`` and then ``kriging-backlash`` on
+    the same rows: the second calibrates nothing, and is what it is when it calibrates its own base."""
+    path, robot = campaigns["kr210-backlash"], CAMPAIGNS["kr210-backlash"][1]
+    fitting.forget_base_fits()
+    _fit_and_check(path, robot, "kinematic+ratio+backlash")
+    calls: list[int] = []
+    real = fitting.calibrate_kinematic
+
+    def counted(*args: Any, **kwargs: Any) -> Any:
+        calls.append(1)
+        return real(*args, **kwargs)
+
+    with monkeypatch.context() as m:
+        m.setattr(fitting, "calibrate_kinematic", counted)
+        shared = _fit_and_check(path, robot, "kriging-backlash")
+    assert calls == []
+    with monkeypatch.context() as m:
+        _reference(m)
+        own = _fit_and_check(path, robot, "kriging-backlash")
+    assert shared["info"]["selection"] == own["info"]["selection"]
+    assert shared["info"]["base"]["identified"] == own["info"]["base"]["identified"]
+    np.testing.assert_array_equal(shared["pred"], own["pred"])
+    # the kinds get copies: what one does to its model does not reach the other's
+    again = _fit_and_check(path, robot, "kinematic+ratio+backlash")
+    assert again["info"] == _fit_and_check(path, robot, "kinematic+ratio+backlash")["info"]

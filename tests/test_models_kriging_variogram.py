@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 import pytest
@@ -147,3 +148,59 @@ def test_range_derivative_of_the_correlation_is_exact(kind: str) -> None:
     rho = _correlation(kind, h, a)
     numeric = (_correlation(kind, h, a + eps) - _correlation(kind, h, a - eps)) / (2 * eps)
     np.testing.assert_allclose(_correlation_da(kind, h, a, rho), numeric, atol=1e-8)
+
+
+def test_the_variogram_solver_is_scipys_trust_region_reflective_method(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Every fit of :func:`fit_variogram` solves its bounded problem with ``bounded_lsq.trf_fit``;
+    SciPy's ``least_squares(method="trf", x_scale="jac")`` finds the same point and cost on each,
+    on fields with and without structure, both weightings, with and without a nugget, and the
+    starts that end on a bound (the reflective steps) among them."""
+    from scipy.optimize import least_squares
+
+    from comp_daemon.models import variogram
+    from comp_daemon.models.bounded_lsq import trf_fit
+
+    seen = {"calls": 0, "on_bound": 0}
+
+    def compared(fun: Any, jac: Any, x0: Any, lb: Any, ub: Any) -> tuple[np.ndarray, float]:
+        x, cost = trf_fit(fun, jac, x0, lb, ub)
+        ref = least_squares(fun, x0, jac=jac, bounds=(lb, ub), method="trf", x_scale="jac")
+        np.testing.assert_allclose(x, ref.x, rtol=1e-12, atol=0.0)
+        assert cost == pytest.approx(float(ref.cost), rel=1e-12, abs=1e-300)
+        seen["calls"] += 1
+        near = np.minimum(x - lb, ub - x) <= 1e-6 * (ub - lb)
+        seen["on_bound"] += int(np.any(near))
+        return x, cost
+
+    monkeypatch.setattr(variogram, "trf_fit", compared)
+    rng = np.random.default_rng(11)
+    for trial in range(12):
+        x = rng.uniform(0.0, 100.0, (60, 3))
+        smooth = np.sin(x[:, :1] / rng.uniform(5.0, 40.0)) + np.cos(x[:, 1:2] / rng.uniform(5.0, 40.0))
+        z = smooth * (trial % 3) + rng.normal(0.0, 0.3, (60, 1))
+        emp = empirical_semivariogram(x, z, n_bins=int(rng.integers(5, 14)))
+        fit_variogram(emp, kind="auto", nugget=trial % 4 != 3, weighting="cressie" if trial % 2 else "npairs")
+    assert seen["calls"] == 12 * 3 * 4  # three kinds, four starting ranges each
+    assert seen["on_bound"] > 0
+
+
+def test_the_bounded_solver_refuses_what_it_cannot_solve() -> None:
+    from comp_daemon.models.bounded_lsq import trf_fit
+
+    def fun(p: np.ndarray) -> np.ndarray:
+        return np.array([p[0] - 1.0, p[1] + 2.0, p[0] * p[1]])
+
+    def jac(p: np.ndarray) -> np.ndarray:
+        return np.array([[1.0, 0.0], [0.0, 1.0], [p[1], p[0]]])
+
+    lo, hi = np.array([0.0, -1.0]), np.array([2.0, 1.0])
+    with pytest.raises(ValueError, match="finite bounds"):
+        trf_fit(fun, jac, np.zeros(2), np.array([0.0, -np.inf]), hi)
+    with pytest.raises(ValueError, match="outside of the bounds"):
+        trf_fit(fun, jac, np.array([3.0, 0.0]), lo, hi)
+    with pytest.raises(ValueError, match="lower bound must be below"):
+        trf_fit(fun, jac, np.zeros(2), hi, lo)
+    x, _ = trf_fit(fun, jac, np.array([0.5, 0.5]), lo, hi)
+    assert x[1] == pytest.approx(-1.0, abs=1e-6)  # on its bound

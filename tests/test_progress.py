@@ -121,3 +121,12 @@ def test_evaluate_says_which_model_is_fitted_and_how_many_remain(campaign: Path,
 def test_evaluate_jobs_refuses_what_is_not_a_count() -> None:
     code, _, err = _run(["evaluate", "x.csv", "--robot", "kr210", "--jobs", "two"], terminal=False)
     assert code == 2 and "--jobs" in err and "number of processes" in err
+
+
+def test_the_terminal_follows_the_steps_of_a_fit(campaign: Path) -> None:
+    """A fit that selects by cross-validation shows its fits as they are made, after what it fits."""
+    argv = ["evaluate", str(campaign), "--robot", "kr210", "--models", "chebyshev:cv"]
+    code, _, err = _run(argv, terminal=True)
+    assert code == 0, err
+    assert "fitting chebyshev:cv on 60 rows (1 of 1, 0 after it): cross-validation fits" in err
+    assert " of 50" in err  # five orders, two thresholds, five folds

@@ -53,44 +53,71 @@ class Chain:
     tcp_mm: NDArray[np.float64]  # (n, 3)
 
 
+def _combine(out: NDArray[np.float64], terms: tuple[tuple[float, NDArray[np.float64]], ...]) -> None:
+    """``out`` = Σ coefficient · row over ``terms``, in their order, without the terms whose
+    coefficient is 0 and without multiplying by 1 (the same values, fewer passes over the rows)."""
+    first = True
+    for coef, row in terms:
+        if coef == 0.0:
+            continue
+        if first:
+            if coef == 1.0:
+                out[...] = row
+            else:
+                np.multiply(row, coef, out=out)
+            first = False
+        elif coef == 1.0:
+            out += row
+        else:
+            out += row * coef
+    if first:
+        out[...] = 0.0
+
+
 def chain(params: KinematicParams, q_rad: NDArray[np.float64]) -> Chain:
     """Forward kinematics of n poses with every intermediate frame kept (for Jacobians)."""
     q = _as_batch(q_rad)
     n = q.shape[0]
-    theta = q + params.theta_offset_rad
+    theta = (q + params.theta_offset_rad).T  # (6, n)
     c, s = np.cos(theta), np.sin(theta)
-    frames = np.empty((n, 7, 4, 4))
-    frames[:, 0] = params.world_T_base
-    x_prime = np.empty((n, 6, 3))
-    y_beta = np.empty((n, 6, 3))
     ca, sa = np.cos(params.alpha_rad), np.sin(params.alpha_rad)
     cb, sb = np.cos(params.beta_rad), np.sin(params.beta_rad)
+    # every frame as rows of n values, (7, 4, 4, n): each step of the chain works on whole rows;
+    # axes[f, k, j] is component j of axis k (x, y, z) of frame f, origin[f, j] that of its origin
+    stacked = np.empty((7, 4, 4, n))
+    stacked[:, 3, :3] = 0.0
+    stacked[:, 3, 3] = 1.0
+    axes = stacked[:, :3, :3].transpose(0, 2, 1, 3)
+    origin = stacked[:, :3, 3]
+    base = np.asarray(params.world_T_base, dtype=float)
+    stacked[0] = base[:, :, None]
+    x_prime = np.empty((6, 3, n))
+    y_beta = np.empty((6, 3, n))
+    y_turned = np.empty((3, n))
     for i in range(6):
-        # M = Rx(alpha) Ry(beta); link rotation Rz(theta) M, translation Rz(theta)·(a, 0, d)
-        m = np.array(
-            [
-                [cb[i], 0.0, sb[i]],
-                [sa[i] * sb[i], ca[i], -sa[i] * cb[i]],
-                [-ca[i] * sb[i], sa[i], ca[i] * cb[i]],
-            ]
-        )
-        link = np.zeros((n, 4, 4))
-        ci, si = c[:, i, None], s[:, i, None]
-        link[:, 0, :3] = ci * m[0] - si * m[1]
-        link[:, 1, :3] = si * m[0] + ci * m[1]
-        link[:, 2, :3] = m[2]
-        link[:, 0, 3] = params.a_mm[i] * c[:, i]
-        link[:, 1, 3] = params.a_mm[i] * s[:, i]
-        link[:, 2, 3] = params.d_mm[i]
-        link[:, 3, 3] = 1.0
-        prev_r = frames[:, i, :3, :3]
-        x_prime[:, i] = prev_r[:, :, 0] * c[:, i, None] + prev_r[:, :, 1] * s[:, i, None]
-        y_rot = -prev_r[:, :, 0] * s[:, i, None] + prev_r[:, :, 1] * c[:, i, None]
-        y_beta[:, i] = ca[i] * y_rot + sa[i] * prev_r[:, :, 2]
-        frames[:, i + 1] = frames[:, i] @ link
-    flange = frames[:, 6]
-    tcp = flange[:, :3, :3] @ params.tool_xyz_mm + flange[:, :3, 3]
-    return Chain(world_T_frame=frames, x_prime=x_prime, y_beta=y_beta, tcp_mm=tcp)
+        # link i: rotation Rz(theta) M with M = Rx(alpha) Ry(beta), translation Rz(theta)·(a, 0, d);
+        # the axes of Rz(theta) in the previous frame are x' = x c + y s, y' = −x s + y c, z
+        x_axis, y_axis, z_axis = axes[i]
+        xp = np.multiply(x_axis, c[i], out=x_prime[i])
+        xp += y_axis * s[i]
+        yp = np.multiply(y_axis, c[i], out=y_turned)
+        yp -= x_axis * s[i]
+        # the new axes: column k of (x', y', z) · M, element by element (no BLAS: a pose's frames do
+        # not depend on the other poses of the batch); M's middle column is (0, cos α, sin α), the
+        # axis beta turns about
+        _combine(axes[i + 1, 0], ((cb[i], xp), (sa[i] * sb[i], yp), (-ca[i] * sb[i], z_axis)))
+        _combine(y_beta[i], ((ca[i], yp), (sa[i], z_axis)))
+        axes[i + 1, 1] = y_beta[i]
+        _combine(axes[i + 1, 2], ((sb[i], xp), (-sa[i] * cb[i], yp), (ca[i] * cb[i], z_axis)))
+        _combine(origin[i + 1], ((1.0, origin[i]), (params.a_mm[i], xp), (params.d_mm[i], z_axis)))
+    tool = np.asarray(params.tool_xyz_mm, dtype=float)
+    tcp = (origin[6] + np.sum(tool[:, None, None] * axes[6], axis=0)).T
+    return Chain(
+        world_T_frame=stacked.transpose(3, 0, 1, 2),  # a view, pose first
+        x_prime=x_prime.transpose(2, 0, 1),
+        y_beta=y_beta.transpose(2, 0, 1),
+        tcp_mm=np.ascontiguousarray(tcp),
+    )
 
 
 def flange_pose(params: KinematicParams, q_rad: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -168,30 +195,22 @@ def gravity_torques_nm(
     """
     ch = ch if ch is not None else chain(params, q_rad)
     n = ch.tcp_mm.shape[0]
-    # positions in the robot base frame, so that "down" is −z of frame 0 even in a tracker frame
-    world_T_base = ch.world_T_frame[:, 0]
-    if n and np.array_equal(world_T_base, np.broadcast_to(world_T_base[0], world_T_base.shape)):
-        base_T_world = np.linalg.inv(world_T_base[0])  # one base frame for every pose: invert it once
-        frames = base_T_world @ ch.world_T_frame  # (n, 7, 4, 4)
-        tcp = ch.tcp_mm @ base_T_world[:3, :3].T + base_T_world[:3, 3]
-    else:
-        each = np.linalg.inv(world_T_base)
-        frames = each[:, None] @ ch.world_T_frame
-        tcp = np.einsum("nij,nj->ni", each[:, :3, :3], ch.tcp_mm) + each[:, :3, 3]
-    com = frames[:, 1:, :3, :3] @ link_com_mm[None, :, :, None]
-    com = com[..., 0] + frames[:, 1:, :3, 3]  # (n, 6, 3) mm
+    frames = ch.world_T_frame
+    # the centres of mass in the world frame, mm: R_i · com_i + o_i
+    rot = frames[:, 1:, :3, :3]
+    com = np.asarray(link_com_mm, dtype=float)
+    points = frames[:, 1:, :3, 3] + rot[..., 0] * com[:, 0, None] + rot[..., 1] * com[:, 1, None]
+    points += rot[..., 2] * com[:, 2, None]
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (n,))
     masses = np.concatenate([np.broadcast_to(link_mass_kg, (n, 6)), payload[:, None]], axis=1)
-    points_m = np.concatenate([com, tcp[:, None, :]], axis=1) / 1000.0  # (n, 7, 3)
-    # gravity (0, 0, f_b) on body b; about joint j (axis z_j through o_j) the bodies beyond it
-    # (b ≥ j) give z_j · Σ (p_b − o_j) × (0, 0, f_b) = z_jx·Σ f_b (p_by − o_jy) − z_jy·Σ f_b (p_bx − o_jx):
-    # sums over b ≥ j, i.e. suffix sums of f_b and f_b·p_b
+    points_m = np.concatenate([points, ch.tcp_mm[:, None, :]], axis=1) / 1000.0  # (n, 7, 3)
+    # gravity f_b·u on body b, u the base frame's z axis (in the world frame: the measurement may
+    # be in a tracker's frame); about joint j (axis z_j through o_j) the bodies beyond it (b ≥ j)
+    # give z_j · Σ (p_b − o_j) × f_b u = z_j · ((Σ f_b p_b) − o_j Σ f_b) × u: suffix sums
     f = -GRAVITY_MPS2 * masses  # (n, 7) N
     f_sum = np.cumsum(f[:, ::-1], axis=1)[:, ::-1][:, :6]
-    fp_sum = np.cumsum((f[:, :, None] * points_m[:, :, :2])[:, ::-1], axis=1)[:, ::-1][:, :6]
-    z = frames[:, :6, :3, 2]
-    o_m = frames[:, :6, :3, 3] / 1000.0
-    moment_x = fp_sum[..., 1] - o_m[..., 1] * f_sum
-    moment_y = fp_sum[..., 0] - o_m[..., 0] * f_sum
-    tau: NDArray[np.float64] = z[..., 0] * moment_x - z[..., 1] * moment_y
+    fp_sum = np.cumsum((f[:, :, None] * points_m)[:, ::-1], axis=1)[:, ::-1][:, :6]
+    lever = fp_sum - frames[:, :6, :3, 3] / 1000.0 * f_sum[:, :, None]  # (n, 6, 3)
+    up = frames[:, 0, :3, 2][:, None, :]  # (n, 1, 3)
+    tau: NDArray[np.float64] = np.sum(frames[:, :6, :3, 2] * np.cross(lever, up), axis=2)
     return tau

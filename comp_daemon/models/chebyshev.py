@@ -52,6 +52,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
+from comp_daemon.models import steps
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
 from comp_daemon.models.lm import LMResult, improved_lm
@@ -522,6 +523,7 @@ def select_order(
     chosen_frame = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     fold_of = np.random.default_rng(seed).permutation(n) % folds
     table: list[tuple[float, ...]] = []
+    done, total = 0, len(orders) * len(rtols) * folds
     for m in orders:
         row = []
         for tol in rtols:
@@ -540,6 +542,8 @@ def select_order(
                 )
                 err = fit.model.predict_tcp_mm(a[test]) - p_meas[test]
                 sq += float(np.sum(err**2))
+                done += 1
+                steps.report("cross-validation fits", done, total)
             row.append(float(np.sqrt(sq / n)))
         table.append(tuple(row))
     scores = np.array(table)

@@ -42,10 +42,21 @@ offset with the rest and fit all targets' positions (6-DOF with three or more ta
 :mod:`comp_daemon.models.kinematic`); the model predicts, and every kind is judged on, the TCP (the
 first target, ``x, y, z``). The other kinds (``nominal``, ``chebyshev``, ``compliance``, ``poe``)
 and the kriging layer itself fit the TCP alone; the further targets are ignored there.
+
+One calibration for several kinds. A kinematic kind and the kriging kinds built on it select and
+calibrate the same base (``kinematic+ratio+backlash+compliance`` and ``kriging-backlash+compliance``,
+``kinematic`` and ``kriging``): the last :data:`BASE_FITS_KEPT` base fits are kept, keyed by the
+content of the robot description, the rows, the effects and the options, and a kind that asks for
+one already made gets a copy of it (``evaluate --models all`` calibrates each base once). The copy
+is the same fit to the last bit; :func:`forget_base_fits` empties the store.
 """
 
 from __future__ import annotations
 
+import copy
+import hashlib
+import threading
+from collections import OrderedDict
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Literal
@@ -85,6 +96,7 @@ __all__ = [
     "fit_kriging_backlash_kind",
     "fit_kriging_kind",
     "fit_nominal_kind",
+    "forget_base_fits",
     "identified_info",
     "lm_info",
     "report_info",
@@ -97,6 +109,7 @@ SELECTION_MAX_ROWS = 2000  # effects are selected on at most this many fit rows,
 #: report's rank checks): the same kept parts and held-out errors, at less cost; False runs every fold
 #: as a full fit (the reference the tests compare with)
 FOLD_SHORTCUTS = True
+BASE_FITS_KEPT = 4  # base calibrations kept for the kinds that share them (module docstring)
 FrameChoice = Literal["auto", "base", "tracker"]
 #: identified parameters that are not the robot's: further targets, stations' frames, the probe's mount
 NOT_THE_ROBOT = ("target", "station_", "probe_")
@@ -477,13 +490,76 @@ def select_effects(
         return tuple(effects), Selection(tuple(effects), (), (), note)
 
 
+_BaseFit = tuple[tuple[str, ...], Selection, KinematicFit]
+_base_fits: OrderedDict[str, _BaseFit] = OrderedDict()
+_base_fits_lock = threading.Lock()
+
+
+def forget_base_fits() -> None:
+    """Empty the store of base calibrations (module docstring)."""
+    with _base_fits_lock:
+        _base_fits.clear()
+
+
+def _base_key(
+    robot: RobotDescription,
+    rows: FitRows,
+    keep_all_effects: bool,
+    options: FitOptions,
+    effects: Sequence[str],
+) -> str:
+    """What a selected base calibration depends on, hashed: the robot's content, every column of
+    the rows, the effects, ``all``, the options and the selection's settings."""
+    h = hashlib.blake2b(digest_size=20)
+    settings = (robot.sha256, tuple(effects), keep_all_effects, options, FOLD_SHORTCUTS, SELECTION_MAX_ROWS)
+    h.update(repr(settings).encode())
+    columns = (
+        rows.a_deg,
+        rows.xyz_mm,
+        rows.dir,
+        rows.payload_kg,
+        rows.temp_c,
+        rows.more_xyz_mm,
+        rows.sigma_mm,
+    )
+    for col in columns:
+        if col is None:
+            h.update(b"none")
+            continue
+        arr = np.ascontiguousarray(col, dtype=float)
+        h.update(repr(arr.shape).encode())
+        h.update(arr.tobytes())
+    return h.hexdigest()
+
+
+def selected_base(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions, effects: Sequence[str]
+) -> _BaseFit:
+    """The ``effects`` that earn their place (:func:`select_effects`) and the calibration with
+    them, made once for every kind that asks for the same (module docstring); the caller gets its
+    own copy."""
+    key = _base_key(robot, rows, spec.keep_all, options, effects)
+    with _base_fits_lock:
+        kept = _base_fits.get(key)
+        if kept is not None:
+            _base_fits.move_to_end(key)
+    if kept is None:
+        chosen, selection = select_effects(robot, rows, spec, options, effects)
+        kept = (chosen, selection, _kinematic(robot, rows, chosen, options))
+        with _base_fits_lock:
+            _base_fits[key] = copy.deepcopy(kept)
+            while len(_base_fits) > BASE_FITS_KEPT:
+                _base_fits.popitem(last=False)
+        return kept
+    return copy.deepcopy(kept)
+
+
 def fit_kinematic_kind(
     robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """MDH calibration with those of the spec's joint effects that earn their place (all of them
     with ``:all``)."""
-    effects, selection = select_effects(robot, rows, spec, options, spec.effects)
-    kf = _kinematic(robot, rows, effects, options)
+    effects, selection, kf = selected_base(robot, rows, spec, options, spec.effects)
     _attach_tcp_covariance(kf)
     info = {
         "kind": spec.kind,
@@ -565,8 +641,7 @@ def _fit_kriging(
     effects: Sequence[str],
     direction: Literal["aware", "blind"],
 ) -> FittedModel:
-    effects, selection = select_effects(robot, rows, spec, options, effects)
-    kf = _kinematic(robot, rows, effects, options)
+    effects, selection, kf = selected_base(robot, rows, spec, options, effects)
     kg = fit_kriging(
         kf.model,
         rows.a_deg,

@@ -60,6 +60,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.models import steps
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.local_kriging import LocalKriging
 from comp_daemon.models.ordinary_kriging import OrdinaryKriging
@@ -583,7 +584,9 @@ def _search_weights(
     w = np.array(start, dtype=float)
     best = loo(w)
     tried: list[tuple[tuple[float, ...], float]] = [(tuple(w.tolist()), best)]
-    for _sweep in range(2):
+    sweeps = 2
+    most = 1 + sweeps * N_JOINTS * len(ANISO_FACTORS)  # fewer if the second sweep is not needed
+    for _sweep in range(sweeps):
         improved = False
         for j in range(N_JOINTS):
             current = w.copy()
@@ -592,6 +595,7 @@ def _search_weights(
                 trial[j] *= f
                 value = loo(trial)
                 tried.append((tuple(trial.tolist()), value))
+                steps.report("joint-weight candidates", len(tried), most)
                 if value < best:
                     best, w, improved = value, trial, True
         if not improved:

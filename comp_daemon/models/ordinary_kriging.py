@@ -176,11 +176,14 @@ class OrdinaryKriging:
         """
         self._factorise()
         assert self._factors is not None and self._ones is not None
-        n = self.n_samples
         out = np.empty_like(self.values)
-        eye = np.eye(n)
         for c in range(self.values.shape[1]):
-            rinv_diag = np.diag(scipy.linalg.cho_solve(self._factors[c], eye, check_finite=False))
+            # R = L Lᵀ, so (R⁻¹)_ii = Σ_k (L⁻¹)_ki²: one triangular inverse, not n solves
+            fac, lower = self._factors[c]
+            inv, info = scipy.linalg.lapack.dtrtri(fac if lower else fac.T, lower=1)
+            if info != 0:
+                raise np.linalg.LinAlgError(f"kriging matrix of component {c}: singular factor ({info})")
+            rinv_diag = np.einsum("ki,ki->i", np.tril(inv), np.tril(inv))
             v = self._ones[c]
             q_diag = rinv_diag - v * v / float(v.sum())
             out[:, c] = self.alpha[:, c] / q_diag

@@ -30,6 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.models import steps
 from comp_daemon.models.base import ErrorModel
 
 __all__ = [
@@ -188,14 +189,20 @@ def select_kinematic_effects(
     of = "the" if of_rows is None or of_rows == n_rows else f"{n_rows} of the"
     method = f"{k}-fold cross-validation on {of} {of_rows or n_rows} fit rows"
     cache: dict[tuple[str, ...], NDArray[np.float64]] = {}
+    fits = {"done": 0, "known": 0}  # cross-validation fits made, and those known to be needed
+
+    def key_of(subset: Sequence[str]) -> tuple[str, ...]:
+        return tuple(e for e in effects if e in subset)
 
     def cv(subset: Sequence[str]) -> NDArray[np.float64]:
-        key = tuple(e for e in effects if e in subset)
+        key = key_of(subset)
         if key not in cache:
             err2 = np.empty(n_rows)
             for rows in held_out:
                 model = fit_on(key, np.setdiff1d(every, rows))
                 err2[rows] = np.sum(errors_of(model, rows) ** 2, axis=1)
+                fits["done"] += 1
+                steps.report("cross-validation fits", fits["done"], fits["known"])
             cache[key] = err2
         return cache[key]
 
@@ -206,6 +213,8 @@ def select_kinematic_effects(
         removable = [e for e in current if e not in protected]
         if not removable:
             break
+        this_round = {key_of(current), *(key_of([x for x in current if x != e]) for e in removable)}
+        fits["known"] += k * len(this_round - cache.keys())
         with_all = cv(current)
         verdicts = [judge(e, with_all, cv([x for x in current if x != e]), method) for e in removable]
         losers = [d for d in verdicts if not d.kept]

@@ -43,6 +43,7 @@ from typing import Any
 
 from comp_daemon.common.logs import bound, get_logger
 from comp_daemon.common.threads import set_numeric_threads
+from comp_daemon.models import steps
 from comp_daemon.service.config import JobSettings
 from comp_daemon.service.metrics import JOBS_FINISHED
 from comp_daemon.service.orphans import exit_with_parent
@@ -124,22 +125,41 @@ def _worker_init(
 
 
 class ProgressReporter:
-    """Given to a job function as ``progress``; call ``progress(fraction, message)``."""
+    """Given to a job function as ``progress``; call ``progress(fraction, message)``.
+
+    The steps the fit reports while it runs (:mod:`comp_daemon.models.steps`: its cross-validation
+    fits, its candidates) come through :meth:`step` and extend the job's last message with how
+    many are done and how many remain ("fitting kriging:aniso: joint-weight candidates 12 of 49,
+    37 to go"); they are also where a cancelled job stops.
+    """
 
     def __init__(self, job_id: int) -> None:
         self.job_id = job_id
         self._last_sent = 0.0
         self._last_fraction = -1.0
+        self._fraction = 0.0
+        self._message: str | None = None
 
     def cancelled(self) -> bool:
         flags = _worker_cancel
         return flags is not None and self.job_id in flags[:]
 
     def __call__(self, fraction: float, message: str | None = None) -> None:
+        fraction = float(fraction)
+        if math.isfinite(fraction):
+            self._fraction, self._message = fraction, message
+        self._send(fraction, message)
+
+    def step(self, what: str, done: int, total: int) -> None:
+        """A step of the running fit (a :data:`comp_daemon.models.steps.StepListener`)."""
+        left = max(total - done, 0)
+        detail = f"{what} {done} of {total}, {left} to go"
+        self._send(self._fraction, detail if not self._message else f"{self._message}: {detail}")
+
+    def _send(self, fraction: float, message: str | None) -> None:
         if self.cancelled():
             raise JobCancelled(f"job {self.job_id} was cancelled")
         now = time.monotonic()
-        fraction = float(fraction)
         if not math.isfinite(fraction):
             return
         if now - self._last_sent < _PROGRESS_MIN_INTERVAL_S and abs(fraction - self._last_fraction) < 0.05:
@@ -161,7 +181,8 @@ def _worker_entry(
     try:
         if reporter.cancelled():
             return ("cancelled",)
-        result = func(*args, progress=reporter)
+        with steps.listening(reporter.step):
+            result = func(*args, progress=reporter)
         return ("ok", json_safe(dict(result)))
     except JobCancelled:
         return ("cancelled",)

@@ -14,7 +14,7 @@ from __future__ import annotations
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from functools import cache
+from functools import cache, lru_cache
 from typing import Any
 
 import numpy as np
@@ -44,6 +44,7 @@ def _unknown(name: str) -> ValueError:
     return ValueError(f"unknown effect parameter '{name}' (expected {patterns})")
 
 
+@lru_cache(maxsize=4096)  # a fit parses the same few names at every residual
 def parse_param_name(name: str, n_harmonics: int) -> ParamRef:
     """Where the parameter ``name`` lives; ValueError for an unknown name or a harmonic beyond K."""
     m = _NAME_RE.match(name)

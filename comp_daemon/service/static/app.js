@@ -599,18 +599,27 @@
   function renderJobs() {
     const rows = S.jobs.map((j) => {
       const note = jobNote(j);
+      const step = j.state === "running" ? jobStep(j.message) : null;
       const cancel = can("engineer") && (j.state === "queued" || j.state === "running")
         ? el("button", { class: "act danger", type: "button", onclick: () => act(`/api/jobs/${j.id}/cancel`).then(refreshJobs) }, "cancel") : null;
       return el("tr", {},
         el("td", { class: "num" }, j.id),
         el("td", {}, j.kind),
         el("td", {}, pill(j.state)),
-        el("td", {}, el("div", { class: "progress" }, el("span", { style: `width:${Math.round((j.progress || 0) * 100)}%` }))),
-        el("td", { class: "reason", title: note || "" }, note || ""),
+        el("td", {}, el("div", { class: "progress" }, el("span", { style: `width:${Math.round((j.progress || 0) * 100)}%` })),
+          step ? el("div", { class: "job-step", "data-testid": "job-step" }, step.count) : null),
+        el("td", { class: "reason", title: j.message || note || "" }, step ? step.what : note || ""),
         el("td", {}, cancel),
       );
     });
     $("jobs").tBodies[0].replaceChildren(...rows);
+  }
+
+  // a running fit's step as its progress message ends it ("fitting M: what 12 of 50, 38 to go"):
+  // what it fits beside the bar, how many steps are done and remain under it
+  function jobStep(message) {
+    const m = /^(.*): (.+?) (\d+) of (\d+), (\d+) to go$/.exec(message || "");
+    return m ? { what: `${m[1]} — ${m[2]}`, count: `${m[3]}/${m[4]}, ${m[5]} to go` } : null;
   }
 
   // what a job's note says: its progress message only while it runs; once ended, how it ended
