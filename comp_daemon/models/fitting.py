@@ -511,7 +511,16 @@ def _base_key(
     """What a selected base calibration depends on, hashed: the robot's content, every column of
     the rows, the effects, ``all``, the options and the selection's settings."""
     h = hashlib.blake2b(digest_size=20)
-    settings = (robot.sha256, tuple(effects), keep_all_effects, options, FOLD_SHORTCUTS, SELECTION_MAX_ROWS)
+    settings = (
+        robot.sha256,
+        tuple(effects),
+        keep_all_effects,
+        options,
+        FOLD_SHORTCUTS,
+        SELECTION_MAX_ROWS,
+        rows.station_names,
+        rows.probe_sigma_deg,
+    )
     h.update(repr(settings).encode())
     columns = (
         rows.a_deg,
@@ -521,6 +530,8 @@ def _base_key(
         rows.temp_c,
         rows.more_xyz_mm,
         rows.sigma_mm,
+        rows.station,
+        rows.probe_r,
     )
     for col in columns:
         if col is None:
