@@ -2,7 +2,7 @@
 arc-count study (how the tracker check error falls with the number of arcs).
 
 Fit time: a simulated 4-arc ballbar campaign (``irb120-geometric``, 128 rows) read from its CSV and
-fitted (:func:`comp_daemon.models.campaign_fit.fit_campaign`), and an 18-placement cross-bar
+fitted (:func:`comp_daemon.instruments.campaign_fit.fit_campaign`), and an 18-placement cross-bar
 campaign (``mh6-cell``, 72 rows), each ``--repeats`` times.
 
 Arc-count study (``--study``): for k = 1..6 arcs and each seed, a k-arc ballbar campaign on the
@@ -36,8 +36,8 @@ import numpy as np
 from benchmarks.machine import machine_info, machine_line
 from comp_daemon.data.campaigns import campaign_of, read_campaign
 from comp_daemon.data.dataset import write_dataset
-from comp_daemon.models.ballbar_plan import ORIENTATIONS
-from comp_daemon.models.campaign_fit import fit_campaign, registered_prediction
+from comp_daemon.instruments.ballbar_plan import ORIENTATIONS
+from comp_daemon.instruments.campaign_fit import fit_campaign, registered_prediction
 from comp_daemon.models.registry import fit_model
 from comp_daemon.sim.bars import run_ballbar_campaign, run_crossbar_campaign
 from comp_daemon.sim.campaign import run_campaign

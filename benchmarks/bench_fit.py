@@ -36,6 +36,8 @@ import numpy as np
 import scipy
 from scipy.optimize import least_squares
 
+from comp_daemon.estimation.identifiability import analyze_identifiability, mdh_priority
+from comp_daemon.estimation.lm import improved_lm
 from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.base import ErrorModel
@@ -51,9 +53,7 @@ from comp_daemon.models.compensation import compensate
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_jacobian, twin_tcp_mm
 from comp_daemon.models.evaluation import error_statistics, format_table2
 from comp_daemon.models.fitting import FitRows
-from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
-from comp_daemon.models.lm import improved_lm
 from comp_daemon.models.registry import ALL_MODELS, fit_model, fit_spec, parse_model_name
 from comp_daemon.sim.campaign import measure_at, run_campaign, sample_poses
 from comp_daemon.sim.plant import RobotPlant

@@ -1,7 +1,7 @@
 """MFO, improved MFO and WOA against Levenberg–Marquardt on seed 002's problems (spec A.7).
 
-Identification: :func:`comp_daemon.models.solver_comparison.compare_solvers` on the spec's noise-free
-default ballbar campaign (:func:`~comp_daemon.models.solver_comparison.spec_default_problem`), the
+Identification: :func:`comp_daemon.instruments.solver_comparison.compare_solvers` on the spec's noise-free
+default ballbar campaign (:func:`~comp_daemon.instruments.solver_comparison.spec_default_problem`), the
 table ``comp-daemon evaluate CAMPAIGN.csv --solvers lm,mfo,imfo,woa`` prints for a campaign file.
 
 IK: one target (FK of a pose) over the full joint box, R_t < 0.1 as the threshold, each answer
@@ -22,18 +22,18 @@ from typing import Literal
 import numpy as np
 
 from benchmarks.machine import machine_line
-from comp_daemon.kinematics.inverse import solve_ik_axes
-from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.kinematics.poe import irb120_table1, poe_flange_pose, poe_tcp_position_mm
-from comp_daemon.models.ballbar import ballbar_lengths_mm, fit_ballbar
-from comp_daemon.models.mfo import solve_ik_mfo
-from comp_daemon.models.solver_comparison import (
+from comp_daemon.estimation.mfo import solve_ik_mfo
+from comp_daemon.instruments.ballbar import ballbar_lengths_mm, fit_ballbar
+from comp_daemon.instruments.solver_comparison import (
     PROBE_DOWN_DEG,
     SPEC_TRUTH,
     compare_solvers,
     solver_table,
     spec_default_problem,
 )
+from comp_daemon.kinematics.inverse import solve_ik_axes
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.poe import irb120_table1, poe_flange_pose, poe_tcp_position_mm
 from comp_daemon.robot.description import load_robot
 
 Variant = Literal["mfo", "imfo", "woa"]

@@ -6,13 +6,13 @@ until the beam hits the centre of a position sensitive detector (PSD), so all li
 one unknown point ``P``. Per pose the constraint residual is the part of ``P − o`` normal to the
 beam, ``r = (I − uuᵀ)(P − o)`` (mm, rank 2). The unknowns are the ``Δθ``, the ``C`` and ``P``;
 they are solved by the improved Levenberg–Marquardt method of seed 000
-(:func:`comp_daemon.models.lm.improved_lm`) with the exact Jacobian::
+(:func:`comp_daemon.estimation.lm.improved_lm`) with the exact Jacobian::
 
     ∂o/∂θ_i = z_{i−1} × (o − p_{i−1}),   ∂u/∂θ_i = z_{i−1} × u
     ∂r/∂θ_i = −(I − uuᵀ)·∂o/∂θ_i − (∂u·uᵀ + u·∂uᵀ)(P − o),   ∂r/∂C_i = τ_i·∂r/∂θ_i,   ∂r/∂P = I − uuᵀ
 
 Which unknowns the constraint can determine is decided by the identifiability analysis of
-:mod:`comp_daemon.models.identifiability` on the Jacobian of a consistent set of lines: ``Δθ1`` is
+:mod:`comp_daemon.estimation.identifiability` on the Jacobian of a consistent set of lines: ``Δθ1`` is
 not (a turn of the whole set-up, ``P`` included, about the vertical base axis), which is why the
 paper's simulated zero offset of joint 1 is 0. Seed 004 calibrates on 7 poses at a time, repeats
 this 30 times over its 210 calibration poses, and averages the 30 results.
@@ -34,6 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.identifiability import analyze_identifiability
+from comp_daemon.estimation.lm import improved_lm
 from comp_daemon.kinematics.forward import gravity_torques_nm
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, joint_param_index
 from comp_daemon.models.base import as_axes, finite_array
@@ -47,8 +49,6 @@ from comp_daemon.models.compliance import (
     standard_errors,
 )
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state
-from comp_daemon.models.identifiability import analyze_identifiability
-from comp_daemon.models.lm import improved_lm
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

@@ -19,10 +19,15 @@ from comp_daemon.commands.campaigns import nominal_tcp
 from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.dataset import dataset_to_csv
+from comp_daemon.instruments.ballbar import (
+    BALLBAR_PARAM_NAMES,
+    PAPER_PIVOT_MM,
+    ballbar_lengths_mm,
+    to_canonical,
+)
+from comp_daemon.instruments.ballbar_plan import TABLE5_ERRORS, ballbar_plan
 from comp_daemon.kinematics.poe import irb120_table1
 from comp_daemon.models.artifact import load_model
-from comp_daemon.models.ballbar import BALLBAR_PARAM_NAMES, PAPER_PIVOT_MM, ballbar_lengths_mm, to_canonical
-from comp_daemon.models.ballbar_plan import TABLE5_ERRORS, ballbar_plan
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("irb120")
@@ -232,7 +237,7 @@ async def test_http_upload_and_fit_job_of_a_ballbar_campaign(client: httpx.Async
 
 def test_a_split_holds_out_whole_arcs_and_judges_the_fit_on_them() -> None:
     from comp_daemon.data.campaigns import campaign_of
-    from comp_daemon.models.campaign_fit import fit_campaign
+    from comp_daemon.instruments.campaign_fit import fit_campaign
     from comp_daemon.sim.bars import run_ballbar_campaign
     from comp_daemon.sim.scenario import load_scenario
 

@@ -15,11 +15,11 @@ from comp_daemon.cli import main
 from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.dataset import dataset_to_csv
+from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
+from comp_daemon.instruments.ballbar_plan import TABLE5_ERRORS, ballbar_plan
+from comp_daemon.instruments.campaign_fit import fit_ballbar_campaign
 from comp_daemon.kinematics.poe import irb120_table1
 from comp_daemon.models.artifact import load_model
-from comp_daemon.models.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
-from comp_daemon.models.ballbar_plan import TABLE5_ERRORS, ballbar_plan
-from comp_daemon.models.campaign_fit import fit_ballbar_campaign
 from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.robot.description import load_robot
 

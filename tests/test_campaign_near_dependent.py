@@ -11,7 +11,7 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.campaigns import campaign_of
-from comp_daemon.models.campaign_fit import fit_campaign
+from comp_daemon.instruments.campaign_fit import fit_campaign
 from comp_daemon.sim.bars import run_ballbar_campaign
 from comp_daemon.sim.scenario import load_scenario
 

@@ -13,9 +13,9 @@ from comp_daemon.cli import main
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.crossbar import SOCKETS, read_crossbar
 from comp_daemon.data.dataset import dataset_to_csv, read_dataset
+from comp_daemon.instruments.campaign_fit import fit_campaign
 from comp_daemon.kinematics.params import PARAM_NAMES
 from comp_daemon.models.artifact import load_model
-from comp_daemon.models.campaign_fit import fit_campaign
 from comp_daemon.robot.description import load_robot
 from comp_daemon.sim.bars import run_crossbar_campaign
 from comp_daemon.sim.scenario import load_scenario

@@ -9,13 +9,13 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import Dataset, read_dataset, write_dataset
+from comp_daemon.export.formats import PARAM_FORMATS, TARGET_FORMATS
+from comp_daemon.export.params import model_of
 from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, matrix_to_abc_deg
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.artifact import load_model
 from comp_daemon.models.compensation import CompensationLimits, compensate, nominal_targets
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
-from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS
-from comp_daemon.models.export.params import model_of
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL, load_robot
 

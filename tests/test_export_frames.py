@@ -4,15 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, matrix_to_abc_deg
-from comp_daemon.kinematics.so3 import rotvec_to_matrix
-from comp_daemon.models.export.frames import (
+from comp_daemon.export.frames import (
     matrix_to_quaternion,
     matrix_to_rotvec_deg,
     num,
     quaternion_to_matrix,
     rotvec_deg_to_matrix,
 )
+from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, matrix_to_abc_deg
+from comp_daemon.kinematics.so3 import rotvec_to_matrix
 
 
 def _rotations() -> np.ndarray:

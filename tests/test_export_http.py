@@ -11,12 +11,12 @@ import pytest
 from service_client import in_process_service
 from test_service_api import auth, make_settings
 
+from comp_daemon.export.formats import PARAM_FORMATS
+from comp_daemon.export.params import model_of
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.artifact import model_document
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
-from comp_daemon.models.export.formats import PARAM_FORMATS
-from comp_daemon.models.export.params import model_of
 from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.store import ModelDraft, Store

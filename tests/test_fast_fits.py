@@ -16,9 +16,9 @@ from numpy.typing import NDArray
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset
+from comp_daemon.estimation.identifiability import analyze_identifiability
 from comp_daemon.models import fitting
 from comp_daemon.models.fitting import FitOptions, FitRows, directions_of
-from comp_daemon.models.identifiability import analyze_identifiability
 from comp_daemon.models.registry import fit_spec, parse_model_name
 from comp_daemon.robot.description import load_robot
 

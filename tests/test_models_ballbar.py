@@ -7,10 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.forward import flange_pose
-from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.kinematics.poe import irb120_table1, poe_chain, poe_ik
-from comp_daemon.models.ballbar import (
+from comp_daemon.instruments.ballbar import (
     BALLBAR_PARAM_NAMES,
     PAPER_PIVOT_MM,
     arc_through_points,
@@ -25,6 +22,9 @@ from comp_daemon.models.ballbar import (
     sphere_point_mm,
     to_canonical,
 )
+from comp_daemon.kinematics.forward import flange_pose
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.poe import irb120_table1, poe_chain, poe_ik
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("irb120")

@@ -7,8 +7,7 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams
-from comp_daemon.models.crossbar import (
+from comp_daemon.instruments.crossbar import (
     CrossbarPlan,
     CrossbarRefusedError,
     absorb_probe,
@@ -23,6 +22,7 @@ from comp_daemon.models.crossbar import (
     preset_errors_b5,
     seat_probe,
 )
+from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("mh6")
@@ -111,7 +111,7 @@ def test_rank_table_off_and_on_axis() -> None:
 
 
 def test_step_bounds_by_unit() -> None:
-    from comp_daemon.models.crossbar import _step_bounds
+    from comp_daemon.instruments.crossbar import _step_bounds
 
     bounds = _step_bounds(("theta2", "d3", "a1", "alpha1", "beta2", "tool_x"), 2.0, 0.5)
     np.testing.assert_allclose(bounds, [np.deg2rad(0.5), 2.0, 2.0, np.deg2rad(0.5), np.deg2rad(0.5), 2.0])

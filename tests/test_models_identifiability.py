@@ -7,9 +7,9 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
+from comp_daemon.estimation.identifiability import analyze_identifiability, mdh_priority, parallel_joints
 from comp_daemon.kinematics.forward import identification_jacobian, tcp_position_mm
 from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority, parallel_joints
 from comp_daemon.robot.description import RobotDescription, load_robot
 
 SEED003_IDENTIFIABLE = (

@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from comp_daemon.estimation.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.kinematics.forward import identification_jacobian, tcp_position_mm
 from comp_daemon.kinematics.params import (
     N_PARAMS,
@@ -15,7 +16,6 @@ from comp_daemon.kinematics.params import (
 from comp_daemon.kinematics.so3 import left_jacobian as so3_left_jacobian
 from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_tcp_mm
-from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.kinematic import (
     SEED001_EFFECTS,
     KinematicProblem,

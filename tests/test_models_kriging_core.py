@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from comp_daemon.estimation.variogram import VariogramModel, pairwise_distances
 from comp_daemon.models.kriging import OrdinaryKriging
-from comp_daemon.models.variogram import VariogramModel, pairwise_distances
 
 
 def _field(seed: int, n: int = 60, d: int = 4, k: int = 3) -> tuple[np.ndarray, np.ndarray]:

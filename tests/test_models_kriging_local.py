@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from comp_daemon.estimation.local_kriging import LocalKriging
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.kriging import LOO_MAX_SAMPLES, KrigingModel, fit_kriging
-from comp_daemon.models.local_kriging import LocalKriging
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")
@@ -113,8 +113,8 @@ def test_per_joint_ranges_find_the_joint_the_error_depends_on() -> None:
 
 def test_shared_variogram_pairs_give_each_metric_its_own_empirical_variogram() -> None:
     """The pairs computed once give, for every metric tried, the semivariogram of the embedded states."""
+    from comp_daemon.estimation.variogram import JointStatePairs, empirical_semivariogram
     from comp_daemon.models.kriging import JointStateMetric
-    from comp_daemon.models.variogram import JointStatePairs, empirical_semivariogram
 
     rng = np.random.default_rng(5)
     a = _axes(120, 6)

@@ -8,16 +8,16 @@ from typing import Any
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
-from comp_daemon.models.effects import EffectParams, twin_tcp_mm
-from comp_daemon.models.kriging import JointStateMetric, joint_space_semivariogram
-from comp_daemon.models.variogram import (
+from comp_daemon.estimation.variogram import (
     VariogramModel,
     empirical_semivariogram,
     fit_variogram,
     pairwise_distances,
     valid_models,
 )
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
+from comp_daemon.models.effects import EffectParams, twin_tcp_mm
+from comp_daemon.models.kriging import JointStateMetric, joint_space_semivariogram
 from comp_daemon.robot.description import load_robot
 
 
@@ -141,7 +141,7 @@ def test_backlash_errors_are_not_similar_in_joint_space_but_are_with_direction()
 @pytest.mark.parametrize("kind", ["spherical", "exponential", "gaussian"])
 def test_range_derivative_of_the_correlation_is_exact(kind: str) -> None:
     """The fit's analytic Jacobian rests on ∂ρ/∂a; against central differences."""
-    from comp_daemon.models.variogram import _correlation, _correlation_da
+    from comp_daemon.estimation.variogram import _correlation, _correlation_da
 
     h = np.linspace(0.0, 30.0, 61)
     a, eps = 17.0, 1e-6
@@ -159,8 +159,8 @@ def test_the_variogram_solver_is_scipys_trust_region_reflective_method(
     starts that end on a bound (the reflective steps) among them."""
     from scipy.optimize import least_squares
 
-    from comp_daemon.models import variogram
-    from comp_daemon.models.bounded_lsq import trf_fit
+    from comp_daemon.estimation import variogram
+    from comp_daemon.estimation.bounded_lsq import trf_fit
 
     seen = {"calls": 0, "on_bound": 0}
 
@@ -187,7 +187,7 @@ def test_the_variogram_solver_is_scipys_trust_region_reflective_method(
 
 
 def test_the_bounded_solver_refuses_what_it_cannot_solve() -> None:
-    from comp_daemon.models.bounded_lsq import trf_fit
+    from comp_daemon.estimation.bounded_lsq import trf_fit
 
     def fun(p: np.ndarray) -> np.ndarray:
         return np.array([p[0] - 1.0, p[1] + 2.0, p[0] * p[1]])

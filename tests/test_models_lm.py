@@ -9,7 +9,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
-from comp_daemon.models.lm import improved_lm
+from comp_daemon.estimation.lm import improved_lm
 
 Vec = NDArray[np.float64]
 

@@ -7,10 +7,10 @@ from typing import Literal
 import numpy as np
 import pytest
 
+from comp_daemon.estimation.lm import improved_lm
+from comp_daemon.estimation.mfo import at_bound, ballbar_objective, optimise, solve_ik_mfo
+from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm, fit_ballbar
 from comp_daemon.kinematics.poe import irb120_table1, poe_error_jacobian, poe_flange_pose, poe_tcp_position_mm
-from comp_daemon.models.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm, fit_ballbar
-from comp_daemon.models.lm import improved_lm
-from comp_daemon.models.mfo import at_bound, ballbar_objective, optimise, solve_ik_mfo
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("irb120")

@@ -7,7 +7,7 @@ import pytest
 
 from comp_daemon.kinematics.poe import POE_PARAM_NAMES, irb120_table1
 from comp_daemon.kinematics.so3 import rotvec_to_matrix
-from comp_daemon.models.poe import (
+from comp_daemon.models.poe.calibration import (
     BASE_NAMES,
     fit_poe_positions,
     null_directions,

@@ -12,7 +12,7 @@ from comp_daemon.cli import main
 from comp_daemon.kinematics.poe import POE_PARAM_NAMES
 from comp_daemon.models.artifact import load_model
 from comp_daemon.models.base import NominalModel
-from comp_daemon.models.poe_model import PoeErrorModel
+from comp_daemon.models.poe.model import PoeErrorModel
 from comp_daemon.models.registry import fit_model, model_from_payload
 from comp_daemon.robot.description import load_robot
 
@@ -148,7 +148,7 @@ def test_poe_on_a_campaign_with_geometric_errors_through_evaluate(tmp_path: Path
 
 def test_twist_errors_jacobian_is_exact_and_zero_errors_are_the_poe_chain() -> None:
     from comp_daemon.kinematics.poe import PoeModel, poe_tcp_position_mm
-    from comp_daemon.models.poe_twist import N_TWIST_PARAMS, twist_chain
+    from comp_daemon.models.poe.twist import N_TWIST_PARAMS, twist_chain
 
     poe = PoeModel.from_robot(KR)
     a = _axes(15, 7)
@@ -167,7 +167,7 @@ def test_twist_errors_jacobian_is_exact_and_zero_errors_are_the_poe_chain() -> N
 def test_twist_form_fits_tilted_axes_and_a_tool_error_the_paper_form_cannot() -> None:
     """A robot whose axes 2 and 5 are tilted by 0.02° and whose tool is 0.3 mm off: the twist form
     predicts it to the noise, in a tracker frame; its model round-trips through the artifact payload."""
-    from comp_daemon.models.poe_twist import TWIST_PARAM_NAMES
+    from comp_daemon.models.poe.twist import TWIST_PARAM_NAMES
 
     rng = np.random.default_rng(9)
     e = np.zeros(len(TWIST_PARAM_NAMES))

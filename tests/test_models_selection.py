@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from comp_daemon.estimation.selection import judge
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.compliance import ComplianceModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.registry import fit_model, parse_model_name
-from comp_daemon.models.selection import judge
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")

@@ -5,9 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from comp_daemon.kinematics.poe import irb120_table1
-from comp_daemon.models.ballbar import PAPER_PIVOT_MM, ballbar_jacobian, ballbar_lengths_mm, fit_ballbar
-from comp_daemon.models.uncertainty import (
+from comp_daemon.estimation.uncertainty import (
     nested_correction,
     nested_factor,
     nested_identification,
@@ -15,6 +13,8 @@ from comp_daemon.models.uncertainty import (
     repeat_uncertainty,
     weights_from_uncertainty,
 )
+from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, ballbar_jacobian, ballbar_lengths_mm, fit_ballbar
+from comp_daemon.kinematics.poe import irb120_table1
 from comp_daemon.robot.description import load_robot
 
 MODEL = irb120_table1(load_robot("irb120")).with_tool((30.0, 20.0, 50.0))

@@ -15,13 +15,13 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.commands.diagnose import untested_effects
 from comp_daemon.data.dataset import DatasetError, read_dataset
+from comp_daemon.estimation.registration import scale_problem
+from comp_daemon.estimation.selection import selection_line
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects.base import EffectData
 from comp_daemon.models.effects.catalogue import COMPLIANCE
-from comp_daemon.models.registration import scale_problem
 from comp_daemon.models.registry import parse_model_name, undetermined_reason
-from comp_daemon.models.selection import selection_line
 from comp_daemon.preparation.campaign import prepare_directions
 from comp_daemon.robot.description import load_robot
 

@@ -11,9 +11,9 @@ from comp_daemon.cli import main
 from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
 from comp_daemon.data.bars import read_table
 from comp_daemon.data.dataset import dataset_to_csv
+from comp_daemon.instruments.ballbar_plan import arc_count_rates, ballbar_plan
 from comp_daemon.kinematics.forward import flange_pose, tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.ballbar_plan import arc_count_rates, ballbar_plan
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("irb120")

@@ -11,11 +11,11 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import Dataset, write_dataset
+from comp_daemon.instruments.ballbar_plan import TABLE5_ERRORS
 from comp_daemon.kinematics.poe import irb120_table1, poe_tcp_position_mm
 from comp_daemon.models.artifact import load_model
-from comp_daemon.models.ballbar_plan import TABLE5_ERRORS
-from comp_daemon.models.poe import LAYOUTS, paper_layout
-from comp_daemon.models.poe_model import PoeErrorModel
+from comp_daemon.models.poe.calibration import LAYOUTS, paper_layout
+from comp_daemon.models.poe.model import PoeErrorModel
 from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import PRESETS, load_robot
 

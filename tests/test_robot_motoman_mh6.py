@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from comp_daemon.instruments.crossbar import absorb_probe, crossbar_identifiability, plan_crossbar, seat_probe
 from comp_daemon.kinematics.forward import flange_pose
 from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.models.crossbar import absorb_probe, crossbar_identifiability, plan_crossbar, seat_probe
 from comp_daemon.robot.description import MASSLESS_PRESETS, PRESETS, load_robot
 
 B1 = {  # spec B.1 (paper Table 2): offset θ0, d, a, α (deg / mm), range

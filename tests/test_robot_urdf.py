@@ -13,10 +13,10 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import Dataset, write_dataset
+from comp_daemon.export.urdf import geometry_tcp_mm, urdf_text
 from comp_daemon.kinematics.forward import chain, gravity_torques_nm
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import load_model
-from comp_daemon.models.export.urdf import geometry_tcp_mm, urdf_text
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import RobotDescriptionError, load_robot, parse_robot_toml
 from comp_daemon.robot.urdf import (

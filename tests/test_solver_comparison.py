@@ -12,15 +12,15 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.data.ballbar import ballbar_dataset
 from comp_daemon.data.dataset import dataset_to_csv
-from comp_daemon.kinematics.poe import irb120_table1
-from comp_daemon.models.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
-from comp_daemon.models.ballbar_plan import TABLE5_ERRORS, ballbar_plan
-from comp_daemon.models.solver_comparison import (
+from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
+from comp_daemon.instruments.ballbar_plan import TABLE5_ERRORS, ballbar_plan
+from comp_daemon.instruments.solver_comparison import (
     compare_solvers,
     parse_solvers,
     solver_table,
     spec_default_problem,
 )
+from comp_daemon.kinematics.poe import irb120_table1
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("irb120")

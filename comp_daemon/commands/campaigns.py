@@ -2,16 +2,16 @@
 
 - ``fit CAMPAIGN.csv --robot R --model poe|kinematic --out MODEL.json``: a ballbar campaign
   calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
-  (:func:`comp_daemon.models.campaign_fit.fit_campaign`); the file's form is told by its columns.
+  (:func:`comp_daemon.instruments.campaign_fit.fit_campaign`); the file's form is told by its columns.
   The artifact is an ordinary ``poe`` / ``kinematic`` model, which ``evaluate --calibrated`` and
   ``compensate`` take. The report names the rank reached and the directions the instrument cannot see.
 - ``evaluate BALLBAR.csv --robot R --solvers lm,mfo,imfo,woa``: Levenberg–Marquardt and the
   metaheuristics of seed 002 identify the same ballbar problem (the campaign's fit arcs; the check
-  arcs held out), one row per run (:mod:`comp_daemon.models.solver_comparison`, spec acceptance
+  arcs held out), one row per run (:mod:`comp_daemon.instruments.solver_comparison`, spec acceptance
   check 7); ``--json`` writes the runs.
 - ``evaluate TRACKER.csv --calibrated MODEL.json,…``: each artifact, calibrated elsewhere, is judged
   on the tracker data's check rows next to the models fitted there; only its base frame is fitted,
-  on the fit rows (:func:`comp_daemon.models.campaign_fit.registered_prediction`).
+  on the fit rows (:func:`comp_daemon.instruments.campaign_fit.registered_prediction`).
 """
 
 from __future__ import annotations
@@ -31,13 +31,18 @@ from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset
+from comp_daemon.estimation.uncertainty import repeat_uncertainty
+from comp_daemon.instruments.campaign_fit import registered_prediction, uncertainty_summary
+from comp_daemon.instruments.solver_comparison import (
+    SolverProblem,
+    compare_solvers,
+    parse_solvers,
+    solver_table,
+)
 from comp_daemon.models.artifact import ModelArtifactError, load_model, save_model
-from comp_daemon.models.campaign_fit import registered_prediction, uncertainty_summary
 from comp_daemon.models.covariance import near_dependent_note
 from comp_daemon.models.evaluation import error_statistics
-from comp_daemon.models.poe import layout_twists, paper_layout
-from comp_daemon.models.solver_comparison import SolverProblem, compare_solvers, parse_solvers, solver_table
-from comp_daemon.models.uncertainty import repeat_uncertainty
+from comp_daemon.models.poe.calibration import layout_twists, paper_layout
 from comp_daemon.preparation.campaign import CampaignError
 from comp_daemon.preparation.pipeline import calibrate_campaign, nominal_tcp
 from comp_daemon.robot.description import RobotDescription

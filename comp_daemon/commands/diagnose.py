@@ -25,8 +25,8 @@ from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.comparison import DEFAULT_MODELS
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import Diagnosis
+from comp_daemon.estimation.registration import BASE_FRAME_MAX_RMS_MM
 from comp_daemon.models.effects import EFFECTS
-from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM
 from comp_daemon.robot.description import PRESETS, load_robot
 
 

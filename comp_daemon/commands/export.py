@@ -3,13 +3,13 @@
 - ``export params --model MODEL.json --format kuka|abb|csv|urdf -o FILE [--data DATA]`` lists a
   kinematic model's identified parameters (``kinematic``, ``kinematic+ratio+backlash`` …) for a
   KUKA or ABB engineer to review, or as CSV with the nominal value, the change and the 1-σ of each
-  (:mod:`comp_daemon.models.export.params`), or writes its calibrated geometry as a URDF
-  (:mod:`comp_daemon.models.export.urdf`); ``--data`` adds the RMS on the data set's check rows
+  (:mod:`comp_daemon.export.params`), or writes its calibrated geometry as a URDF
+  (:mod:`comp_daemon.export.urdf`); ``--data`` adds the RMS on the data set's check rows
   to the header.
 - ``export targets --model MODEL.json --targets TARGETS.csv --format krl|rapid|csv -o FILE``
   compensates the targets as ``compensate`` does (the same refusals and options; any model kind)
   and writes the compensated axis values with the nominal Cartesian target, one named point a
-  target (:mod:`comp_daemon.models.export.targets`).
+  target (:mod:`comp_daemon.export.targets`).
 
 Both read their output back before they finish and refuse to leave a file that does not give the
 values it was written from (parameters: the same TCP to 1e-6 mm at the model's corner poses;
@@ -29,13 +29,13 @@ from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import DatasetError, read_dataset_file
+from comp_daemon.export.formats import PARAM_FORMATS, TARGET_FORMATS, params_text, write_targets
+from comp_daemon.export.params import listing_of
+from comp_daemon.export.targets import TargetList, module_name, point_names
+from comp_daemon.export.urdf import urdf_text
 from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc
 from comp_daemon.models.artifact import LoadedModel, ModelArtifactError, load_model
 from comp_daemon.models.compensation import nominal_targets
-from comp_daemon.models.export.formats import PARAM_FORMATS, TARGET_FORMATS, params_text, write_targets
-from comp_daemon.models.export.params import listing_of
-from comp_daemon.models.export.targets import TargetList, module_name, point_names
-from comp_daemon.models.export.urdf import urdf_text
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.preparation.campaign import CampaignError, PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import PRESETS, load_robot

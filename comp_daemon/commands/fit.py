@@ -47,6 +47,7 @@ from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset_file
 from comp_daemon.data.options import ReadOptions
+from comp_daemon.estimation.selection import selection_line
 from comp_daemon.models.artifact import save_model
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.covariance import near_dependent_note
@@ -72,7 +73,6 @@ from comp_daemon.models.registry import (
     uses_directions,
     with_order,
 )
-from comp_daemon.models.selection import selection_line
 from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign
 from comp_daemon.preparation.pipeline import (
     FitRequest,

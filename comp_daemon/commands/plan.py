@@ -5,7 +5,7 @@ Writes the plan as a ballbar campaign without ``bar_mm`` (``a1..a6``, ``pose_id`
 points on the pivot sphere, sampled every ``--step`` degrees, the flange at one orientation per
 arc, axis values by the nominal inverse kinematics. The instrument fills in ``bar_mm``.
 
-Before that it prints what the choice rests on (:mod:`comp_daemon.models.ballbar_plan`): the
+Before that it prints what the choice rests on (:mod:`comp_daemon.instruments.ballbar_plan`): the
 variogram γ(h) of the error field over joint-space lags, with the step between two points of an
 arc marked (smooth: neighbouring points say nearly the same), and, for k = 2..4 arcs of the plan,
 the change rates of the mean and the variance of the error against random poses of the
@@ -21,8 +21,8 @@ import numpy as np
 from comp_daemon.commands.errors import UserError
 from comp_daemon.data.ballbar import ballbar_dataset
 from comp_daemon.data.dataset import write_dataset
-from comp_daemon.models.ballbar import PAPER_PIVOT_MM, PAPER_RADIUS_MM
-from comp_daemon.models.ballbar_plan import (
+from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, PAPER_RADIUS_MM
+from comp_daemon.instruments.ballbar_plan import (
     MAX_ARCS,
     ORIENTATIONS,
     arc_count_rates,

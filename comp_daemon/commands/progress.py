@@ -7,7 +7,7 @@ piped or redirected to a file, stderr gets nothing from here (whatever ``FORCE_C
 ``TTY_COMPATIBLE`` say), so logs and scripts see only the command's own messages. It is cleared
 when the task ends; :meth:`Steps.log` lines stay above it. The numerics know nothing of it: the
 commands advance it between their calls, and the steps a fit reports while it runs
-(:mod:`comp_daemon.models.steps`: its cross-validation fits, its candidates) follow the task's
+(:mod:`comp_daemon.estimation.steps`: its cross-validation fits, its candidates) follow the task's
 description ("fitting chebyshev:cv on 700 rows (7 of 15, 8 after it): cross-validation fits 12 of
 50").
 """
@@ -30,7 +30,7 @@ from rich.progress import (
     TimeElapsedColumn,
 )
 
-from comp_daemon.models.steps import listening
+from comp_daemon.estimation.steps import listening
 
 __all__ = ["Steps", "progress", "tracked"]
 
@@ -53,7 +53,7 @@ class Steps:
 
     def step(self, what: str, done: int, total: int) -> None:
         """A step of the fit running now, after the task's description (a
-        :data:`comp_daemon.models.steps.StepListener`)."""
+        :data:`comp_daemon.estimation.steps.StepListener`)."""
         if not self._bar.disable:
             self._bar.update(self._task, description=f"{self._description}: {what} {done} of {total}")
 

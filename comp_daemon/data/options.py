@@ -12,7 +12,7 @@ with a message that names the option:
   (:mod:`comp_daemon.data.cells`);
 - positions that spread a thousand times less than the nominal robot's at the same axis values:
   ``--units m,deg`` (the fit's and diagnosis's scale check,
-  :func:`comp_daemon.models.registration.scale_problem`, which knows the robot);
+  :func:`comp_daemon.estimation.registration.scale_problem`, which knows the robot);
 - axis values ``a1 … a6`` all within ±2π while one axis spans more than :data:`MIN_SPREAD`:
   ``--units mm,rad`` (here).
 

@@ -34,7 +34,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.data.table import Dataset
 from comp_daemon.diagnosis.fitting import Observations
-from comp_daemon.models.registration import frame_changes, rigid_registration
+from comp_daemon.estimation.registration import frame_changes, rigid_registration
 
 __all__ = ["Agreement", "fit_check_agreement"]
 

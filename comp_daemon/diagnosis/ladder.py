@@ -8,12 +8,12 @@ Method (all choices on fit rows; check rows only report):
 
 1. Frame. Data in the robot base frame is compared with the nominal twin as it is. Data in the
    tracker's own frame (``frame="tracker"``, or ``"auto"`` when the nominal twin misses the fit rows
-   by more than :data:`~comp_daemon.models.registration.BASE_FRAME_MAX_RMS_MM` RMS) is first
+   by more than :data:`~comp_daemon.estimation.registration.BASE_FRAME_MAX_RMS_MM` RMS) is first
    registered: the rigid transform that best maps the nominal TCP onto the measurements (Kabsch on
    the fit rows) becomes the twin's ``world_T_base``; the baseline is that registered nominal twin.
 2. Geometric step. Every DH parameter (θ offset, d, a, α, β), the base frame (6) and the tool (3);
    zero and dependent columns of the identification Jacobian removed in MDH priority order
-   (:func:`~comp_daemon.models.identifiability.analyze_identifiability`, seed 003);
+   (:func:`~comp_daemon.estimation.identifiability.analyze_identifiability`, seed 003);
    Gauss–Newton to convergence.
 3. Effects. Candidates are the entries of the effect catalogue
    (:data:`~comp_daemon.models.effects.EFFECT_CATALOGUE`): (effect, joint) pairs of the per-joint
@@ -92,9 +92,9 @@ from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.diagnosis.structure import StructureResult, describe_structure, residual_structure
 from comp_daemon.diagnosis.targets import flange_errors, flange_words, noise_from_targets, target_offsets_mm
 from comp_daemon.diagnosis.where import Baseline, locate
+from comp_daemon.estimation.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import TIME_EFFECTS, EffectParams, MassModel
-from comp_daemon.models.identifiability import analyze_identifiability, mdh_priority
 from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
 from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription

@@ -53,8 +53,8 @@ from comp_daemon.common.plots import (
 from comp_daemon.diagnosis.fitting import linearize, predict_mm
 from comp_daemon.diagnosis.result import Diagnosis, Step
 from comp_daemon.diagnosis.where import equivalent_joint_error_deg
+from comp_daemon.estimation.variogram import empirical_semivariogram
 from comp_daemon.models.effects import MassModel, effect_by_name, twin_inputs
-from comp_daemon.models.variogram import empirical_semivariogram
 
 __all__ = [
     "check_histogram_figure",

@@ -15,12 +15,12 @@ Model. The remainder ``e`` (mm, one column per measured coordinate) of a row wit
 what is not smooth: tracker noise, repeatability). The hyperparameters maximise the marginal
 likelihood of the remainder (summed over the columns; L-BFGS-B with analytic gradients, on at
 most :data:`HYPER_MAX_ROWS` rows). Prediction is ordinary kriging
-(:class:`~comp_daemon.models.ordinary_kriging.OrdinaryKriging`, seed 001 eqs 18–28) on the joint
+(:class:`~comp_daemon.estimation.ordinary_kriging.OrdinaryKriging`, seed 001 eqs 18–28) on the joint
 values divided by the length scales, with a Gaussian variogram of range √6 (so that its
 correlation ``exp(−3h²/6)`` is the kernel above), partial sill ``s`` and nugget ``σ²``: the
 Gaussian-process mean with an unknown constant mean per column. Beyond
 :data:`DENSE_MAX_ROWS` training rows each query is kriged on its :data:`NEIGHBOURS` nearest rows
-(:class:`~comp_daemon.models.local_kriging.LocalKriging`).
+(:class:`~comp_daemon.estimation.local_kriging.LocalKriging`).
 
 Judged out of fold. On the fit rows, for each of the diagnosis' k folds (of pose groups): the
 parametric model (the final model's linear problem) is fitted without the fold, the Gaussian
@@ -49,9 +49,9 @@ from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.diagnosis.stats import LinearProblem
-from comp_daemon.models.local_kriging import LocalKriging
-from comp_daemon.models.ordinary_kriging import OrdinaryKriging
-from comp_daemon.models.variogram import VariogramModel
+from comp_daemon.estimation.local_kriging import LocalKriging
+from comp_daemon.estimation.ordinary_kriging import OrdinaryKriging
+from comp_daemon.estimation.variogram import VariogramModel
 
 __all__ = [
     "ALPHA",

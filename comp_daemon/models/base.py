@@ -7,7 +7,7 @@ approach directions ``dir`` (n, 6; −1/+1, 0 unknown), the payload (kg) and the
 
 ``registration`` (4, 4) is the robot base frame as registered in the measurement frame before any fit
 (identity when the data are in the robot base frame; the rigid fit of
-:mod:`comp_daemon.models.registration` for a tracker frame): it maps targets given in the robot base
+:mod:`comp_daemon.estimation.registration` for a tracker frame): it maps targets given in the robot base
 frame into the measurement frame. ``world_T_base`` is the model's own (possibly calibrated) base frame.
 ``ik_params()`` are the kinematic parameters (measurement frame) that the compensation uses to invert
 the commanded axes.

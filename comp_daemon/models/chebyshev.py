@@ -35,7 +35,7 @@ Coefficient names: ``E{i}.{term}.c{k}``, e.g. ``E3.eps_x.c2``; terms ``eps_x, ep
 and ``delta_x, delta_y, delta_z`` (mm).
 
 Identification: the improved Levenberg–Marquardt method of seed 000
-(:func:`comp_daemon.models.lm.improved_lm`) on the coefficients the data can identify;
+(:func:`comp_daemon.estimation.lm.improved_lm`) on the coefficients the data can identify;
 coefficients with a zero or (numerically) dependent column in the Jacobian — identifiability
 analysis of seed 003 on the Chebyshev Jacobian — are *removed* (held at zero), never regularised.
 The order is chosen by k-fold cross-validation on the fit rows.
@@ -50,13 +50,13 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation import steps
+from comp_daemon.estimation.identifiability import IdentifiabilityReport, analyze_identifiability
+from comp_daemon.estimation.lm import LMResult, improved_lm
+from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models import steps
 from comp_daemon.models.base import ErrorModel, as_axes
-from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
-from comp_daemon.models.lm import LMResult, improved_lm
-from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

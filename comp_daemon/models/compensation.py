@@ -83,13 +83,13 @@ from typing import Literal, get_args
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.registration import transform_points
 from comp_daemon.kinematics.forward import chain, position_jacobian_mm
 from comp_daemon.kinematics.inverse import require_reachable, solve_ik
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
 from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.models.chebyshev import ChebyshevModel
 from comp_daemon.models.kriging import KrigingModel
-from comp_daemon.models.registration import transform_points
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

@@ -23,7 +23,7 @@ simulated coefficients with the opposite torque sign (C2 = −5.921122e-05, C3 =
 
 Identification from tracker positions (our data sets, :func:`calibrate_compliance`): the TCP
 residual ``measured − model`` (mm) over the ``Δθ`` and the ``C``, solved by the improved
-Levenberg–Marquardt method of seed 000 (:func:`comp_daemon.models.lm.improved_lm`) on the unknowns
+Levenberg–Marquardt method of seed 000 (:func:`comp_daemon.estimation.lm.improved_lm`) on the unknowns
 the identifiability analysis keeps; if the data are in the tracker's frame the base frame is
 registered first and refined with them (``Δθ1`` then goes, dependent on the base rotation).
 
@@ -45,6 +45,13 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.identifiability import (
+    IdentifiabilityReport,
+    analyze_identifiability,
+    mdh_priority,
+)
+from comp_daemon.estimation.lm import LMResult, improved_lm
+from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import gravity_torques_nm, identification_jacobian, tcp_position_mm
 from comp_daemon.kinematics.params import (
     N_PARAMS,
@@ -56,10 +63,7 @@ from comp_daemon.kinematics.params import (
 from comp_daemon.kinematics.so3 import left_jacobian, skew
 from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
-from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability, mdh_priority
 from comp_daemon.models.kinematic import mdh_payload, params_from_payload
-from comp_daemon.models.lm import LMResult, improved_lm
-from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

@@ -31,13 +31,13 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.lm import improved_lm
+from comp_daemon.estimation.registration import rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import BASE_SLICE, N_PARAMS, TOOL_SLICE, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import as_axes
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.models.kinematic import KinematicModel, KinematicProblem
-from comp_daemon.models.lm import improved_lm
-from comp_daemon.models.registration import rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

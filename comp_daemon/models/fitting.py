@@ -28,7 +28,7 @@ table; the doors call them through it.
 
 What earns its place. The joint effects of the kinematic, kriging and compliance kinds, a kriging
 stage on its base and per-joint kriging ranges are kept only if they lower the error of held-out
-predictions on the fit rows (:mod:`comp_daemon.models.selection`: K-fold cross-validation with
+predictions on the fit rows (:mod:`comp_daemon.estimation.selection`: K-fold cross-validation with
 ``options.cv_folds`` folds on at most :data:`SELECTION_MAX_ROWS` of them, or leave-one-out for the
 kriging); the rest is dropped and the kind falls
 back to what is left (a kriging kind whose kriging is dropped is its kinematic base). The summary's
@@ -65,6 +65,10 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import Dataset
+from comp_daemon.estimation.identifiability import IdentifiabilityReport
+from comp_daemon.estimation.lm import LMResult
+from comp_daemon.estimation.registration import detect_frame, rigid_registration
+from comp_daemon.estimation.selection import Decision, Selection, judge, keep_all, select_kinematic_effects
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
@@ -76,13 +80,9 @@ from comp_daemon.models.covariance import (
     near_dependent_pairs,
 )
 from comp_daemon.models.effects import TRANSMISSION_EFFECTS
-from comp_daemon.models.identifiability import IdentifiabilityReport
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
 from comp_daemon.models.kriging import KrigingFit, fit_kriging
-from comp_daemon.models.lm import LMResult
 from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG, quat_to_matrix
-from comp_daemon.models.registration import detect_frame, rigid_registration
-from comp_daemon.models.selection import Decision, Selection, judge, keep_all, select_kinematic_effects
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -458,7 +458,7 @@ def select_effects(
     effects: Sequence[str],
     fit_on: Callable[[Sequence[str], FitRows, FitOptions], ErrorModel] | None = None,
 ) -> tuple[tuple[str, ...], Selection]:
-    """The ``effects`` that earn their place on the fit rows (:mod:`comp_daemon.models.selection`),
+    """The ``effects`` that earn their place on the fit rows (:mod:`comp_daemon.estimation.selection`),
     every one of them with the spec's ``all`` option. ``fit_on(effects, rows, options)`` fits the
     model with those effects (default: the kinematic calibration)."""
     if not effects:

@@ -8,8 +8,8 @@ Same signature as :mod:`comp_daemon.models.fitting` (``fit_<kind>(robot, rows, s
   (:func:`comp_daemon.models.fitting.select_effects`; always with ``:all``); ``compliance:paper``
   the paper's own form, zero offsets and C2, C3 on the nominal geometry;
 - ``poe``: a product-of-exponentials calibration with a full twist error per joint and the tool
-  offset (:mod:`comp_daemon.models.poe_twist`); ``poe:paper`` seed 002's errors ``dl1..dl6``,
-  ``dtheta1..dtheta6``; both with the base frame (:func:`comp_daemon.models.poe_model.fit_poe`), the
+  offset (:mod:`comp_daemon.models.poe.twist`); ``poe:paper`` seed 002's errors ``dl1..dl6``,
+  ``dtheta1..dtheta6``; both with the base frame (:func:`comp_daemon.models.poe.model.fit_poe`), the
   dependent parameters removed by name and the directions the data do not see listed.
 """
 
@@ -19,6 +19,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
+from comp_daemon.estimation.registration import detect_frame, rigid_registration
+from comp_daemon.estimation.selection import keep_all
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceFit, calibrate_compliance
@@ -33,10 +35,8 @@ from comp_daemon.models.fitting import (
     report_info,
     select_effects,
 )
-from comp_daemon.models.poe import LAYOUTS
-from comp_daemon.models.poe_model import fit_poe
-from comp_daemon.models.registration import detect_frame, rigid_registration
-from comp_daemon.models.selection import keep_all
+from comp_daemon.models.poe.calibration import LAYOUTS
+from comp_daemon.models.poe.model import fit_poe
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["fit_compliance_kind", "fit_poe_kind"]

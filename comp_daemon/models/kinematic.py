@@ -12,12 +12,12 @@ least-squares sense (eq. 6) and iterated to convergence:
 
 1. frame: if the data are not in the robot base frame (:func:`detect_frame`), the base frame is
    first registered in the tracker frame by a rigid fit of the nominal TCPs to the measured ones
-   (:func:`comp_daemon.models.registration.rigid_registration`);
+   (:func:`comp_daemon.estimation.registration.rigid_registration`);
 2. identifiability (seed 003) of the Jacobian at the start, on the data's own poses: zero and
    dependent columns are removed by name (:func:`analyze_identifiability`, MDH priority: base and
    tool kept, ``beta`` instead of ``d`` at parallel joints);
 3. the identifiable parameters are iterated with the improved Levenberg–Marquardt method of
-   seed 000 (:func:`comp_daemon.models.lm.improved_lm`, columns scaled); the Jacobian is exact,
+   seed 000 (:func:`comp_daemon.estimation.lm.improved_lm`, columns scaled); the Jacobian is exact,
    the base rotation being a rotation vector (its Jacobian through the SO(3) left Jacobian).
 
 Several targets. When the flange carries further targets (reflectors ``x2, y2, z2`` … of the data
@@ -49,6 +49,13 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.identifiability import (
+    IdentifiabilityReport,
+    analyze_identifiability,
+    mdh_priority,
+)
+from comp_daemon.estimation.lm import LMResult, improved_lm
+from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import left_jacobian, skew
@@ -61,8 +68,6 @@ from comp_daemon.models.effects import (
     twin_state,
     twin_tcp_mm,
 )
-from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability, mdh_priority
-from comp_daemon.models.lm import LMResult, improved_lm
 from comp_daemon.models.observations import (
     DEFAULT_PROBE_SIGMA_DEG,
     FrameObservations,
@@ -70,7 +75,6 @@ from comp_daemon.models.observations import (
     angle_deg,
     mean_rotation,
 )
-from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

@@ -2,7 +2,7 @@
 
 Seed 001 (§2) observes that robot positioning errors are similar at similar joint states (the
 semivariogram of the error vs the joint-space distance rises from near zero, eq. 12 and
-:mod:`comp_daemon.models.variogram`), but that errors caused by joint backlash are not: two poses at
+:mod:`comp_daemon.estimation.variogram`), but that errors caused by joint backlash are not: two poses at
 the same axis values reached from opposite directions differ by the backlash. The similarity must
 therefore be stated over joint angles *and* motion direction, and the backlash identified by the
 kinematic model (seed 001 §1, eqs 7–11: MDH + base + TCP + reduction ratio + backlash) is a
@@ -42,10 +42,10 @@ whose solution is ``λ = R⁻¹r + R⁻¹1·(1 − 1ᵀR⁻¹r)/(1ᵀR⁻¹1)`` 
 ``σ²·(1 − rᵀR⁻¹r + (1 − 1ᵀR⁻¹r)²/1ᵀR⁻¹1)``. A nugget ``c0`` (measurement noise and other
 unstructured error) adds ``c0/c`` to the diagonal of ``R`` and is filtered from the prediction; with
 no nugget the predictor interpolates the samples exactly. The system is factorised once
-(Cholesky of ``R``, :mod:`comp_daemon.models.ordinary_kriging`); a batch of m queries costs one
+(Cholesky of ``R``, :mod:`comp_daemon.estimation.ordinary_kriging`); a batch of m queries costs one
 (m, n) distance matrix and a product. Larger sampling sets (beyond :data:`DENSE_MAX_SAMPLES`, or
 whenever ``neighbours`` is given) are kriged in local neighbourhoods: each query on its k nearest
-samples in the same metric (:mod:`comp_daemon.models.local_kriging`), the dense solution when
+samples in the same metric (:mod:`comp_daemon.estimation.local_kriging`), the dense solution when
 k = n. ``anisotropic`` fits replace the isotropic joint weights by per-joint ones (per-joint
 ranges), chosen on the leave-one-out error.
 """
@@ -59,13 +59,11 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.models import steps
-from comp_daemon.models.base import ErrorModel, as_axes
-from comp_daemon.models.local_kriging import LocalKriging
-from comp_daemon.models.ordinary_kriging import OrdinaryKriging
-from comp_daemon.models.selection import Decision, judge
-from comp_daemon.models.variogram import (
+from comp_daemon.estimation import steps
+from comp_daemon.estimation.local_kriging import LocalKriging
+from comp_daemon.estimation.ordinary_kriging import OrdinaryKriging
+from comp_daemon.estimation.selection import Decision, judge
+from comp_daemon.estimation.variogram import (
     EmpiricalVariogram,
     JointStatePairs,
     VariogramModel,
@@ -74,6 +72,8 @@ from comp_daemon.models.variogram import (
     pairwise_distances,
     valid_models,
 )
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.models.base import ErrorModel, as_axes
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -441,10 +441,10 @@ def fit_kriging(
     Without ``dir`` data the metric is blind.
 
     ``neighbours``: ``None`` one dense system over every sample; an int, local neighbourhoods of
-    that many samples (:mod:`comp_daemon.models.local_kriging`); ``"auto"`` dense up to
+    that many samples (:mod:`comp_daemon.estimation.local_kriging`); ``"auto"`` dense up to
     :data:`DENSE_MAX_SAMPLES` samples, :data:`DEFAULT_NEIGHBOURS` beyond. Local models take their
     empirical variogram on a random subset of the sample pairs
-    (:data:`comp_daemon.models.variogram.VARIOGRAM_MAX_PAIRS`) and
+    (:data:`comp_daemon.estimation.variogram.VARIOGRAM_MAX_PAIRS`) and
     their LOO RMS on a random subset of the samples (:data:`LOO_MAX_SAMPLES`).
 
     ``anisotropic``: after the direction separation, the six joint weights (the inverse per-joint
@@ -453,7 +453,7 @@ def fit_kriging(
     paper's isotropic distance (``joint_weights``, default 1, is the starting point). With
     ``select_anisotropic`` the weights are searched on one random half of the samples and kept only
     if, on the other half, their leave-one-out errors beat the isotropic distance's by the rule of
-    :mod:`comp_daemon.models.selection`; the decision is in :attr:`KrigingFit.anisotropic_decision`
+    :mod:`comp_daemon.estimation.selection`; the decision is in :attr:`KrigingFit.anisotropic_decision`
     and the half they were not chosen on in :attr:`KrigingFit.unbiased_rows`.
     """
     a = as_axes(a_deg)

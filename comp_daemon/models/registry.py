@@ -39,6 +39,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.registration import BASE_FRAME_MAX_RMS_MM, detect_frame
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, NominalModel
@@ -60,9 +61,8 @@ from comp_daemon.models.fitting import (
 from comp_daemon.models.fitting_forms import fit_compliance_kind, fit_poe_kind
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
-from comp_daemon.models.poe_model import PoeErrorModel
-from comp_daemon.models.poe_twist import N_TWIST_PARAMS
-from comp_daemon.models.registration import BASE_FRAME_MAX_RMS_MM, detect_frame
+from comp_daemon.models.poe.model import PoeErrorModel
+from comp_daemon.models.poe.twist import N_TWIST_PARAMS
 from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import RobotDescription
 

@@ -3,7 +3,7 @@
 ``data check``, ``fit`` (every model kind) and ``diagnose`` all ask :func:`millimetre_problem`, so a
 file that one of them refuses for its units is refused by the others with the same sentence. The
 test itself (the spread of the measured points against the nominal TCP's at the same axis values)
-is :func:`comp_daemon.models.registration.scale_problem`.
+is :func:`comp_daemon.estimation.registration.scale_problem`.
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.registration import scale_problem
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.registration import scale_problem
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["millimetre_problem"]

@@ -15,7 +15,7 @@ What every door needs before it fits anything, decided once:
   by default and at the least, the one floor of every door; the diagnosis asks for its geometric
   step's parameters), with the advice of how many rows to give when the check rows were drawn.
 - **Frame**: the measurements are in the robot base frame when the nominal TCPs lie within
-  :data:`~comp_daemon.models.registration.BASE_FRAME_MAX_RMS_MM` RMS of them on the fit rows, else
+  :data:`~comp_daemon.estimation.registration.BASE_FRAME_MAX_RMS_MM` RMS of them on the fit rows, else
   in a tracker's frame, registered by the rigid motion that best maps the nominal TCPs onto them
   (``world_T_base``); ``frame="base"`` or ``"tracker"`` forces it. Positions that cannot be
   millimetres of this robot (metres, inches) are refused here
@@ -40,11 +40,11 @@ from numpy.typing import NDArray
 from comp_daemon.data.coverage import still_axes_note
 from comp_daemon.data.directions import infer_directions
 from comp_daemon.data.table import DEFAULT_CHECK_FRACTION, DEFAULT_SPLIT_SEED, Dataset, SplitChoice
+from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.fitting import FitRows, directions_of
 from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
-from comp_daemon.models.registration import detect_frame, rigid_registration
 from comp_daemon.models.registry import MIN_POSES
 from comp_daemon.models.units import millimetre_problem
 from comp_daemon.preparation.stations import Stations, register_stations

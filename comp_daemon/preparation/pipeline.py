@@ -28,10 +28,10 @@ from numpy.typing import NDArray
 
 from comp_daemon.data.campaigns import campaign_of
 from comp_daemon.data.table import Dataset
+from comp_daemon.instruments.campaign_fit import fit_campaign
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
-from comp_daemon.models.campaign_fit import fit_campaign
 from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec
 from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import fit_spec, undetermined_reason, uses_directions
@@ -218,7 +218,7 @@ def calibrate_campaign(
     ridge: bool = False,
 ) -> CampaignOutcome:
     """A ballbar campaign calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
-    (:func:`comp_daemon.models.campaign_fit.fit_campaign`), from the table read with every column;
+    (:func:`comp_daemon.instruments.campaign_fit.fit_campaign`), from the table read with every column;
     refusals as :class:`CampaignError` naming the campaign."""
     try:
         campaign = campaign_of(table, tcp_mm=nominal_tcp(robot))

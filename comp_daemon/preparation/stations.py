@@ -5,7 +5,7 @@ new station with its own frame (50° and 5 m away is ordinary). :func:`register_
 
 1. the **reference** is the station with the most fit rows; every station with fit rows is placed in
    it by a first registration (the nominal twin's TCPs fitted rigidly onto the station's fit rows,
-   :func:`~comp_daemon.models.registration.rigid_registration`, composed with the reference's);
+   :func:`~comp_daemon.estimation.registration.rigid_registration`, composed with the reference's);
 2. the **joint** kinematic calibration of the fit rows
    (:func:`~comp_daemon.models.kinematic.calibrate_kinematic` with every station beside the
    reference corrected by six parameters, and the probe's orientations when the rows carry them)
@@ -33,12 +33,12 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.table import Dataset
+from comp_daemon.estimation.registration import frame_changes, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.fitting import FitRows
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.observations import MIN_STATION_ROWS, matrix_to_quat, quat_to_matrix
-from comp_daemon.models.registration import frame_changes, rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["Station", "Stations", "judge_stations", "register_stations"]
@@ -189,7 +189,7 @@ def judge_stations(
 ) -> tuple[list[str], dict[str, Any]]:
     """Each station's check error under ``model`` (its predictions ``predicted_mm`` of the check
     rows), and the stations whose error jumps and a rigid motion of their rows alone removes, named
-    as frame changes (:func:`~comp_daemon.models.registration.frame_changes`): the sentences and the
+    as frame changes (:func:`~comp_daemon.estimation.registration.frame_changes`): the sentences and the
     JSON. Nothing without a ``station`` column of two or more stations among the check rows."""
     if dataset.station is None or dataset.xyz_mm is None:
         return [], {}

@@ -157,7 +157,7 @@ def _run_campaign_fit(table: Dataset, robot: Any, model: str, progress: Progress
     errors of the check arcs or crosses before and after, and for a ballbar campaign of repeated
     poses its uncertainty report (``uncertainty``, spec A.8)."""
     from comp_daemon.data.bars import campaign_kind
-    from comp_daemon.models.campaign_fit import uncertainty_summary
+    from comp_daemon.instruments.campaign_fit import uncertainty_summary
     from comp_daemon.preparation.pipeline import calibrate_campaign
 
     progress(0.05, f"calibrating from the {campaign_kind(table)} campaign")

@@ -43,7 +43,7 @@ from typing import Any
 
 from comp_daemon.common.logs import bound, get_logger
 from comp_daemon.common.threads import set_numeric_threads
-from comp_daemon.models import steps
+from comp_daemon.estimation import steps
 from comp_daemon.service.config import JobSettings
 from comp_daemon.service.metrics import JOBS_FINISHED
 from comp_daemon.service.orphans import exit_with_parent
@@ -127,7 +127,7 @@ def _worker_init(
 class ProgressReporter:
     """Given to a job function as ``progress``; call ``progress(fraction, message)``.
 
-    The steps the fit reports while it runs (:mod:`comp_daemon.models.steps`: its cross-validation
+    The steps the fit reports while it runs (:mod:`comp_daemon.estimation.steps`: its cross-validation
     fits, its candidates) come through :meth:`step` and extend the job's last message with how
     many are done and how many remain ("fitting kriging:aniso: joint-weight candidates 12 of 49,
     37 to go"); they are also where a cancelled job stops.
@@ -151,7 +151,7 @@ class ProgressReporter:
         self._send(fraction, message)
 
     def step(self, what: str, done: int, total: int) -> None:
-        """A step of the running fit (a :data:`comp_daemon.models.steps.StepListener`)."""
+        """A step of the running fit (a :data:`comp_daemon.estimation.steps.StepListener`)."""
         left = max(total - done, 0)
         detail = f"{what} {done} of {total}, {left} to go"
         self._send(self._fraction, detail if not self._message else f"{self._message}: {detail}")

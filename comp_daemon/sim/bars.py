@@ -1,6 +1,6 @@
 """Ballbar and cross-bar campaigns on a scenario's hidden robot (seeds 002 and 003).
 
-Ballbar (:func:`run_ballbar_campaign`): the plan of :func:`comp_daemon.models.ballbar_plan.ballbar_plan`
+Ballbar (:func:`run_ballbar_campaign`): the plan of :func:`comp_daemon.instruments.ballbar_plan.ballbar_plan`
 (k arcs about the pivot, one flange orientation per arc, nominal inverse kinematics: what the
 controller is told to do) is driven on the plant; at each point, settled, the reading is the
 distance of the true TCP to the true pivot (the nominal pivot plus an offset drawn once per
@@ -8,7 +8,7 @@ campaign) plus the instrument's noise. A row per reading; ``repeats`` runs the p
 (``pose_id`` names the point, for the uncertainty mode).
 
 Cross-bar (:func:`run_crossbar_campaign`): placements of spec B.5
-(:func:`comp_daemon.models.crossbar.plan_crossbar`, bar length L); the probe is seated in each
+(:func:`comp_daemon.instruments.crossbar.plan_crossbar`, bar length L); the probe is seated in each
 socket: the axis values that put the hidden robot's TCP on the socket centre plus the seating error
 (σ per axis), found on its geometry and then corrected once for what the plant adds (backlash,
 joint repeatability), read back as the controller shows them.
@@ -25,11 +25,11 @@ from numpy.typing import NDArray
 from comp_daemon.data.ballbar import ballbar_dataset
 from comp_daemon.data.crossbar import crossbar_dataset
 from comp_daemon.data.table import Dataset
+from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, PAPER_RADIUS_MM
+from comp_daemon.instruments.ballbar_plan import Orientation, ballbar_plan
+from comp_daemon.instruments.crossbar import CrossbarPlan, plan_crossbar, seat_probe
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import axes_deg_to_q_rad
-from comp_daemon.models.ballbar import PAPER_PIVOT_MM, PAPER_RADIUS_MM
-from comp_daemon.models.ballbar_plan import Orientation, ballbar_plan
-from comp_daemon.models.crossbar import CrossbarPlan, plan_crossbar, seat_probe
 from comp_daemon.sim.campaign import measure_at
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.scenario import Scenario

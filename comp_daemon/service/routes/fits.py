@@ -18,9 +18,9 @@ from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import Field
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.export.formats import params_text
+from comp_daemon.export.params import listing_of
 from comp_daemon.models.artifact import ModelArtifactError, parse_model
-from comp_daemon.models.export.formats import params_text
-from comp_daemon.models.export.params import listing_of
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.registry import KINDS, UnknownModelError, parse_model_name, with_order
 from comp_daemon.service import job_kinds

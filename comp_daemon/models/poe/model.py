@@ -4,15 +4,15 @@
 :mod:`comp_daemon.kinematics.poe` built from the robot description (equal to the MDH model at
 nominal), in its fitted base frame ``world_T_base``, carrying either the paper's 12 errors
 ``dl1..dl6`` (mm) and ``dtheta1..dtheta6`` (rad) (``poe:paper``) or a full twist error per joint and
-a tool offset error (``poe``, :mod:`comp_daemon.models.poe_twist`: 39 errors, the dependent ones
+a tool offset error (``poe``, :mod:`comp_daemon.models.poe.twist`: 39 errors, the dependent ones
 removed by name). The paper's 12 sit on seed 002's own segment layout (Table 1) where the robot is
 its IRB 120, else on one segment per joint point (``layout``, stored in the artifact when it is
-Table 1's; :func:`comp_daemon.models.poe.paper_layout`)::
+Table 1's; :func:`comp_daemon.models.poe.calibration.paper_layout`)::
 
     TCP_world = world_T_base · p_POE(A; x)
 
 :func:`fit_poe` identifies them from measured positions with
-:func:`comp_daemon.models.poe.fit_poe_positions` (the base frame always fitted: on tracker data it
+:func:`comp_daemon.models.poe.calibration.fit_poe_positions` (the base frame always fitted: on tracker data it
 starts from the rigid registration, on base-frame data it takes up the POE errors' dependent
 directions ``dtheta1``, ``dl2``; the dependent parameters are removed by name and stay zero).
 
@@ -26,7 +26,7 @@ Uncertainty. The fit's parameter covariance (:class:`comp_daemon.models.covarian
 is taken at the solution over the identified parameters, the base parameters as local increments
 about the fitted frame (value 0; translation mm, rotation vector rad on the left), so the stored
 ``values`` are the POE errors and zeros; :meth:`predict_std_mm` propagates it through the same
-Jacobian (:func:`comp_daemon.models.poe.poe_world_jacobian`).
+Jacobian (:func:`comp_daemon.models.poe.calibration.poe_world_jacobian`).
 """
 
 from __future__ import annotations
@@ -40,7 +40,7 @@ from numpy.typing import NDArray
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
 from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.covariance import ParameterCovariance
-from comp_daemon.models.poe import (
+from comp_daemon.models.poe.calibration import (
     BASE_NAMES,
     LAYOUTS,
     PoeFit,
@@ -51,7 +51,7 @@ from comp_daemon.models.poe import (
     poe_world_jacobian,
     poe_world_position_mm,
 )
-from comp_daemon.models.poe_twist import (
+from comp_daemon.models.poe.twist import (
     N_TWIST_PARAMS,
     TWIST_PARAM_NAMES,
     PoeTwistFit,
@@ -200,7 +200,7 @@ def fit_poe(
     """The POE errors and the base frame from measured TCPs ``p_mm`` (n, 3) at ``a_deg`` (n, 6):
     the twist errors and the tool offset error (``form="twist"``) or the paper's 12 (``"paper"``, on
     seed 002's Table 1 layout where the robot is the paper's IRB 120,
-    :func:`~comp_daemon.models.poe.paper_layout`);
+    :func:`~comp_daemon.models.poe.calibration.paper_layout`);
     ``registration`` is the frame the model reports as its measurement frame (identity on base-frame
     data). The model carries the fit's parameter covariance when there are residual degrees of freedom."""
     a = as_axes(a_deg)

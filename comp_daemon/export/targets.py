@@ -3,8 +3,8 @@
 :class:`TargetList` holds, per target, a point name, the compensated axis values (deg, what the
 robot is to be moved to) and the nominal Cartesian target (the TCP position in the robot base
 frame, mm, and the flange's orientation there — the one asked for, or where none was, that of the
-nominal solution). The KRL and RAPID lists are in :mod:`~comp_daemon.models.export.krl` and
-:mod:`~comp_daemon.models.export.rapid`; the CSV one is here (:func:`format_csv_targets` /
+nominal solution). The KRL and RAPID lists are in :mod:`~comp_daemon.export.krl` and
+:mod:`~comp_daemon.export.rapid`; the CSV one is here (:func:`format_csv_targets` /
 :func:`parse_csv_targets`): the columns of a target file (``docs/data-format.md``), ``pose_id, a1..a6,
 tx, ty, tz, ta, tb, tc`` (``ta, tb, tc``: KUKA A, B, C of the tool frame, deg), so that comp-daemon
 reads it back as a target file too. Numbers are the shortest decimal that reads back to the same
@@ -22,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.export.frames import num
 from comp_daemon.kinematics.kuka_abc import flange_rotation_of_tool_abc, tool_abc_of_flange_rotation
-from comp_daemon.models.export.frames import num
 
 __all__ = [
     "CSV_TARGET_COLUMNS",

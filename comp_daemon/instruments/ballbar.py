@@ -37,12 +37,12 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.estimation.identifiability import IdentifiabilityReport
 from comp_daemon.kinematics.inverse import solve_ik_axes
 from comp_daemon.kinematics.params import KinematicParams
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel, poe_chain, poe_error_jacobian
 from comp_daemon.models.covariance import near_dependent_pairs
-from comp_daemon.models.identifiability import IdentifiabilityReport
-from comp_daemon.models.poe import (
+from comp_daemon.models.poe.calibration import (
     NullDirection,
     fit_least_squares_subset,
     null_directions,

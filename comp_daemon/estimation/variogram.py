@@ -39,7 +39,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.models.bounded_lsq import trf_fit
+from comp_daemon.estimation.bounded_lsq import trf_fit
 
 __all__ = [
     "VARIOGRAM_MAX_PAIRS",

@@ -22,7 +22,7 @@ from collections.abc import Sequence
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.models.export.frames import rigid_inverse
+from comp_daemon.export.frames import rigid_inverse
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.urdf import format_urdf, parse_urdf, urdf_chain
 

@@ -2,8 +2,8 @@
 
 A :class:`SolverProblem` is a set of ballbar lengths to identify the POE errors and pivot offset
 from (fit rows) and, optionally, held-out lengths to judge the result on (check rows).
-:func:`compare_solvers` runs Levenberg–Marquardt (:func:`comp_daemon.models.ballbar.fit_ballbar`,
-once: it is deterministic) and each metaheuristic (:func:`comp_daemon.models.mfo.optimise`: ``mfo``,
+:func:`compare_solvers` runs Levenberg–Marquardt (:func:`comp_daemon.instruments.ballbar.fit_ballbar`,
+once: it is deterministic) and each metaheuristic (:func:`comp_daemon.estimation.mfo.optimise`: ``mfo``,
 ``imfo`` the improved MFO, ``woa``) per seed on the columns LM finds identifiable, inside the spec's
 box (Δl ±1 mm, Δθ ±0.01 rad, Δo ±2 mm) with the paper's stop H < 0.02 mm. One
 :class:`SolverRun` per run; :func:`solver_table` lays them out with the spec's columns: campaign,
@@ -31,10 +31,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.kinematics.forward import flange_pose
-from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.kinematics.poe import PoeModel, irb120_table1
-from comp_daemon.models.ballbar import (
+from comp_daemon.estimation.mfo import DEFAULT_BOUNDS, Variant, at_bound, ballbar_objective, optimise
+from comp_daemon.instruments.ballbar import (
     N_BALLBAR_PARAMS,
     PAPER_PIVOT_MM,
     arc_through_points,
@@ -44,7 +42,9 @@ from comp_daemon.models.ballbar import (
     plan_ballbar_axes,
     sphere_point_mm,
 )
-from comp_daemon.models.mfo import DEFAULT_BOUNDS, Variant, at_bound, ballbar_objective, optimise
+from comp_daemon.kinematics.forward import flange_pose
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.poe import PoeModel, irb120_table1
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

@@ -1,7 +1,7 @@
 """Small bounded least-squares problems at the cost of their arithmetic: the trust-region reflective
 method of ``scipy.optimize.least_squares`` without its per-call machinery.
 
-The variogram fits (:mod:`comp_daemon.models.variogram`) solve thousands of problems of 2–3
+The variogram fits (:mod:`comp_daemon.estimation.variogram`) solve thousands of problems of 2–3
 parameters and about ten residuals each; ``least_squares`` spends most of such a call in its
 function wrappers, argument checks and array-API dispatch, not in the method. :func:`trf_fit` is
 the same method — ``method="trf"``, ``x_scale="jac"``, linear loss, exact trust-region solver

@@ -27,8 +27,8 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from comp_daemon.models.ordinary_kriging import kriging_samples
-from comp_daemon.models.variogram import VariogramModel
+from comp_daemon.estimation.ordinary_kriging import kriging_samples
+from comp_daemon.estimation.variogram import VariogramModel
 
 __all__ = ["LocalKriging"]
 

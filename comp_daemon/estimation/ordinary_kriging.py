@@ -3,7 +3,7 @@
 The equations are those of :mod:`comp_daemon.models.kriging`'s docstring; this module solves them
 for k value components on shared coordinates with the Cholesky factor of the n × n correlation
 matrix (nugget ratio on its diagonal), and gives the leave-one-out residuals in closed form.
-:mod:`comp_daemon.models.local_kriging` solves the same system on the k nearest samples of each
+:mod:`comp_daemon.estimation.local_kriging` solves the same system on the k nearest samples of each
 query instead, for sampling sets too large for one dense system.
 """
 
@@ -15,7 +15,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-from comp_daemon.models.variogram import VariogramModel, pairwise_distances
+from comp_daemon.estimation.variogram import VariogramModel, pairwise_distances
 
 __all__ = ["OrdinaryKriging", "kriging_samples"]
 

@@ -24,14 +24,13 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.models import steps
-from comp_daemon.models.base import ErrorModel
+from comp_daemon.estimation import steps
 
 __all__ = [
     "RULE",
@@ -151,15 +150,15 @@ def fold_indices(n: int, folds: int, seed: int) -> list[NDArray[np.intp]]:
     return [np.sort(f) for f in np.array_split(perm, folds)]
 
 
-FitPredict = Callable[[Sequence[str], NDArray[np.intp]], ErrorModel]
-Predict = Callable[[ErrorModel, NDArray[np.intp]], NDArray[np.float64]]
+Model = TypeVar("Model")
+"""Whatever ``fit_on`` returns and ``errors_of`` takes: the caller's fitted model."""
 
 
 def select_kinematic_effects(
     effects: Sequence[str],
     n_rows: int,
-    fit_on: FitPredict,
-    errors_of: Predict,
+    fit_on: Callable[[Sequence[str], NDArray[np.intp]], Model],
+    errors_of: Callable[[Model, NDArray[np.intp]], NDArray[np.float64]],
     *,
     folds: int,
     seed: int,

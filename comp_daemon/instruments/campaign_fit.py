@@ -1,10 +1,10 @@
 """Kinematic models calibrated from ballbar and cross-bar campaigns (seeds 002 and 003).
 
 - :func:`fit_ballbar_campaign`: the ballbar lengths of a campaign (:mod:`comp_daemon.data.ballbar`)
-  identify the POE errors Δl, Δθ and the pivot offset (:func:`comp_daemon.models.ballbar.fit_ballbar`)
+  identify the POE errors Δl, Δθ and the pivot offset (:func:`comp_daemon.instruments.ballbar.fit_ballbar`)
   on the paper's segment layout where the robot is its IRB 120 (Table 1,
-  :func:`comp_daemon.models.poe.paper_layout`), else one segment per joint point;
-  the result is a ``poe`` model (:class:`~comp_daemon.models.poe_model.PoeErrorModel`) in the robot
+  :func:`comp_daemon.models.poe.calibration.paper_layout`), else one segment per joint point;
+  the result is a ``poe`` model (:class:`~comp_daemon.models.poe.model.PoeErrorModel`) in the robot
   base frame, carrying the covariance of its identified errors. A campaign whose poses are measured
   repeatedly (``pose_id`` with ≥ 2 repeats each) is fitted in the uncertainty mode of spec A.8
   (:func:`fit_ballbar_repeats`): each pose's last repeat is its reading, the spread of its repeats
@@ -14,7 +14,7 @@
   it the model's prediction σ.
 - :func:`fit_crossbar_campaign`: the cross-bar readings (:mod:`comp_daemon.data.crossbar`) identify
   the MDH errors and the probe (tool) offset by the weighted distance and perpendicularity rows
-  (:func:`comp_daemon.models.crossbar.calibrate_crossbar`); the result is a ``kinematic`` model
+  (:func:`comp_daemon.instruments.crossbar.calibrate_crossbar`); the result is a ``kinematic`` model
   (:class:`~comp_daemon.models.kinematic.KinematicModel`) in the nominal base frame.
 
 Neither instrument sees where the robot stands: a ballbar measures lengths, a cross-bar distances
@@ -37,30 +37,30 @@ from comp_daemon.common.logs import get_logger
 from comp_daemon.data.ballbar import BallbarCampaign
 from comp_daemon.data.campaigns import Campaign
 from comp_daemon.data.crossbar import CrossbarCampaign
-from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
-from comp_daemon.models.ballbar import (
-    BALLBAR_PARAM_NAMES,
-    RIDGE_SCALES,
-    BallbarFit,
-    ballbar_lengths_mm,
-    fit_ballbar,
-)
-from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.covariance import ParameterCovariance, covariance_from_fit, near_dependent_pairs
-from comp_daemon.models.crossbar import bar_errors_mm, calibrate_crossbar, check_plan, constraint_rows
-from comp_daemon.models.fitting import FittedModel, report_info
-from comp_daemon.models.kinematic import KinematicModel
-from comp_daemon.models.poe import LAYOUTS, layout_twists, paper_layout
-from comp_daemon.models.poe_model import PoeErrorModel
-from comp_daemon.models.registration import rigid_registration, transform_points
-from comp_daemon.models.uncertainty import (
+from comp_daemon.estimation.registration import rigid_registration, transform_points
+from comp_daemon.estimation.uncertainty import (
     U_FLOOR_MM,
     Z_95,
     nested_identification,
     repeat_uncertainty,
     weights_from_uncertainty,
 )
+from comp_daemon.instruments.ballbar import (
+    BALLBAR_PARAM_NAMES,
+    RIDGE_SCALES,
+    BallbarFit,
+    ballbar_lengths_mm,
+    fit_ballbar,
+)
+from comp_daemon.instruments.crossbar import bar_errors_mm, calibrate_crossbar, check_plan, constraint_rows
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
+from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.covariance import ParameterCovariance, covariance_from_fit, near_dependent_pairs
+from comp_daemon.models.fitting import FittedModel, report_info
+from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.models.poe.calibration import LAYOUTS, layout_twists, paper_layout
+from comp_daemon.models.poe.model import PoeErrorModel
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -116,7 +116,7 @@ def fit_ballbar_repeats(
     explain the readings to their uncertainty), the nested loop's parameters (the model's), and the
     report: u and b = 1.96·u, the unweighted and weighted fits side by side, every nested round.
     ``fix_near_dependent``: the weighted fit's near-dependent pairs are resolved as
-    :func:`~comp_daemon.models.ballbar.fit_ballbar` does, and the same parameters held in every fit;
+    :func:`~comp_daemon.instruments.ballbar.fit_ballbar` does, and the same parameters held in every fit;
     ``ridge`` as there, in every fit.
     """
     b = Z_95 * u_mm
@@ -243,10 +243,10 @@ def fit_ballbar_campaign(
 ) -> FittedModel:
     """The ``poe`` model of a ballbar campaign's rows ``rows`` (default: all); a campaign of repeated
     poses in the uncertainty mode (module docstring). ``fix_near_dependent`` holds the weaker of each
-    near-dependent pair at zero (:func:`comp_daemon.models.ballbar.weaker_of_pairs`); either way the
+    near-dependent pair at zero (:func:`comp_daemon.instruments.ballbar.weaker_of_pairs`); either way the
     pairs are named in ``info["identifiability"]["near_dependent"]`` and those held in
     ``info["near_dependent_fixed"]``. ``ridge`` pulls every POE error toward zero
-    (:data:`comp_daemon.models.ballbar.RIDGE_SCALES`; ``info["ridge"]`` states it)."""
+    (:data:`comp_daemon.instruments.ballbar.RIDGE_SCALES`; ``info["ridge"]`` states it)."""
     idx = np.arange(len(campaign)) if rows is None else np.asarray(rows)
     layout = paper_layout(robot)
     twists = layout_twists(robot, layout)

@@ -25,11 +25,7 @@ from typing import Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.forward import flange_pose
-from comp_daemon.kinematics.inverse import solve_ik_axes
-from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.kinematics.poe import PoeModel
-from comp_daemon.models.ballbar import (
+from comp_daemon.instruments.ballbar import (
     PAPER_PIVOT_MM,
     PAPER_RADIUS_MM,
     Arc,
@@ -40,6 +36,10 @@ from comp_daemon.models.ballbar import (
     plan_ballbar_axes,
     sphere_point_mm,
 )
+from comp_daemon.kinematics.forward import flange_pose
+from comp_daemon.kinematics.inverse import solve_ik_axes
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.poe import PoeModel
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

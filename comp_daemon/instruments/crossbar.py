@@ -19,7 +19,7 @@ its right-hand side are divided by ``√2·L`` (``weighted=True``, the default):
 
 Identifiability (B.3): the columns are the 24 MDH parameters (θ, d, a, α per joint; β instead of d
 at a parallel pair) and, optionally, the tool. :func:`comparison_identifiability` names zero and
-dependent columns (:func:`comp_daemon.models.identifiability.analyze_identifiability`, MDH
+dependent columns (:func:`comp_daemon.estimation.identifiability.analyze_identifiability`, MDH
 priority). With the probe on axis 6, rank 18; off axis, 21 (the paper's count for the MH6).
 
 Iteration (B.4): solve the weighted rows on the identifiable columns; if any ``|Δx_j| > 3·e_j``
@@ -37,16 +37,16 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.kinematics.forward import chain, identification_jacobian
-from comp_daemon.kinematics.inverse import solve_ik, solve_ik_axes
-from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
-from comp_daemon.kinematics.so3 import rotvec_to_matrix
-from comp_daemon.models.identifiability import (
+from comp_daemon.estimation.identifiability import (
     IdentifiabilityReport,
     analyze_identifiability,
     mdh_priority,
     parallel_joints,
 )
+from comp_daemon.kinematics.forward import chain, identification_jacobian
+from comp_daemon.kinematics.inverse import solve_ik, solve_ik_axes
+from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
+from comp_daemon.kinematics.so3 import rotvec_to_matrix
 
 __all__ = [
     "CrossbarFit",

@@ -33,17 +33,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.estimation.identifiability import IdentifiabilityReport, analyze_identifiability
+from comp_daemon.estimation.registration import rigid_registration
 from comp_daemon.kinematics.poe import PoeModel, poe_chain
 from comp_daemon.kinematics.so3 import left_jacobian, rotvec_to_matrix, skew
-from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
-from comp_daemon.models.poe import (
+from comp_daemon.models.poe.calibration import (
     BASE_NAMES,
     NullDirection,
     fit_least_squares_subset,
     null_directions,
     start_frame,
 )
-from comp_daemon.models.registration import rigid_registration
 
 _log = get_logger(__name__)
 

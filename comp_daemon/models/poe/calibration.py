@@ -10,7 +10,7 @@ Identifiability (spec A.2 product rule). Some columns are structurally dependent
 (both shift everything beyond q1 along joint 1's axis), ``dl5 ≡ dl6`` (q4 moves along its own axis),
 ``dtheta6`` is zero with the TCP on axis 6, and a fitted base frame absorbs ``dtheta1`` and ``dl2``.
 :func:`poe_identifiability` offers the columns to
-:func:`comp_daemon.models.identifiability.analyze_identifiability` in :data:`POE_PRIORITY` order
+:func:`comp_daemon.estimation.identifiability.analyze_identifiability` in :data:`POE_PRIORITY` order
 (frame parameters first, then the errors, the ones to fix when dependent last: ``dl5``, ``dl1``,
 ``dtheta6``), so the removed set is named the way the spec names it, each with the kept columns it
 depends on. :func:`null_directions` adds the null-space vectors of the normalised columns (largest
@@ -24,7 +24,7 @@ per joint point (:meth:`PoeModel.from_robot`). :func:`paper_layout` tells which 
 :func:`layout_twists` builds it; the paper's forms (``poe:paper``, a ballbar campaign's fit) use it.
 
 The fit iterates the identifiable columns with the improved Levenberg–Marquardt method of
-:mod:`comp_daemon.models.lm` (columns scaled); the removed parameters stay at zero. The standard
+:mod:`comp_daemon.estimation.lm` (columns scaled); the removed parameters stay at zero. The standard
 uncertainty of each fitted parameter is ``s·sqrt(diag((JᵀWJ)⁻¹))`` with ``s²`` the weighted residual
 variance (or 1 when the weights are known inverse variances, ``weights_are_inverse_variance``).
 """
@@ -39,6 +39,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
+from comp_daemon.estimation.identifiability import IdentifiabilityReport, analyze_identifiability
+from comp_daemon.estimation.lm import improved_lm
+from comp_daemon.estimation.registration import rigid_registration
 from comp_daemon.kinematics.poe import (
     N_POE_PARAMS,
     POE_PARAM_NAMES,
@@ -48,9 +51,6 @@ from comp_daemon.kinematics.poe import (
     poe_error_jacobian,
 )
 from comp_daemon.kinematics.so3 import left_jacobian, rotvec_to_matrix, skew
-from comp_daemon.models.identifiability import IdentifiabilityReport, analyze_identifiability
-from comp_daemon.models.lm import improved_lm
-from comp_daemon.models.registration import rigid_registration
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -316,7 +316,7 @@ def fit_poe_positions(
     """Identify the POE errors (and, with ``fit_base``, the frame) from measured TCP positions.
 
     ``a_deg`` (n, 6) axis values, ``p_meas_mm`` (n, 3). ``weights`` (n,) multiply each point's squared
-    residual (e.g. ``1/u²`` from :mod:`comp_daemon.models.uncertainty`). With ``fit_base`` the start
+    residual (e.g. ``1/u²`` from :mod:`comp_daemon.estimation.uncertainty`). With ``fit_base`` the start
     frame is the rigid registration of the nominal TCPs onto the measured ones.
     """
     a = np.atleast_2d(np.asarray(a_deg, dtype=float))

@@ -6,10 +6,10 @@ from collections.abc import Callable, Sequence
 
 import numpy as np
 
-from comp_daemon.models.export.krl import format_krl_targets, format_kuka, parse_krl_targets, parse_kuka
-from comp_daemon.models.export.params import ControllerParams, format_csv, model_of, parse_csv
-from comp_daemon.models.export.rapid import format_abb, format_rapid_targets, parse_abb, parse_rapid_targets
-from comp_daemon.models.export.targets import TargetList, format_csv_targets, parse_csv_targets
+from comp_daemon.export.krl import format_krl_targets, format_kuka, parse_krl_targets, parse_kuka
+from comp_daemon.export.params import ControllerParams, format_csv, model_of, parse_csv
+from comp_daemon.export.rapid import format_abb, format_rapid_targets, parse_abb, parse_rapid_targets
+from comp_daemon.export.targets import TargetList, format_csv_targets, parse_csv_targets
 from comp_daemon.models.kinematic import KinematicModel
 
 __all__ = [

@@ -23,9 +23,8 @@ from collections.abc import Mapping, Sequence
 
 import numpy as np
 
-from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, flange_rotation_of_tool_abc, matrix_to_abc_deg
-from comp_daemon.models.export.frames import FloatArray, frame, matrix_to_rotvec_deg, num
-from comp_daemon.models.export.params import (
+from comp_daemon.export.frames import FloatArray, frame, matrix_to_rotvec_deg, num
+from comp_daemon.export.params import (
     FRAME_AXES,
     JOINT_FIELDS,
     ControllerParams,
@@ -37,7 +36,8 @@ from comp_daemon.models.export.params import (
     sigma_note,
     with_frames,
 )
-from comp_daemon.models.export.targets import TargetList
+from comp_daemon.export.targets import TargetList
+from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, flange_rotation_of_tool_abc, matrix_to_abc_deg
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 
 __all__ = ["format_krl_targets", "format_kuka", "parse_krl_targets", "parse_kuka"]

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from comp_daemon.models.export.frames import (
+from comp_daemon.export.frames import (
     FloatArray,
     frame,
     matrix_to_quaternion,
@@ -34,7 +34,7 @@ from comp_daemon.models.export.frames import (
     num,
     quaternion_to_matrix,
 )
-from comp_daemon.models.export.params import (
+from comp_daemon.export.params import (
     FRAME_AXES,
     JOINT_FIELDS,
     ControllerParams,
@@ -43,7 +43,7 @@ from comp_daemon.models.export.params import (
     of_rows,
     with_frames,
 )
-from comp_daemon.models.export.targets import TargetList
+from comp_daemon.export.targets import TargetList
 
 __all__ = ["format_abb", "format_rapid_targets", "parse_abb", "parse_rapid_targets"]
 

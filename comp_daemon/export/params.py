@@ -3,7 +3,7 @@
 :class:`ControllerParams` holds what every parameter listing says; :func:`controller_params` makes
 it from a :class:`~comp_daemon.models.kinematic.KinematicModel` (with its effects and its
 covariance's 1-σ), :func:`model_of` makes the model back from it. The makers' listings are in
-:mod:`~comp_daemon.models.export.krl` (KUKA) and :mod:`~comp_daemon.models.export.rapid` (ABB);
+:mod:`~comp_daemon.export.krl` (KUKA) and :mod:`~comp_daemon.export.rapid` (ABB);
 the CSV one is here (:func:`format_csv` / :func:`parse_csv`): ``# key: value`` header lines, then
 ``name, nominal, identified, delta, unit, sigma``, one parameter a row (sigma empty for a parameter
 the fit did not identify). Text in, values out; numbers as the shortest decimal that reads back to
@@ -34,19 +34,19 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.kinematics.so3 import skew
-from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.covariance import ParameterCovariance
-from comp_daemon.models.effects import EffectParams
-from comp_daemon.models.effects.params import parse_param_name
-from comp_daemon.models.export.frames import (
+from comp_daemon.export.frames import (
     frame,
     matrix_to_rotvec_deg,
     num,
     rigid_inverse,
     rotvec_deg_to_matrix,
 )
+from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.so3 import skew
+from comp_daemon.models.base import ErrorModel
+from comp_daemon.models.covariance import ParameterCovariance
+from comp_daemon.models.effects import EffectParams
+from comp_daemon.models.effects.params import parse_param_name
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.robot.description import RobotDescription
 
