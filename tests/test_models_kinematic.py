@@ -15,9 +15,8 @@ from comp_daemon.kinematics.params import (
 )
 from comp_daemon.kinematics.so3 import left_jacobian as so3_left_jacobian
 from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
-from comp_daemon.models.effects import EffectParams, effect_param_names, twin_tcp_mm
+from comp_daemon.models.effects import TRANSMISSION_EFFECTS, EffectParams, effect_param_names, twin_tcp_mm
 from comp_daemon.models.kinematic import (
-    SEED001_EFFECTS,
     KinematicProblem,
     calibrate_kinematic,
 )
@@ -154,12 +153,12 @@ def test_seed001_ratio_and_backlash_are_recovered() -> None:
         rng.normal(size=ident.size) * np.r_[SIZES, 1.0, 1.0, 1.0, 1e-3, 1e-3, 1e-3, 0.5, 0.5, 0.5][ident]
     )
     truth = _truth(kr, dx, None)
-    names = effect_param_names(list(SEED001_EFFECTS))
+    names = effect_param_names(list(TRANSMISSION_EFFECTS))
     values = np.r_[rng.normal(size=6) * 5e-5, np.abs(rng.normal(size=6)) * 5e-3]  # eps (1), h (deg)
     eff = EffectParams.zeros().with_values(names, values)
     p = twin_tcp_mm(kr, truth, eff, a, dirs)
     plain = calibrate_kinematic(kr, a, p)
-    fit = calibrate_kinematic(kr, a, p, dir=dirs, effects=SEED001_EFFECTS)
+    fit = calibrate_kinematic(kr, a, p, dir=dirs, effects=TRANSMISSION_EFFECTS)
     assert plain.rms_mm > 0.01  # geometry alone cannot explain direction-dependent errors
     assert fit.rms_mm < 1e-8
     assert fit.model.effects is not None
