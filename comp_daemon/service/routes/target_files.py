@@ -15,15 +15,14 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Query, Request, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.readers import parse_dataset
 from comp_daemon.data.target import targets_of_dataset
-from comp_daemon.service.auth import Principal, require
-from comp_daemon.service.config import Role
+from comp_daemon.service.routes.params import Operator, State
 from comp_daemon.service.routes.read_options import ReadingQuery, options_of
 from comp_daemon.service.routes.targets import (
     IdempotencyKey,
@@ -32,13 +31,11 @@ from comp_daemon.service.routes.targets import (
     validate_targets,
 )
 from comp_daemon.service.schemas import BatchOut, ErrorOut
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError, ServiceState
 
 router = APIRouter(tags=["targets"])
 _log = get_logger("comp_daemon.api.targets")
 
-State = Annotated[ServiceState, Depends(get_state)]
-Operator = Annotated[Principal, Depends(require(Role.operator))]
 
 _CSV_TYPES = ("text/csv", "application/csv", "text/plain")
 _BODY: dict[str, Any] = {

@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, Header, Path, Query, Response
+from fastapi import APIRouter, Header, Path, Query, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.dataset import DatasetError, dataset_from_records
@@ -40,8 +40,7 @@ from comp_daemon.models.compensation import (
     wrist_refusals,
 )
 from comp_daemon.robot.description import RobotDescription
-from comp_daemon.service.auth import Principal, require
-from comp_daemon.service.config import Role
+from comp_daemon.service.routes.params import Operator, Paging, State, Viewer
 from comp_daemon.service.schemas import (
     MAX_ID,
     TARGET_MOVING,
@@ -51,15 +50,12 @@ from comp_daemon.service.schemas import (
     TargetOut,
     json_array,
 )
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError
 from comp_daemon.service.store import Store, TargetRecord
 
 router = APIRouter(tags=["targets"])
 _log = get_logger("comp_daemon.api.targets")
 
-State = Annotated[ServiceState, Depends(get_state)]
-Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
-Operator = Annotated[Principal, Depends(require(Role.operator))]
 TargetId = Annotated[int, Path(ge=1, le=MAX_ID, description="target id")]
 BatchId = Annotated[int, Path(ge=1, le=MAX_ID, description="batch id")]
 TargetState = Literal[
@@ -252,18 +248,17 @@ async def cancel_batch(batch_id: BatchId, svc: State, who: Operator) -> list[Tar
 async def list_targets(
     svc: State,
     who: Viewer,
+    page: Paging,
     batch_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
     state: Annotated[list[TargetState] | None, Query(description="one or more states")] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
     newest_first: bool = False,
 ) -> Response:
     rows = await svc.run(
         svc.store.list_targets,
         batch_id=batch_id,
         states=state,
-        limit=min(limit, svc.settings.http.max_page_items),
-        offset=offset,
+        limit=page.limit,
+        offset=page.offset,
         newest_first=newest_first,
     )
     return json_array(await svc.run(_out, svc.store, rows))
