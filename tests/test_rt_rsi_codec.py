@@ -194,6 +194,21 @@ def test_parse_sen_requires_ak_and_ipoc_and_checks_stop() -> None:
     assert r == SenReply(1, (0, 0, 0, 0, 0, 1), False, "x")
 
 
+@pytest.mark.parametrize(
+    ("element", "reason"),
+    [
+        (b"<IPOC>2</IPOC>", "element <IPOC> appears twice"),
+        (b'<AK A1="0" A2="0" A3="0" A4="0" A5="0" A6="2"/>', "element <AK> appears twice"),
+        (b"<Stop>0<x/></Stop>", "<Stop> must not contain elements"),
+        (b"<Stop>0</Stop>junk", "stray text 'junk' after <Stop>"),
+    ],
+)
+def test_parse_sen_refuses_a_repeated_or_nested_element(element: bytes, reason: str) -> None:
+    sen = b'<Sen Type="x"><AK A1="0" A2="0" A3="0" A4="0" A5="0" A6="1"/><IPOC>1</IPOC>' + element + b"</Sen>"
+    with pytest.raises(RsiProtocolError, match=reason):
+        parse_sen(sen)
+
+
 # ------------------------------------------------------------------------------------------ fuzzing
 
 _FUZZ = settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.too_slow])

@@ -78,3 +78,22 @@ async def test_roles_and_media_type(tmp_path: Path) -> None:
         assert r.status_code == 415 and "text/csv" in r.json()["message"]
         r = await client.post("/api/batches/file", content=text.encode(), headers={**auth("operator")})
         assert r.status_code == 422  # no Idempotency-Key
+
+
+async def test_a_file_and_a_json_batch_over_max_batch_targets_are_refused_alike(tmp_path: Path) -> None:
+    async with in_process_service(make_settings(tmp_path, http={"max_batch_targets": 2})) as (client, store):
+        text = HEADER + "".join(axes_row(f"p{i}", a1=float(i)) for i in range(3))
+        by_file = await post(client, text, "big-file")
+        by_json = await client.post(
+            "/api/batches",
+            json={"targets": [{**AXES, "a1": float(i), "pose_id": f"p{i}"} for i in range(3)]},
+            headers={**auth("operator"), "Idempotency-Key": "big-json"},
+        )
+        for r in (by_file, by_json):
+            assert r.status_code == 422, r.text
+            assert r.json()["message"] == "batch of 3 targets is over the limit of 2 (http.max_batch_targets)"
+        assert by_json.json()["column"] == "targets"
+        assert store.list_targets() == []
+        assert (
+            await post(client, HEADER + axes_row("p0") + axes_row("p1", a1=1.0), "fits")
+        ).status_code == 201

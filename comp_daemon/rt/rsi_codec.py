@@ -175,6 +175,14 @@ def _check_leaf(element: ET.Element, data: bytes) -> None:
         raise RsiProtocolError(f"stray text {element.tail.strip()[:20]!r} after <{element.tag}>", data)
 
 
+def _take_leaf(element: ET.Element, seen: set[str], data: bytes) -> None:
+    """Check ``element`` is a leaf not met before in its telegram (tags in ``seen``), and note its tag."""
+    _check_leaf(element, data)
+    if element.tag in seen:
+        raise RsiProtocolError(f"element <{element.tag}> appears twice", data)
+    seen.add(element.tag)
+
+
 _FAST_NUM = rb"(-?\d{1,15}(?:\.\d{1,15})?)"
 
 
@@ -241,10 +249,7 @@ def _parse_rob_full(data: bytes) -> RobTelegram:
                 raise RsiProtocolError(f"stray text {child.tail.strip()[:20]!r} after <{tag}>", data)
             extra.append((tag, tuple(sorted(child.attrib.items())), (child.text or "").strip()))
             continue
-        _check_leaf(child, data)
-        if tag in seen:
-            raise RsiProtocolError(f"element <{tag}> appears twice", data)
-        seen.add(tag)
+        _take_leaf(child, seen, data)
         if tag == "IPOC":
             ipoc = _unsigned(child.text, "IPOC", data)
         elif tag == "Delay":
@@ -281,10 +286,7 @@ def parse_sen(data: bytes) -> SenReply:
         tag = child.tag
         if tag not in _KNOWN_SEN:
             continue
-        _check_leaf(child, data)
-        if tag in seen:
-            raise RsiProtocolError(f"element <{tag}> appears twice", data)
-        seen.add(tag)
+        _take_leaf(child, seen, data)
         if tag == "IPOC":
             ipoc = _unsigned(child.text, "IPOC", data)
         elif tag == "AK":

@@ -120,6 +120,22 @@ class _BodyTooLarge(Exception):
     pass
 
 
+class _ResponseWatch:
+    """Passes an app's messages on to ``send`` and notes whether its response has started: once it
+    has, an error can no longer be answered with a response of its own."""
+
+    __slots__ = ("_send", "started")
+
+    def __init__(self, send: Send) -> None:
+        self._send = send
+        self.started = False
+
+    async def send(self, message: Message) -> None:
+        if message["type"] == "http.response.start":
+            self.started = True
+        await self._send(message)
+
+
 class BodyLimitMiddleware:
     """Refuse request bodies over ``limit_bytes`` with 413, by Content-Length or while streaming."""
 
@@ -141,7 +157,7 @@ class BodyLimitMiddleware:
                     await _send_error(send, 413 if declared > 0 else 400, self._message(declared))
                     return
         received = 0
-        started = False
+        response = _ResponseWatch(send)
 
         async def limited_receive() -> Message:
             nonlocal received
@@ -152,16 +168,10 @@ class BodyLimitMiddleware:
                     raise _BodyTooLarge
             return message
 
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-            await send(message)
-
         try:
-            await self.app(scope, limited_receive, tracking_send)
+            await self.app(scope, limited_receive, response.send)
         except _BodyTooLarge:
-            if not started:
+            if not response.started:
                 await _send_error(send, 413, self._message(received))
 
     def _message(self, size: int) -> tuple[str, str]:
@@ -183,16 +193,9 @@ class InternalErrorMiddleware:
         if scope["type"] != "http":
             await self.app(scope, receive, send)
             return
-        started = False
-
-        async def tracking_send(message: Message) -> None:
-            nonlocal started
-            if message["type"] == "http.response.start":
-                started = True
-            await send(message)
-
+        response = _ResponseWatch(send)
         try:
-            await self.app(scope, receive, tracking_send)
+            await self.app(scope, receive, response.send)
         except ClientDisconnect:  # nobody to answer; not a fault of ours
             _log.info("client went away during its request", path=scope.get("path"))
         except Exception:
@@ -201,7 +204,7 @@ class InternalErrorMiddleware:
             _log.exception(
                 "internal error", error_id=error_id, path=scope.get("path"), method=scope.get("method")
             )
-            if not started:
+            if not response.started:
                 await _send_error(send, 500, ("internal", "internal error"), error_id=error_id)
 
 

@@ -21,26 +21,22 @@ from __future__ import annotations
 import asyncio
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Path, Query, Request, Response
+from fastapi import APIRouter, Path, Query, Request, Response
 from starlette.datastructures import UploadFile
 from starlette.requests import ClientDisconnect
 from starlette.types import Receive, Scope, Send
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.service.auth import Principal, require
-from comp_daemon.service.config import Role
+from comp_daemon.service.routes.params import Engineer, Paging, State, Viewer
 from comp_daemon.service.routes.read_options import OPTION_FIELDS, ReadingQuery, merged, options_of
 from comp_daemon.service.schemas import MAX_ID, DatasetOut, ErrorOut, json_array
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError
 from comp_daemon.service.store.artifacts import DatasetContent
 from comp_daemon.service.uploads import Spool, UploadChecker, UploadRefused
 
 router = APIRouter(tags=["datasets"])
 _log = get_logger("comp_daemon.api.datasets")
 
-State = Annotated[ServiceState, Depends(get_state)]
-Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
-Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 DatasetId = Annotated[int, Path(ge=1, le=MAX_ID, description="data set id")]
 
 #: a download's chunk: what one connection holds at most, beside the socket's buffer
@@ -217,12 +213,9 @@ async def _receive(
 async def list_datasets(
     svc: State,
     who: Viewer,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
+    page: Paging,
 ) -> Response:
-    rows = await svc.run(
-        svc.store.list_datasets, limit=min(limit, svc.settings.http.max_page_items), offset=offset
-    )
+    rows = await svc.run(svc.store.list_datasets, limit=page.limit, offset=page.offset)
     return json_array(DatasetOut.of(r) for r in rows)
 
 

@@ -8,24 +8,20 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Path, Query
+from fastapi import APIRouter, Path
 from fastapi.responses import HTMLResponse, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.service import job_kinds
-from comp_daemon.service.auth import Principal, require
-from comp_daemon.service.config import Role
 from comp_daemon.service.routes.fits import launch_job
+from comp_daemon.service.routes.params import Engineer, Paging, State, Viewer
 from comp_daemon.service.schemas import MAX_ID, DiagnosisIn, ErrorOut, JobOut, json_array
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError, ServiceState
 from comp_daemon.service.store import JobRecord
 
 router = APIRouter(tags=["diagnoses"])
 _log = get_logger("comp_daemon.api.diagnoses")
 
-State = Annotated[ServiceState, Depends(get_state)]
-Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
-Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="the diagnosis job's id")]
 
 _REPORT_ERRORS: dict[int | str, dict[str, Any]] = {
@@ -63,14 +59,13 @@ async def start_diagnosis(body: DiagnosisIn, svc: State, who: Engineer) -> JobOu
 async def list_diagnoses(
     svc: State,
     who: Viewer,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
+    page: Paging,
 ) -> Response:
     rows = await svc.run(
         svc.store.list_jobs,
         kind=job_kinds.DIAGNOSIS,
-        limit=min(limit, svc.settings.http.max_page_items),
-        offset=offset,
+        limit=page.limit,
+        offset=page.offset,
     )
     return json_array(JobOut.of(r, with_result=False) for r in rows)
 

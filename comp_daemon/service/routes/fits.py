@@ -13,7 +13,7 @@ from __future__ import annotations
 import json
 from typing import Annotated, Any, Literal
 
-from fastapi import APIRouter, Depends, Path, Query
+from fastapi import APIRouter, Path, Query
 from fastapi.responses import JSONResponse, PlainTextResponse, Response
 from pydantic import Field
 
@@ -24,18 +24,14 @@ from comp_daemon.models.artifact import ModelArtifactError, parse_model
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.registry import KINDS, UnknownModelError, parse_model_name, with_order
 from comp_daemon.service import job_kinds
-from comp_daemon.service.auth import Principal, require
-from comp_daemon.service.config import Role
+from comp_daemon.service.routes.params import Engineer, Paging, State, Viewer
 from comp_daemon.service.schemas import MAX_ID, ErrorOut, FitIn, JobOut, ModelOut, json_array
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError, ServiceState
 from comp_daemon.service.store import JobRecord
 
 router = APIRouter()
 _log = get_logger("comp_daemon.api.fits")
 
-State = Annotated[ServiceState, Depends(get_state)]
-Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
-Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 JobId = Annotated[int, Path(ge=1, le=MAX_ID, description="job id")]
 ModelId = Annotated[int, Path(ge=1, le=MAX_ID, description="model id")]
 
@@ -134,17 +130,16 @@ async def fit_kinds(who: Viewer) -> list[dict[str, Any]]:
 async def list_jobs(
     svc: State,
     who: Viewer,
+    page: Paging,
     kind: Annotated[str | None, Query(max_length=32)] = None,
     state: Literal["queued", "running", "done", "failed", "cancelled"] | None = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
 ) -> Response:
     rows = await svc.run(
         svc.store.list_jobs,
         kind=kind,
         state=state,
-        limit=min(limit, svc.settings.http.max_page_items),
-        offset=offset,
+        limit=page.limit,
+        offset=page.offset,
         summary=True,
     )
     return json_array(JobOut.of(r, with_result=r.kind != job_kinds.DIAGNOSIS, summary=True) for r in rows)
@@ -181,13 +176,12 @@ async def cancel_job(job_id: JobId, svc: State, who: Engineer) -> JobOut:
 async def list_models(
     svc: State,
     who: Viewer,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
+    page: Paging,
 ) -> Response:
     rows = await svc.run(
         svc.store.list_models,
-        limit=min(limit, svc.settings.http.max_page_items),
-        offset=offset,
+        limit=page.limit,
+        offset=page.offset,
         summary=True,
     )
     return json_array(ModelOut.of(r, summary=True) for r in rows)

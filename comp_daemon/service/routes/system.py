@@ -31,6 +31,7 @@ from comp_daemon.service.auth import Principal, require
 from comp_daemon.service.config import Role
 from comp_daemon.service.daemon_view import DaemonControl
 from comp_daemon.service.events import CLOSING
+from comp_daemon.service.routes.params import Engineer, Operator, State, Viewer
 from comp_daemon.service.schemas import (
     MAX_ID,
     ErrorOut,
@@ -39,18 +40,14 @@ from comp_daemon.service.schemas import (
     ReadyOut,
     json_array,
 )
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError, ServiceState
 from comp_daemon.service.status import RsiReporter, StatusBoard
 
 __all__ = ["RsiReporter", "router"]
 
 router = APIRouter()
 
-State = Annotated[ServiceState, Depends(get_state)]
-Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
 MetricsReader = Annotated[Principal, Depends(require(Role.viewer, anonymous_if="anonymous_metrics"))]
-Operator = Annotated[Principal, Depends(require(Role.operator))]
-Engineer = Annotated[Principal, Depends(require(Role.engineer))]
 
 
 def _board(request: Request) -> StatusBoard:

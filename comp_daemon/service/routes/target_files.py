@@ -15,30 +15,24 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from fastapi import APIRouter, Depends, Query, Request, Response
+from fastapi import APIRouter, Query, Request, Response
 
-from comp_daemon.common.logs import get_logger
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.readers import parse_dataset
 from comp_daemon.data.target import targets_of_dataset
-from comp_daemon.service.auth import Principal, require
-from comp_daemon.service.config import Role
+from comp_daemon.service.routes.params import Operator, State
 from comp_daemon.service.routes.read_options import ReadingQuery, options_of
 from comp_daemon.service.routes.targets import (
     IdempotencyKey,
-    compensations,
-    request_sha256,
+    check_batch_size,
+    queue_batch,
     validate_targets,
 )
 from comp_daemon.service.schemas import BatchOut, ErrorOut
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError, ServiceState
 
 router = APIRouter(tags=["targets"])
-_log = get_logger("comp_daemon.api.targets")
-
-State = Annotated[ServiceState, Depends(get_state)]
-Operator = Annotated[Principal, Depends(require(Role.operator))]
 
 _CSV_TYPES = ("text/csv", "application/csv", "text/plain")
 _BODY: dict[str, Any] = {
@@ -58,13 +52,7 @@ def _read(text: bytes, name: str, svc: ServiceState, options: ReadOptions) -> li
         text, source=name, limits_deg=svc.robot.axis_limits_deg, kind="targets", options=options
     )
     targets = targets_of_dataset(dataset)
-    limit = svc.settings.http.max_batch_targets
-    if len(targets) > limit:
-        raise ApiError(
-            422,
-            "invalid_request",
-            f"{len(targets)} targets is over the limit of {limit} per batch (http.max_batch_targets)",
-        )
+    check_batch_size(svc, len(targets))
     try:
         validate_targets(targets, svc.robot, svc.settings.compensation.limits())
     except DatasetError as exc:
@@ -114,11 +102,4 @@ async def post_target_file(
                 413, "too_large", f"upload over the limit of {limit} bytes (http.max_upload_bytes)"
             )
     records = await svc.run(_read, bytes(body), name, svc, options)
-    batch, targets, created = await svc.run(
-        svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
-    )
-    if created:
-        _log.info("target file queued", batch_id=batch.id, size=batch.size, file=name, by=who.name)
-    else:
-        response.status_code = 200
-    return BatchOut.of(batch, targets, await svc.run(compensations, svc.store, targets))
+    return await queue_batch(svc, response, who, idempotency_key, records, "target file queued", file=name)

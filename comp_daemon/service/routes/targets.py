@@ -26,7 +26,7 @@ from collections.abc import Sequence
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from fastapi import APIRouter, Depends, Header, Path, Query, Response
+from fastapi import APIRouter, Header, Path, Query, Response
 
 from comp_daemon.common.logs import get_logger
 from comp_daemon.data.dataset import DatasetError, dataset_from_records
@@ -40,8 +40,8 @@ from comp_daemon.models.compensation import (
     wrist_refusals,
 )
 from comp_daemon.robot.description import RobotDescription
-from comp_daemon.service.auth import Principal, require
-from comp_daemon.service.config import Role
+from comp_daemon.service.auth import Principal
+from comp_daemon.service.routes.params import Operator, Paging, State, Viewer
 from comp_daemon.service.schemas import (
     MAX_ID,
     TARGET_MOVING,
@@ -51,15 +51,12 @@ from comp_daemon.service.schemas import (
     TargetOut,
     json_array,
 )
-from comp_daemon.service.state import ApiError, ServiceState, get_state
+from comp_daemon.service.state import ApiError, ServiceState
 from comp_daemon.service.store import Store, TargetRecord
 
 router = APIRouter(tags=["targets"])
 _log = get_logger("comp_daemon.api.targets")
 
-State = Annotated[ServiceState, Depends(get_state)]
-Viewer = Annotated[Principal, Depends(require(Role.viewer, read=True))]
-Operator = Annotated[Principal, Depends(require(Role.operator))]
 TargetId = Annotated[int, Path(ge=1, le=MAX_ID, description="target id")]
 BatchId = Annotated[int, Path(ge=1, le=MAX_ID, description="batch id")]
 TargetState = Literal[
@@ -186,6 +183,40 @@ def request_sha256(records: Sequence[dict[str, Any]]) -> str:
     return hashlib.sha256(canonical.encode()).hexdigest()
 
 
+def check_batch_size(svc: ServiceState, size: int, **where: Any) -> None:
+    """Refuse (422) a batch of ``size`` targets over ``http.max_batch_targets``; ``where`` names the
+    field at fault in the error's body."""
+    limit = svc.settings.http.max_batch_targets
+    if size > limit:
+        raise ApiError(
+            422,
+            "invalid_request",
+            f"batch of {size} targets is over the limit of {limit} (http.max_batch_targets)",
+            **where,
+        )
+
+
+async def queue_batch(
+    svc: ServiceState,
+    response: Response,
+    who: Principal,
+    idempotency_key: str,
+    records: list[dict[str, Any]],
+    event: str,
+    **logged: Any,
+) -> BatchOut:
+    """Queue checked target ``records`` as a batch once per ``idempotency_key``: the new batch (201),
+    or the one queued earlier under that key (200; a key used with other records is refused 409)."""
+    batch, queued, created = await svc.run(
+        svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
+    )
+    if created:
+        _log.info(event, batch_id=batch.id, size=batch.size, **logged, by=who.name)
+    else:
+        response.status_code = 200
+    return BatchOut.of(batch, queued, await svc.run(compensations, svc.store, queued))
+
+
 @router.post(
     "/batches",
     status_code=201,
@@ -204,25 +235,11 @@ async def post_batch(
     who: Operator,
     idempotency_key: IdempotencyKey,
 ) -> BatchOut:
-    limit = svc.settings.http.max_batch_targets
-    if len(body.targets) > limit:
-        raise ApiError(
-            422,
-            "invalid_request",
-            f"batch of {len(body.targets)} targets is over the limit of {limit} (http.max_batch_targets)",
-            column="targets",
-        )
+    check_batch_size(svc, len(body.targets), column="targets")
     targets = [t.target() for t in body.targets]
     await svc.run(validate_targets, targets, svc.robot, svc.settings.compensation.limits())
     records = [t.to_record() for t in targets]
-    batch, queued, created = await svc.run(
-        svc.store.submit_batch, idempotency_key, request_sha256(records), records, source=who.name
-    )
-    if created:
-        _log.info("batch queued", batch_id=batch.id, size=batch.size, by=who.name)
-    else:
-        response.status_code = 200
-    return BatchOut.of(batch, queued, await svc.run(compensations, svc.store, queued))
+    return await queue_batch(svc, response, who, idempotency_key, records, "batch queued")
 
 
 @router.get(
@@ -252,18 +269,17 @@ async def cancel_batch(batch_id: BatchId, svc: State, who: Operator) -> list[Tar
 async def list_targets(
     svc: State,
     who: Viewer,
+    page: Paging,
     batch_id: Annotated[int | None, Query(ge=1, le=MAX_ID)] = None,
     state: Annotated[list[TargetState] | None, Query(description="one or more states")] = None,
-    limit: Annotated[int, Query(ge=1, le=1000)] = 100,
-    offset: Annotated[int, Query(ge=0, le=2**31)] = 0,
     newest_first: bool = False,
 ) -> Response:
     rows = await svc.run(
         svc.store.list_targets,
         batch_id=batch_id,
         states=state,
-        limit=min(limit, svc.settings.http.max_page_items),
-        offset=offset,
+        limit=page.limit,
+        offset=page.offset,
         newest_first=newest_first,
     )
     return json_array(await svc.run(_out, svc.store, rows))
