@@ -59,7 +59,7 @@ from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import left_jacobian, skew
-from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.base import ErrorModel, as_axes, finite_array
 from comp_daemon.models.effects import (
     EFFECTS,
     EffectParams,
@@ -206,12 +206,8 @@ def params_from_payload(
 
 
 def _floats(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
-    out = np.array(value, dtype=float)
-    if out.shape != shape:
-        raise ValueError(f"model field '{name}': expected shape {shape}, got {out.shape}")
-    if not np.all(np.isfinite(out)):
-        raise ValueError(f"model field '{name}': values must be finite")
-    return out
+    """A stored model field as a finite float array (:func:`finite_array`, the error naming it)."""
+    return finite_array(value, shape, f"model field '{name}'")
 
 
 def target_param_names(n_more: int) -> list[str]:
