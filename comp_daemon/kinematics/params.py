@@ -35,6 +35,7 @@ __all__ = [
     "PARAM_NAMES",
     "TOOL_SLICE",
     "KinematicParams",
+    "as_six_columns",
     "axes_deg_to_q_rad",
     "joint_param_index",
     "q_rad_to_axes_deg",
@@ -125,6 +126,17 @@ class KinematicParams:
         dx[33:36] = matrix_to_rotvec(delta[:3, :3])
         dx[TOOL_SLICE] = self.tool_xyz_mm - other.tool_xyz_mm
         return dx
+
+
+def as_six_columns(value: NDArray[np.float64], what: str) -> NDArray[np.float64]:
+    """``value`` as an (n, 6) float array, one per joint (one pose may be given as (6,));
+    another shape is a ValueError naming ``what`` and the shape given."""
+    out = np.asarray(value, dtype=float)
+    if out.ndim == 1:
+        out = out[None, :]
+    if out.ndim != 2 or out.shape[1] != 6:
+        raise ValueError(f"{what} must have shape (n, 6), got {np.shape(value)}")
+    return out
 
 
 def axes_deg_to_q_rad(a_deg: NDArray[np.float64], sign: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -30,7 +30,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, as_six_columns, axes_deg_to_q_rad
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -59,12 +59,7 @@ def uses_approach_directions(model: object) -> bool:
 
 def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
     """``a_deg`` as an (n, 6) float array (one pose may be given as (6,))."""
-    a = np.asarray(a_deg, dtype=float)
-    if a.ndim == 1:
-        a = a[None, :]
-    if a.ndim != 2 or a.shape[1] != 6:
-        raise ValueError(f"axis values must have shape (n, 6), got {np.shape(a_deg)}")
-    return a
+    return as_six_columns(a_deg, "axis values")
 
 
 def finite_array(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
