@@ -39,6 +39,8 @@ __all__ = [
     "PredictionUncertainty",
     "as_axes",
     "finite_array",
+    "further_targets",
+    "measured_positions",
     "uses_approach_directions",
 ]
 
@@ -70,6 +72,24 @@ def finite_array(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.fl
     if not np.all(np.isfinite(out)):
         raise ValueError(f"{name}: values must be finite")
     return out
+
+
+def measured_positions(value: Any, n: int) -> NDArray[np.float64]:
+    """The (n, 3) measured TCP positions of ``n`` rows, finite (a ValueError saying which is wrong)."""
+    p = np.asarray(value, dtype=float)
+    if p.shape != (n, 3):
+        raise ValueError(f"measured positions must have shape ({n}, 3), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError("measured positions must be finite")
+    return p
+
+
+def further_targets(value: Any, n: int) -> NDArray[np.float64]:
+    """The (n, K − 1, 3) measured positions of ``n`` rows' further targets (a ValueError naming the shape)."""
+    more = np.asarray(value, dtype=float)
+    if more.ndim != 3 or more.shape[0] != n or more.shape[2] != 3:
+        raise ValueError(f"further targets must have shape ({n}, K - 1, 3), got {more.shape}")
+    return more
 
 
 class PredictionUncertainty(Protocol):

@@ -73,7 +73,7 @@ from comp_daemon.estimation.variogram import (
     valid_models,
 )
 from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.base import ErrorModel, as_axes, measured_positions
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -458,11 +458,7 @@ def fit_kriging(
     """
     a = as_axes(a_deg)
     n = a.shape[0]
-    p = np.asarray(p_measured_mm, dtype=float)
-    if p.shape != (n, 3):
-        raise ValueError(f"measured positions must have shape ({n}, 3), got {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise ValueError("measured positions must be finite")
+    p = measured_positions(p_measured_mm, n)
     if n < 4:
         raise ValueError(f"kriging needs at least 4 sampling points, got {n}")
     d = None if dir is None else _dir_array(dir, n)
