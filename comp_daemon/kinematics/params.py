@@ -94,6 +94,17 @@ class KinematicParams:
         """(6, 5) table of theta offset (rad), d, a (mm), alpha, beta (rad)."""
         return np.stack([self.theta_offset_rad, self.d_mm, self.a_mm, self.alpha_rad, self.beta_rad], axis=1)
 
+    def with_joint_table(self, table: NDArray[np.float64]) -> KinematicParams:
+        """These parameters with the joint geometry of a (6, 5) :meth:`joint_table` (copied)."""
+        return replace(
+            self,
+            theta_offset_rad=table[:, 0].copy(),
+            d_mm=table[:, 1].copy(),
+            a_mm=table[:, 2].copy(),
+            alpha_rad=table[:, 3].copy(),
+            beta_rad=table[:, 4].copy(),
+        )
+
     def apply(self, dx: NDArray[np.float64]) -> KinematicParams:
         """Parameters after adding an identification vector ``dx`` (layout of :data:`PARAM_NAMES`)."""
         dx = np.asarray(dx, dtype=float)
@@ -104,12 +115,7 @@ class KinematicParams:
         delta[:3, :3] = rotvec_to_matrix(dx[33:36])
         delta[:3, 3] = dx[30:33]
         return replace(
-            self,
-            theta_offset_rad=table[:, 0].copy(),
-            d_mm=table[:, 1].copy(),
-            a_mm=table[:, 2].copy(),
-            alpha_rad=table[:, 3].copy(),
-            beta_rad=table[:, 4].copy(),
+            self.with_joint_table(table),
             tool_xyz_mm=self.tool_xyz_mm + dx[TOOL_SLICE],
             world_T_base=delta @ self.world_T_base,
         )
