@@ -37,6 +37,7 @@ __all__ = [
     "ErrorModel",
     "NominalModel",
     "PredictionUncertainty",
+    "approach_directions",
     "as_axes",
     "finite_array",
     "further_targets",
@@ -62,6 +63,19 @@ def uses_approach_directions(model: object) -> bool:
 def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
     """``a_deg`` as an (n, 6) float array (one pose may be given as (6,))."""
     return as_six_columns(a_deg, "axis values")
+
+
+def approach_directions(dir: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
+    """The (n, 6) approach directions of ``n`` poses (one row may be given as (6,); None: zeros,
+    unknown); another shape is a ValueError naming ``dir``."""
+    if dir is None:
+        return np.zeros((n, 6))
+    d = np.asarray(dir, dtype=float)
+    if d.ndim == 1:
+        d = d[None, :]
+    if d.shape != (n, 6):
+        raise ValueError(f"dir: expected shape ({n}, 6) like the axis values, got {d.shape}")
+    return d
 
 
 def finite_array(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
