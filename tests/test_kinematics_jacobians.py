@@ -90,6 +90,18 @@ def test_parameter_vector_layout_and_apply_difference_round_trip() -> None:
     np.testing.assert_allclose(again.tool_xyz_mm, moved.tool_xyz_mm, atol=1e-12)
 
 
+def test_joint_table_round_trips_and_is_copied() -> None:
+    moved = _perturbed_params("kr210", 15)
+    nominal = KinematicParams.from_robot(load_robot("kr210"))
+    table = moved.joint_table()
+    again = nominal.with_joint_table(table)
+    np.testing.assert_array_equal(again.joint_table(), table)
+    np.testing.assert_array_equal(again.tool_xyz_mm, nominal.tool_xyz_mm)
+    np.testing.assert_array_equal(again.sign, nominal.sign)
+    table[:] = 0.0
+    np.testing.assert_array_equal(again.joint_table(), moved.joint_table())
+
+
 def test_refuses_wrongly_shaped_inputs() -> None:
     params = KinematicParams.from_robot(load_robot("kr210"))
     with pytest.raises(ValueError, match=r"shape \(n, 6\)"):

@@ -16,6 +16,7 @@ from comp_daemon.kinematics.poe import (
     poe_ik,
     poe_tcp_position_mm,
 )
+from comp_daemon.models.base import as_axes
 from comp_daemon.robot.description import load_robot
 
 
@@ -68,6 +69,19 @@ def test_batch_equals_single_pose() -> None:
     assert np.abs(batch - single).max() <= 1e-12
     per_pose = poe_tcp_position_mm(model, a_deg, np.tile(x, (20, 1)))
     assert np.abs(batch - per_pose).max() <= 1e-12
+
+
+def test_poses_not_of_six_axes_are_refused_naming_the_shape_given() -> None:
+    robot = load_robot("irb120")
+    model = irb120_table1(robot)
+    params = KinematicParams.from_robot(robot)
+    with pytest.raises(ValueError, match=r"axis values must have shape \(n, 6\), got \(5,\)"):
+        poe_tcp_position_mm(model, np.zeros(5))
+    with pytest.raises(ValueError, match=r"joint angles must have shape \(n, 6\), got \(5,\)"):
+        tcp_position_mm(params, np.zeros(5))
+    with pytest.raises(ValueError, match=r"axis values must have shape \(n, 6\), got \(2, 3, 6\)"):
+        as_axes(np.zeros((2, 3, 6)))
+    assert as_axes(np.arange(6.0)).shape == (1, 6)
 
 
 @pytest.mark.parametrize("layout", ["table1", "from_robot"])

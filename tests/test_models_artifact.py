@@ -121,6 +121,17 @@ def test_corrupt_and_foreign_files_are_refused(models: dict[str, ErrorModel], tm
         load_model(tmp_path / "missing.json")
 
 
+def test_kinematic_payload_field_of_wrong_shape_or_not_finite_is_named(models: dict[str, ErrorModel]) -> None:
+    kin = models["kinematic"]
+    payload = kin.to_payload()
+    with pytest.raises(ValueError, match=r"model field 'a_mm': expected shape \(6,\), got \(5,\)"):
+        type(kin).from_payload(KR, dict(payload, a_mm=payload["a_mm"][:5]), None, kin.registration)
+    with pytest.raises(ValueError, match="model field 'world_T_base': values must be finite"):
+        frame = np.array(payload["world_T_base"])
+        frame[0, 0] = np.nan
+        type(kin).from_payload(KR, dict(payload, world_T_base=frame.tolist()), None, kin.registration)
+
+
 def test_error_statistics_are_signed_per_axis_and_absolute_in_3d() -> None:
     measured = np.array([[1.0, 0.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 3.0, 4.0]])
     st = error_statistics(measured, np.zeros((3, 3)))

@@ -224,3 +224,17 @@ def test_bad_model_content_is_refused() -> None:
         ChebyshevModel(kr, np.eye(4), 1, kr.axis_limits_deg, np.zeros(5))
     with pytest.raises(ValueError, match="low < high"):
         ChebyshevModel(kr, np.eye(4), 0, np.zeros((6, 2)), np.zeros(42))
+
+
+def test_measured_positions_not_finite_or_of_another_shape_are_refused_by_name() -> None:
+    kr = load_robot("kr210")
+    a = _axes(kr, 40, seed=9)
+    params = KinematicParams.from_robot(kr)
+    p = tcp_position_mm(params, axes_deg_to_q_rad(a, params.sign))
+    p[3, 1] = np.nan
+    with pytest.raises(ValueError, match="measured positions must be finite"):
+        calibrate_kinematic(kr, a, p)
+    with pytest.raises(ValueError, match="measured positions must be finite"):
+        fit_chebyshev(kr, a, p, 1)
+    with pytest.raises(ValueError, match=r"measured positions must have shape \(40, 3\), got \(39, 3\)"):
+        fit_chebyshev(kr, a, p[:39], 1)

@@ -17,6 +17,7 @@ from comp_daemon.models.compensation import (
     compensate,
     feed_forward,
     joint_mapping,
+    nominal_solution,
     nominal_targets,
 )
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
@@ -201,3 +202,10 @@ def test_an_unknown_mapping_is_an_error() -> None:
     model = NominalModel(KR)
     with pytest.raises(ValueError, match="six-axis, three-axis"):
         compensate(model, np.array([[1800.0, 0.0, 1200.0]]), mapping="paper")  # type: ignore[arg-type]
+
+
+def test_targets_not_of_three_coordinates_are_refused_naming_the_shape() -> None:
+    with pytest.raises(ValueError, match=r"target positions must have shape \(n, 3\), got \(4, 2\)"):
+        compensate(NominalModel(KR), np.zeros((4, 2)))
+    with pytest.raises(ValueError, match=r"target positions must have shape \(n, 3\), got \(2, 4, 3\)"):
+        nominal_solution(KR, np.zeros((2, 4, 3)))

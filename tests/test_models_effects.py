@@ -228,8 +228,14 @@ def test_names_get_and_with_values_round_trip() -> None:
         (lambda: EffectParams.zeros(1).get(["c1_2"]), "harmonic 2"),
         (lambda: EffectParams().get(["h7"]), "unknown effect parameter 'h7'"),
         (lambda: effect_param_names("friction"), "unknown effect 'friction'"),
-        (lambda: twin_tcp_mm(ROBOT, PARAMS, EffectParams(), np.zeros((3, 5))), "a_deg"),
-        (lambda: twin_tcp_mm(ROBOT, PARAMS, EffectParams(), np.zeros((3, 6)), np.zeros((2, 6))), "dir"),
+        (
+            lambda: twin_tcp_mm(ROBOT, PARAMS, EffectParams(), np.zeros((3, 5))),
+            r"a_deg must have shape \(n, 6\), got \(3, 5\)",
+        ),
+        (
+            lambda: twin_tcp_mm(ROBOT, PARAMS, EffectParams(), np.zeros((3, 6)), np.zeros((2, 6))),
+            r"dir: expected shape \(3, 6\) like the axis values, got \(2, 6\)",
+        ),
         (
             lambda: twin_tcp_mm(ROBOT, PARAMS, EffectParams(), np.zeros((3, 6)), None, np.ones(2)),
             "payload_kg",

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from comp_daemon.estimation.local_kriging import LocalKriging
+from comp_daemon.estimation.variogram import VariogramModel
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
@@ -132,3 +133,12 @@ def test_shared_variogram_pairs_give_each_metric_its_own_empirical_variogram() -
         np.testing.assert_array_equal(got.count, want.count)
         np.testing.assert_allclose(got.gamma, want.gamma, rtol=1e-10)
         np.testing.assert_allclose(got.lag, want.lag, rtol=1e-10)
+
+
+def test_queries_of_another_dimension_are_refused() -> None:
+    rng = np.random.default_rng(5)
+    x, z = rng.uniform(-1.0, 1.0, (12, 4)), rng.normal(size=(12, 1))
+    local = LocalKriging(x, z, (VariogramModel("exponential", 0.1, 1.0, 1.0),), neighbours=5)
+    with pytest.raises(ValueError, match=r"query coordinates must be \(m, 4\), got \(2, 3\)"):
+        local.predict(np.zeros((2, 3)))
+    assert local.predict(np.zeros((2, 4))).shape == (2, 1)

@@ -27,7 +27,7 @@ import numpy as np
 from numpy.typing import NDArray
 from scipy.spatial import cKDTree
 
-from comp_daemon.estimation.ordinary_kriging import kriging_samples
+from comp_daemon.estimation.ordinary_kriging import kriging_queries, kriging_samples
 from comp_daemon.estimation.variogram import VariogramModel
 
 __all__ = ["LocalKriging"]
@@ -120,9 +120,7 @@ class LocalKriging:
         self, coords: NDArray[np.float64], *, return_std: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """(m, k) predictions at ``coords`` (m, d); with ``return_std`` also the kriging std (m, k)."""
-        q = np.asarray(coords, dtype=float)
-        if q.ndim != 2 or q.shape[1] != self.coords.shape[1]:
-            raise ValueError(f"query coordinates must be (m, {self.coords.shape[1]}), got {q.shape}")
+        q = kriging_queries(coords, self.coords)
         out = np.empty((q.shape[0], self.values.shape[1]))
         std = np.empty_like(out) if return_std else None
         for start in range(0, q.shape[0], self.batch):

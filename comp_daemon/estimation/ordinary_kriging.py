@@ -17,7 +17,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.estimation.variogram import VariogramModel, pairwise_distances
 
-__all__ = ["OrdinaryKriging", "kriging_samples"]
+__all__ = ["OrdinaryKriging", "kriging_queries", "kriging_samples"]
 
 AXES = ("x", "y", "z")
 
@@ -39,6 +39,14 @@ def kriging_samples(
     if not (np.all(np.isfinite(x)) and np.all(np.isfinite(z))):
         raise ValueError("kriging samples must be finite")
     return x, z
+
+
+def kriging_queries(coords: NDArray[np.float64], samples: NDArray[np.float64]) -> NDArray[np.float64]:
+    """Query coordinates (m, d) checked against the samples' (n, d) (ValueError naming the shapes)."""
+    q = np.asarray(coords, dtype=float)
+    if q.ndim != 2 or q.shape[1] != samples.shape[1]:
+        raise ValueError(f"query coordinates must be (m, {samples.shape[1]}), got {q.shape}")
+    return q
 
 
 class OrdinaryKriging:
@@ -136,9 +144,7 @@ class OrdinaryKriging:
         self, coords: NDArray[np.float64], *, return_std: bool = False
     ) -> NDArray[np.float64] | tuple[NDArray[np.float64], NDArray[np.float64]]:
         """(m, k) predictions at ``coords`` (m, d); with ``return_std`` also the kriging std (m, k)."""
-        q = np.asarray(coords, dtype=float)
-        if q.ndim != 2 or q.shape[1] != self.coords.shape[1]:
-            raise ValueError(f"query coordinates must be (m, {self.coords.shape[1]}), got {q.shape}")
+        q = kriging_queries(coords, self.coords)
         dist = pairwise_distances(q, self.coords)
         k = self.values.shape[1]
         out = np.empty((q.shape[0], k))

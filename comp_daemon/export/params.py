@@ -263,13 +263,8 @@ def model_of(listing: ControllerParams, robot: RobotDescription) -> KinematicMod
         raise ValueError(f"the listing's nominal parameters are not those of robot '{robot.name}'")
     table = _kinematic_table(listing.identified)
     reg = np.array(listing.meas_T_base, dtype=float)
-    params = KinematicParams(
-        theta_offset_rad=table[:, 0].copy(),
-        d_mm=table[:, 1].copy(),
-        a_mm=table[:, 2].copy(),
-        alpha_rad=table[:, 3].copy(),
-        beta_rad=table[:, 4].copy(),
-        sign=nominal.sign,
+    params = replace(
+        nominal.with_joint_table(table),
         tool_xyz_mm=np.array(listing.tool_mm, dtype=float),
         world_T_base=reg @ listing.base_T_root,
     )

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
+from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, as_six_columns
 
 __all__ = [
     "GRAVITY_MPS2",
@@ -27,15 +27,6 @@ __all__ = [
 ]
 
 GRAVITY_MPS2 = 9.81
-
-
-def _as_batch(q_rad: NDArray[np.float64]) -> NDArray[np.float64]:
-    q = np.asarray(q_rad, dtype=float)
-    if q.ndim == 1:
-        q = q[None, :]
-    if q.ndim != 2 or q.shape[1] != 6:
-        raise ValueError(f"joint angles must have shape (n, 6), got {q.shape}")
-    return q
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,7 +67,7 @@ def _combine(out: NDArray[np.float64], terms: tuple[tuple[float, NDArray[np.floa
 
 def chain(params: KinematicParams, q_rad: NDArray[np.float64]) -> Chain:
     """Forward kinematics of n poses with every intermediate frame kept (for Jacobians)."""
-    q = _as_batch(q_rad)
+    q = as_six_columns(q_rad, "joint angles")
     n = q.shape[0]
     theta = (q + params.theta_offset_rad).T  # (6, n)
     c, s = np.cos(theta), np.sin(theta)

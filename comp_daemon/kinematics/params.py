@@ -35,6 +35,7 @@ __all__ = [
     "PARAM_NAMES",
     "TOOL_SLICE",
     "KinematicParams",
+    "as_six_columns",
     "axes_deg_to_q_rad",
     "joint_param_index",
     "q_rad_to_axes_deg",
@@ -93,6 +94,17 @@ class KinematicParams:
         """(6, 5) table of theta offset (rad), d, a (mm), alpha, beta (rad)."""
         return np.stack([self.theta_offset_rad, self.d_mm, self.a_mm, self.alpha_rad, self.beta_rad], axis=1)
 
+    def with_joint_table(self, table: NDArray[np.float64]) -> KinematicParams:
+        """These parameters with the joint geometry of a (6, 5) :meth:`joint_table` (copied)."""
+        return replace(
+            self,
+            theta_offset_rad=table[:, 0].copy(),
+            d_mm=table[:, 1].copy(),
+            a_mm=table[:, 2].copy(),
+            alpha_rad=table[:, 3].copy(),
+            beta_rad=table[:, 4].copy(),
+        )
+
     def apply(self, dx: NDArray[np.float64]) -> KinematicParams:
         """Parameters after adding an identification vector ``dx`` (layout of :data:`PARAM_NAMES`)."""
         dx = np.asarray(dx, dtype=float)
@@ -103,12 +115,7 @@ class KinematicParams:
         delta[:3, :3] = rotvec_to_matrix(dx[33:36])
         delta[:3, 3] = dx[30:33]
         return replace(
-            self,
-            theta_offset_rad=table[:, 0].copy(),
-            d_mm=table[:, 1].copy(),
-            a_mm=table[:, 2].copy(),
-            alpha_rad=table[:, 3].copy(),
-            beta_rad=table[:, 4].copy(),
+            self.with_joint_table(table),
             tool_xyz_mm=self.tool_xyz_mm + dx[TOOL_SLICE],
             world_T_base=delta @ self.world_T_base,
         )
@@ -125,6 +132,17 @@ class KinematicParams:
         dx[33:36] = matrix_to_rotvec(delta[:3, :3])
         dx[TOOL_SLICE] = self.tool_xyz_mm - other.tool_xyz_mm
         return dx
+
+
+def as_six_columns(value: NDArray[np.float64], what: str) -> NDArray[np.float64]:
+    """``value`` as an (n, 6) float array, one per joint (one pose may be given as (6,));
+    another shape is a ValueError naming ``what`` and the shape given."""
+    out = np.asarray(value, dtype=float)
+    if out.ndim == 1:
+        out = out[None, :]
+    if out.ndim != 2 or out.shape[1] != 6:
+        raise ValueError(f"{what} must have shape (n, 6), got {np.shape(value)}")
+    return out
 
 
 def axes_deg_to_q_rad(a_deg: NDArray[np.float64], sign: NDArray[np.float64]) -> NDArray[np.float64]:

@@ -41,6 +41,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.inverse import orientation_error_rad
+from comp_daemon.kinematics.params import as_six_columns
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -192,11 +193,7 @@ class PoeChain:
 def _batch(
     a_deg: NDArray[np.float64], x: NDArray[np.float64] | None
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
-    a = np.asarray(a_deg, dtype=float)
-    if a.ndim == 1:
-        a = a[None, :]
-    if a.ndim != 2 or a.shape[1] != 6:
-        raise ValueError(f"axis values must have shape (n, 6), got {a.shape}")
+    a = as_six_columns(a_deg, "axis values")
     xx = np.zeros(N_POE_PARAMS) if x is None else np.asarray(x, dtype=float)
     if xx.shape[-1] != N_POE_PARAMS or xx.ndim > 2:
         raise ValueError(f"error vector must have shape (12,) or (n, 12), got {xx.shape}")

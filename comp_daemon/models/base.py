@@ -30,15 +30,18 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, as_six_columns, axes_deg_to_q_rad
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "ErrorModel",
     "NominalModel",
     "PredictionUncertainty",
+    "approach_directions",
     "as_axes",
     "finite_array",
+    "further_targets",
+    "measured_positions",
     "uses_approach_directions",
 ]
 
@@ -59,12 +62,20 @@ def uses_approach_directions(model: object) -> bool:
 
 def as_axes(a_deg: NDArray[np.float64]) -> NDArray[np.float64]:
     """``a_deg`` as an (n, 6) float array (one pose may be given as (6,))."""
-    a = np.asarray(a_deg, dtype=float)
-    if a.ndim == 1:
-        a = a[None, :]
-    if a.ndim != 2 or a.shape[1] != 6:
-        raise ValueError(f"axis values must have shape (n, 6), got {np.shape(a_deg)}")
-    return a
+    return as_six_columns(a_deg, "axis values")
+
+
+def approach_directions(dir: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
+    """The (n, 6) approach directions of ``n`` poses (one row may be given as (6,); None: zeros,
+    unknown); another shape is a ValueError naming ``dir``."""
+    if dir is None:
+        return np.zeros((n, 6))
+    d = np.asarray(dir, dtype=float)
+    if d.ndim == 1:
+        d = d[None, :]
+    if d.shape != (n, 6):
+        raise ValueError(f"dir: expected shape ({n}, 6) like the axis values, got {d.shape}")
+    return d
 
 
 def finite_array(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
@@ -75,6 +86,24 @@ def finite_array(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.fl
     if not np.all(np.isfinite(out)):
         raise ValueError(f"{name}: values must be finite")
     return out
+
+
+def measured_positions(value: Any, n: int) -> NDArray[np.float64]:
+    """The (n, 3) measured TCP positions of ``n`` rows, finite (a ValueError saying which is wrong)."""
+    p = np.asarray(value, dtype=float)
+    if p.shape != (n, 3):
+        raise ValueError(f"measured positions must have shape ({n}, 3), got {p.shape}")
+    if not np.all(np.isfinite(p)):
+        raise ValueError("measured positions must be finite")
+    return p
+
+
+def further_targets(value: Any, n: int) -> NDArray[np.float64]:
+    """The (n, K − 1, 3) measured positions of ``n`` rows' further targets (a ValueError naming the shape)."""
+    more = np.asarray(value, dtype=float)
+    if more.ndim != 3 or more.shape[0] != n or more.shape[2] != 3:
+        raise ValueError(f"further targets must have shape ({n}, K - 1, 3), got {more.shape}")
+    return more
 
 
 class PredictionUncertainty(Protocol):

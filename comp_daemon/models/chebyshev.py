@@ -56,7 +56,7 @@ from comp_daemon.estimation.lm import LMResult, improved_lm
 from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.base import ErrorModel, as_axes, measured_positions
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -462,10 +462,8 @@ def fit_chebyshev(
 ) -> ChebyshevFit:
     """Fit an order-``order`` Chebyshev error model to measured TCPs (module docstring)."""
     a = as_axes(a_deg)
-    p_meas = np.asarray(p_measured_mm, dtype=float)
     n = a.shape[0]
-    if p_meas.shape != (n, 3):
-        raise ValueError(f"measured positions must have shape ({n}, 3), got {p_meas.shape}")
+    p_meas = measured_positions(p_measured_mm, n)
     if order < 0:
         raise ValueError(f"Chebyshev order must be >= 0, got {order}")
     nominal = KinematicParams.from_robot(robot)

@@ -221,6 +221,14 @@ def nominal_targets(
     return ch.tcp_mm, ch.world_T_frame[:, 6, :3, :3]
 
 
+def _target_positions(target_p_base_mm: NDArray[np.float64]) -> NDArray[np.float64]:
+    """The (n, 3) target positions (one may be given as (3,)); another shape is a ValueError."""
+    target = np.atleast_2d(np.asarray(target_p_base_mm, dtype=float))
+    if target.ndim != 2 or target.shape[1] != 3:
+        raise ValueError(f"target positions must have shape (n, 3), got {np.shape(target_p_base_mm)}")
+    return target
+
+
 def nominal_solution(
     robot: RobotDescription,
     target_p_base_mm: NDArray[np.float64],
@@ -230,9 +238,7 @@ def nominal_solution(
     """(n, 6) axis values (deg) the controller reaches the targets with: the nominal robot's inverse
     kinematics, in the robot base frame, inside the axis limits, from ``a_seed_deg`` (default the
     middle of every axis range). Raises :class:`UnreachableTargetError` naming unreachable targets."""
-    target = np.atleast_2d(np.asarray(target_p_base_mm, dtype=float))
-    if target.ndim != 2 or target.shape[1] != 3:
-        raise ValueError(f"target positions must have shape (n, 3), got {np.shape(target_p_base_mm)}")
+    target = _target_positions(target_p_base_mm)
     n = target.shape[0]
     rot = None if target_R_base is None else np.asarray(target_R_base, dtype=float).reshape(n, 3, 3)
     if a_seed_deg is None:
@@ -425,9 +431,7 @@ def compensate(
     Raises :class:`UnreachableTargetError` naming unreachable targets and
     :class:`CompensationRefused` naming refused ones (every refused target of the call).
     """
-    target = np.atleast_2d(np.asarray(target_p_base_mm, dtype=float))
-    if target.ndim != 2 or target.shape[1] != 3:
-        raise ValueError(f"target positions must have shape (n, 3), got {np.shape(target_p_base_mm)}")
+    target = _target_positions(target_p_base_mm)
     if mapping in RENAMED_MAPPINGS:
         raise ValueError(f"mapping {mapping!r} is now called {RENAMED_MAPPINGS[mapping]!r}")
     if mapping not in MAPPINGS:

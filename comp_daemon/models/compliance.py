@@ -61,7 +61,7 @@ from comp_daemon.kinematics.params import (
     joint_param_index,
 )
 from comp_daemon.kinematics.so3 import left_jacobian, skew
-from comp_daemon.models.base import ErrorModel, as_axes, finite_array
+from comp_daemon.models.base import ErrorModel, as_axes, finite_array, measured_positions
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
 from comp_daemon.models.kinematic import mdh_payload, params_from_payload
 from comp_daemon.robot.description import RobotDescription
@@ -308,11 +308,7 @@ def calibrate_compliance(
     """
     a = as_axes(a_deg)
     n = a.shape[0]
-    p_meas = np.asarray(p_measured_mm, dtype=float)
-    if p_meas.shape != (n, 3):
-        raise ValueError(f"measured positions must have shape ({n}, 3), got {p_meas.shape}")
-    if not np.all(np.isfinite(p_meas)):
-        raise ValueError("measured positions must be finite")
+    p_meas = measured_positions(p_measured_mm, n)
     cj = joint_numbers(compliance_joints, "compliance_joints")
     oj = joint_numbers(offset_joints, "offset_joints")
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (n,))

@@ -71,7 +71,7 @@ from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.estimation.selection import Decision, Selection, judge, keep_all, select_kinematic_effects
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.base import ErrorModel, NominalModel, as_axes
+from comp_daemon.models.base import ErrorModel, NominalModel, as_axes, further_targets, measured_positions
 from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
 from comp_daemon.models.covariance import (
     ParameterCovariance,
@@ -190,16 +190,9 @@ class FitRows:
 
     def __post_init__(self) -> None:
         a = as_axes(self.a_deg)
-        p = np.asarray(self.xyz_mm, dtype=float)
-        if p.shape != (a.shape[0], 3):
-            raise ValueError(f"measured positions must have shape ({a.shape[0]}, 3), got {p.shape}")
+        p = measured_positions(self.xyz_mm, a.shape[0])
         if self.more_xyz_mm is not None:
-            more = np.asarray(self.more_xyz_mm, dtype=float)
-            if more.ndim != 3 or more.shape[0] != a.shape[0] or more.shape[2] != 3:
-                raise ValueError(
-                    f"further targets must have shape ({a.shape[0]}, K - 1, 3), got {more.shape}"
-                )
-            object.__setattr__(self, "more_xyz_mm", more)
+            object.__setattr__(self, "more_xyz_mm", further_targets(self.more_xyz_mm, a.shape[0]))
         object.__setattr__(self, "a_deg", a)
         object.__setattr__(self, "xyz_mm", p)
         object.__setattr__(self, "n", a.shape[0])

@@ -59,7 +59,7 @@ from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import left_jacobian, skew
-from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.base import ErrorModel, as_axes, finite_array, further_targets, measured_positions
 from comp_daemon.models.effects import (
     EFFECTS,
     EffectParams,
@@ -206,12 +206,8 @@ def params_from_payload(
 
 
 def _floats(value: Any, shape: tuple[int, ...], name: str) -> NDArray[np.float64]:
-    out = np.array(value, dtype=float)
-    if out.shape != shape:
-        raise ValueError(f"model field '{name}': expected shape {shape}, got {out.shape}")
-    if not np.all(np.isfinite(out)):
-        raise ValueError(f"model field '{name}': values must be finite")
-    return out
+    """A stored model field as a finite float array (:func:`finite_array`, the error naming it)."""
+    return finite_array(value, shape, f"model field '{name}'")
 
 
 def target_param_names(n_more: int) -> list[str]:
@@ -413,15 +409,11 @@ def calibrate_kinematic(
     the folds of a cross-validation.
     """
     a = as_axes(a_deg)
-    p_meas = np.asarray(p_measured_mm, dtype=float)
     n = a.shape[0]
-    if p_meas.shape != (n, 3):
-        raise ValueError(f"measured positions must have shape ({n}, 3), got {p_meas.shape}")
+    p_meas = measured_positions(p_measured_mm, n)
     more_meas = None
     if more_targets_mm is not None:
-        more_meas = np.asarray(more_targets_mm, dtype=float)
-        if more_meas.ndim != 3 or more_meas.shape[0] != n or more_meas.shape[2] != 3:
-            raise ValueError(f"further targets must have shape ({n}, K - 1, 3), got {more_meas.shape}")
+        more_meas = further_targets(more_targets_mm, n)
         more_meas = more_meas if more_meas.shape[1] else None
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:

@@ -73,7 +73,7 @@ from comp_daemon.estimation.variogram import (
     valid_models,
 )
 from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.models.base import ErrorModel, as_axes
+from comp_daemon.models.base import ErrorModel, approach_directions, as_axes, measured_positions
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -100,13 +100,7 @@ ANISO_FACTORS = (0.25, 0.5, 2.0, 4.0)  # multipliers tried on each joint weight 
 
 
 def _dir_array(dir: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
-    if dir is None:
-        return np.zeros((n, N_JOINTS))
-    d = np.asarray(dir, dtype=float)
-    if d.ndim == 1:
-        d = d[None, :]
-    if d.shape != (n, N_JOINTS):
-        raise ValueError(f"dir: expected shape ({n}, 6) like the axis values, got {d.shape}")
+    d = approach_directions(dir, n)
     if not np.all(np.isin(d, (-1.0, 0.0, 1.0))):
         raise ValueError("dir: values must be -1, +1 (or 0 for unknown)")
     return d
@@ -458,11 +452,7 @@ def fit_kriging(
     """
     a = as_axes(a_deg)
     n = a.shape[0]
-    p = np.asarray(p_measured_mm, dtype=float)
-    if p.shape != (n, 3):
-        raise ValueError(f"measured positions must have shape ({n}, 3), got {p.shape}")
-    if not np.all(np.isfinite(p)):
-        raise ValueError("measured positions must be finite")
+    p = measured_positions(p_measured_mm, n)
     if n < 4:
         raise ValueError(f"kriging needs at least 4 sampling points, got {n}")
     d = None if dir is None else _dir_array(dir, n)

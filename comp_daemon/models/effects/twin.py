@@ -37,7 +37,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import Chain, chain, gravity_torques_nm, identification_jacobian
-from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.kinematics.params import KinematicParams, as_six_columns
+from comp_daemon.models.base import approach_directions
 from comp_daemon.models.effects.base import N_JOINTS, Effect, TwinInputs
 from comp_daemon.models.effects.catalogue import EFFECT_CATALOGUE
 from comp_daemon.models.effects.params import EffectParams, parse_param_name
@@ -101,17 +102,9 @@ def _check_inputs(
     temp_c: FloatArray | None,
     clock: FloatArray | None = None,
 ) -> tuple[FloatArray, FloatArray, FloatArray, FloatArray | None, FloatArray | None]:
-    a = np.asarray(a_deg, dtype=float)
-    if a.ndim == 1:
-        a = a[None, :]
-    if a.ndim != 2 or a.shape[1] != N_JOINTS:
-        raise ValueError(f"a_deg: expected shape (n, 6), got {a.shape}")
+    a = as_six_columns(a_deg, "a_deg")
     n = a.shape[0]
-    d = np.zeros((n, N_JOINTS)) if dir is None else np.asarray(dir, dtype=float)
-    if d.ndim == 1:
-        d = d[None, :]
-    if d.shape != (n, N_JOINTS):
-        raise ValueError(f"dir: expected shape ({n}, 6) like a_deg, got {d.shape}")
+    d = approach_directions(dir, n)
     payload = np.asarray(payload_kg, dtype=float)
     if payload.ndim > 1 or (payload.ndim == 1 and payload.shape[0] != n):
         raise ValueError(f"payload_kg: expected a number or shape ({n},), got {payload.shape}")
