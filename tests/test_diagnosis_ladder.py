@@ -32,7 +32,8 @@ def step_names(step: dict, harmonics: int = 2) -> list[str]:
 
 def independent_check_rms(ds: Dataset, robot, names: list[str]) -> float:
     """Fit all 39 geometric parameters and the named effects with scipy (central differences, trust
-    region) on the fit rows, and return the RMS 3-D error on the check rows; no code of the diagnosis involved."""
+    region) on the fit rows, and return the RMS 3-D error on the check rows; no code of the
+    diagnosis involved."""
     nominal = KinematicParams.from_robot(robot)
     fit, check = ds.fit_rows(), ds.check_rows()
     dirs = np.asarray(ds.dir, dtype=float)
