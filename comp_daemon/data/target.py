@@ -27,9 +27,13 @@ from comp_daemon.data.columns import AXIS_COLUMNS, TARGET_ABC_COLUMNS, TARGET_XY
 from comp_daemon.data.table import Dataset
 
 __all__ = [
+    "BOTH_FORMS",
+    "FORMS",
+    "NO_FORM",
     "TARGET_FIELDS",
     "Target",
     "TargetError",
+    "missing_fields",
     "targets_of_dataset",
 ]
 
@@ -45,6 +49,21 @@ TARGET_FIELDS: tuple[str, ...] = (
 
 class TargetError(ValueError):
     """A target that is not one: the message names the field at fault."""
+
+
+#: the target's forms, each a group of fields given whole or not at all, with what its sentence says
+FORMS: tuple[tuple[tuple[str, ...], str], ...] = (
+    (AXIS_COLUMNS, "axis values need"),
+    (TARGET_XYZ_COLUMNS, "a TCP needs"),
+    (TARGET_ABC_COLUMNS, "an orientation needs"),
+)
+BOTH_FORMS = "gives both axis values a1..a6 and a TCP; give exactly one form"
+NO_FORM = "gives neither axis values a1..a6 nor a TCP tx, ty, tz"
+
+
+def missing_fields(missing: list[str], names: tuple[str, ...], form: str) -> str:
+    """The sentence for a group given in part: which of its fields are missing."""
+    return f"{', '.join(missing)} missing: {form} all of {', '.join(names)}"
 
 
 def _numbers(values: tuple[Any, ...] | None, names: tuple[str, ...]) -> tuple[float, ...] | None:
@@ -78,11 +97,11 @@ class Target:
         set_(self, "tcp_mm", _numbers(self.tcp_mm, TARGET_XYZ_COLUMNS))
         set_(self, "abc_deg", _numbers(self.abc_deg, TARGET_ABC_COLUMNS))
         if self.axes_deg is not None and (self.tcp_mm is not None or self.abc_deg is not None):
-            raise TargetError("gives both axis values a1..a6 and a TCP; give exactly one form")
+            raise TargetError(BOTH_FORMS)
         if self.abc_deg is not None and self.tcp_mm is None:
             raise TargetError("an orientation ta, tb, tc needs a TCP tx, ty, tz")
         if self.axes_deg is None and self.tcp_mm is None:
-            raise TargetError("gives neither axis values a1..a6 nor a TCP tx, ty, tz")
+            raise TargetError(NO_FORM)
         if self.payload_kg is not None:
             (payload,) = _numbers((self.payload_kg,), ("payload_kg",)) or ()
             if payload < 0.0:
@@ -105,13 +124,14 @@ class Target:
                 return None
             missing = [k for k in names if k not in given]
             if missing:
-                raise TargetError(f"{', '.join(missing)} missing: {form} all of {', '.join(names)}")
+                raise TargetError(missing_fields(missing, names, form))
             return tuple(given[k] for k in names)
 
+        axes, tcp, abc = (group(names, form) for names, form in FORMS)
         return cls(
-            axes_deg=group(AXIS_COLUMNS, "axis values need"),
-            tcp_mm=group(TARGET_XYZ_COLUMNS, "a TCP needs"),
-            abc_deg=group(TARGET_ABC_COLUMNS, "an orientation needs"),
+            axes_deg=axes,
+            tcp_mm=tcp,
+            abc_deg=abc,
             payload_kg=given.get("payload_kg"),
             pose_id=given.get("pose_id"),
         )

@@ -19,7 +19,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validat
 from comp_daemon.data.columns import AXIS_COLUMNS as _AXES
 from comp_daemon.data.columns import TARGET_ABC_COLUMNS as _ABC
 from comp_daemon.data.columns import TARGET_XYZ_COLUMNS as _TCP
-from comp_daemon.data.target import Target
+from comp_daemon.data.target import BOTH_FORMS, FORMS, NO_FORM, Target, missing_fields
 from comp_daemon.models.effects import EFFECTS, effect_by_name
 from comp_daemon.models.registry import KINDS, MAX_ORDER
 from comp_daemon.service.store import (
@@ -297,7 +297,6 @@ Millimetres = Annotated[float, Field(strict=True, ge=-100_000.0, le=100_000.0)]
 Degrees = Annotated[float, Field(strict=True, ge=-360.0, le=360.0)]
 
 
-_FORMS = ((_AXES, "axis values need"), (_TCP, "a TCP needs"), (_ABC, "an orientation needs"))
 
 
 def _target_schema(schema: dict[str, Any]) -> None:
@@ -358,19 +357,19 @@ class TargetIn(BaseModel):
         next to axis values, or ``tz`` when no form is given at all."""
         name, data = info.field_name, info.data  # data: the earlier fields that validated
         assert name is not None
-        group, form = next((g, f) for g, f in _FORMS if name in g)
+        group, form = next((g, f) for g, f in FORMS if name in g)
         earlier = group[: group.index(name)]
         if value is None:
             if any(data.get(k) is not None for k in earlier):
                 raise ValueError(f"{name} is missing: {form} all of {', '.join(group)}")
             if name == "tz" and all(k in data and data[k] is None for k in (*_AXES, "tx", "ty")):
-                raise ValueError("gives neither axis values a1..a6 nor a TCP tx, ty, tz")
+                raise ValueError(NO_FORM)
             return value
         missing = [k for k in earlier if k in data and data[k] is None]
         if missing:
-            raise ValueError(f"{', '.join(missing)} missing: {form} all of {', '.join(group)}")
+            raise ValueError(missing_fields(missing, group, form))
         if group is not _AXES and any(data.get(k) is not None for k in _AXES):
-            raise ValueError("gives both axis values a1..a6 and a TCP; give exactly one form")
+            raise ValueError(BOTH_FORMS)
         return value
 
     def target(self) -> Target:
