@@ -14,7 +14,6 @@ from test_ballbar_campaign import client
 from test_service_api import auth
 
 from comp_daemon.cli import main
-from comp_daemon.commands.campaigns import nominal_tcp
 from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
 from comp_daemon.data.crossbar import read_crossbar
 from comp_daemon.data.dataset import dataset_to_csv
@@ -22,6 +21,7 @@ from comp_daemon.data.options import ReadOptions
 from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
 from comp_daemon.instruments.ballbar_plan import TABLE5_ERRORS, ballbar_plan
 from comp_daemon.kinematics.poe import irb120_table1
+from comp_daemon.preparation.pipeline import nominal_tcp
 from comp_daemon.robot.description import load_robot
 
 IRB = load_robot("irb120")

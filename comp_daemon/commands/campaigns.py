@@ -47,7 +47,7 @@ from comp_daemon.preparation.campaign import CampaignError
 from comp_daemon.preparation.pipeline import calibrate_campaign, nominal_tcp
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["evaluate_calibrated", "evaluate_solvers", "fit_campaign_file", "is_campaign_file", "nominal_tcp"]
+__all__ = ["evaluate_calibrated", "evaluate_solvers", "fit_campaign_file", "is_campaign_file"]
 
 
 def is_campaign_file(path: str, options: ReadOptions | None = None) -> bool:
