@@ -15,6 +15,7 @@ from comp_daemon.cli import main
 from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.dataset import dataset_to_csv
+from comp_daemon.estimation.uncertainty import covariance_scale
 from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
 from comp_daemon.instruments.ballbar_plan import TABLE5_ERRORS, ballbar_plan
 from comp_daemon.instruments.campaign_fit import fit_ballbar_campaign
@@ -134,3 +135,29 @@ def test_fit_cli_prints_and_saves_the_uncertainty_report(
     loaded = load_model(str(out), ROBOT)
     std = loaded.model.predict_std_mm(PLAN.a_deg[:5])
     assert std is not None and np.all(np.isfinite(std)) and std.max() < 0.1
+
+
+def test_covariance_scale_widens_only_for_a_model_that_misses_the_readings_uncertainty() -> None:
+    w = np.full(6, 4.0)  # u = 0.5 on every reading
+    # residuals of twice u: chi2 = 6 * 4 * 1 = 24 over 6 - 2 = 4 degrees of freedom
+    assert covariance_scale(w, np.full(6, 1.0), 2) == (6.0, 6.0)
+    # residuals well inside u: the reduced chi2 is reported, the covariance keeps its size
+    chi2_nu, scale = covariance_scale(w, np.full(6, 0.1), 2)
+    assert chi2_nu == pytest.approx(0.06) and scale == 1.0
+    # no degree of freedom left: nu counts as 1, not 0 or negative
+    assert covariance_scale(w, np.full(6, 1.0), 6) == (24.0, 24.0)
+
+
+def test_the_models_sigma_per_length_is_the_repeats_or_the_residual_with_its_degrees_of_freedom() -> None:
+    repeated = fit_ballbar_campaign(ROBOT, read_ballbar(_campaign_csv(3)))
+    u = np.array(repeated.info["uncertainty"]["per_pose"]["u_mm"])
+    cov = repeated.model.uncertainty
+    assert isinstance(cov, ParameterCovariance)
+    assert cov.sigma_mm == pytest.approx(np.sqrt(np.mean(np.maximum(u, 0.5e-3) ** 2)), rel=1e-12)
+    assert cov.rows == EXACT.size
+    single = fit_ballbar_campaign(ROBOT, read_ballbar(_campaign_csv(3, repeats=1)))
+    n, p = EXACT.size, len(single.info["identified"])
+    cov = single.model.uncertainty
+    assert isinstance(cov, ParameterCovariance) and "uncertainty" not in single.info
+    assert cov.sigma_mm == pytest.approx(single.info["rms_mm"] * np.sqrt(n / (n - p)), rel=1e-12)
+    assert cov.rows == n

@@ -10,11 +10,15 @@ import numpy as np
 import pytest
 
 from comp_daemon.cli import main
+from comp_daemon.data.ballbar import ballbar_dataset, read_ballbar
 from comp_daemon.data.columns import DatasetError
 from comp_daemon.data.crossbar import SOCKETS, read_crossbar
 from comp_daemon.data.dataset import dataset_to_csv, read_dataset
+from comp_daemon.instruments.ballbar import PAPER_PIVOT_MM, ballbar_lengths_mm
+from comp_daemon.instruments.ballbar_plan import ballbar_plan
 from comp_daemon.instruments.campaign_fit import fit_campaign
 from comp_daemon.kinematics.params import PARAM_NAMES
+from comp_daemon.kinematics.poe import irb120_table1
 from comp_daemon.models.artifact import load_model
 from comp_daemon.robot.description import load_robot
 from comp_daemon.sim.bars import run_crossbar_campaign
@@ -177,3 +181,27 @@ def test_simulated_campaign_calibrates_for_the_tracker(tmp_path: Path) -> None:
     )
     corrected = read_dataset(out, kind="targets")
     assert max(float(v) for v in corrected.extra["predicted_error_mm"]) < 1e-5
+
+
+def test_ballbar_and_crossbar_fits_give_one_summary(campaign_csv: str) -> None:
+    """The entries a campaign fit's ``info`` holds whatever the instrument, each of the same kind."""
+    irb120 = load_robot("irb120")
+    plan = ballbar_plan(irb120, 3)
+    bar = ballbar_lengths_mm(irb120_table1(irb120), plan.a_deg, np.full(15, 0.01), PAPER_PIVOT_MM)
+    ballbar, _ = fit_campaign(
+        irb120,
+        read_ballbar(dataset_to_csv(ballbar_dataset(plan.a_deg, plan.arc, PAPER_PIVOT_MM, bar_mm=bar))),
+    )
+    crossbar, _ = fit_campaign(ROBOT, read_crossbar(campaign_csv))
+    for fitted, rows in ((ballbar, plan.arc.size), (crossbar, 4 * crossbar.info["crosses"])):
+        info = fitted.info
+        assert info["campaign"] == info["kind"] and info["rows"] == rows
+        assert {"method", "iterations", "stop"} <= set(info["solver"])
+        assert "near_dependent" in info["identifiability"] and isinstance(info["not_identifiable"], list)
+        assert 0 < info["rank"] <= info["parameters"] and info["rms_mm"] >= 0.0
+        assert all("value" in v for v in info["identified"].values())
+        assert info["frame"].startswith("robot base (nominal)")
+    assert set(ballbar.info) & set(crossbar.info) == {
+        "kind", "campaign", "rows", "rms_mm", "rank", "parameters", "solver", "identifiability",
+        "not_identifiable", "identified", "frame",
+    }  # fmt: skip

@@ -40,6 +40,7 @@ __all__ = [
     "NestedResult",
     "NestedRound",
     "RepeatUncertainty",
+    "covariance_scale",
     "nested_correction",
     "nested_factor",
     "nested_identification",
@@ -87,6 +88,16 @@ def repeat_uncertainty(
 def weights_from_uncertainty(u: NDArray[np.float64], floor: float = U_FLOOR_MM) -> NDArray[np.float64]:
     """``1/max(u, floor)²``: inverse-variance weights (units of 1/u²)."""
     return np.asarray(1.0 / np.maximum(np.asarray(u, dtype=float), floor) ** 2)
+
+
+def covariance_scale(
+    weights: NDArray[np.float64], residual: NDArray[np.float64], n_fitted: int
+) -> tuple[float, float]:
+    """The reduced χ² of a weighted fit, Σ w·r² / (n − p) (ν at least 1), and the factor its
+    covariance (JᵀWJ)⁻¹ takes: χ²/ν where the model does not explain the readings to their
+    uncertainty (χ²/ν > 1), else 1 — the measurement uncertainty alone never narrows it."""
+    chi2_nu = float(np.sum(weights * residual**2)) / max(residual.size - n_fitted, 1)
+    return chi2_nu, max(1.0, chi2_nu)
 
 
 def nested_factor(

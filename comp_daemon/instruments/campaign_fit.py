@@ -27,7 +27,7 @@ such a model is registered to the tracker on fit rows (:func:`registered_predict
 
 from __future__ import annotations
 
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from typing import Any
 
 import numpy as np
@@ -37,10 +37,13 @@ from comp_daemon.common.logs import get_logger
 from comp_daemon.data.ballbar import BallbarCampaign
 from comp_daemon.data.campaigns import Campaign
 from comp_daemon.data.crossbar import CrossbarCampaign
+from comp_daemon.estimation.identifiability import IdentifiabilityReport
 from comp_daemon.estimation.registration import rigid_registration, transform_points
 from comp_daemon.estimation.uncertainty import (
     U_FLOOR_MM,
     Z_95,
+    NestedResult,
+    covariance_scale,
     nested_identification,
     repeat_uncertainty,
     weights_from_uncertainty,
@@ -77,8 +80,46 @@ __all__ = [
 _log = get_logger(__name__)
 
 
-def _identified(names: list[str], values: NDArray[np.float64], std: NDArray[np.float64]) -> dict[str, Any]:
-    return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(names, values, std, strict=True)}
+#: the frame of a model fitted on a campaign: neither instrument sees where the robot stands
+_CAMPAIGN_FRAME = "robot base (nominal); a tracker frame is registered on tracker data"
+
+
+def _campaign_info(
+    kind: str,
+    *,
+    rows: int,
+    rms_mm: float,
+    rank: int,
+    parameters: int,
+    solver: dict[str, Any],
+    report: IdentifiabilityReport,
+    near_dependent: list[dict[str, Any]],
+    not_identifiable: list[str],
+    identified: dict[str, Any],
+) -> dict[str, Any]:
+    """The part of a campaign fit's ``info`` both instruments give: the rows fitted and the residual,
+    the solver's end, what the rows identify (rank, near-dependent pairs) and what they cannot, the
+    values, and the frame; each fit adds its instrument's own entries."""
+    return {
+        "kind": kind,
+        "campaign": kind,
+        "rows": rows,
+        "rms_mm": rms_mm,
+        "rank": rank,
+        "parameters": parameters,
+        "solver": solver,
+        "identifiability": {**report_info(report), "near_dependent": near_dependent},
+        "not_identifiable": not_identifiable,
+        "identified": identified,
+        "frame": _CAMPAIGN_FRAME,
+    }
+
+
+def _identified(
+    keep: NDArray[np.intp], values: NDArray[np.float64], std: NDArray[np.float64]
+) -> dict[str, Any]:
+    """The fitted ballbar parameters ``keep``: value and standard uncertainty of each, by name."""
+    return {BALLBAR_PARAM_NAMES[i]: {"value": float(values[i]), "std": float(std[i])} for i in keep}
 
 
 def _repeat_readings(
@@ -100,6 +141,23 @@ def _repeat_readings(
     return np.array(last, dtype=np.intp), np.array(u), np.array(n, dtype=np.int64)
 
 
+def _nested_summary(nested: NestedResult, b_mm: NDArray[np.float64]) -> dict[str, Any]:
+    """The nested correction's rounds, why it stopped, its residual against the expanded uncertainty."""
+    return {
+        "rounds": [
+            {"rms_mm": r.h, "corrected": r.n_corrected, "mean_shift_mm": r.mean_shift} for r in nested.rounds
+        ],
+        "stop": nested.reason,
+        "rms_mm": _rms(nested.residual),
+        "flagged": int(nested.flagged.sum()),
+        "max_abs_residual_over_b": float(np.max(np.abs(nested.residual) / np.maximum(b_mm, 1e-15))),
+    }
+
+
+def _spread(values: NDArray[np.float64]) -> dict[str, float]:
+    return {"mean": float(values.mean()), "min": float(values.min()), "max": float(values.max())}
+
+
 def fit_ballbar_repeats(
     twists: PoeModel,
     a_deg: NDArray[np.float64],
@@ -112,25 +170,26 @@ def fit_ballbar_repeats(
     """The uncertainty mode of spec A.8 on one reading per pose with its standard uncertainty ``u_mm``.
 
     Returns the weighted fit of the last nested round (its ``cov`` is (JᵀWJ)⁻¹ with W = 1/max(u,
-    0.5 µm)², widened by the reduced χ² of the weighted fit when it exceeds 1: a model that does not
-    explain the readings to their uncertainty), the nested loop's parameters (the model's), and the
-    report: u and b = 1.96·u, the unweighted and weighted fits side by side, every nested round.
+    0.5 µm)², widened by the reduced χ² of the weighted fit when it exceeds 1:
+    :func:`~comp_daemon.estimation.uncertainty.covariance_scale`), the nested loop's parameters (the
+    model's), and the report: u and b = 1.96·u, the unweighted and weighted fits side by side, every
+    nested round.
     ``fix_near_dependent``: the weighted fit's near-dependent pairs are resolved as
     :func:`~comp_daemon.instruments.ballbar.fit_ballbar` does, and the same parameters held in every fit;
     ``ridge`` as there, in every fit.
     """
     b = Z_95 * u_mm
     w = weights_from_uncertainty(u_mm)
-    weighted = fit_ballbar(
-        twists,
-        a_deg,
-        reading_mm,
-        pivot_mm,
-        weights=w,
-        weights_are_inverse_variance=True,
-        fix_near_dependent=fix_near_dependent,
-        ridge=ridge,
-    )
+
+    def weighted_fit(values: NDArray[np.float64], **held: Any) -> BallbarFit:
+        return fit_ballbar(
+            twists, a_deg, values, pivot_mm, weights=w, weights_are_inverse_variance=True, ridge=ridge, **held
+        )
+
+    def lengths(theta: NDArray[np.float64]) -> NDArray[np.float64]:
+        return ballbar_lengths_mm(twists, a_deg, theta, pivot_mm)
+
+    weighted = weighted_fit(reading_mm, fix_near_dependent=fix_near_dependent)
     held = tuple(p["fixed"] for p in weighted.fixed_pairs)
     unweighted = fit_ballbar(twists, a_deg, reading_mm, pivot_mm, fixed=held, ridge=ridge)
     last = [weighted]
@@ -138,28 +197,12 @@ def fit_ballbar_repeats(
     def identify(values: NDArray[np.float64], warm: NDArray[np.float64] | None) -> NDArray[np.float64]:
         if warm is None:
             return weighted.theta
-        last[0] = fit_ballbar(
-            twists,
-            a_deg,
-            values,
-            pivot_mm,
-            weights=w,
-            weights_are_inverse_variance=True,
-            theta0=warm,
-            fixed=held,
-            ridge=ridge,
-        )
+        last[0] = weighted_fit(values, theta0=warm, fixed=held)
         return last[0].theta
 
-    nested = nested_identification(
-        identify, lambda th: ballbar_lengths_mm(twists, a_deg, th, pivot_mm), reading_mm, b
-    )
+    nested = nested_identification(identify, lengths, reading_mm, b)
     keep = weighted.fitted_index
-    residual = reading_mm - ballbar_lengths_mm(twists, a_deg, nested.theta, pivot_mm)
-    chi2 = float(np.sum(w * (reading_mm - ballbar_lengths_mm(twists, a_deg, weighted.theta, pivot_mm)) ** 2))
-    chi2_nu = chi2 / max(reading_mm.size - keep.size, 1)
-    # a model that does not explain the readings to their uncertainty (χ²/ν > 1) widens the covariance
-    scale = max(1.0, chi2_nu)
+    chi2_nu, scale = covariance_scale(w, reading_mm - lengths(weighted.theta), keep.size)
     # h_before of the first fit: the nominal model's, not the warm start's
     fit = replace(
         last[0],
@@ -172,34 +215,21 @@ def fit_ballbar_repeats(
         "method": "spec A.8: last repeat as the reading, u type A (n - 1), b = 1.96 u (95 %), "
         f"weights 1/max(u, {U_FLOOR_MM * 1000:g} um)^2, nested correction (step rule)",
         "poses": int(reading_mm.size),
-        "u_mm": {"mean": float(u_mm.mean()), "min": float(u_mm.min()), "max": float(u_mm.max())},
-        "b_mm": {"mean": float(b.mean()), "min": float(b.min()), "max": float(b.max())},
+        "u_mm": _spread(u_mm),
+        "b_mm": _spread(b),
         "per_pose": {"u_mm": u_mm.tolist(), "b_mm": b.tolist()},
         "unweighted": {
             "rms_mm": unweighted.h_after_mm,
-            "identified": _identified(
-                [BALLBAR_PARAM_NAMES[i] for i in keep], unweighted.theta[keep], unweighted.std[keep]
-            ),
+            "identified": _identified(keep, unweighted.theta, unweighted.std),
         },
         "weighted": {
             "rms_mm": weighted.h_after_mm,
             # reduced chi-square: near 1 when the model explains the readings to their uncertainty
             "chi2_per_dof": chi2_nu,
-            "identified": _identified(
-                [BALLBAR_PARAM_NAMES[i] for i in keep], weighted.theta[keep], weighted.std[keep]
-            ),
+            "identified": _identified(keep, weighted.theta, weighted.std),
         },
-        "nested": {
-            "rounds": [
-                {"rms_mm": r.h, "corrected": r.n_corrected, "mean_shift_mm": r.mean_shift}
-                for r in nested.rounds
-            ],
-            "stop": nested.reason,
-            "rms_mm": float(np.sqrt(np.mean(nested.residual**2))),
-            "flagged": int(nested.flagged.sum()),
-            "max_abs_residual_over_b": float(np.max(np.abs(nested.residual) / np.maximum(b, 1e-15))),
-        },
-        "rms_mm_to_readings": float(np.sqrt(np.mean(residual**2))),
+        "nested": _nested_summary(nested, b),
+        "rms_mm_to_readings": _rms(reading_mm - lengths(nested.theta)),
         "covariance": "(J^T W J)^-1 x max(1, chi2/dof) = "
         f"x {scale:.3g}: the measurement uncertainty scales the parameters' and the predictions' sigma",
         "covariance_scale": scale,
@@ -233,6 +263,66 @@ def uncertainty_summary(info: dict[str, Any]) -> dict[str, Any] | None:
     }
 
 
+@dataclass(frozen=True, slots=True)
+class _BallbarSolution:
+    """A ballbar campaign's fit on its rows, in either mode (module docstring)."""
+
+    fit: BallbarFit
+    theta: NDArray[np.float64]  # the model's 15 parameters (the nested loop's with repeats)
+    rows: NDArray[np.intp]  # the campaign rows read: with repeats, each pose's last
+    bar_mm: NDArray[np.float64]  # the readings at ``rows``
+    rms_mm: float  # RMS length residual of ``theta`` on the readings
+    sigma_mm: float | None  # per length, from the repeats; None: from the residual
+    uncertainty: dict[str, Any] | None  # the uncertainty mode's report (None without repeats)
+
+
+def _solve_ballbar(
+    campaign: BallbarCampaign,
+    idx: NDArray[np.intp],
+    twists: PoeModel,
+    *,
+    fix_near_dependent: bool,
+    ridge: bool,
+) -> _BallbarSolution:
+    """The fit of rows ``idx``: one reading per row, or in the uncertainty mode where the poses repeat."""
+    if not campaign.repeated:
+        a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
+        fit = fit_ballbar(
+            twists, a, bar, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
+        )
+        return _BallbarSolution(fit, fit.theta, idx, bar, fit.h_after_mm, None, None)
+    idx, u, counts = _repeat_readings(campaign, idx)
+    a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
+    fit, theta, uncertainty = fit_ballbar_repeats(
+        twists, a, bar, u, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
+    )
+    uncertainty["repeats"] = {"min": int(counts.min()), "max": int(counts.max())}
+    rms = _rms(ballbar_lengths_mm(twists, a, theta, campaign.pivot_mm) - bar)
+    sigma = float(np.sqrt(np.mean(np.maximum(u, U_FLOOR_MM) ** 2)))
+    return _BallbarSolution(fit, theta, idx, bar, rms, sigma, uncertainty)
+
+
+def _poe_covariance(solution: _BallbarSolution) -> ParameterCovariance | None:
+    """The covariance of the identified POE errors the model carries (None where no POE error was
+    fitted or the rows leave no degree of freedom). Its σ per length is the repeats' where the poses
+    repeat, else the residual RMS with the degrees of freedom restored, ``h·√(n / (n − p))``."""
+    fit, n = solution.fit, int(solution.bar_mm.size)
+    keep = fit.fitted_index
+    poe_keep = [int(i) for i in keep if i < N_POE_PARAMS]
+    if not poe_keep or n <= keep.size:
+        return None
+    sigma = solution.sigma_mm
+    if sigma is None:
+        sigma = fit.h_after_mm * float(np.sqrt(n / (n - keep.size)))
+    return ParameterCovariance(
+        names=tuple(POE_PARAM_NAMES[i] for i in poe_keep),
+        values=solution.theta[poe_keep],
+        covariance=fit.cov[np.ix_(poe_keep, poe_keep)],
+        sigma_mm=sigma,
+        rows=n,
+    )
+
+
 def fit_ballbar_campaign(
     robot: RobotDescription,
     campaign: BallbarCampaign,
@@ -250,79 +340,55 @@ def fit_ballbar_campaign(
     idx = np.arange(len(campaign)) if rows is None else np.asarray(rows)
     layout = paper_layout(robot)
     twists = layout_twists(robot, layout)
-    uncertainty: dict[str, Any] | None = None
-    if campaign.repeated:
-        idx, u, counts = _repeat_readings(campaign, idx)
-        a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
-        fit, theta, uncertainty = fit_ballbar_repeats(
-            twists, a, bar, u, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
-        )
-        uncertainty["repeats"] = {"min": int(counts.min()), "max": int(counts.max())}
-        h_after = _rms(ballbar_lengths_mm(twists, a, theta, campaign.pivot_mm) - bar)
-        sigma = float(np.sqrt(np.mean(np.maximum(u, U_FLOOR_MM) ** 2)))  # per length, from the repeats
-    else:
-        a, bar = campaign.a_deg[idx], campaign.bar_mm[idx]
-        fit = fit_ballbar(
-            twists, a, bar, campaign.pivot_mm, fix_near_dependent=fix_near_dependent, ridge=ridge
-        )
-        theta, h_after = fit.theta, fit.h_after_mm
+    solved = _solve_ballbar(campaign, idx, twists, fix_near_dependent=fix_near_dependent, ridge=ridge)
+    fit, theta, n_rows, unc = solved.fit, solved.theta, int(solved.bar_mm.size), solved.uncertainty
     model = PoeErrorModel(robot, theta[:N_POE_PARAMS], np.eye(4), layout=layout)
+    covariance = _poe_covariance(solved)
+    if covariance is not None:
+        model.uncertainty = covariance
     keep = fit.fitted_index
-    poe_keep = [int(i) for i in keep if i < N_POE_PARAMS]
-    if poe_keep and bar.size > keep.size:
-        if uncertainty is None:
-            sigma = fit.h_after_mm * float(np.sqrt(bar.size / (bar.size - keep.size)))  # per length
-        model.uncertainty = ParameterCovariance(
-            names=tuple(POE_PARAM_NAMES[i] for i in poe_keep),
-            values=theta[poe_keep],
-            covariance=fit.cov[np.ix_(poe_keep, poe_keep)],
-            sigma_mm=sigma,
-            rows=int(bar.size),
-        )
-    info: dict[str, Any] = {
-        "kind": "ballbar",
-        "campaign": "ballbar",
-        "rows": int(bar.size),
-        "arcs": sorted({int(k) for k in campaign.arc[idx]}),
-        "pivot_mm": campaign.pivot_mm.tolist(),
-        "pivot_offset_mm": theta[N_POE_PARAMS:].tolist(),
-        "layout": LAYOUTS[layout],
-        "rms_mm": h_after,
-        "bar_rms_before_mm": fit.h_before_mm,
-        "bar_rms_after_mm": h_after,
-        "rank": fit.rank,
-        "parameters": len(BALLBAR_PARAM_NAMES),
-        "solver": {
+    info = _campaign_info(
+        "ballbar",
+        rows=n_rows,
+        rms_mm=solved.rms_mm,
+        rank=fit.rank,
+        parameters=len(BALLBAR_PARAM_NAMES),
+        solver={
             "method": "improved Levenberg-Marquardt, columns scaled"
-            + (", weighted 1/u^2, nested correction" if uncertainty else ""),
+            + (", weighted 1/u^2, nested correction" if unc else ""),
             "iterations": fit.iterations,
             "stop": fit.reason,
         },
-        "identifiability": {
-            **report_info(fit.report),
-            "near_dependent": near_dependent_pairs(
-                [BALLBAR_PARAM_NAMES[i] for i in keep], fit.cov[np.ix_(keep, keep)]
-            ),
-        },
-        "not_identifiable": [d.describe() for d in fit.null_space],
-        "near_dependent_fixed": list(fit.fixed_pairs),
-        "ridge": (
+        report=fit.report,
+        near_dependent=near_dependent_pairs(
+            [BALLBAR_PARAM_NAMES[i] for i in keep], fit.cov[np.ix_(keep, keep)]
+        ),
+        not_identifiable=[d.describe() for d in fit.null_space],
+        identified=_identified(keep, theta, fit.std),
+    )
+    info.update(
+        arcs=sorted({int(k) for k in campaign.arc[solved.rows]}),
+        pivot_mm=campaign.pivot_mm.tolist(),
+        pivot_offset_mm=theta[N_POE_PARAMS:].tolist(),
+        layout=LAYOUTS[layout],
+        bar_rms_before_mm=fit.h_before_mm,
+        bar_rms_after_mm=solved.rms_mm,
+        near_dependent_fixed=list(fit.fixed_pairs),
+        ridge=(
             f"each POE error pulled toward zero: {RIDGE_SCALES[0]:g} mm of dl or {RIDGE_SCALES[1]:g} deg of "
             "dtheta cost as much as 1 mm of length residual on one reading"
             if ridge
             else None
         ),
-        "identified": _identified([BALLBAR_PARAM_NAMES[i] for i in keep], theta[keep], fit.std[keep]),
-        "frame": "robot base (nominal); a tracker frame is registered on tracker data",
-    }
-    if uncertainty is not None:
-        info["uncertainty"] = uncertainty
+    )
+    if unc is not None:
+        info["uncertainty"] = unc
     _log.info(
         "ballbar_campaign_fit",
-        rows=int(bar.size),
+        rows=n_rows,
         rank=fit.rank,
-        h_after_mm=h_after,
-        uncertainty_mode=uncertainty is not None,
+        h_after_mm=solved.rms_mm,
+        uncertainty_mode=unc is not None,
     )
     return FittedModel(model, "base", info)
 
@@ -350,32 +416,33 @@ def fit_crossbar_campaign(
     if jac.shape[0] > jac.shape[1]:  # the covariance of the last step's rows, at the solution
         cov, _ = covariance_from_fit(jac, rhs.reshape(-1))
         near = near_dependent_pairs(list(report.identifiable), cov)
-    info: dict[str, Any] = {
-        "kind": "crossbar",
-        "campaign": "crossbar",
-        "rows": int(4 * a.shape[0]),
-        "crosses": int(a.shape[0]),
-        "rms_mm": float(np.sqrt(np.mean(after**2))),
-        "bar_error_max_before_mm": float(np.abs(before).max()),
-        "bar_error_max_after_mm": float(np.abs(after).max()),
-        "rank": int(report.rank_svd),
-        "parameters": len(report.candidates),
-        "solver": {
+    info = _campaign_info(
+        "crossbar",
+        rows=int(4 * a.shape[0]),
+        rms_mm=_rms(after),
+        rank=int(report.rank_svd),
+        parameters=len(report.candidates),
+        solver={
             "method": "Gauss-Newton on distance and perpendicularity rows"
             + (", sqrt(2)L weighting" if weighted else ""),
             "iterations": fit.iterations,
             "stop": fit.reason,
             "step_max": list(fit.step_max),
         },
-        "dropped_crosses": [int(d) for d in fit.dropped],
-        "identifiability": {**report_info(report), "near_dependent": near},
-        "not_identifiable": list(fit.not_identified),
-        "identified": {
+        report=report,
+        near_dependent=near,
+        not_identifiable=list(fit.not_identified),
+        identified={
             n: {"value": float(fit.dx[i])}
             for n, i in zip(report.identifiable, report.identifiable_index, strict=True)
         },
-        "frame": "robot base (nominal); a tracker frame is registered on tracker data",
-    }
+    )
+    info.update(
+        crosses=int(a.shape[0]),
+        bar_error_max_before_mm=float(np.abs(before).max()),
+        bar_error_max_after_mm=float(np.abs(after).max()),
+        dropped_crosses=[int(d) for d in fit.dropped],
+    )
     _log.info(
         "crossbar_campaign_fit", crosses=int(a.shape[0]), rank=int(report.rank_svd), dropped=fit.dropped
     )
