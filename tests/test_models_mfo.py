@@ -56,6 +56,41 @@ def test_reference_t_schedule_is_available() -> None:
     assert res.fun < 1e-3
 
 
+@pytest.mark.parametrize("variant", ["mfo", "imfo", "woa"])
+def test_the_answer_is_the_best_point_ever_evaluated(variant: Literal["mfo", "imfo", "woa"]) -> None:
+    """The flames are elitist: every evaluated moth competes, and none better is ever dropped."""
+    seen: list[np.ndarray] = []
+
+    def every_population(pop: np.ndarray) -> np.ndarray:
+        seen.append(pop.copy())
+        return _sphere(pop - 0.3)
+
+    res = optimise(every_population, -np.ones(3), np.ones(3), variant=variant, n_agents=8, max_iter=25)
+    values = np.concatenate([_sphere(pop - 0.3) for pop in seen])
+    best = np.concatenate(seen)[int(np.argmin(values))]
+    assert res.fun == values.min() and np.array_equal(res.x, best)
+    running = np.minimum.accumulate([_sphere(pop - 0.3).min() for pop in seen])
+    np.testing.assert_array_equal(res.best_history, running)
+
+
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [({"variant": "pso"}, "unknown variant 'pso'"), ({"t_mode": "papers"}, "unknown t_mode 'papers'")],
+)
+def test_an_unknown_variant_or_t_schedule_is_refused_before_any_evaluation(
+    options: dict[str, str], message: str
+) -> None:
+    calls: list[int] = []
+
+    def counted(pop: np.ndarray) -> np.ndarray:
+        calls.append(pop.shape[0])
+        return _sphere(pop)
+
+    with pytest.raises(ValueError, match=message):
+        optimise(counted, -np.ones(2), np.ones(2), n_agents=4, max_iter=3, target=np.inf, **options)  # type: ignore[arg-type]
+    assert calls == []
+
+
 def test_mfo_and_lm_reach_the_same_minimum() -> None:
     """Three POE errors from 20 noisy positions: a least-squares problem with one minimum in the box."""
     rng = np.random.default_rng(0)

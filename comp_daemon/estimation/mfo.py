@@ -80,6 +80,11 @@ class MfoResult:
     a_values: NDArray[np.float64]
 
 
+#: the variants :func:`optimise` runs, and the schedules of the plain MFO's spiral parameter t
+_VARIANTS: tuple[Variant, ...] = ("mfo", "imfo", "woa")
+_T_MODES = ("paper", "reference")
+
+
 def _flame_number(n: int, k: int, k_max: int) -> int:
     return round(n - k * (n - 1) / k_max)
 
@@ -88,6 +93,20 @@ def _spiral(
     d: NDArray[np.float64], centre: NDArray[np.float64], t: NDArray[np.float64], b: float
 ) -> NDArray[np.float64]:
     return d * np.exp(b * t) * np.cos(2.0 * np.pi * t) + centre
+
+
+def _merge_flames(
+    flames: NDArray[np.float64],
+    flame_fit: NDArray[np.float64],
+    moths: NDArray[np.float64],
+    fit: NDArray[np.float64],
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The elitist flames: the best N of (previous flames ∪ moths), N the number of moths, sorted by
+    fitness (ties keep the earlier, a flame before a moth), and their fitness."""
+    pool = np.vstack([flames, moths])
+    pool_fit = np.concatenate([flame_fit, fit])
+    order = np.argsort(pool_fit, kind="stable")[: moths.shape[0]]
+    return pool[order], pool_fit[order]
 
 
 def optimise(
@@ -112,6 +131,10 @@ def optimise(
     lo, hi = np.asarray(lb, dtype=float), np.asarray(ub, dtype=float)
     if lo.shape != hi.shape or lo.ndim != 1 or np.any(lo >= hi):
         raise ValueError("bounds must be two vectors of the same length with lb < ub")
+    if variant not in _VARIANTS:
+        raise ValueError(f"unknown variant {variant!r} ({', '.join(_VARIANTS)})")
+    if t_mode not in _T_MODES:
+        raise ValueError(f"unknown t_mode {t_mode!r} ({', '.join(_T_MODES)})")
     rng = np.random.default_rng(seed)
     t_start = time.perf_counter()
     n, dim = n_agents, lo.size
@@ -128,10 +151,7 @@ def optimise(
             callback(k, moths)
         fit = np.asarray(objective(moths), dtype=float)
         evaluations += n
-        pool = np.vstack([flames, moths])
-        pool_fit = np.concatenate([flame_fit, fit])
-        order = np.argsort(pool_fit, kind="stable")[:n]
-        flames, flame_fit = pool[order], pool_fit[order]
+        flames, flame_fit = _merge_flames(flames, flame_fit, moths, fit)
         best_hist.append(float(flame_fit[0]))
         nf = _flame_number(n, k, max_iter)
         a = 2.0 - 2.0 * k / max_iter
@@ -142,18 +162,11 @@ def optimise(
             break
         follow = flames[np.minimum(np.arange(n), nf - 1)]
         if variant == "mfo":
-            if t_mode == "paper":
-                t = rng.uniform(-1.0, 1.0, (n, dim))
-            else:
-                r = -1.0 - k / max_iter
-                t = (1.0 - r) * rng.random((n, dim)) + r
-            moths = _spiral(np.abs(follow - moths), follow, t, b)
+            moths = _mfo_step(moths, follow, k / max_iter, b, t_mode, rng)
         elif variant == "imfo":
             moths = _improved_step(moths, follow, a, b, rng)
-        elif variant == "woa":
-            moths = _woa_step(moths, flames[0], a, b, rng)
         else:
-            raise ValueError(f"unknown variant {variant!r} (mfo, imfo, woa)")
+            moths = _woa_step(moths, flames[0], a, b, rng)
     elapsed = time.perf_counter() - t_start
     _log.info(
         "mfo_done",
@@ -175,6 +188,24 @@ def optimise(
         flame_numbers=np.array(nf_hist, dtype=np.intp),
         a_values=np.array(a_hist),
     )
+
+
+def _mfo_step(
+    moths: NDArray[np.float64],
+    follow: NDArray[np.float64],
+    progress: float,
+    b: float,
+    t_mode: str,
+    rng: np.random.Generator,
+) -> NDArray[np.float64]:
+    """The plain MFO's spiral about each moth's flame; ``progress`` = K/K_max sets the reference t."""
+    n, dim = moths.shape
+    if t_mode == "paper":
+        t = rng.uniform(-1.0, 1.0, (n, dim))
+    else:
+        r = -1.0 - progress
+        t = (1.0 - r) * rng.random((n, dim)) + r
+    return _spiral(np.abs(follow - moths), follow, t, b)
 
 
 def _improved_step(
