@@ -14,7 +14,9 @@ from comp_daemon.models.poe.calibration import (
     poe_identifiability,
     poe_world_jacobian,
     poe_world_position_mm,
+    rms_distance_mm,
 )
+from comp_daemon.models.poe.twist import fit_poe_twists
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("irb120")
@@ -140,3 +142,22 @@ def test_weights_downweight_a_bad_point() -> None:
     err_w = np.abs(weighted.theta[kept] - expected[kept]).max()
     err_u = np.abs(unweighted.theta[kept] - expected[kept]).max()
     assert err_w < 1e-3 < err_u
+
+
+def test_both_position_fits_refuse_positions_that_do_not_match_the_axis_values() -> None:
+    model = irb120_table1(ROBOT)
+    a = _poses(5, 0)
+    for fit in (fit_poe_positions, fit_poe_twists):
+        with pytest.raises(ValueError, match=r"positions must be \(n, 3\) with n = 5, got \(4, 3\)"):
+            fit(model, a, np.zeros((4, 3)))
+
+
+def test_rms_distance_is_over_points_not_coordinates() -> None:
+    # two points, 5 mm and 0 mm off: RMS distance sqrt(25 / 2), not the RMS of the six coordinates
+    residual = np.array([3.0, 4.0, 0.0, 0.0, 0.0, 0.0])
+    assert rms_distance_mm(residual) == pytest.approx(np.sqrt(12.5))
+    model = irb120_table1(ROBOT)
+    a = _poses(12, 1)
+    shifted = poe_world_position_mm(model, a, np.zeros(12)) + np.array([3.0, 4.0, 0.0])
+    for fit in (fit_poe_positions(model, a, shifted), fit_poe_twists(model, a, shifted, np.eye(4))):
+        assert fit.rms_before_mm == pytest.approx(5.0)

@@ -59,14 +59,17 @@ __all__ = [
     "POE_PRIORITY",
     "NullDirection",
     "PoeFit",
+    "PositionFit",
     "fit_least_squares_subset",
     "fit_poe_positions",
     "layout_twists",
+    "measured_positions",
     "null_directions",
     "paper_layout",
     "poe_identifiability",
     "poe_world_jacobian",
     "poe_world_position_mm",
+    "rms_distance_mm",
     "start_frame",
 ]
 
@@ -100,6 +103,7 @@ def paper_layout(robot: RobotDescription) -> PoeLayout:
     a = np.random.default_rng(0).uniform(lim[:, 0], lim[:, 1], (20, 6))
     same = np.abs(poe_chain(table1, a).tcp_mm - poe_chain(PoeModel.from_robot(robot), a).tcp_mm)
     return "table1" if float(same.max()) < _LAYOUT_TOL_MM else "robot"
+
 
 BASE_NAMES: tuple[str, ...] = ("base_x", "base_y", "base_z", "base_rx", "base_ry", "base_rz")
 # kept first … offered last (fixed first when dependent): spec A.2's order Δθ6, Δl1, Δl5, then Δθ1, Δl2
@@ -239,14 +243,14 @@ def poe_world_jacobian(
 
 
 @dataclass(frozen=True, slots=True)
-class PoeFit:
-    """A POE calibration: full error vector (removed entries zero), frame, report, residuals."""
+class PositionFit:
+    """A calibration from measured TCP positions, whatever its parameters: their values and standard
+    uncertainties (removed ones zero, NaN), what the rows identify and cannot, the RMS distance to the
+    measured positions before and after, and how the solver ended."""
 
-    names: tuple[str, ...]  # POE_PARAM_NAMES (+ BASE_NAMES when the frame was fitted)
+    names: tuple[str, ...]
     theta: NDArray[np.float64]  # values of ``names``
     std: NDArray[np.float64]  # standard uncertainty of each (NaN for removed ones)
-    cov: NDArray[np.float64]  # covariance of ``theta`` (rows and columns of removed ones zero: fixed)
-    world_T_base: NDArray[np.float64] | None
     report: IdentifiabilityReport
     null_space: tuple[NullDirection, ...]
     rms_before_mm: float
@@ -254,13 +258,38 @@ class PoeFit:
     iterations: int
     reason: str
 
+    def value(self, name: str) -> float:
+        return float(self.theta[self.names.index(name)])
+
+
+@dataclass(frozen=True, slots=True)
+class PoeFit(PositionFit):
+    """A POE calibration (``names``: POE_PARAM_NAMES, + BASE_NAMES when the frame was fitted)."""
+
+    cov: NDArray[np.float64]  # covariance of ``theta`` (rows and columns of removed ones zero: fixed)
+    world_T_base: NDArray[np.float64] | None
+
     @property
     def x(self) -> NDArray[np.float64]:
         """The 12 POE errors."""
         return self.theta[:N_POE_PARAMS]
 
-    def value(self, name: str) -> float:
-        return float(self.theta[self.names.index(name)])
+
+def measured_positions(
+    a_deg: NDArray[np.float64], p_meas_mm: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """Axis values (n, 6) and the TCP positions measured there (n, 3), as float arrays; ValueError
+    naming the shape when the positions do not match the axis values."""
+    a = np.atleast_2d(np.asarray(a_deg, dtype=float))
+    p_meas = np.atleast_2d(np.asarray(p_meas_mm, dtype=float))
+    if p_meas.shape != (a.shape[0], 3):
+        raise ValueError(f"positions must be (n, 3) with n = {a.shape[0]}, got {p_meas.shape}")
+    return a, p_meas
+
+
+def rms_distance_mm(residual: NDArray[np.float64]) -> float:
+    """RMS of the distances (mm) of a position residual stacked as (x, y, z) per point."""
+    return float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 3) ** 2, axis=1))))
 
 
 def fit_least_squares_subset(
@@ -319,10 +348,7 @@ def fit_poe_positions(
     residual (e.g. ``1/u²`` from :mod:`comp_daemon.estimation.uncertainty`). With ``fit_base`` the start
     frame is the rigid registration of the nominal TCPs onto the measured ones.
     """
-    a = np.atleast_2d(np.asarray(a_deg, dtype=float))
-    p_meas = np.atleast_2d(np.asarray(p_meas_mm, dtype=float))
-    if p_meas.shape != (a.shape[0], 3):
-        raise ValueError(f"positions must be (n, 3) with n = {a.shape[0]}, got {p_meas.shape}")
+    a, p_meas = measured_positions(a_deg, p_meas_mm)
     sw = np.ones(a.shape[0]) if weights is None else np.sqrt(np.asarray(weights, dtype=float))
     p_nom = poe_chain(model, a).tcp_mm
     start = rigid_registration(p_nom, p_meas) if fit_base else None
@@ -341,8 +367,8 @@ def fit_poe_positions(
     theta, std, cov, its, reason, r = fit_least_squares_subset(
         fn, theta0, keep, inverse_variance=weights_are_inverse_variance
     )
-    rms0 = float(np.sqrt(np.mean(np.sum((r0.reshape(-1, 3) / sw[:, None]) ** 2, axis=1))))
-    rms1 = float(np.sqrt(np.mean(np.sum((r.reshape(-1, 3) / sw[:, None]) ** 2, axis=1))))
+    rms0 = rms_distance_mm(r0.reshape(-1, 3) / sw[:, None])
+    rms1 = rms_distance_mm(r.reshape(-1, 3) / sw[:, None])
     _log.info("poe_fit", points=a.shape[0], kept=report.n_identifiable, rms_before_mm=rms0, rms_after_mm=rms1)
     return PoeFit(
         names=names,

@@ -33,15 +33,17 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.common.logs import get_logger
-from comp_daemon.estimation.identifiability import IdentifiabilityReport, analyze_identifiability
+from comp_daemon.estimation.identifiability import analyze_identifiability
 from comp_daemon.estimation.registration import rigid_registration
 from comp_daemon.kinematics.poe import PoeModel, poe_chain
 from comp_daemon.kinematics.so3 import left_jacobian, rotvec_to_matrix, skew
 from comp_daemon.models.poe.calibration import (
     BASE_NAMES,
-    NullDirection,
+    PositionFit,
     fit_least_squares_subset,
+    measured_positions,
     null_directions,
+    rms_distance_mm,
     start_frame,
 )
 
@@ -153,19 +155,11 @@ def twist_world_jacobian(
 
 
 @dataclass(frozen=True, slots=True)
-class PoeTwistFit:
-    """A calibration of the twist errors and the base frame (removed parameters zero)."""
+class PoeTwistFit(PositionFit):
+    """A calibration of the twist errors and the base frame (``names``: TWIST_PARAM_NAMES +
+    BASE_NAMES; removed parameters zero)."""
 
-    names: tuple[str, ...]  # TWIST_PARAM_NAMES + BASE_NAMES
-    theta: NDArray[np.float64]
-    std: NDArray[np.float64]  # NaN for removed ones
     world_T_base: NDArray[np.float64]
-    report: IdentifiabilityReport
-    null_space: tuple[NullDirection, ...]
-    rms_before_mm: float
-    rms_after_mm: float
-    iterations: int
-    reason: str
 
     @property
     def errors(self) -> NDArray[np.float64]:
@@ -185,10 +179,7 @@ def fit_poe_twists(
     ``a_deg`` (n, 6); the frame starts at ``start_T_base`` (default: the rigid registration of the
     nominal TCPs onto the measured ones). Dependent parameters are removed by name
     (:data:`TWIST_PRIORITY`, frame first) and stay zero; improved LM on the rest."""
-    a = np.atleast_2d(np.asarray(a_deg, dtype=float))
-    p_meas = np.atleast_2d(np.asarray(p_meas_mm, dtype=float))
-    if p_meas.shape != (a.shape[0], 3):
-        raise ValueError(f"positions must be (n, 3) with n = {a.shape[0]}, got {p_meas.shape}")
+    a, p_meas = measured_positions(a_deg, p_meas_mm)
     start = rigid_registration(poe_chain(model, a).tcp_mm, p_meas) if start_T_base is None else start_T_base
     names = TWIST_PARAM_NAMES + BASE_NAMES
     theta0 = np.zeros(len(names))
@@ -202,8 +193,7 @@ def fit_poe_twists(
     report = analyze_identifiability(jac0, list(names), priority=priority, rtol=rtol, rank_rtol=rtol)
     keep = report.identifiable_index
     theta, std, _, its, reason, r = fit_least_squares_subset(fn, theta0, keep, inverse_variance=False)
-    rms0 = float(np.sqrt(np.mean(np.sum(r0.reshape(-1, 3) ** 2, axis=1))))
-    rms1 = float(np.sqrt(np.mean(np.sum(r.reshape(-1, 3) ** 2, axis=1))))
+    rms0, rms1 = rms_distance_mm(r0), rms_distance_mm(r)
     _log.info(
         "poe twist fit", points=a.shape[0], kept=report.n_identifiable, rms_before_mm=rms0, rms_after_mm=rms1
     )
