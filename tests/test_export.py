@@ -9,8 +9,9 @@ import pytest
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import Dataset, read_dataset, write_dataset
-from comp_daemon.export.formats import PARAM_FORMATS, TARGET_FORMATS
+from comp_daemon.export.formats import PARAM_FORMATS, TARGET_FORMATS, write_targets
 from comp_daemon.export.params import model_of
+from comp_daemon.export.targets import TargetList
 from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, matrix_to_abc_deg
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.artifact import load_model
@@ -203,6 +204,25 @@ def test_targets_with_an_orientation_keep_it(models: dict[str, Path], tmp_path: 
     np.testing.assert_allclose(back.flange_R, abc_deg_to_matrix(abc) @ FLANGE_R_KUKA_TOOL.T, atol=1e-12)
     np.testing.assert_allclose(model.predict_tcp_mm(back.a_deg), p, atol=1e-6)
     assert "DEFDAT cart PUBLIC" in out.read_text()
+
+
+@pytest.mark.parametrize(
+    ("fmt", "axis_decl", "pose_decl"),
+    [("krl", "E6AXIS XA_", "E6POS XP_"), ("rapid", "CONST jointtarget j", "CONST robtarget p")],
+)
+def test_a_controller_target_list_needs_both_declarations_of_every_target(
+    fmt: str, axis_decl: str, pose_decl: str
+) -> None:
+    a = _axes(2, 3)
+    r = np.broadcast_to(np.eye(3), (2, 3, 3))
+    text = write_targets(fmt, TargetList(("hole_a", "hole_b"), a, np.ones((2, 3)), r), "m")
+    assert TARGET_FORMATS[fmt](text, "t").names == ("hole_a", "hole_b")
+    without_pose = "\n".join(line for line in text.splitlines() if f"{pose_decl}hole_b" not in line)
+    with pytest.raises(ValueError, match=f"^t: no {pose_decl}hole_b$"):
+        TARGET_FORMATS[fmt](without_pose, "t")
+    without_axes = "\n".join(line for line in text.splitlines() if axis_decl not in line)
+    with pytest.raises(ValueError, match=f"^t: no {axis_decl}<name> declarations$"):
+        TARGET_FORMATS[fmt](without_axes, "t")
 
 
 def test_export_refusals_are_user_errors(

@@ -36,7 +36,7 @@ from comp_daemon.export.params import (
     sigma_note,
     with_frames,
 )
-from comp_daemon.export.targets import TargetList
+from comp_daemon.export.targets import TargetList, paired_names
 from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix, flange_rotation_of_tool_abc, matrix_to_abc_deg
 from comp_daemon.robot.description import FLANGE_R_KUKA_TOOL
 
@@ -211,12 +211,7 @@ def parse_krl_targets(text: str, where: str = "<dat>") -> TargetList:
             axes[name[3:]] = _krl_values(m.group(3))
         elif kind == "E6POS" and name.startswith("XP_"):
             poses[name[3:]] = _krl_values(m.group(3))
-    if not axes:
-        raise ValueError(f"{where}: no E6AXIS XA_<name> declarations")
-    missing = [n for n in axes if n not in poses]
-    if missing:
-        raise ValueError(f"{where}: no E6POS XP_{missing[0]}")
-    names = tuple(axes)
+    names = paired_names(list(axes), poses, where, "E6AXIS XA_<name>", "E6POS XP_")
     abc = np.array([[poses[n][k] for k in "ABC"] for n in names])
     return TargetList(
         names=names,

@@ -43,7 +43,7 @@ from comp_daemon.export.params import (
     of_rows,
     with_frames,
 )
-from comp_daemon.export.targets import TargetList
+from comp_daemon.export.targets import TargetList, paired_names
 
 __all__ = ["format_abb", "format_rapid_targets", "parse_abb", "parse_rapid_targets"]
 
@@ -241,12 +241,7 @@ def parse_rapid_targets(text: str, where: str = "<mod>") -> TargetList:
             joints[m.group(2)[1:]] = value[0]
         elif m.group(1).lower() == "robtarget" and m.group(2).startswith("p"):
             robs[m.group(2)[1:]] = value
-    if not joints:
-        raise ValueError(f"{where}: no CONST jointtarget j<name> declarations")
-    missing = [n for n in joints if n not in robs]
-    if missing:
-        raise ValueError(f"{where}: no CONST robtarget p{missing[0]}")
-    names = tuple(joints)
+    names = paired_names(list(joints), robs, where, "CONST jointtarget j<name>", "CONST robtarget p")
     return TargetList(
         names=names,
         a_deg=np.array([joints[n] for n in names], dtype=float),

@@ -16,7 +16,7 @@ from __future__ import annotations
 import csv
 import io
 import re
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -30,6 +30,7 @@ __all__ = [
     "TargetList",
     "format_csv_targets",
     "module_name",
+    "paired_names",
     "parse_csv_targets",
     "point_names",
 ]
@@ -70,6 +71,20 @@ def module_name(stem: str, default: str) -> str:
     """A KRL / RAPID module name from a file name's stem (letters, digits, ``_``; ≤ 24 characters)."""
     name = _NAME_CHARS.sub("_", stem)[:24]
     return name if name[:1].isalpha() else default
+
+
+def paired_names(
+    axes: Sequence[str], poses: Collection[str], where: str, axis_decl: str, pose_prefix: str
+) -> tuple[str, ...]:
+    """The target names of a controller's list, which declares each target twice (its axis values
+    ``axes`` and its pose ``poses``, by name): in the order of the axis declarations; ValueError when
+    there is none (``axis_decl``: how one reads) or one has no pose (``pose_prefix`` + its name)."""
+    if not axes:
+        raise ValueError(f"{where}: no {axis_decl} declarations")
+    missing = [n for n in axes if n not in poses]
+    if missing:
+        raise ValueError(f"{where}: no {pose_prefix}{missing[0]}")
+    return tuple(axes)
 
 
 def format_csv_targets(targets: TargetList) -> str:
