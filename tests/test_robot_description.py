@@ -119,3 +119,11 @@ def test_cli_show_accepts_a_path_and_refuses_a_bad_one(
     bad.write_text(_file([GOOD_JOINT] * 3))
     assert main(["robot", "show", str(bad)]) == 2
     assert "six joints are expected" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("suffix", [".toml", ".urdf"])
+def test_a_file_that_is_not_utf8_is_refused_by_its_path(tmp_path: Path, suffix: str) -> None:
+    bad = tmp_path / f"arm{suffix}"
+    bad.write_bytes(b'[robot]\nname = "\xff\xfe"\n')
+    with pytest.raises(RobotDescriptionError, match=f"^{bad}: cannot read: 'utf-8' codec"):
+        load_robot(bad)

@@ -1,1 +1,1 @@
-"""Small helpers every layer may use: atomic file writes and structured logging."""
+"""Small helpers every layer may use: atomic file writes, files a user names, structured logging."""

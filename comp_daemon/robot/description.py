@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from comp_daemon.common.files import named_file, read_text
 from comp_daemon.robot.types import (
     N_JOINTS,
     Joint,
@@ -170,15 +171,8 @@ def load_robot(name_or_path: str | Path) -> RobotDescription:
     if key in PRESETS:
         text = resources.files("comp_daemon.robot").joinpath(f"presets/{key}.toml").read_text("utf-8")
         return parse_robot_toml(text, source=f"preset:{key}")
-    path = Path(key)
-    if not path.is_file():
-        raise RobotDescriptionError(
-            f"robot '{key}': neither a preset ({', '.join(PRESETS)}) nor a readable file"
-        )
+    path = named_file(key, PRESETS, "robot", RobotDescriptionError)
     if path.suffix.lower() == ".urdf":
         return load_urdf(path)
-    try:
-        text = path.read_text("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RobotDescriptionError(f"{path}: cannot read: {exc}") from None
+    text = read_text(path, RobotDescriptionError)
     return parse_robot_toml(text, source=str(path), directory=path.parent)

@@ -49,6 +49,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.common.files import read_text
 from comp_daemon.robot.types import (
     N_JOINTS,
     Joint,
@@ -666,10 +667,7 @@ _WRAPPER_KEYS = {
 
 def load_urdf(path: Path, source: str | None = None, **options: Any) -> RobotDescription:
     """The description of the URDF file at ``path`` (options of :func:`description_from_urdf`)."""
-    try:
-        text = path.read_text("utf-8")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise RobotDescriptionError(f"{path}: cannot read: {exc}") from None
+    text = read_text(path, RobotDescriptionError)
     return description_from_urdf(parse_urdf(text, source or str(path)), **options)
 
 
