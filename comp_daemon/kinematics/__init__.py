@@ -1,41 +1,11 @@
-"""Kinematics of six-axis arms: parameters, batch forward kinematics, Jacobians, gravity, inverse kinematics.
+"""Kinematics of six-axis arms, batch-first over n poses; the conventions are written once, in
+:mod:`~comp_daemon.kinematics.params` (DH) and :mod:`~comp_daemon.kinematics.poe` (POE).
 
-Conventions are in :mod:`comp_daemon.kinematics.params`; everything is batch-first over n poses.
+* :mod:`~comp_daemon.kinematics.params`: the kinematic parameters, the identification vector, axis ↔ DH;
+* :mod:`~comp_daemon.kinematics.forward`: forward kinematics, Jacobians, gravity torques;
+* :mod:`~comp_daemon.kinematics.inverse`: numerical inverse kinematics;
+* :mod:`~comp_daemon.kinematics.poe`: the product-of-exponentials chain and its Δl/Δθ errors;
+* :mod:`~comp_daemon.kinematics.so3`, :mod:`~comp_daemon.kinematics.kuka_abc`: rotations, KUKA A, B, C.
+
+Import from the module that defines a name; the package re-exports nothing.
 """
-
-from comp_daemon.kinematics.forward import (
-    chain,
-    flange_pose,
-    geometric_jacobian,
-    gravity_torques_nm,
-    identification_jacobian,
-    position_jacobian_mm,
-    tcp_position_mm,
-)
-from comp_daemon.kinematics.inverse import IKResult, UnreachableTargetError, require_reachable, solve_ik
-from comp_daemon.kinematics.params import (
-    N_PARAMS,
-    PARAM_NAMES,
-    KinematicParams,
-    axes_deg_to_q_rad,
-    q_rad_to_axes_deg,
-)
-
-__all__ = [
-    "N_PARAMS",
-    "PARAM_NAMES",
-    "IKResult",
-    "KinematicParams",
-    "UnreachableTargetError",
-    "axes_deg_to_q_rad",
-    "chain",
-    "flange_pose",
-    "geometric_jacobian",
-    "gravity_torques_nm",
-    "identification_jacobian",
-    "position_jacobian_mm",
-    "q_rad_to_axes_deg",
-    "require_reachable",
-    "solve_ik",
-    "tcp_position_mm",
-]
