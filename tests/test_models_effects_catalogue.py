@@ -174,6 +174,15 @@ def test_entry_has_diagnosis_candidates_json_and_a_driver(effect: Effect) -> Non
     assert x.shape == (a.shape[0],) and np.all(np.isfinite(x)) and label
 
 
+def test_a_time_like_driver_without_its_column_is_the_row_number() -> None:
+    a, d, payload, _ = _poses(np.random.default_rng(12))
+    inputs = twin_inputs(MassModel.from_robot(ROBOT), PARAMS, a, d, payload, None, clock=None)
+    for effect in EFFECT_CATALOGUE:
+        if {"temp_c", "clock"} & set(effect.columns):
+            x, label = effect.driver(inputs, None)
+            assert label == "row" and np.array_equal(x, np.arange(a.shape[0], dtype=float)), effect.name
+
+
 @pytest.mark.parametrize("effect", EFFECT_CATALOGUE, ids=IDS)
 def test_data_check_names_missing_and_constant_columns(effect: Effect) -> None:
     rng = np.random.default_rng(13)

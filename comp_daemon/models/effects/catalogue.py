@@ -287,10 +287,15 @@ def _thermal_data(data: EffectData, joint: int | None) -> str | None:
     return None
 
 
+def _row_driver(x: TwinInputs) -> tuple[FloatArray, str]:
+    """The driver of a time-like effect whose campaign lacks its column: the row number."""
+    return np.arange(x.a_deg.shape[0], dtype=float), "row"
+
+
 def _temperature_driver(x: TwinInputs, joint: int | None) -> tuple[FloatArray, str]:
     if x.temp_c is not None:
         return x.temp_c, "temp_c (°C)"
-    return np.arange(x.a_deg.shape[0], dtype=float), "row"
+    return _row_driver(x)
 
 
 THERMAL = Effect(
@@ -371,7 +376,7 @@ def _drift_column(
 def _clock_driver(x: TwinInputs, joint: int | None) -> tuple[FloatArray, str]:
     if x.clock is not None:
         return x.clock, "campaign clock (h, or row number without t_s)"
-    return np.arange(x.a_deg.shape[0], dtype=float), "row"
+    return _row_driver(x)
 
 
 #: the time effects need at least this many distinct clock values on the fit rows
