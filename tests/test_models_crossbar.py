@@ -20,6 +20,7 @@ from comp_daemon.instruments.crossbar import (
     crossbar_identifiability,
     plan_crossbar,
     preset_errors_b5,
+    row_shortage,
     seat_probe,
 )
 from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams
@@ -177,3 +178,20 @@ def test_swapped_sockets_are_rejected() -> None:
     err_clean = _rms(bar_errors_mm(clean.params, a_check, SIGN, check.bar_l_mm))
     err_fit = _rms(bar_errors_mm(fit.params, a_check, SIGN, check.bar_l_mm))
     assert err_fit <= 1.5 * err_clean
+
+
+def test_three_rows_a_placement_and_two_rows_an_unknown() -> None:
+    assert row_shortage(14, 21) is None
+    assert row_shortage(13, 21) == "13 placements give 39 rows; 21 unknowns need 42"
+    assert row_shortage(7, 10) is None and row_shortage(6, 10) is not None
+
+
+def test_rejecting_a_placement_below_the_rows_needed_is_refused() -> None:
+    plan, a_deg = _campaign(TRUE, 14, np.random.default_rng(8))
+    knocked = a_deg.copy()
+    knocked[5, :, 1] += 15.0  # placement 5 read with A2 15 degrees off: a step far beyond its bound
+    with pytest.raises(
+        CrossbarRefusedError,
+        match=r"^after rejecting placements \[5\], 13 placements give 39 rows; 21 unknowns",
+    ):
+        calibrate_crossbar(NOMINAL, knocked, SIGN, plan.bar_l_mm)

@@ -62,6 +62,7 @@ __all__ = [
     "crossbar_identifiability",
     "plan_crossbar",
     "preset_errors_b5",
+    "row_shortage",
     "seat_probe",
 ]
 
@@ -69,6 +70,10 @@ _log = get_logger(__name__)
 
 SOCKETS = ("A", "B", "C", "D")
 MIN_A6_SPAN_DEG = 30.0
+#: constraint rows of one placement: |AC| = L, |BD| = L, AC ⊥ BD (B.2)
+ROWS_PER_PLACEMENT = 3
+#: rows the identification wants per unknown (B.3)
+ROWS_PER_UNKNOWN = 2
 
 
 class CrossbarRefusedError(ValueError):
@@ -288,6 +293,15 @@ def seat_probe(
     return a_out, ok
 
 
+def row_shortage(placements: int, unknowns: int) -> str | None:
+    """Why ``placements`` are too few to identify ``unknowns`` (:data:`ROWS_PER_PLACEMENT` rows each,
+    :data:`ROWS_PER_UNKNOWN` wanted per unknown); None when they are enough."""
+    rows, need = ROWS_PER_PLACEMENT * placements, ROWS_PER_UNKNOWN * unknowns
+    if rows >= need:
+        return None
+    return f"{placements} placements give {rows} rows; {unknowns} unknowns need {need}"
+
+
 def check_plan(a_deg: NDArray[np.float64], n_unknowns: int = 21) -> None:
     """Refuse a campaign whose A6 spans less than 30° or that has too few placements (B.3, data forms)."""
     a = np.asarray(a_deg, dtype=float)
@@ -296,10 +310,9 @@ def check_plan(a_deg: NDArray[np.float64], n_unknowns: int = 21) -> None:
         raise CrossbarRefusedError(
             f"A6 spans {span:.1f}° (< {MIN_A6_SPAN_DEG:.0f}°): θ6 and joint 5 cannot be told apart; vary A6"
         )
-    if 3 * a.shape[0] < 2 * n_unknowns:
-        raise CrossbarRefusedError(
-            f"{a.shape[0]} placements give {3 * a.shape[0]} rows; {n_unknowns} unknowns need {2 * n_unknowns}"
-        )
+    short = row_shortage(a.shape[0], n_unknowns)
+    if short is not None:
+        raise CrossbarRefusedError(short)
 
 
 # ---- iterative solution ---------------------------------------------------------------------
@@ -374,11 +387,9 @@ def calibrate_crossbar(
                 placement=dropped[-1],
                 step_over_bound=float(np.max(np.abs(step) / bounds)),
             )
-            if 3 * active.size < 2 * cols.size:
-                raise CrossbarRefusedError(
-                    f"after rejecting placements {dropped}, {3 * active.size} rows remain "
-                    f"for {cols.size} unknowns"
-                )
+            short = row_shortage(active.size, cols.size)
+            if short is not None:
+                raise CrossbarRefusedError(f"after rejecting placements {dropped}, {short}")
             continue
         rms_hist.append(rms)
         dx[cols] += step
