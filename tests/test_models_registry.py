@@ -15,9 +15,9 @@ from comp_daemon.data.dataset import Dataset, read_dataset, write_dataset
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models import base, chebyshev, compliance, kinematic, kriging
 from comp_daemon.models.artifact import load_model, model_from_artifact, save_model
-from comp_daemon.models.base import NominalModel
 from comp_daemon.models.compensation import nominal_targets
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.models.registry import (
     ARTIFACT_KINDS,
     KINDS,
