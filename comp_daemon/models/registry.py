@@ -59,7 +59,6 @@ __all__ = [
     "MAX_ORDER",
     "FittedModel",
     "MissingColumnError",
-    "ModelKind",
     "ModelSpec",
     "UndeterminedModelError",
     "UnknownModelError",
