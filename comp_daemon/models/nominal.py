@@ -2,7 +2,7 @@
 
 On base-frame data the model is the description itself; on tracker data only the base frame is
 registered (the rigid fit of :mod:`comp_daemon.estimation.registration`). It is the reference every
-other kind is compared with, and what the daemon compensates with before a model is activated.
+other kind is compared with.
 """
 
 from __future__ import annotations
