@@ -29,10 +29,11 @@ from comp_daemon.kinematics.forward import flange_pose
 from comp_daemon.kinematics.inverse import solve_ik
 from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad, q_rad_to_axes_deg
-from comp_daemon.models.base import ErrorModel, NominalModel
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.kriging import JointStateMetric, KrigingModel, fit_kriging, joint_space_semivariogram
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.robot.description import RobotDescription, load_robot
 
 HOME_DEG = (0.0, -85.0, 125.0, 0.0, -40.0, 0.0)

@@ -39,7 +39,7 @@ from benchmarks.machine import machine_line
 from comp_daemon.common.logs import configure_logging
 from comp_daemon.daemon.app import Daemon, SimOptions
 from comp_daemon.models.artifact import model_document
-from comp_daemon.models.base import NominalModel
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.rt.safety import SafetyState
 from comp_daemon.service.config import load_settings
 from comp_daemon.service.store import ModelDraft

@@ -347,7 +347,7 @@ async def in_process_cell(
 
     from comp_daemon.daemon.app import Daemon, SimOptions
     from comp_daemon.models.artifact import model_document
-    from comp_daemon.models.base import NominalModel
+    from comp_daemon.models.nominal import NominalModel
     from comp_daemon.service.config import load_settings
     from comp_daemon.service.store import ModelDraft
 

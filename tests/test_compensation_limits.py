@@ -23,7 +23,7 @@ from comp_daemon.daemon.compensation import ActiveModelCompensator
 from comp_daemon.data.dataset import Dataset, read_dataset, write_dataset
 from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams
 from comp_daemon.models.artifact import model_document, save_model
-from comp_daemon.models.base import ErrorModel, NominalModel
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.chebyshev import fit_chebyshev
 from comp_daemon.models.compensation import (
     CompensationLimits,
@@ -38,6 +38,7 @@ from comp_daemon.models.compliance import ComplianceModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import fit_kriging
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.robot.description import load_robot
 from comp_daemon.rt.executor import TargetExecutor
 from comp_daemon.service.api import create_app, open_store

@@ -14,9 +14,9 @@ from comp_daemon.data.target import Target
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
-from comp_daemon.models.base import NominalModel
 from comp_daemon.models.compensation import CompensationLimits
 from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import load_robot
 from comp_daemon.rt.executor import CompensationError, ModelMissingError

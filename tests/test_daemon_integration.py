@@ -21,7 +21,7 @@ import pytest
 
 from comp_daemon.daemon.app import Daemon, SimOptions
 from comp_daemon.models.artifact import model_document
-from comp_daemon.models.base import NominalModel
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.rt.safety import FaultKind, SafetyState
 from comp_daemon.service.config import load_settings
 from comp_daemon.service.store import ModelDraft

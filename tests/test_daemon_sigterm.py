@@ -22,7 +22,7 @@ from pathlib import Path
 import pytest
 
 from comp_daemon.models.artifact import model_document
-from comp_daemon.models.base import NominalModel
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.store import ModelDraft, Store
 from comp_daemon.sim.scenario import load_scenario

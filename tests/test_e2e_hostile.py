@@ -31,7 +31,7 @@ import pytest
 from e2e_daemon import TOKENS, DaemonProcess, target_rows, wait_until
 
 from comp_daemon.models.artifact import model_document
-from comp_daemon.models.base import NominalModel
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.config import load_settings
 from comp_daemon.service.store import ModelDraft, Store

@@ -19,11 +19,12 @@ from comp_daemon.models.artifact import (
     parse_model,
     save_model,
 )
-from comp_daemon.models.base import ErrorModel, NominalModel
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.chebyshev import fit_chebyshev
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_tcp_mm
 from comp_daemon.models.evaluation import error_statistics, format_table2
 from comp_daemon.models.kinematic import calibrate_kinematic
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")

@@ -9,7 +9,7 @@ from comp_daemon.kinematics.forward import chain, position_jacobian_mm
 from comp_daemon.kinematics.inverse import UnreachableTargetError
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
-from comp_daemon.models.base import ErrorModel, NominalModel
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.chebyshev import fit_chebyshev
 from comp_daemon.models.compensation import (
     CompensationLimits,
@@ -22,6 +22,7 @@ from comp_daemon.models.compensation import (
 )
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import KinematicModel, calibrate_kinematic
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")

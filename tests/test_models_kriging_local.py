@@ -8,10 +8,10 @@ import pytest
 from comp_daemon.estimation.local_kriging import LocalKriging
 from comp_daemon.estimation.variogram import VariogramModel
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
-from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.kriging import LOO_MAX_SAMPLES, KrigingModel, fit_kriging
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
-from comp_daemon.models.base import NominalModel
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.models.kinematic import calibrate_kinematic
 from comp_daemon.models.kriging import JointStateMetric, KrigingModel, fit_kriging
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.models.registry import model_from_payload
 from comp_daemon.robot.description import load_robot
 

@@ -11,7 +11,7 @@ import pytest
 from comp_daemon.cli import main
 from comp_daemon.kinematics.poe import POE_PARAM_NAMES
 from comp_daemon.models.artifact import load_model
-from comp_daemon.models.base import NominalModel
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.models.poe.model import PoeErrorModel
 from comp_daemon.models.registry import fit_model, model_from_payload
 from comp_daemon.robot.description import load_robot

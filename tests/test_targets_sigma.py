@@ -21,7 +21,7 @@ from comp_daemon.daemon.compensation import ActiveModelCompensator
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
-from comp_daemon.models.base import NominalModel
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.models.registry import fit_model
 from comp_daemon.robot.description import load_robot
 from comp_daemon.rt.executor import TargetExecutor

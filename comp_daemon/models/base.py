@@ -1,4 +1,4 @@
-"""The interface every error model offers, and the nominal model.
+"""The interface every error model offers.
 
 An error model predicts where the TCP really is (mm, in the measurement frame ``world``) when the
 controller is commanded to axis values ``a_deg`` (n, 6; controller convention), optionally with the
@@ -17,26 +17,27 @@ per coordinate) of those predictions where the model has one: the parameter cova
 parametric fit propagated through its Jacobian (``uncertainty``, a
 :class:`comp_daemon.models.covariance.ParameterCovariance` set by the fit or the artifact
 loader), or a kriging model's kriging variance; None otherwise.
-
-The nominal model is the robot description's geometry, nothing fitted but the frame.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import Any, ClassVar, Protocol
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Protocol, Self
 
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import KinematicParams, as_six_columns, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import KinematicParams, as_six_columns
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
+    "BaseLoader",
     "ErrorModel",
-    "NominalModel",
     "PredictionUncertainty",
+    "Query",
+    "StoredModel",
     "approach_directions",
     "as_axes",
     "finite_array",
@@ -106,29 +107,78 @@ def further_targets(value: Any, n: int) -> NDArray[np.float64]:
     return more
 
 
-class PredictionUncertainty(Protocol):
-    """What a model's ``uncertainty`` offers (:class:`comp_daemon.models.covariance.ParameterCovariance`)."""
+@dataclass(frozen=True, slots=True)
+class Query:
+    """The poses a prediction is asked at: the commanded axis values ``a`` (n, 6) and what else the
+    models may use, the approach directions, the payload (kg; 0 when not given) and the temperature."""
 
-    def std_mm(
-        self,
-        model: ErrorModel,
+    a: NDArray[np.float64]
+    dir: NDArray[np.float64] | None = None
+    payload_kg: NDArray[np.float64] | float = 0.0
+    temp_c: NDArray[np.float64] | None = None
+
+    @classmethod
+    def of(
+        cls,
         a_deg: NDArray[np.float64],
         dir: NDArray[np.float64] | None = None,
         payload_kg: NDArray[np.float64] | float | None = None,
         temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64]: ...
+    ) -> Query:
+        """The query of :meth:`ErrorModel.predict_tcp_mm`'s arguments (one pose may be given as (6,))."""
+        return cls(as_axes(a_deg), dir, 0.0 if payload_kg is None else payload_kg, temp_c)
+
+
+#: rebuilds a stored model of any kind: ``(kind, robot, payload, order, registration) -> model``
+BaseLoader = Callable[
+    [str, RobotDescription, dict[str, Any], "int | None", NDArray[np.float64]], "ErrorModel"
+]
+
+
+@dataclass(frozen=True, slots=True)
+class StoredModel:
+    """A model as an artifact keeps it, read back for ``robot``: its content (``to_payload``), its
+    order (Chebyshev) and the registration it was fitted after; ``base_loader`` rebuilds the model
+    a stacked model stores inside it (the registry's
+    :func:`~comp_daemon.models.registry.model_from_payload`, which passes itself)."""
+
+    robot: RobotDescription
+    payload: dict[str, Any]
+    order: int | None
+    registration: NDArray[np.float64]
+    base_loader: BaseLoader | None = None
+
+
+class PredictionUncertainty(Protocol):
+    """What a model's ``uncertainty`` offers (:class:`comp_daemon.models.covariance.ParameterCovariance`)."""
+
+    def std_mm(self, model: ErrorModel, query: Query) -> NDArray[np.float64]: ...
 
     def to_dict(self) -> dict[str, Any]: ...
 
 
 class ErrorModel(ABC):
-    """A fitted (or nominal) model of where the TCP really goes."""
+    """A fitted (or nominal) model of where the TCP really goes.
+
+    A kind implements :meth:`tcp_mm` (the prediction at a :class:`Query`), :meth:`to_payload` and
+    :meth:`from_stored`; :meth:`predict_tcp_mm`, :meth:`predict_std_mm` and :meth:`from_payload`
+    are the doors every caller uses, written here once."""
 
     kind: ClassVar[str]
     robot: RobotDescription
     world_T_base: NDArray[np.float64]
     registration: NDArray[np.float64]
     uncertainty: PredictionUncertainty | None = None
+
+    def predict_tcp_mm(
+        self,
+        a_deg: NDArray[np.float64],
+        dir: NDArray[np.float64] | None = None,
+        payload_kg: NDArray[np.float64] | float | None = None,
+        temp_c: NDArray[np.float64] | None = None,
+    ) -> NDArray[np.float64]:
+        """(n, 3) predicted TCP (mm, measurement frame) at commanded axis values ``a_deg`` (n, 6)."""
+        return self.tcp_mm(Query.of(a_deg, dir, payload_kg, temp_c))
 
     def predict_std_mm(
         self,
@@ -138,19 +188,25 @@ class ErrorModel(ABC):
         temp_c: NDArray[np.float64] | None = None,
     ) -> NDArray[np.float64] | None:
         """(n, 3) 1-σ uncertainty (mm) of :meth:`predict_tcp_mm` at ``a_deg``, or None (module docstring)."""
-        if self.uncertainty is None:
-            return None
-        return self.uncertainty.std_mm(self, as_axes(a_deg), dir, payload_kg, temp_c)
+        return self.std_mm(Query.of(a_deg, dir, payload_kg, temp_c))
 
     @abstractmethod
-    def predict_tcp_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
+    def tcp_mm(self, query: Query) -> NDArray[np.float64]:
+        """(n, 3) predicted TCP (mm, measurement frame) at the query's poses."""
+
+    def std_mm(self, query: Query) -> NDArray[np.float64] | None:
+        """(n, 3) 1-σ uncertainty (mm) of :meth:`tcp_mm`: the ``uncertainty``'s, None without one."""
+        if self.uncertainty is None:
+            return None
+        return self.uncertainty.std_mm(self, query)
+
+    def parameter_jacobian(
+        self, names: Sequence[str], values: NDArray[np.float64], query: Query
     ) -> NDArray[np.float64]:
-        """(n, 3) predicted TCP (mm, measurement frame) at commanded axis values ``a_deg`` (n, 6)."""
+        """(n, 3, p) derivative of the TCP at the query's poses w.r.t. the fitted parameters
+        ``names`` at ``values`` (as the fit iterated them): what a parameter covariance is
+        propagated through (:mod:`comp_daemon.models.covariance`)."""
+        raise ValueError(f"no parameter covariance for a {self.kind} model")
 
     def ik_params(self) -> KinematicParams:
         """Kinematic parameters (measurement frame) the compensation inverts the axes with."""
@@ -161,53 +217,21 @@ class ErrorModel(ABC):
         """The model's own content (parameters, coefficients) as JSON-ready values."""
 
     @classmethod
-    @abstractmethod
     def from_payload(
         cls,
         robot: RobotDescription,
         payload: dict[str, Any],
         order: int | None,
         registration: NDArray[np.float64],
-    ) -> ErrorModel:
+    ) -> Self:
         """The model back from :meth:`to_payload`'s content."""
+        return cls.from_stored(StoredModel(robot, payload, order, registration))
+
+    @classmethod
+    @abstractmethod
+    def from_stored(cls, stored: StoredModel) -> Self:
+        """The model back from an artifact's record of it (:meth:`from_payload`)."""
 
     @property
     def order(self) -> int | None:
         return None
-
-
-class NominalModel(ErrorModel):
-    """The robot description's nominal geometry in the frame ``world_T_base``."""
-
-    kind: ClassVar[str] = "nominal"
-
-    def __init__(self, robot: RobotDescription, registration: NDArray[np.float64] | None = None) -> None:
-        self.robot = robot
-        self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
-        self.world_T_base = self.registration
-        self._params = KinematicParams.from_robot(robot).with_base(self.world_T_base)
-
-    def predict_tcp_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64]:
-        return tcp_position_mm(self._params, axes_deg_to_q_rad(as_axes(a_deg), self._params.sign))
-
-    def ik_params(self) -> KinematicParams:
-        return self._params
-
-    def to_payload(self) -> dict[str, Any]:
-        return {}
-
-    @classmethod
-    def from_payload(
-        cls,
-        robot: RobotDescription,
-        payload: dict[str, Any],
-        order: int | None,
-        registration: NDArray[np.float64],
-    ) -> NominalModel:
-        return cls(robot, registration)

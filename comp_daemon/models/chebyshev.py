@@ -39,6 +39,10 @@ Identification: the improved Levenberg–Marquardt method of seed 000
 coefficients with a zero or (numerically) dependent column in the Jacobian — identifiability
 analysis of seed 003 on the Chebyshev Jacobian — are *removed* (held at zero), never regularised.
 The order is chosen by k-fold cross-validation on the fit rows.
+
+The kind (``KIND``): ``chebyshev`` fits order 3 (seed 000's), ``chebyshev:m`` order m,
+``chebyshev:cv`` the order and the removal threshold chosen by k-fold cross-validation on the rows
+given (:func:`select_order`; the fit's summary says what was chosen).
 """
 
 from __future__ import annotations
@@ -56,11 +60,16 @@ from comp_daemon.estimation.lm import LMResult, improved_lm
 from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.base import ErrorModel, as_axes, measured_positions
+from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, measured_positions
+from comp_daemon.models.covariance import attach_covariance
+from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, ModelSpec, lm_info, report_info
+from comp_daemon.models.kind import ModelKind
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "CHEBYSHEV_RTOL",
+    "DEFAULT_CHEBYSHEV_ORDER",
+    "KIND",
     "TERMS",
     "ChebyshevFit",
     "ChebyshevModel",
@@ -70,10 +79,12 @@ __all__ = [
     "chebyshev_basis",
     "chebyshev_identifiability",
     "chebyshev_jacobian",
+    "chebyshev_parameters",
     "chebyshev_setup",
     "chebyshev_tcp_mm",
     "coefficient_names",
     "fit_chebyshev",
+    "fit_chebyshev_kind",
     "link_transforms",
     "motion_range_deg",
     "n_coefficients",
@@ -82,6 +93,7 @@ __all__ = [
 
 TERMS: tuple[str, ...] = ("eps_x", "eps_y", "eps_z", "delta_x", "delta_y", "delta_z")
 N_LINKS = 7  # E_0 (base) and E_1 … E_6
+DEFAULT_CHEBYSHEV_ORDER = 3  # seed 000 fits m = 3
 CHEBYSHEV_RTOL = 0.2  # higher-order coefficients: kept if >= 20 % of the scaled column is new
 CV_ORDERS: tuple[int, ...] = (0, 1, 2, 3, 4)
 CV_RTOLS: tuple[float, ...] = (0.2, 0.1)
@@ -313,14 +325,17 @@ class ChebyshevModel(ErrorModel):
     def names(self) -> tuple[str, ...]:
         return coefficient_names(self._order)
 
-    def predict_tcp_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
+    def tcp_mm(self, query: Query) -> NDArray[np.float64]:
+        return chebyshev_tcp_mm(self._params, query.a, self.range_deg, self._order, self.coefficients)
+
+    def parameter_jacobian(
+        self, names: Sequence[str], values: NDArray[np.float64], query: Query
     ) -> NDArray[np.float64]:
-        return chebyshev_tcp_mm(self._params, a_deg, self.range_deg, self._order, self.coefficients)
+        """The model is affine in its coefficients: the exact Jacobian of the named ones."""
+        index = {nm: i for i, nm in enumerate(self.names)}
+        cols = np.array([index[nm] for nm in names], dtype=np.intp)
+        jac = chebyshev_jacobian(self.ik_params(), query.a, self.range_deg, self.order, self.coefficients)
+        return jac[:, :, cols]
 
     def outside_range(self, a_deg: NDArray[np.float64]) -> NDArray[np.bool_]:
         """(n,) True where some axis value lies outside the fitted range (the error is held there)."""
@@ -338,13 +353,8 @@ class ChebyshevModel(ErrorModel):
         }
 
     @classmethod
-    def from_payload(
-        cls,
-        robot: RobotDescription,
-        payload: dict[str, Any],
-        order: int | None,
-        registration: NDArray[np.float64],
-    ) -> ChebyshevModel:
+    def from_stored(cls, stored: StoredModel) -> ChebyshevModel:
+        robot, payload, order = stored.robot, stored.payload, stored.order
         if order is None:
             raise ValueError("a Chebyshev model needs its order")
         names = coefficient_names(order)
@@ -356,7 +366,9 @@ class ChebyshevModel(ErrorModel):
         coef = np.array([float(coef_map[n]) for n in names])
         removed = set(payload.get("removed", []))
         active = np.array([n not in removed for n in names])
-        return cls(robot, registration, order, np.array(payload["range_deg"], dtype=float), coef, active)
+        return cls(
+            robot, stored.registration, order, np.array(payload["range_deg"], dtype=float), coef, active
+        )
 
 
 class ChebyshevProblem:
@@ -554,3 +566,64 @@ def select_order(
         int(orders[i_order]),
         float(rtols[i_rtol]),
     )
+
+
+def fit_chebyshev_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """The Chebyshev model of seed 000: the spec's order (default 3), or chosen by cross-validation."""
+    selection_info: dict[str, Any] | None = None
+    rtol = CHEBYSHEV_RTOL
+    if spec.order_by_cv:
+        sel = select_order(
+            robot,
+            rows.a_deg,
+            rows.xyz_mm,
+            folds=min(options.cv_folds, rows.n),
+            seed=options.seed,
+            frame=options.frame,
+        )
+        order, rtol = sel.order, sel.rtol
+        selection_info = {
+            "method": f"{sel.folds}-fold cross-validation on the fit rows (mean held-out 3-D RMS, mm)",
+            "orders": list(sel.orders),
+            "rtols": list(sel.rtols),
+            "cv_rms_mm": [list(r) for r in sel.cv_rms_mm],
+            "chosen_order": sel.order,
+            "chosen_rtol": sel.rtol,
+        }
+    else:
+        order = DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order
+    cf = fit_chebyshev(robot, rows.a_deg, rows.xyz_mm, order, frame=options.frame, rtol=rtol)
+    idx = cf.report.identifiable_index  # the columns of the fit's Jacobian, in its order
+    names = [cf.model.names[i] for i in idx]
+    attach_covariance(cf.model, names, cf.model.coefficients[idx], cf.lm.jacobian, cf.lm.residual)
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        "order": order,
+        "rtol": rtol,
+        "range_deg": cf.model.range_deg.tolist(),
+        "rms_mm": cf.rms_mm,
+        "solver": lm_info(cf.lm),
+        "identifiability": report_info(cf.report, list_removed=False),
+        "order_selection": selection_info,
+    }
+    return FittedModel(cf.model, cf.frame, info)
+
+
+def chebyshev_parameters(spec: ModelSpec) -> int:
+    """The coefficients of the spec's order (of the smallest candidate order with ``:cv``)."""
+    if spec.order_by_cv:
+        return n_coefficients(0)
+    return n_coefficients(DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order)
+
+
+KIND = ModelKind(
+    "chebyshev",
+    "Chebyshev error matrices after every link (seed 000), order 3; chebyshev:m, chebyshev:cv",
+    ChebyshevModel,
+    fit_chebyshev_kind,
+    chebyshev_parameters,
+    takes_order=True,
+)

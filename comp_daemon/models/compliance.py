@@ -29,8 +29,10 @@ registered first and refined with them (``Δθ1`` then goes, dependent on the ba
 
 With ``geometry=True`` every MDH parameter, the base frame and the tool are unknowns beside the
 ``C`` (the kinematic calibration of seed 000 with the compliance; dependent parameters removed by
-name in the MDH priority): the registry's ``compliance`` kind. The paper's form, zero offsets and
-``C`` on the nominal geometry, is ``compliance:paper``.
+name in the MDH priority): the registry's ``compliance`` kind (``KIND``, :func:`fit_compliance_kind`),
+the compliance kept only if it earns its place out of fold
+(:func:`comp_daemon.models.fitting.select_effects`; always with ``compliance:all``). The paper's
+form, zero offsets and ``C`` on the nominal geometry, is ``compliance:paper``.
 
 The paper's own experiment (laser lines through a PSD, seed 004 §3) is reproduced by
 ``python -m benchmarks.seed004_compliance``. Units: mm, rad, N m, kg; axis values in deg.
@@ -52,6 +54,7 @@ from comp_daemon.estimation.identifiability import (
 )
 from comp_daemon.estimation.lm import LMResult, improved_lm
 from comp_daemon.estimation.registration import detect_frame, rigid_registration
+from comp_daemon.estimation.selection import keep_all
 from comp_daemon.kinematics.forward import gravity_torques_nm, identification_jacobian, tcp_position_mm
 from comp_daemon.kinematics.params import (
     N_PARAMS,
@@ -61,19 +64,35 @@ from comp_daemon.kinematics.params import (
     joint_param_index,
 )
 from comp_daemon.kinematics.so3 import left_jacobian, skew
-from comp_daemon.models.base import ErrorModel, as_axes, finite_array, measured_positions
+from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, finite_array, measured_positions
+from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
+from comp_daemon.models.fitting import (
+    FitOptions,
+    FitRows,
+    FittedModel,
+    ModelSpec,
+    identified_info,
+    lm_info,
+    report_info,
+    select_effects,
+)
+from comp_daemon.models.kind import ModelKind
 from comp_daemon.models.kinematic import mdh_payload, params_from_payload
+from comp_daemon.models.kinematic_kind import KINEMATIC_PARAMETERS
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "ALL_JOINTS",
     "COMPLIANCE_JOINTS",
+    "KIND",
     "N_JOINTS",
     "ComplianceFit",
     "ComplianceModel",
     "calibrate_compliance",
     "compliance_jacobian",
+    "compliance_parameters",
+    "fit_compliance_kind",
     "joint_numbers",
     "standard_errors",
 ]
@@ -135,15 +154,14 @@ class ComplianceModel(ErrorModel):
         self.effects = EffectParams(compliance_rad_per_nm=self.compliance_rad_per_nm)
         self.mass = MassModel.from_robot(robot)
 
-    def predict_tcp_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
+    def tcp_mm(self, query: Query) -> NDArray[np.float64]:
+        return twin_tcp_mm(self.mass, self.params, self.effects, query.a, None, query.payload_kg, None)
+
+    def parameter_jacobian(
+        self, names: Sequence[str], values: NDArray[np.float64], query: Query
     ) -> NDArray[np.float64]:
-        payload = 0.0 if payload_kg is None else payload_kg
-        return twin_tcp_mm(self.mass, self.params, self.effects, as_axes(a_deg), None, payload, None)
+        """The compliance calibration's Jacobian (:func:`compliance_jacobian`) at the query's poses."""
+        return compliance_jacobian(self, names, values, query.a, query.payload_kg)
 
     def deflection_rad(
         self, a_deg: NDArray[np.float64], payload_kg: NDArray[np.float64] | float = 0.0
@@ -167,13 +185,8 @@ class ComplianceModel(ErrorModel):
         return out
 
     @classmethod
-    def from_payload(
-        cls,
-        robot: RobotDescription,
-        payload: dict[str, Any],
-        order: int | None,
-        registration: NDArray[np.float64],
-    ) -> ComplianceModel:
+    def from_stored(cls, stored: StoredModel) -> ComplianceModel:
+        robot, payload = stored.robot, stored.payload
         try:
             geometry = None
             mdh = payload.get("mdh")
@@ -187,7 +200,7 @@ class ComplianceModel(ErrorModel):
                 payload["compliance_rad_per_nm"],
                 np.array(payload["world_T_base"], dtype=float),
                 payload["tool_xyz_mm"],
-                registration,
+                stored.registration,
                 geometry,
             )
         except KeyError as exc:
@@ -381,3 +394,65 @@ def calibrate_compliance(
         n_rows=n,
         frame=chosen,
     )
+
+
+def fit_compliance_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """Seed 004's compliance of joints 2 and 3 under the rows' payloads, on the whole kinematic
+    geometry (``compliance``; the compliance kept only if it earns its place, every time with
+    ``:all``) or on the zero offsets alone (``compliance:paper``, the paper's form)."""
+    geometry = not spec.paper
+
+    def calibrate(effs: Sequence[str], sub: FitRows, fo: FitOptions) -> ComplianceFit:
+        return calibrate_compliance(
+            robot,
+            sub.a_deg,
+            sub.xyz_mm,
+            payload_kg=sub.payload_kg,
+            compliance_joints=COMPLIANCE_JOINTS if "compliance" in effs else (),
+            frame=fo.frame,
+            geometry=geometry,
+        )
+
+    kept: tuple[str, ...] = ("compliance",)
+    if spec.paper:
+        selection = keep_all(kept)
+    else:
+        kept, selection = select_effects(
+            robot, rows, spec, options, ("compliance",), lambda e, sub, fo: calibrate(e, sub, fo).model
+        )
+    cf = calibrate(kept, rows, options)
+    attach_covariance(cf.model, cf.identified, cf.values, cf.lm.jacobian, cf.lm.residual)
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        "form": "zero offsets and C2, C3 (seed 004)" if spec.paper else "kinematic geometry and C2, C3",
+        "rms_mm": cf.rms_mm,
+        "compliance_rad_per_nm": cf.model.compliance_rad_per_nm.tolist(),
+        "zero_offset_rad": cf.model.zero_offset_rad.tolist(),
+        "solver": lm_info(cf.lm),
+        "identifiability": report_info(cf.report),
+        "identified": identified_info(cf.identified, cf.values, cf.std),
+        "selection": selection.to_info(),
+    }
+    return FittedModel(cf.model, cf.frame, info)
+
+
+def compliance_parameters(spec: ModelSpec) -> int:
+    """The geometry's parameters and C2, C3 (the paper's form: base frame, zero offsets, C2, C3)."""
+    if spec.paper:
+        return 6 + 6 + len(COMPLIANCE_JOINTS)
+    return KINEMATIC_PARAMETERS + len(COMPLIANCE_JOINTS)
+
+
+KIND = ModelKind(
+    "compliance",
+    "the kinematic geometry and joint compliance C2, C3 under the payload_kg of each row (seed 004);"
+    " compliance:paper the paper's zero offsets and C2, C3 alone",
+    ComplianceModel,
+    fit_compliance_kind,
+    compliance_parameters,
+    option_words=("all", "paper"),
+    uses=("payload_kg",),
+)

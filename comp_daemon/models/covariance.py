@@ -10,9 +10,8 @@ put the TCP), not of a new measurement: a measured error adds the measurement no
 
 ``G`` is the fit's own Jacobian evaluated at the new rows, so the parameters are those the fit
 iterated (increments of the geometric parameters from the registered nominal start, effect
-values): :class:`~comp_daemon.models.kinematic.KinematicProblem` for the kinematic model and its
-effects, :func:`~comp_daemon.models.chebyshev.chebyshev_jacobian` for the Chebyshev model,
-:func:`~comp_daemon.models.compliance.compliance_jacobian` for the compliance model. The inverse is
+values): each model's :meth:`~comp_daemon.models.base.ErrorModel.parameter_jacobian` (the kinematic
+calibration's, the Chebyshev coefficients', the compliance's, the POE errors'). The inverse is
 taken on scaled columns (unit norms), with singular values below 1e-14 of the largest treated as
 zero (an unidentifiable direction contributes nothing instead of infinity).
 
@@ -38,12 +37,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams
-from comp_daemon.models.base import ErrorModel, as_axes
-from comp_daemon.models.chebyshev import ChebyshevModel, chebyshev_jacobian
-from comp_daemon.models.compliance import ComplianceModel, compliance_jacobian
-from comp_daemon.models.effects import EffectParams
-from comp_daemon.models.kinematic import KinematicModel, KinematicProblem
+from comp_daemon.models.base import ErrorModel, Query
 
 __all__ = [
     "NEAR_DEPENDENT_CORRELATION",
@@ -163,16 +157,9 @@ class ParameterCovariance:
         cov, s = covariance_from_fit(jacobian, residual)
         return cls(tuple(names), np.asarray(values, dtype=float), cov, s, int(np.asarray(residual).size // 3))
 
-    def std_mm(
-        self,
-        model: ErrorModel,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64]:
-        """(n, 3) 1-σ uncertainty (mm) of ``model``'s predicted TCP at ``a_deg`` (n, 6)."""
-        g = prediction_jacobian(self, model, as_axes(a_deg), dir, payload_kg, temp_c)  # (n, 3, p)
+    def std_mm(self, model: ErrorModel, query: Query) -> NDArray[np.float64]:
+        """(n, 3) 1-σ uncertainty (mm) of ``model``'s predicted TCP at the query's poses."""
+        g = model.parameter_jacobian(self.names, self.values, query)  # (n, 3, p)
         var = np.einsum("nip,pq,niq->ni", g, self.covariance, g)
         return np.sqrt(np.maximum(var, 0.0))
 
@@ -195,43 +182,6 @@ class ParameterCovariance:
             float(data["sigma_mm"]),
             int(data["rows"]),
         )
-
-
-def prediction_jacobian(
-    cov: ParameterCovariance,
-    model: ErrorModel,
-    a: NDArray[np.float64],
-    dir: NDArray[np.float64] | None,
-    payload_kg: NDArray[np.float64] | float | None,
-    temp_c: NDArray[np.float64] | None,
-) -> NDArray[np.float64]:
-    """(n, 3, p) derivative of ``model``'s TCP at ``a`` w.r.t. the parameters of ``cov``."""
-    n = a.shape[0]
-    payload = 0.0 if payload_kg is None else payload_kg
-    if isinstance(model, KinematicModel):
-        geo_idx = np.array([PARAM_NAMES.index(nm) for nm in cov.names if nm in PARAM_NAMES], dtype=np.intp)
-        eff_names = [nm for nm in cov.names if nm not in PARAM_NAMES]
-        if list(cov.names) != [PARAM_NAMES[i] for i in geo_idx] + eff_names:
-            raise ValueError("uncertainty: the geometric parameters must come before the effect parameters")
-        eff0 = (
-            EffectParams.zeros(model.effects.n_harmonics, model.effects.t_ref_c)
-            if model.effects is not None
-            else EffectParams.zeros()
-        )
-        start = KinematicParams.from_robot(model.robot).with_base(model.registration)
-        d = None if dir is None else np.asarray(dir, dtype=float)
-        problem = KinematicProblem(
-            model.robot, start, eff0, geo_idx, eff_names, a, np.zeros((n, 3)), d, payload, temp_c
-        )
-        return problem.jacobian(cov.values).reshape(n, 3, len(cov.names))
-    if isinstance(model, ChebyshevModel):
-        index = {nm: i for i, nm in enumerate(model.names)}
-        cols = np.array([index[nm] for nm in cov.names], dtype=np.intp)
-        jac = chebyshev_jacobian(model.ik_params(), a, model.range_deg, model.order, model.coefficients)
-        return jac[:, :, cols]
-    if isinstance(model, ComplianceModel):
-        return compliance_jacobian(model, cov.names, cov.values, a, payload)
-    raise ValueError(f"no parameter covariance for a {model.kind} model")
 
 
 def attach_covariance(

@@ -1,30 +1,14 @@
-"""How each model kind is fitted on measured rows: one function per kind, all of one signature.
+"""What every kind's fit shares: its signature's types, the effect selection, the base calibration
+they share, and the summaries of a fit.
 
-``fit_<kind>(robot, rows, spec, options) -> FittedModel``: ``rows`` are the measured rows
+Each kind's module (:mod:`comp_daemon.models.registry` lists them) has a fit function of one
+signature, ``fit(robot, rows, spec, options) -> FittedModel``: ``rows`` are the measured rows
 (:class:`FitRows`: axis values, TCP positions, and the optional columns a kind may use), ``spec``
-the parsed model name (:class:`ModelSpec`: kind, joint effects, Chebyshev order), ``options`` the
-door's settings (:class:`FitOptions`: frame, cross-validation folds and seed). The result holds the
-model, the frame the data were in and a JSON-ready summary of the fit (rows, RMS, solver,
-identifiability, order selection). :mod:`comp_daemon.models.registry` names these functions in its
-table; the doors call them through it.
-
-- ``nominal``: the robot description; only the base frame is registered (tracker data), nothing
-  else fitted;
-- ``kinematic``: MDH calibration (:func:`comp_daemon.models.kinematic.calibrate_kinematic`), with
-  the optional joint ``effects`` (seed 001 §1: ``ratio``, ``backlash``);
-- ``chebyshev``: the Chebyshev error model of seed 000 (:func:`comp_daemon.models.chebyshev.fit_chebyshev`)
-  of the spec's order, or with the order and the removal threshold chosen by k-fold
-  cross-validation on the rows given (``order_by_cv``; the summary says what was chosen);
-- ``kriging``: ordinary kriging of the kinematic calibration's residual over the plain joint-space
-  distance (seed 001 §2's "method one" after calibration);
-- ``kriging-backlash``: seed 001 §2's model: kriging over the direction-aware joint-state distance
-  on the residual of the kinematic calibration with ratio and backlash (needs ``dir``);
-- both kriging kinds take joint effects for their kinematic base (``kriging-backlash+compliance``:
-  the kriging on kinematic + ratio + backlash + compliance) and the options ``k=N`` (local
-  neighbourhoods of N samples instead of one dense system; dense is the default up to 2 000
-  samples) and ``aniso`` (per-joint ranges instead of the isotropic joint-space distance);
-- ``compliance`` and ``poe`` (and their papers' forms ``compliance:paper``, ``poe:paper``):
-  :mod:`comp_daemon.models.fitting_forms`.
+the parsed model name (:class:`ModelSpec`: kind, joint effects, Chebyshev order, options),
+``options`` the door's settings (:class:`FitOptions`: frame, cross-validation folds and seed). The
+result holds the model, the frame the data were in and a JSON-ready summary of the fit (rows, RMS,
+solver, identifiability, selection) built with :func:`lm_info`, :func:`report_info`,
+:func:`identified_info` and, for a kinematic base, :func:`kinematic_info`.
 
 What earns its place. The joint effects of the kinematic, kriging and compliance kinds, a kriging
 stage on its base and per-joint kriging ranges are kept only if they lower the error of held-out
@@ -67,43 +51,37 @@ from numpy.typing import NDArray
 from comp_daemon.data.dataset import Dataset
 from comp_daemon.estimation.identifiability import IdentifiabilityReport
 from comp_daemon.estimation.lm import LMResult
-from comp_daemon.estimation.registration import detect_frame, rigid_registration
-from comp_daemon.estimation.selection import Decision, Selection, judge, keep_all, select_kinematic_effects
+from comp_daemon.estimation.registration import detect_frame
+from comp_daemon.estimation.selection import Selection, keep_all, select_kinematic_effects
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.base import ErrorModel, NominalModel, as_axes, further_targets, measured_positions
-from comp_daemon.models.chebyshev import CHEBYSHEV_RTOL, fit_chebyshev, select_order
+from comp_daemon.models.base import ErrorModel, as_axes, further_targets, measured_positions
 from comp_daemon.models.covariance import (
     ParameterCovariance,
     attach_covariance,
     covariance_from_fit,
     near_dependent_pairs,
 )
-from comp_daemon.models.effects import TRANSMISSION_EFFECTS
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
-from comp_daemon.models.kriging import KrigingFit, fit_kriging
 from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG, quat_to_matrix
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
-    "DEFAULT_CHEBYSHEV_ORDER",
     "FitOptions",
     "FitRows",
     "FittedModel",
     "ModelSpec",
-    "fit_chebyshev_kind",
-    "fit_kinematic_kind",
-    "fit_kriging_backlash_kind",
-    "fit_kriging_kind",
-    "fit_nominal_kind",
+    "attach_tcp_covariance",
     "forget_base_fits",
     "identified_info",
+    "kinematic_info",
     "lm_info",
     "report_info",
+    "rms_mm",
     "select_effects",
+    "selected_base",
 ]
 
-DEFAULT_CHEBYSHEV_ORDER = 3  # seed 000 fits m = 3
 SELECTION_MAX_ROWS = 2000  # effects are selected on at most this many fit rows, drawn at random
 #: the cross-validation folds of a selection skip what only a reported fit needs (the identifiability
 #: report's rank checks): the same kept parts and held-out errors, at less cost; False runs every fold
@@ -310,21 +288,9 @@ def identified_info(
     return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(names, values, std, strict=True)}
 
 
-def _rms(model: ErrorModel, rows: FitRows) -> float:
+def rms_mm(model: ErrorModel, rows: FitRows) -> float:
     err = model.predict_tcp_mm(rows.a_deg, rows.dir, rows.payload_kg, rows.temp_c) - rows.xyz_mm
     return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
-
-
-def fit_nominal_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
-) -> FittedModel:
-    """The nominal geometry; on tracker data the base frame is registered (rigid fit), nothing else."""
-    nominal = KinematicParams.from_robot(robot)
-    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
-    chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
-    reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
-    model = NominalModel(robot, reg)
-    return FittedModel(model, chosen, {"kind": spec.kind, "rows": rows.n, "rms_mm": _rms(model, rows)})
 
 
 def _kinematic(
@@ -354,7 +320,7 @@ def _kinematic(
     )
 
 
-def _attach_tcp_covariance(kf: KinematicFit) -> None:
+def attach_tcp_covariance(kf: KinematicFit) -> None:
     """The parameter covariance of the TCP's prediction: with several targets, the block of the
     geometric and effect parameters of the whole fit (the targets' offsets, the stations' frames
     and the probe's rotation on the flange do not move the TCP)."""
@@ -375,7 +341,7 @@ def _attach_tcp_covariance(kf: KinematicFit) -> None:
     )
 
 
-def _kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
+def kinematic_info(kf: KinematicFit, effects: Sequence[str]) -> dict[str, Any]:
     targets: dict[str, Any] = {}
     if kf.targets > 1:
         assert kf.model.more_targets_mm is not None
@@ -556,163 +522,3 @@ def selected_base(
                 _base_fits.popitem(last=False)
         return kept
     return copy.deepcopy(kept)
-
-
-def fit_kinematic_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
-) -> FittedModel:
-    """MDH calibration with those of the spec's joint effects that earn their place (all of them
-    with ``:all``)."""
-    effects, selection, kf = selected_base(robot, rows, spec, options, spec.effects)
-    _attach_tcp_covariance(kf)
-    info = {
-        "kind": spec.kind,
-        "rows": rows.n,
-        **_kinematic_info(kf, effects),
-        "selection": selection.to_info(),
-    }
-    return FittedModel(kf.model, kf.frame, info)
-
-
-def fit_chebyshev_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
-) -> FittedModel:
-    """The Chebyshev model of seed 000: the spec's order (default 3), or chosen by cross-validation."""
-    selection_info: dict[str, Any] | None = None
-    rtol = CHEBYSHEV_RTOL
-    if spec.order_by_cv:
-        sel = select_order(
-            robot,
-            rows.a_deg,
-            rows.xyz_mm,
-            folds=min(options.cv_folds, rows.n),
-            seed=options.seed,
-            frame=options.frame,
-        )
-        order, rtol = sel.order, sel.rtol
-        selection_info = {
-            "method": f"{sel.folds}-fold cross-validation on the fit rows (mean held-out 3-D RMS, mm)",
-            "orders": list(sel.orders),
-            "rtols": list(sel.rtols),
-            "cv_rms_mm": [list(r) for r in sel.cv_rms_mm],
-            "chosen_order": sel.order,
-            "chosen_rtol": sel.rtol,
-        }
-    else:
-        order = DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order
-    cf = fit_chebyshev(robot, rows.a_deg, rows.xyz_mm, order, frame=options.frame, rtol=rtol)
-    idx = cf.report.identifiable_index  # the columns of the fit's Jacobian, in its order
-    names = [cf.model.names[i] for i in idx]
-    attach_covariance(cf.model, names, cf.model.coefficients[idx], cf.lm.jacobian, cf.lm.residual)
-    info = {
-        "kind": spec.kind,
-        "rows": rows.n,
-        "order": order,
-        "rtol": rtol,
-        "range_deg": cf.model.range_deg.tolist(),
-        "rms_mm": cf.rms_mm,
-        "solver": lm_info(cf.lm),
-        "identifiability": report_info(cf.report, list_removed=False),
-        "order_selection": selection_info,
-    }
-    return FittedModel(cf.model, cf.frame, info)
-
-
-def _kriging_info(kg: KrigingFit, rows: FitRows) -> dict[str, Any]:
-    model = kg.model
-    return {
-        "rms_mm": _rms(model, rows),
-        "base_rms_mm": kg.base_rms_mm,
-        "loo_rms_mm": kg.loo_rms_mm,
-        "samples": int(model.sample_a_deg.shape[0]),
-        "solver": "dense" if model.neighbours is None else f"local, {model.neighbours} nearest samples",
-        "loo_samples": kg.loo_samples,
-        "joint_weights": model.metric.joint_weights.tolist(),
-        "direction_separation_deg": model.metric.dir_separation_deg.tolist(),
-        "direction_candidates": [
-            {"separation_deg": list(sep), "loo_rms_mm": loo} for sep, loo in kg.candidates
-        ],
-        "joint_weight_candidates": len(kg.weight_candidates),
-        "variograms": [v.to_dict() for v in model.variograms],
-    }
-
-
-def _fit_kriging(
-    robot: RobotDescription,
-    rows: FitRows,
-    spec: ModelSpec,
-    options: FitOptions,
-    effects: Sequence[str],
-    direction: Literal["aware", "blind"],
-) -> FittedModel:
-    effects, selection, kf = selected_base(robot, rows, spec, options, effects)
-    kg = fit_kriging(
-        kf.model,
-        rows.a_deg,
-        rows.xyz_mm,
-        dir=rows.dir if direction == "aware" else None,
-        payload_kg=rows.payload_kg,
-        temp_c=rows.temp_c,
-        direction=direction,
-        neighbours="auto" if spec.neighbours is None else spec.neighbours,
-        anisotropic=spec.anisotropic,
-        select_anisotropic=not spec.keep_all,
-    )
-    if kg.anisotropic_decision is not None:
-        selection = selection + _decided(kg.anisotropic_decision)
-    base_info = {"kind": "kinematic", **_kinematic_info(kf, effects)}
-    if not spec.keep_all:
-        use = np.ones(kg.loo_rows.size, dtype=bool)
-        if kg.unbiased_rows is not None:  # per-joint ranges: only the samples they were not chosen on
-            use = np.isin(kg.loo_rows, kg.unbiased_rows)
-        rows_loo = kg.loo_rows[use]
-        decision = judge(
-            "kriging",
-            np.sum(kg.loo_residual_mm[use] ** 2, axis=1),
-            np.sum(kg.model.residual_mm[rows_loo] ** 2, axis=1),
-            f"leave-one-out on {rows_loo.size} of the {rows.n} fit rows against the base model's residual",
-        )
-        selection = selection + _decided(decision)
-        if not decision.kept:
-            _attach_tcp_covariance(kf)
-            info = {
-                "kind": spec.kind,
-                "rows": rows.n,
-                "model_kind": "kinematic",
-                **_kinematic_info(kf, effects),
-                "base": base_info,  # the model itself, under the key the kept case uses too
-                "kriging": _kriging_info(kg, rows),
-                "selection": selection.to_info(),
-            }
-            return FittedModel(kf.model, kf.frame, info)
-    info = {
-        "kind": spec.kind,
-        "rows": rows.n,
-        **_kriging_info(kg, rows),
-        "base": base_info,
-        "selection": selection.to_info(),
-    }
-    return FittedModel(kg.model, kf.frame, info)
-
-
-def _decided(decision: Decision) -> Selection:
-    kept = (decision.part,) if decision.kept else ()
-    dropped = () if decision.kept else (decision.part,)
-    return Selection(kept, dropped, (decision,))
-
-
-def fit_kriging_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
-) -> FittedModel:
-    """Kriging of the residual of the kinematic calibration (with the spec's effects, if any) over
-    the plain joint-space distance."""
-    return _fit_kriging(robot, rows, spec, options, spec.effects, "blind")
-
-
-def fit_kriging_backlash_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
-) -> FittedModel:
-    """Seed 001 §2: direction-aware kriging on the kinematic + ratio + backlash calibration (and
-    the spec's further effects, e.g. ``kriging-backlash+compliance``)."""
-    effects = tuple(dict.fromkeys((*TRANSMISSION_EFFECTS, *spec.effects)))
-    return _fit_kriging(robot, rows, spec, options, effects, "aware")

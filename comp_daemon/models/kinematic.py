@@ -59,7 +59,15 @@ from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import left_jacobian, skew
-from comp_daemon.models.base import ErrorModel, as_axes, finite_array, further_targets, measured_positions
+from comp_daemon.models.base import (
+    ErrorModel,
+    Query,
+    StoredModel,
+    as_axes,
+    finite_array,
+    further_targets,
+    measured_positions,
+)
 from comp_daemon.models.effects import (
     EFFECTS,
     EffectParams,
@@ -109,18 +117,12 @@ class KinematicModel(ErrorModel):
         self.world_T_base = params.world_T_base
         self.registration = np.eye(4) if registration is None else np.array(registration, dtype=float)
 
-    def predict_tcp_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64]:
-        a = as_axes(a_deg)
+    def tcp_mm(self, query: Query) -> NDArray[np.float64]:
         if self.effects is None:
-            return tcp_position_mm(self.params, axes_deg_to_q_rad(a, self.params.sign))
-        payload = 0.0 if payload_kg is None else payload_kg
-        return twin_tcp_mm(self.robot, self.params, self.effects, a, dir, payload, temp_c)
+            return tcp_position_mm(self.params, axes_deg_to_q_rad(query.a, self.params.sign))
+        return twin_tcp_mm(
+            self.robot, self.params, self.effects, query.a, query.dir, query.payload_kg, query.temp_c
+        )
 
     def predict_targets_mm(
         self,
@@ -159,14 +161,40 @@ class KinematicModel(ErrorModel):
             }
         return out
 
+    def parameter_jacobian(
+        self, names: Sequence[str], values: NDArray[np.float64], query: Query
+    ) -> NDArray[np.float64]:
+        """The calibration's own Jacobian (:class:`KinematicProblem`) at the query's poses: the
+        geometric parameters (increments from the registered nominal start), then the effects'."""
+        geo_idx = np.array([PARAM_NAMES.index(nm) for nm in names if nm in PARAM_NAMES], dtype=np.intp)
+        eff_names = [nm for nm in names if nm not in PARAM_NAMES]
+        if list(names) != [PARAM_NAMES[i] for i in geo_idx] + eff_names:
+            raise ValueError("uncertainty: the geometric parameters must come before the effect parameters")
+        eff0 = (
+            EffectParams.zeros(self.effects.n_harmonics, self.effects.t_ref_c)
+            if self.effects is not None
+            else EffectParams.zeros()
+        )
+        start = KinematicParams.from_robot(self.robot).with_base(self.registration)
+        n = query.a.shape[0]
+        d = None if query.dir is None else np.asarray(query.dir, dtype=float)
+        problem = KinematicProblem(
+            self.robot,
+            start,
+            eff0,
+            geo_idx,
+            eff_names,
+            query.a,
+            np.zeros((n, 3)),
+            d,
+            query.payload_kg,
+            query.temp_c,
+        )
+        return problem.jacobian(values).reshape(n, 3, len(names))
+
     @classmethod
-    def from_payload(
-        cls,
-        robot: RobotDescription,
-        payload: dict[str, Any],
-        order: int | None,
-        registration: NDArray[np.float64],
-    ) -> KinematicModel:
+    def from_stored(cls, stored: StoredModel) -> KinematicModel:
+        robot, payload = stored.robot, stored.payload
         params = params_from_payload(robot, payload, payload["tool_xyz_mm"], payload["world_T_base"])
         effects = None
         eff = payload.get("effects")
@@ -179,7 +207,7 @@ class KinematicModel(ErrorModel):
         more = payload.get("more_targets_mm")
         if more is not None:
             more = _floats(more, (len(more), 3), "more_targets_mm")
-        return cls(robot, params, effects, registration, more)
+        return cls(robot, params, effects, stored.registration, more)
 
 
 MDH_FIELDS = ("theta_offset_rad", "d_mm", "a_mm", "alpha_rad", "beta_rad")  # a model's MDH geometry

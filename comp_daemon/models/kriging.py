@@ -48,11 +48,21 @@ whenever ``neighbours`` is given) are kriged in local neighbourhoods: each query
 samples in the same metric (:mod:`comp_daemon.estimation.local_kriging`), the dense solution when
 k = n. ``anisotropic`` fits replace the isotropic joint weights by per-joint ones (per-joint
 ranges), chosen on the leave-one-out error.
+
+The kinds. ``kriging`` (``KIND``) krigs the residual of the kinematic calibration, with the spec's
+effects if any, over the plain joint-space distance (seed 001 §2's "method one" after
+calibration); ``kriging-backlash`` (``BACKLASH_KIND``) is seed 001 §2's model, the direction-aware
+distance on the residual of kinematic + ratio + backlash (needs ``dir``). Both take joint effects
+for their base (``kriging-backlash+compliance``), the options ``k=N`` (local neighbourhoods of N
+samples; dense is the default up to :data:`DENSE_MAX_SAMPLES`), ``aniso`` (per-joint ranges) and
+``all``; the kriging stage and per-joint ranges are kept only if they lower the leave-one-out
+error against the base (:mod:`comp_daemon.models.fitting`), and a kind whose kriging is dropped is
+its kinematic base.
 """
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Literal
 
@@ -62,7 +72,7 @@ from numpy.typing import NDArray
 from comp_daemon.estimation import steps
 from comp_daemon.estimation.local_kriging import LocalKriging
 from comp_daemon.estimation.ordinary_kriging import OrdinaryKriging
-from comp_daemon.estimation.selection import Decision, judge
+from comp_daemon.estimation.selection import Decision, Selection, judge
 from comp_daemon.estimation.variogram import (
     EmpiricalVariogram,
     JointStatePairs,
@@ -73,22 +83,48 @@ from comp_daemon.estimation.variogram import (
     valid_models,
 )
 from comp_daemon.kinematics.params import KinematicParams
-from comp_daemon.models.base import ErrorModel, approach_directions, as_axes, measured_positions
+from comp_daemon.models.base import (
+    ErrorModel,
+    Query,
+    StoredModel,
+    approach_directions,
+    as_axes,
+    measured_positions,
+)
+from comp_daemon.models.effects import TRANSMISSION_EFFECTS
+from comp_daemon.models.fitting import (
+    FitOptions,
+    FitRows,
+    FittedModel,
+    ModelSpec,
+    attach_tcp_covariance,
+    kinematic_info,
+    rms_mm,
+    selected_base,
+)
+from comp_daemon.models.kind import ModelKind
+from comp_daemon.models.kinematic_kind import kinematic_parameters
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
+    "BACKLASH_KIND",
     "DEFAULT_DIR_GRID_DEG",
+    "KIND",
+    "KRIGING_OPTIONS",
     "LOO_MAX_SAMPLES",
     "JointStateMetric",
     "KrigingFit",
     "KrigingModel",
     "OrdinaryKriging",
     "fit_kriging",
+    "fit_kriging_backlash_kind",
+    "fit_kriging_kind",
     "joint_space_semivariogram",
+    "kriging_backlash_parameters",
+    "kriging_parameters",
 ]
 
 N_JOINTS = 6
-BaseLoader = Callable[[str, RobotDescription, dict[str, Any], "int | None", NDArray[np.float64]], ErrorModel]
 AXES = ("x", "y", "z")
 DEFAULT_DIR_GRID_DEG: tuple[float, ...] = (0.0, 2.0, 5.0, 10.0, 20.0, 40.0, 80.0)
 DirectionChoice = Literal["aware", "blind"]
@@ -229,29 +265,16 @@ class KrigingModel(ErrorModel):
         a = as_axes(a_deg)
         return self.kriging.predict(self.metric.embed(a, _dir_array(dir, a.shape[0])), return_std=return_std)
 
-    def predict_tcp_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64]:
-        a = as_axes(a_deg)
-        base = self.base.predict_tcp_mm(a, dir, payload_kg, temp_c)
-        res = self.predict_residual_mm(a, dir)
+    def tcp_mm(self, query: Query) -> NDArray[np.float64]:
+        base = self.base.tcp_mm(query)
+        res = self.predict_residual_mm(query.a, query.dir)
         assert isinstance(res, np.ndarray)
         return base + res
 
-    def predict_std_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64]:
+    def std_mm(self, query: Query) -> NDArray[np.float64]:
         """(m, 3) ordinary-kriging standard deviation of the kriged residual (mm, per axis), the
         nugget filtered: the uncertainty of the prediction, not of a new measurement."""
-        out = self.predict_residual_mm(a_deg, dir, return_std=True)
+        out = self.predict_residual_mm(query.a, query.dir, return_std=True)
         assert isinstance(out, tuple)
         return out[1]
 
@@ -289,18 +312,11 @@ class KrigingModel(ErrorModel):
         }
 
     @classmethod
-    def from_payload(
-        cls,
-        robot: RobotDescription,
-        payload: dict[str, Any],
-        order: int | None,
-        registration: NDArray[np.float64],
-        *,
-        base_loader: BaseLoader | None = None,
-    ) -> KrigingModel:
-        """Rebuild a stored model; its base model, stored inside it by kind, is rebuilt by
-        ``base_loader(kind, robot, payload, order, registration)`` (the model registry's
+    def from_stored(cls, stored: StoredModel) -> KrigingModel:
+        """Rebuild a stored model; its base model, stored inside it by kind, is rebuilt by the
+        stored record's ``base_loader`` (the model registry's
         :func:`comp_daemon.models.registry.model_from_payload`, which passes itself)."""
+        robot, payload, base_loader = stored.robot, stored.payload, stored.base_loader
         if base_loader is None:
             raise ValueError("kriging model: its base model is rebuilt by a base_loader (the model registry)")
         try:
@@ -591,3 +607,142 @@ def _search_weights(
         if not improved:
             break
     return w, tuple(tried)
+
+
+def _kriging_info(kg: KrigingFit, rows: FitRows) -> dict[str, Any]:
+    model = kg.model
+    return {
+        "rms_mm": rms_mm(model, rows),
+        "base_rms_mm": kg.base_rms_mm,
+        "loo_rms_mm": kg.loo_rms_mm,
+        "samples": int(model.sample_a_deg.shape[0]),
+        "solver": "dense" if model.neighbours is None else f"local, {model.neighbours} nearest samples",
+        "loo_samples": kg.loo_samples,
+        "joint_weights": model.metric.joint_weights.tolist(),
+        "direction_separation_deg": model.metric.dir_separation_deg.tolist(),
+        "direction_candidates": [
+            {"separation_deg": list(sep), "loo_rms_mm": loo} for sep, loo in kg.candidates
+        ],
+        "joint_weight_candidates": len(kg.weight_candidates),
+        "variograms": [v.to_dict() for v in model.variograms],
+    }
+
+
+def _fit_kriging(
+    robot: RobotDescription,
+    rows: FitRows,
+    spec: ModelSpec,
+    options: FitOptions,
+    effects: Sequence[str],
+    direction: Literal["aware", "blind"],
+) -> FittedModel:
+    effects, selection, kf = selected_base(robot, rows, spec, options, effects)
+    kg = fit_kriging(
+        kf.model,
+        rows.a_deg,
+        rows.xyz_mm,
+        dir=rows.dir if direction == "aware" else None,
+        payload_kg=rows.payload_kg,
+        temp_c=rows.temp_c,
+        direction=direction,
+        neighbours="auto" if spec.neighbours is None else spec.neighbours,
+        anisotropic=spec.anisotropic,
+        select_anisotropic=not spec.keep_all,
+    )
+    if kg.anisotropic_decision is not None:
+        selection = selection + _decided(kg.anisotropic_decision)
+    base_info = {"kind": "kinematic", **kinematic_info(kf, effects)}
+    if not spec.keep_all:
+        use = np.ones(kg.loo_rows.size, dtype=bool)
+        if kg.unbiased_rows is not None:  # per-joint ranges: only the samples they were not chosen on
+            use = np.isin(kg.loo_rows, kg.unbiased_rows)
+        rows_loo = kg.loo_rows[use]
+        decision = judge(
+            "kriging",
+            np.sum(kg.loo_residual_mm[use] ** 2, axis=1),
+            np.sum(kg.model.residual_mm[rows_loo] ** 2, axis=1),
+            f"leave-one-out on {rows_loo.size} of the {rows.n} fit rows against the base model's residual",
+        )
+        selection = selection + _decided(decision)
+        if not decision.kept:
+            attach_tcp_covariance(kf)
+            info = {
+                "kind": spec.kind,
+                "rows": rows.n,
+                "model_kind": "kinematic",
+                **kinematic_info(kf, effects),
+                "base": base_info,  # the model itself, under the key the kept case uses too
+                "kriging": _kriging_info(kg, rows),
+                "selection": selection.to_info(),
+            }
+            return FittedModel(kf.model, kf.frame, info)
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        **_kriging_info(kg, rows),
+        "base": base_info,
+        "selection": selection.to_info(),
+    }
+    return FittedModel(kg.model, kf.frame, info)
+
+
+def _decided(decision: Decision) -> Selection:
+    kept = (decision.part,) if decision.kept else ()
+    dropped = () if decision.kept else (decision.part,)
+    return Selection(kept, dropped, (decision,))
+
+
+def fit_kriging_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """Kriging of the residual of the kinematic calibration (with the spec's effects, if any) over
+    the plain joint-space distance."""
+    return _fit_kriging(robot, rows, spec, options, spec.effects, "blind")
+
+
+def fit_kriging_backlash_kind(
+    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
+    """Seed 001 §2: direction-aware kriging on the kinematic + ratio + backlash calibration (and
+    the spec's further effects, e.g. ``kriging-backlash+compliance``)."""
+    effects = tuple(dict.fromkeys((*TRANSMISSION_EFFECTS, *spec.effects)))
+    return _fit_kriging(robot, rows, spec, options, effects, "aware")
+
+
+KRIGING_OPTIONS = ("k=N", "aniso", "all")
+
+
+def kriging_parameters(spec: ModelSpec) -> int:
+    """The parameters of the kinematic base with the spec's effects."""
+    return kinematic_parameters(ModelSpec("kinematic", spec.effects))
+
+
+def kriging_backlash_parameters(spec: ModelSpec) -> int:
+    """The parameters of the kinematic base with ratio, backlash and the spec's further effects."""
+    effects = tuple(dict.fromkeys((*TRANSMISSION_EFFECTS, *spec.effects)))
+    return kinematic_parameters(ModelSpec("kinematic", effects))
+
+
+KIND = ModelKind(
+    "kriging",
+    "kriging of the kinematic calibration's residual over the joint-space distance (seed 001 §2);"
+    " kriging:k=64 local neighbourhoods, kriging:aniso per-joint ranges, +effect on the base",
+    KrigingModel,
+    fit_kriging_kind,
+    kriging_parameters,
+    takes_effects=True,
+    option_words=KRIGING_OPTIONS,
+    uses=("payload_kg", "temp_c"),
+)
+
+BACKLASH_KIND = ModelKind(
+    "kriging-backlash",
+    "direction-aware kriging on kinematic+ratio+backlash (seed 001 §2)",
+    KrigingModel,
+    fit_kriging_backlash_kind,
+    kriging_backlash_parameters,
+    takes_effects=True,
+    option_words=KRIGING_OPTIONS,
+    needs=("dir",),
+    uses=("payload_kg", "temp_c"),
+)

@@ -1,12 +1,14 @@
-"""The one table of model kinds, read by every door that fits, loads or names a model.
+"""The one list of model kinds, read by every door that fits, loads or names a model.
 
-Each :class:`ModelKind` says what a kind is: its name and summary, the function that fits it
-(:mod:`comp_daemon.models.fitting`), the :class:`~comp_daemon.models.base.ErrorModel` class that
-predicts with it and rebuilds it from an artifact, the options its name takes (joint effects, a
-Chebyshev order), the data columns it needs and uses, and how many parameters it has before the
-identifiability analysis (the floor on the rows of a data set). ``comp-daemon fit | evaluate |
+Each kind's module declares its :class:`~comp_daemon.models.kind.ModelKind` beside its model class
+and its fit function (``KIND``: name and summary, the fit, the
+:class:`~comp_daemon.models.base.ErrorModel` class that predicts with it and rebuilds it from an
+artifact, the options its name takes, the data columns it needs and uses, its parameter count before
+the identifiability analysis); :data:`KINDS` lists them, once. ``comp-daemon fit | evaluate |
 compensate``, the HTTP fit jobs, the artifact loader and the daemon's model activation all read it;
-adding a model kind is one module with its model class and fit function, and one entry here.
+adding a model kind is one module with its model class, its fit function and its ``KIND``, and one
+line in :data:`KINDS`. This module parses model names, applies the checks every fit shares
+(:func:`fit_spec`) and rebuilds stored models (:func:`model_from_payload`).
 
 Model names (:func:`parse_model_name`)::
 
@@ -32,8 +34,7 @@ rebuilds any of them, a kriging model's base included.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from collections.abc import Sequence
 from typing import Any, Literal
 
 import numpy as np
@@ -42,27 +43,12 @@ from numpy.typing import NDArray
 from comp_daemon.estimation.registration import BASE_FRAME_MAX_RMS_MM, detect_frame
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.base import ErrorModel, NominalModel
-from comp_daemon.models.chebyshev import ChebyshevModel, n_coefficients
-from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceModel
-from comp_daemon.models.effects import EFFECTS, TRANSMISSION_EFFECTS, effect_by_name, effect_param_names
-from comp_daemon.models.fitting import (
-    DEFAULT_CHEBYSHEV_ORDER,
-    FitOptions,
-    FitRows,
-    FittedModel,
-    ModelSpec,
-    fit_chebyshev_kind,
-    fit_kinematic_kind,
-    fit_kriging_backlash_kind,
-    fit_kriging_kind,
-    fit_nominal_kind,
-)
-from comp_daemon.models.fitting_forms import fit_compliance_kind, fit_poe_kind
-from comp_daemon.models.kinematic import KinematicModel
-from comp_daemon.models.kriging import KrigingModel
-from comp_daemon.models.poe.model import PoeErrorModel
-from comp_daemon.models.poe.twist import N_TWIST_PARAMS
+from comp_daemon.models import chebyshev, compliance, kinematic_kind, kriging, nominal
+from comp_daemon.models.base import ErrorModel, StoredModel
+from comp_daemon.models.effects import EFFECTS, effect_by_name
+from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, ModelSpec
+from comp_daemon.models.kind import ModelKind
+from comp_daemon.models.poe import model as poe
 from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import RobotDescription
 
@@ -73,7 +59,6 @@ __all__ = [
     "MAX_ORDER",
     "FittedModel",
     "MissingColumnError",
-    "ModelKind",
     "ModelSpec",
     "UndeterminedModelError",
     "UnknownModelError",
@@ -93,12 +78,7 @@ __all__ = [
 
 MAX_ORDER = 8
 MIN_POSES = 3  # distinct axis-value rows below which no model but the nominal one is fitted
-KRIGING_OPTIONS = ("k=N", "aniso", "all")
 OPTION_ORDER = ("aniso", "all", "paper")  # canonical order of the option words after k=N
-KINEMATIC_PARAMETERS = 39  # 30 MDH + 6 base + 3 tool
-
-FitFunction = Callable[[RobotDescription, FitRows, ModelSpec, FitOptions], FittedModel]
-Loader = Callable[[RobotDescription, dict[str, Any], "int | None", NDArray[np.float64]], ErrorModel]
 
 
 class UnknownModelError(ValueError):
@@ -114,135 +94,17 @@ class UndeterminedModelError(ValueError):
     parameters, or a compliance with nothing that loads the joints."""
 
 
-@dataclass(frozen=True, slots=True)
-class ModelKind:
-    """One row of the table (module docstring)."""
-
-    name: str
-    summary: str
-    model_class: type[ErrorModel]
-    fit: FitFunction
-    parameters: Callable[[ModelSpec], int]  # before identifiability analysis
-    takes_effects: bool = False  # "+ratio+backlash"
-    takes_order: bool = False  # ":3", ":cv"
-    option_words: tuple[str, ...] = ()  # the ":option" words it takes: "k=N", "aniso", "all", "paper"
-    needs: tuple[str, ...] = ()  # data columns without which the fit is refused
-    uses: tuple[str, ...] = ()  # optional columns the fit takes when the data have them
-    load: Loader | None = None  # rebuilds an artifact's model; default: model_class.from_payload
-
-    @property
-    def takes_options(self) -> bool:
-        return bool(self.option_words)
-
-    def needed_columns(self, spec: ModelSpec) -> tuple[str, ...]:
-        """The columns this spec cannot be fitted without (the kind's, and its effects')."""
-        extra = tuple(column for e in spec.effects for column in effect_by_name(e).required)
-        return tuple(dict.fromkeys((*self.needs, *extra)))
-
-
-def _kriging_loader(
-    robot: RobotDescription, payload: dict[str, Any], order: int | None, registration: NDArray[np.float64]
-) -> ErrorModel:
-    """A kriging model; its stored base model is rebuilt through the table too."""
-    return KrigingModel.from_payload(robot, payload, order, registration, base_loader=model_from_payload)
-
-
-def _kinematic_parameters(spec: ModelSpec) -> int:
-    return KINEMATIC_PARAMETERS + (len(effect_param_names(spec.effects)) if spec.effects else 0)
-
-
-def _kriging_parameters(spec: ModelSpec) -> int:
-    return _kinematic_parameters(ModelSpec("kinematic", spec.effects))
-
-
-def _kriging_backlash_parameters(spec: ModelSpec) -> int:
-    effects = tuple(dict.fromkeys((*TRANSMISSION_EFFECTS, *spec.effects)))
-    return _kinematic_parameters(ModelSpec("kinematic", effects))
-
-
-def _compliance_parameters(spec: ModelSpec) -> int:
-    if spec.paper:
-        return 6 + 6 + len(COMPLIANCE_JOINTS)  # base frame, zero offsets, C2, C3
-    return KINEMATIC_PARAMETERS + len(COMPLIANCE_JOINTS)
-
-
-def _chebyshev_parameters(spec: ModelSpec) -> int:
-    if spec.order_by_cv:
-        return n_coefficients(0)  # the smallest candidate order
-    return n_coefficients(DEFAULT_CHEBYSHEV_ORDER if spec.order is None else spec.order)
-
-
+#: every kind, each declared in its own module; the order is the one the doors list them in
 KINDS: dict[str, ModelKind] = {
     k.name: k
     for k in (
-        ModelKind(
-            "nominal",
-            "the robot description's geometry; on tracker data only the base frame is registered",
-            NominalModel,
-            fit_nominal_kind,
-            lambda spec: 6,
-        ),
-        ModelKind(
-            "kinematic",
-            "MDH calibration (seed 000); joint effects with +, e.g. kinematic+ratio+backlash (seed 001 §1)",
-            KinematicModel,
-            fit_kinematic_kind,
-            _kinematic_parameters,
-            takes_effects=True,
-            option_words=("all",),
-            uses=("dir", "payload_kg", "temp_c"),
-        ),
-        ModelKind(
-            "chebyshev",
-            "Chebyshev error matrices after every link (seed 000), order 3; chebyshev:m, chebyshev:cv",
-            ChebyshevModel,
-            fit_chebyshev_kind,
-            _chebyshev_parameters,
-            takes_order=True,
-        ),
-        ModelKind(
-            "kriging",
-            "kriging of the kinematic calibration's residual over the joint-space distance (seed 001 §2);"
-            " kriging:k=64 local neighbourhoods, kriging:aniso per-joint ranges, +effect on the base",
-            KrigingModel,
-            fit_kriging_kind,
-            _kriging_parameters,
-            takes_effects=True,
-            option_words=KRIGING_OPTIONS,
-            uses=("payload_kg", "temp_c"),
-            load=_kriging_loader,
-        ),
-        ModelKind(
-            "kriging-backlash",
-            "direction-aware kriging on kinematic+ratio+backlash (seed 001 §2)",
-            KrigingModel,
-            fit_kriging_backlash_kind,
-            _kriging_backlash_parameters,
-            takes_effects=True,
-            option_words=KRIGING_OPTIONS,
-            needs=("dir",),
-            uses=("payload_kg", "temp_c"),
-            load=_kriging_loader,
-        ),
-        ModelKind(
-            "compliance",
-            "the kinematic geometry and joint compliance C2, C3 under the payload_kg of each row (seed 004);"
-            " compliance:paper the paper's zero offsets and C2, C3 alone",
-            ComplianceModel,
-            fit_compliance_kind,
-            _compliance_parameters,
-            option_words=("all", "paper"),
-            uses=("payload_kg",),
-        ),
-        ModelKind(
-            "poe",
-            "product-of-exponentials calibration: a twist error per joint, tool offset, base frame;"
-            " poe:paper seed 002's dl1..dl6, dtheta1..dtheta6 and base frame",
-            PoeErrorModel,
-            fit_poe_kind,
-            lambda spec: 12 + 6 if spec.paper else N_TWIST_PARAMS + 6,
-            option_words=("paper",),
-        ),
+        nominal.KIND,
+        kinematic_kind.KIND,
+        chebyshev.KIND,
+        kriging.KIND,
+        kriging.BACKLASH_KIND,
+        compliance.KIND,
+        poe.KIND,
     )
 }
 
@@ -508,9 +370,10 @@ def fit_model(
     return fit_spec(spec, robot, rows, FitOptions(frame, cv_folds, seed))
 
 
-ARTIFACT_KINDS: dict[str, Loader] = {}
+#: the model class of each kind an artifact stores (``kriging-backlash`` is stored as a ``kriging`` model)
+ARTIFACT_KINDS: dict[str, type[ErrorModel]] = {}
 for _kind in KINDS.values():
-    ARTIFACT_KINDS.setdefault(_kind.model_class.kind, _kind.load or _kind.model_class.from_payload)
+    ARTIFACT_KINDS.setdefault(_kind.model_class.kind, _kind.model_class)
 
 
 def model_from_payload(
@@ -520,8 +383,9 @@ def model_from_payload(
     order: int | None,
     registration: NDArray[np.float64],
 ) -> ErrorModel:
-    """The model of an artifact's ``kind`` and content (ValueError when either is not usable)."""
-    loader = ARTIFACT_KINDS.get(kind)
-    if loader is None:
+    """The model of an artifact's ``kind`` and content (ValueError when either is not usable); a
+    stacked model's stored base is rebuilt through here too."""
+    model_class = ARTIFACT_KINDS.get(kind)
+    if model_class is None:
         raise UnknownModelError(f"unknown model kind '{kind}' (known: {', '.join(ARTIFACT_KINDS)})")
-    return loader(robot, payload, order, registration)
+    return model_class.from_stored(StoredModel(robot, payload, order, registration, model_from_payload))

@@ -24,8 +24,8 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.models.base import NominalModel
 from comp_daemon.models.compensation import nominal_targets
+from comp_daemon.models.nominal import NominalModel
 from comp_daemon.sim.campaign import nearest_neighbour_route, sample_poses, solve_axes
 from comp_daemon.sim.scenario import Scenario
 

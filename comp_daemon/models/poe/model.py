@@ -25,21 +25,34 @@ model's, not the nominal chain's.
 Uncertainty. The fit's parameter covariance (:class:`comp_daemon.models.covariance.ParameterCovariance`)
 is taken at the solution over the identified parameters, the base parameters as local increments
 about the fitted frame (value 0; translation mm, rotation vector rad on the left), so the stored
-``values`` are the POE errors and zeros; :meth:`predict_std_mm` propagates it through the same
+``values`` are the POE errors and zeros; :meth:`parameter_jacobian` propagates it through the same
 Jacobian (:func:`comp_daemon.models.poe.calibration.poe_world_jacobian`).
 """
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
+from comp_daemon.estimation.registration import detect_frame, rigid_registration
+from comp_daemon.kinematics.forward import tcp_position_mm
+from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
-from comp_daemon.models.base import ErrorModel, as_axes, finite_array
+from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, finite_array
 from comp_daemon.models.covariance import ParameterCovariance
+from comp_daemon.models.fitting import (
+    FitOptions,
+    FitRows,
+    FittedModel,
+    ModelSpec,
+    identified_info,
+    report_info,
+)
+from comp_daemon.models.kind import ModelKind
 from comp_daemon.models.poe.calibration import (
     BASE_NAMES,
     LAYOUTS,
@@ -61,7 +74,7 @@ from comp_daemon.models.poe.twist import (
 )
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["POE_MODEL_NAMES", "PoeErrorFit", "PoeErrorModel", "fit_poe"]
+__all__ = ["KIND", "POE_MODEL_NAMES", "PoeErrorFit", "PoeErrorModel", "fit_poe", "fit_poe_kind"]
 
 POE_MODEL_NAMES: tuple[str, ...] = POE_PARAM_NAMES + BASE_NAMES
 
@@ -92,54 +105,35 @@ class PoeErrorModel(ErrorModel):
         self.layout: PoeLayout = layout
         self.twists: PoeModel = layout_twists(robot, layout)
 
-    def predict_tcp_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64]:
+    def tcp_mm(self, query: Query) -> NDArray[np.float64]:
         if self.twist is not None:
-            p, _ = twist_chain(self.twists, as_axes(a_deg), self.twist)
+            p, _ = twist_chain(self.twists, query.a, self.twist)
             return p @ self.world_T_base[:3, :3].T + self.world_T_base[:3, 3]
-        return poe_world_position_mm(self.twists, as_axes(a_deg), self.x, self.world_T_base)
+        return poe_world_position_mm(self.twists, query.a, self.x, self.world_T_base)
 
     @property
     def parameter_names(self) -> tuple[str, ...]:
         """The names :meth:`parameter_jacobian` takes: the model's errors, then the base frame."""
         return (TWIST_PARAM_NAMES if self.twist is not None else POE_PARAM_NAMES) + BASE_NAMES
 
-    def parameter_jacobian(self, a_deg: NDArray[np.float64], names: tuple[str, ...]) -> NDArray[np.float64]:
+    def parameter_jacobian(
+        self, names: Sequence[str], values: NDArray[np.float64], query: Query
+    ) -> NDArray[np.float64]:
         """(n, 3, p) derivative of the TCP w.r.t. ``names`` (of :data:`POE_MODEL_NAMES`; base
-        parameters as increments about the fitted frame)."""
+        parameters as increments about the fitted frame), at the model's own errors (``values``
+        are those errors and the base increments' zeros)."""
         if self.twist is not None:
             theta = np.concatenate([self.twist, np.zeros(len(BASE_NAMES))])
-            _, jac = twist_world_jacobian(self.twists, as_axes(a_deg), theta, self.world_T_base)
+            _, jac = twist_world_jacobian(self.twists, query.a, theta, self.world_T_base)
         else:
             theta = np.concatenate([self.x, np.zeros(len(BASE_NAMES))])
-            _, jac = poe_world_jacobian(self.twists, as_axes(a_deg), theta, self.world_T_base)
+            _, jac = poe_world_jacobian(self.twists, query.a, theta, self.world_T_base)
         known = self.parameter_names
         try:
             cols = [known.index(n) for n in names]
         except ValueError:
             raise ValueError(f"uncertainty: POE parameters are {', '.join(known)}") from None
         return jac[:, :, cols]
-
-    def predict_std_mm(
-        self,
-        a_deg: NDArray[np.float64],
-        dir: NDArray[np.float64] | None = None,
-        payload_kg: NDArray[np.float64] | float | None = None,
-        temp_c: NDArray[np.float64] | None = None,
-    ) -> NDArray[np.float64] | None:
-        cov = self.uncertainty
-        if cov is None:
-            return None
-        if not isinstance(cov, ParameterCovariance):
-            return cov.std_mm(self, as_axes(a_deg), dir, payload_kg, temp_c)
-        g = self.parameter_jacobian(a_deg, cov.names)
-        var = np.einsum("nip,pq,niq->ni", g, cov.covariance, g)
-        return np.sqrt(np.maximum(var, 0.0))
 
     def to_payload(self) -> dict[str, Any]:
         out: dict[str, Any] = {
@@ -155,13 +149,8 @@ class PoeErrorModel(ErrorModel):
         return out
 
     @classmethod
-    def from_payload(
-        cls,
-        robot: RobotDescription,
-        payload: dict[str, Any],
-        order: int | None,
-        registration: NDArray[np.float64],
-    ) -> PoeErrorModel:
+    def from_stored(cls, stored: StoredModel) -> PoeErrorModel:
+        robot, payload = stored.robot, stored.payload
         names = [str(n) for n in payload["names"]]
         if names != list(POE_PARAM_NAMES):
             raise ValueError(f"model field 'names': expected {list(POE_PARAM_NAMES)}, got {names}")
@@ -178,7 +167,7 @@ class PoeErrorModel(ErrorModel):
             raise ValueError(f"model field 'layout': expected one of {', '.join(LAYOUTS)}, got {layout!r}")
         if layout != paper_layout(robot) and layout != "robot":
             raise ValueError(f"model field 'layout': {layout!r} is not a layout of the robot {robot.name}")
-        return cls(robot, x, frame, registration, twist, layout)
+        return cls(robot, x, frame, stored.registration, twist, layout)
 
 
 @dataclass(frozen=True, slots=True)
@@ -216,10 +205,52 @@ def fit_poe(
         model = PoeErrorModel(robot, fit.x, fit.world_T_base, registration, layout=layout)
     residual = (model.predict_tcp_mm(a) - p).reshape(-1)
     kept = tuple(fit.names[i] for i in fit.report.identifiable_index)
-    jac = model.parameter_jacobian(a, kept).reshape(-1, len(kept))
+    jac = model.parameter_jacobian(kept, np.zeros(len(kept)), Query(a)).reshape(-1, len(kept))
     if jac.shape[0] > jac.shape[1]:
         # the base parameters are increments about the fitted frame: value 0
         values = np.array([fit.theta[fit.names.index(n)] if n not in BASE_NAMES else 0.0 for n in kept])
         model.uncertainty = ParameterCovariance.of_fit(kept, values, jac, residual)
     rms = float(np.sqrt(np.mean(np.sum(residual.reshape(-1, 3) ** 2, axis=1))))
     return PoeErrorFit(model, fit, rms)
+
+
+def fit_poe_kind(robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions) -> FittedModel:
+    """The POE calibration: a twist error per joint, the tool offset and the base frame
+    (``poe``), or seed 002's errors Δl, Δθ and the base frame (``poe:paper``)."""
+    nominal = KinematicParams.from_robot(robot)
+    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
+    chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
+    reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
+    pf = fit_poe(robot, rows.a_deg, rows.xyz_mm, reg, "paper" if spec.paper else "twist")
+    fit = pf.fit
+    keep = fit.report.identifiable_index
+    info = {
+        "kind": spec.kind,
+        "rows": rows.n,
+        "form": "dl1..dl6, dtheta1..dtheta6 (seed 002)"
+        if spec.paper
+        else "a twist error per joint (dtheta, dwu, dwn, dpu, dpn, dlax) and the tool offset",
+        "rms_mm": pf.rms_mm,
+        **({"layout": LAYOUTS[pf.model.layout]} if spec.paper else {}),
+        "solver": {
+            "method": "improved Levenberg-Marquardt (seed 000), columns scaled",
+            "iterations": fit.iterations,
+            "stop": fit.reason,
+        },
+        "identifiability": report_info(fit.report),
+        "not_identifiable": [d.describe() for d in fit.null_space],
+        # the base parameters are increments of the rigid start frame; removed parameters stay 0
+        "identified": identified_info([fit.names[i] for i in keep], fit.theta[keep], fit.std[keep]),
+    }
+    return FittedModel(pf.model, chosen, info)
+
+
+KIND = ModelKind(
+    "poe",
+    "product-of-exponentials calibration: a twist error per joint, tool offset, base frame;"
+    " poe:paper seed 002's dl1..dl6, dtheta1..dtheta6 and base frame",
+    PoeErrorModel,
+    fit_poe_kind,
+    lambda spec: 12 + 6 if spec.paper else N_TWIST_PARAMS + 6,
+    option_words=("paper",),
+)
