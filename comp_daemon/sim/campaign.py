@@ -61,6 +61,7 @@ __all__ = [
     "run_campaign",
     "sample_poses",
     "solve_axes",
+    "visit_order",
 ]
 
 GRATING_RESOLUTION_MM = 50e-6
@@ -224,6 +225,34 @@ def _tracker(scenario: Scenario, seed: int, in_tracker_frame: bool, moved: bool 
     return LaserTracker(scenario.noise.tracker_sigma_mm, frame, seed=seed)
 
 
+def visit_order(
+    scenario: Scenario, a_deg: NDArray[np.float64], payload_of_pose: NDArray[np.float64]
+) -> NDArray[np.intp]:
+    """The order the poses ``a_deg`` (n, 6) are visited in: payload by payload (in the order of the
+    scenario's ``payload_kg``: the load is changed once each), each group by the nearest-neighbour
+    route in axis time from where the last one ended (the home pose first)."""
+    parts = []
+    here = scenario.campaign.home_deg
+    for load in scenario.campaign.payload_kg:
+        members = np.flatnonzero(payload_of_pose == load)
+        if members.size == 0:
+            continue
+        sub = members[nearest_neighbour_route(a_deg[members], here, scenario.motion.v_max_deg_s)]
+        parts.append(sub)
+        here = a_deg[sub[-1]]
+    return np.concatenate(parts)
+
+
+def _grating_columns(meas: list[Measurement], joints: tuple[int, ...]) -> NDArray[np.float64] | None:
+    """g1..g6 of the measurements: the grating joints' readings, NaN elsewhere (None without gratings)."""
+    if not joints:
+        return None
+    g_deg = np.full((len(meas), 6), np.nan)
+    cols = np.array(joints) - 1
+    g_deg[:, cols] = np.array([m.g_deg for m in meas])[:, cols]
+    return g_deg
+
+
 def run_campaign(
     scenario: Scenario,
     n: int,
@@ -265,16 +294,7 @@ def run_campaign(
     plant = RobotPlant.from_scenario(scenario, seed=seed + 1)
     tracker = _tracker(scenario, seed + 2, in_tracker_frame)
     second = _tracker(scenario, seed + 3, in_tracker_frame, moved=True) if restation else tracker
-    order_parts = []
-    here = cam.home_deg
-    for load in cam.payload_kg:
-        members = np.flatnonzero(payload_of_pose == load)
-        if members.size == 0:
-            continue
-        sub = members[nearest_neighbour_route(poses.a_deg[members], here, scenario.motion.v_max_deg_s)]
-        order_parts.append(sub)
-        here = poses.a_deg[sub[-1]]
-    order = np.concatenate(order_parts)
+    order = visit_order(scenario, poses.a_deg, payload_of_pose)
 
     rows_pose: list[int] = []
     rows_rep: list[int] = []
@@ -298,11 +318,7 @@ def run_campaign(
             rows_pose.append(int(pose))
             rows_rep.append(rep)
     idx = np.array(rows_pose)
-    g_deg = None
-    if gratings and scenario.cell.grating_joints:
-        g_deg = np.full((len(idx), 6), np.nan)
-        cols = np.array(scenario.cell.grating_joints) - 1
-        g_deg[:, cols] = np.array([m.g_deg for m in meas])[:, cols]
+    g_deg = _grating_columns(meas, scenario.cell.grating_joints) if gratings else None
     return Dataset(
         a_deg=poses.a_deg[idx],
         xyz_mm=np.array([m.xyz_mm for m in meas]),
