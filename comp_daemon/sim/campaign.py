@@ -253,6 +253,40 @@ def _grating_columns(meas: list[Measurement], joints: tuple[int, ...]) -> NDArra
     return g_deg
 
 
+def _measure_rounds(
+    scenario: Scenario,
+    plant: RobotPlant,
+    trackers: tuple[LaserTracker, LaserTracker],
+    a_deg: NDArray[np.float64],
+    payload_kg: NDArray[np.float64],
+    repeats: int,
+    more_flange: NDArray[np.float64],
+    probe_sigma_deg: float | None,
+) -> list[Measurement]:
+    """The poses ``a_deg`` in their order, ``repeats`` rounds, each with its payload (the plant's
+    load changed only where it differs): the first tracker measures the first half of the rows, the
+    second the rest (the same tracker unless the campaign moves it)."""
+    meas: list[Measurement] = []
+    total = repeats * len(a_deg)
+    for _ in range(repeats):
+        for a, load in zip(a_deg, payload_kg, strict=True):
+            if plant.payload_kg != load:
+                plant.set_payload(float(load))
+            tracker = trackers[1] if 2 * len(meas) >= total else trackers[0]
+            meas.append(
+                measure_at(
+                    plant,
+                    tracker,
+                    a,
+                    scenario.motion.dwell_s,
+                    scenario.cell.grating_radius_mm,
+                    more_flange,
+                    probe_sigma_deg,
+                )
+            )
+    return meas
+
+
 def run_campaign(
     scenario: Scenario,
     n: int,
@@ -296,28 +330,14 @@ def run_campaign(
     second = _tracker(scenario, seed + 3, in_tracker_frame, moved=True) if restation else tracker
     order = visit_order(scenario, poses.a_deg, payload_of_pose)
 
-    rows_pose: list[int] = []
-    rows_rep: list[int] = []
-    meas: list[Measurement] = []
-    total = repeats * len(order)
-    for rep in range(repeats):
-        for pose in order:
-            if plant.payload_kg != payload_of_pose[pose]:
-                plant.set_payload(float(payload_of_pose[pose]))
-            meas.append(
-                measure_at(
-                    plant,
-                    second if 2 * len(meas) >= total else tracker,
-                    poses.a_deg[pose],
-                    scenario.motion.dwell_s,
-                    scenario.cell.grating_radius_mm,
-                    more_flange,
-                    probe_sigma_deg,
-                )
-            )
-            rows_pose.append(int(pose))
-            rows_rep.append(rep)
-    idx = np.array(rows_pose)
+    trackers = (tracker, second)
+    a_route, load_route = poses.a_deg[order], payload_of_pose[order]
+    meas = _measure_rounds(
+        scenario, plant, trackers, a_route, load_route, repeats, more_flange, probe_sigma_deg
+    )
+    total = len(meas)
+    idx = np.tile(order, repeats)
+    rows_rep = np.repeat(np.arange(repeats), len(order))
     g_deg = _grating_columns(meas, scenario.cell.grating_joints) if gratings else None
     return Dataset(
         a_deg=poses.a_deg[idx],
@@ -328,7 +348,7 @@ def run_campaign(
         temp_c=np.array([m.temp_c for m in meas]),
         t_s=np.array([m.t_s for m in meas]),
         split=split_of_pose[idx],
-        repeat=np.array(rows_rep),
+        repeat=rows_rep,
         pose_id=tuple(f"p{p + 1:04d}" for p in idx),
         target_xyz_mm=poses.target_xyz_mm[idx],
         target_abc_deg=poses.target_abc_deg[idx],
