@@ -420,12 +420,15 @@ class _Trial(TrialSession):
 
 COMPARISON_PHASE = "seed 001 model comparison"
 
+#: A phase's step: it runs on the trial and returns the note its progress line ends with.
+PhaseStep = Callable[[_Trial], Awaitable[str]]
 
-def trial_phases(s: TrialSizes) -> list[tuple[str, Callable[[_Trial], Awaitable[str]]]]:
+
+def trial_phases(s: TrialSizes) -> list[tuple[str, PhaseStep]]:
     """The phases the trial runs with sizes ``s`` (module docstring), by name, in order; the model
     comparison (:data:`COMPARISON_PHASE`) follows them once the cell is down."""
     order = s.chebyshev_order
-    phases: list[tuple[str, Callable[[_Trial], Awaitable[str]]]] = [
+    phases: list[tuple[str, PhaseStep]] = [
         ("grating calibration", _Trial.calibrate_gratings),
         ("ISO 9283, robot alone", _Trial.iso_alone),
         ("sampling points, robot alone", _Trial.sampling_alone),
