@@ -20,6 +20,7 @@ from comp_daemon.service.store import (
     SCHEMA_VERSION,
     TARGET_ACTIVE_STATES,
     TARGET_STATES,
+    BatchRecord,
     ConflictError,
     EventRecord,
     IdempotencyConflict,
@@ -27,6 +28,7 @@ from comp_daemon.service.store import (
     NotFoundError,
     Store,
 )
+from comp_daemon.service.store.records import record_of
 
 AXES = {"a1": 0.0, "a2": -90.0, "a3": 90.0, "a4": 0.0, "a5": 45.0, "a6": 0.0}
 
@@ -312,3 +314,17 @@ def test_kill_9_mid_batch_loses_and_repeats_nothing(tmp_path: Path) -> None:
             assert created == (key not in keys)
             assert [t.request["pose_id"] for t in stored] == [f"{n}.{i}" for i in range(5)]
         assert len(store.list_targets(limit=100_000)) == n_before + 5 * (len(accepted) + 1 - len(keys))
+
+
+def test_record_of_takes_each_field_from_its_column_unless_decoded() -> None:
+    conn = sqlite3.connect(":memory:")
+    conn.row_factory = sqlite3.Row
+    row = conn.execute(
+        "SELECT 7 AS id, 'k' AS idempotency_key, 'ab' AS request_sha256, NULL AS source, 3 AS size, "
+        "1.5 AS created_at, 'extra' AS unused"
+    ).fetchone()
+    assert record_of(BatchRecord, row) == BatchRecord(7, "k", "ab", None, 3, 1.5)
+    assert record_of(BatchRecord, row, size=4, source="mes").size == 4
+    meta = conn.execute("SELECT 1 AS id, 'kinematic' AS kind").fetchone()
+    with pytest.raises(IndexError):  # a field neither read nor decoded is a mistake, not a None
+        record_of(BatchRecord, meta)

@@ -18,6 +18,7 @@ from comp_daemon.sim.campaign import (
     raw_error_stats,
     run_campaign,
     sample_poses,
+    visit_order,
 )
 from comp_daemon.sim.scenario import PRESET_SCENARIOS, ScenarioError, load_scenario, parse_scenario_toml
 from comp_daemon.sim.tracker import LaserTracker
@@ -161,3 +162,20 @@ def test_bad_scenarios_are_refused_by_field(edit, match: str) -> None:
     text = (Path(__file__).parents[1] / "comp_daemon/sim/scenarios/kr210-cell.toml").read_text()
     with pytest.raises(ScenarioError, match=match):
         parse_scenario_toml(edit(text), "test.toml")
+
+
+def test_visit_order_changes_the_payload_once_each_and_starts_near_home() -> None:
+    rng = np.random.default_rng(5)
+    poses = sample_poses(KR210_CELL, 24, rng)
+    loads = np.asarray(KR210_CELL.campaign.payload_kg)
+    payload_of_pose = rng.permutation(np.resize(loads, 24))
+    order = visit_order(KR210_CELL, poses.a_deg, payload_of_pose)
+    assert sorted(order.tolist()) == list(range(24))  # every pose once
+    visited = payload_of_pose[order]
+    assert np.count_nonzero(np.diff(visited)) == len(loads) - 1  # one load change a payload
+    assert visited[0] == loads[0]  # in the scenario's order of payloads
+    first = np.flatnonzero(payload_of_pose == loads[0])
+    time_from_home = np.max(
+        np.abs(poses.a_deg[first] - KR210_CELL.campaign.home_deg) / KR210_CELL.motion.v_max_deg_s, axis=1
+    )
+    assert order[0] == first[np.argmin(time_from_home)]  # the nearest of its group to home first

@@ -3,6 +3,7 @@ result the docs show (``docs/trial-result.json``, a full trial's output)."""
 
 from __future__ import annotations
 
+import copy
 import re
 from pathlib import Path
 
@@ -10,6 +11,7 @@ import pytest
 
 from comp_daemon.trial.report import render_html
 from comp_daemon.trial.report_data import table_rows
+from comp_daemon.trial.report_html import _html_cards, _html_gratings, _html_run, _html_verdict
 from comp_daemon.trial.result import TrialResult
 
 STORED = Path(__file__).resolve().parents[1] / "docs" / "trial-result.json"
@@ -59,3 +61,29 @@ def test_a_model_without_an_order_shows_a_dash_not_none(result: TrialResult) -> 
     orders = [m.get("order") for m in result.models.values()]
     assert None in orders and 3 in orders  # the stored trial has both kinds
     assert "<td>3</td>" in page and "<td>–</td>" in page
+
+
+def test_report_sections_stand_alone(result: TrialResult) -> None:
+    grat = _html_gratings(result)
+    assert grat.count("<tr><td>A") == len(result.gratings["joints"]) == 3
+    assert _html_gratings(TrialResult(plan=result.plan, started_at="", environment={})) == ""
+    cards = _html_cards(result)
+    assert cards.count("<div class=card>") == 3 and "seed 000: 0.76" in cards
+    verdict = {"ordering": {"mean": True, "max": False}, "claim": {"trial": dict.fromkeys(
+        ("before_max", "after_max", "reduction", "vs_kinematic", "axis_max_abs"), 0.5)}}  # fmt: skip
+    assert "<b>does not hold</b>" in _html_verdict(verdict) and "class=bad" in _html_verdict(verdict)
+    assert _html_verdict({}) == ""
+
+
+def test_run_section_lists_unfinished_and_retried_targets(result: TrialResult) -> None:
+    quiet = _html_run(result)
+    assert "did not finish" not in quiet and "posted again" not in quiet
+    assert quiet.count("<tr><td>") == len(result.phases)
+    run = copy.deepcopy(result)
+    k = next(iter(run.runs))
+    run.runs[k].state[4] = "failed"
+    run.runs[k].reason[4] = "a grating went silent"
+    run.runs[k].retried.append({"index": 2, "reason": "RSI telegrams late"})
+    page = _html_run(run)
+    assert f"<li>{run.runs[k].label}, point 5: failed — a grating went silent</li>" in page
+    assert f"<li>{run.runs[k].label}, point 3: RSI telegrams late</li>" in page

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -16,6 +17,7 @@ from comp_daemon.sim.scenario import load_scenario
 from comp_daemon.trial.plan import FULL, QUICK, TrialPlan, TrialSizes, plan_trial, visit_dirs
 from comp_daemon.trial.report import render_html, render_text
 from comp_daemon.trial.result import PointRun, TrialResult
+from comp_daemon.trial.runner import trial_phases
 from comp_daemon.trial.stats import histogram, iso9283_statistics
 from comp_daemon.trial.verdict import verdict
 
@@ -170,3 +172,32 @@ def test_cli_renders_a_stored_result(tmp_path: Path) -> None:
         timeout=60,
     )
     assert proc.returncode == 2 and "not a trial result" in proc.stderr
+
+
+def test_trial_phases_follow_the_sizes_in_the_documented_order() -> None:
+    full = [name for name, _ in trial_phases(FULL)]
+    assert full == [
+        "grating calibration",
+        "ISO 9283, robot alone",
+        "sampling points, robot alone",
+        "target points, uncompensated",
+        "fits on the open-loop data (HTTP)",
+        "target points, kinematic calibration",
+        "ISO 9283, with joint feedback",
+        "sampling points, with joint feedback",
+        "target points, joint feedback only",
+        "fits on the closed-loop data (HTTP)",
+        "target points, Chebyshev m=3 + joint feedback",
+        "target points, Chebyshev m=3 (seed 000 mapping) + joint feedback",
+        "target points, kinematic + joint feedback",
+    ]
+    quick = [name for name, _ in trial_phases(QUICK)]
+    assert quick == [
+        *full[:7],
+        "target points, Chebyshev m=0 + joint feedback",
+        full[11].replace("m=3", "m=0"),
+    ]
+    # the kinematic model in the loop needs the closed-loop data
+    no_loop = dataclasses.replace(FULL, loop_sampling=False, seed000_mapping=False)
+    assert [name for name, _ in trial_phases(no_loop)] == [*full[:7], full[10]]
+    assert len({phase for _, phase in trial_phases(FULL)}) == len(full)  # one step a phase

@@ -2,8 +2,9 @@
 the CSV and JSON readers (:mod:`comp_daemon.data.readers`, whose docstring states the rules).
 
 :class:`CellTable` holds the cells by column with the row (or record) number each came from;
-:func:`build_dataset` checks the header, parses every column and raises the first fault in reading
-order (row, then column in header order) as a :class:`~comp_daemon.data.columns.DatasetError`.
+:func:`build_dataset` checks the header (:mod:`comp_daemon.data.header`), parses every column by
+its cell rules (one parser a column or column group) and raises the first fault in reading order
+(row, then column in header order) as a :class:`~comp_daemon.data.columns.DatasetError`.
 """
 
 from __future__ import annotations
@@ -12,7 +13,6 @@ import math
 import re
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Literal
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -24,7 +24,6 @@ from comp_daemon.data.columns import (
     KNOWN_COLUMNS,
     QUATERNION_COLUMNS,
     QUATERNION_NORM_TOL,
-    SCALAR_NUMBER_COLUMNS,
     TARGET_ABC_COLUMNS,
     TARGET_XYZ_COLUMNS,
     XYZ_COLUMNS,
@@ -32,6 +31,7 @@ from comp_daemon.data.columns import (
     reflector_columns,
     reflector_index,
 )
+from comp_daemon.data.header import DatasetKind, check_header, reflector_count
 from comp_daemon.data.table import SPLIT_VALUES, Dataset, FloatArray, IntArray
 
 __all__ = [
@@ -41,11 +41,8 @@ __all__ = [
     "build_dataset",
     "parse_numbers",
     "printable",
-    "separator_fault",
     "text_fault",
 ]
-
-DatasetKind = Literal["measurement", "targets", "any"]
 
 _NUMBER = re.compile(r"[+-]?(?:\d+(?:\.\d*)?|\.\d+)(?:[eE][+-]?\d+)?", re.ASCII)
 _INTEGER = re.compile(r"[+-]?\d+", re.ASCII)
@@ -196,20 +193,6 @@ def _parse_repeat(table: CellTable, faults: CellFaults) -> IntArray | None:
     return np.array([int(c) for c in cells], dtype=np.int64)
 
 
-def separator_fault(header: Sequence[str]) -> str | None:
-    """Why a header that is one column holding ``;`` or tabs is refused (naming the option that
-    reads it), ``None`` for any other header."""
-    if len(header) == 1:
-        for sep, what, option in ((";", "semicolons", "';'"), ("\t", "tabs", "tab")):
-            if sep in header[0]:
-                return (
-                    f"the header is one column holding {what}; this format separates columns with commas "
-                    f"(and writes decimals with '.'): read the file with --delimiter {option} (and "
-                    "--decimal-comma when its numbers have decimal commas)"
-                )
-    return None
-
-
 def _parse_quaternions(table: CellTable, faults: CellFaults, q: FloatArray | None) -> FloatArray | None:
     """The (n, 4) probe orientations, each a unit quaternion within :data:`QUATERNION_NORM_TOL`."""
     if q is None:
@@ -240,95 +223,72 @@ def _parse_station(table: CellTable, faults: CellFaults) -> tuple[str, ...] | No
     return cells
 
 
-def _check_header(table: CellTable, kind: DatasetKind) -> None:
-    header = table.header
-
-    def refuse(problem: str, column: str | None) -> DatasetError:
-        return DatasetError(problem, source=table.source, row=1, column=column, row_label=table.row_label)
-
-    problem = separator_fault(header)
-    if problem is not None:
-        raise refuse(problem, None)
-    seen: dict[str, int] = {}
-    known = set(KNOWN_COLUMNS)
-    for k, name in enumerate(header, start=1):
-        if not name:
-            raise refuse(f"column {k} of the header has no name", None)
-        if name in seen:
-            raise refuse(f"duplicate column name (columns {seen[name]} and {k})", name)
-        seen[name] = k
-        lower = name.lower()
-        if name not in known and name != lower and (lower in known or reflector_index(lower) is not None):
-            raise refuse(f"column names are lower case: did you mean '{lower}'?", name)
-
-    present = set(header)
-
-    def hint(column: str) -> str:
-        near = [h for h in header if re.sub(r"_(mm|deg)$", "", h.lower()) == column and h != column]
-        return f" (found {near[0]!r}; this format names it '{column}')" if near else ""
-
-    def group(names: Sequence[str], what: str) -> bool:
-        found = [c for c in names if c in present]
-        if found and len(found) != len(names):
-            missing = next(c for c in names if c not in present)
-            raise refuse(
-                f"column missing ({', '.join(found)} given without it; {what} come together)" + hint(missing),
-                missing,
-            )
-        return bool(found)
-
-    has_axes = group(AXIS_COLUMNS, "a1..a6")
-    has_xyz = group(XYZ_COLUMNS, "x, y, z")
-    _check_reflectors(header, has_xyz, group, refuse)
-    group(DIR_COLUMNS, "dir1..dir6")
-    has_targets = group(TARGET_XYZ_COLUMNS, "tx, ty, tz")
-    has_abc = group(TARGET_ABC_COLUMNS, "ta, tb, tc")
-    if has_abc and not has_targets:
-        raise refuse("column missing (ta, tb, tc need the target position tx, ty, tz)", "tx")
-    if group(QUATERNION_COLUMNS, "qw, qx, qy, qz") and not has_xyz:
-        raise refuse("column missing (a probe's orientation qw, qx, qy, qz needs its position x, y, z)", "x")
-
-    if kind == "measurement":
-        for needed, names in ((has_axes, AXIS_COLUMNS), (has_xyz, XYZ_COLUMNS)):
-            if not needed:
-                raise refuse(
-                    "required column missing (measurement data needs a1..a6 and x, y, z)" + hint(names[0]),
-                    names[0],
+def _parse_block(
+    table: CellTable, faults: CellFaults, names: Sequence[str], limits: FloatArray | None = None
+) -> FloatArray | None:
+    """A group of number columns as an (n, len(names)) array, each column within its ``limits`` row
+    ([min, max] deg) when given; None if the group is absent or a cell of it is faulty."""
+    if names[0] not in table.header:
+        return None
+    columns = []
+    for j, name in enumerate(names):
+        values = parse_numbers(table, faults, name)
+        if values is None:
+            continue
+        if limits is not None:
+            outside = np.flatnonzero((values < limits[j, 0]) | (values > limits[j, 1]))
+            if outside.size:
+                i = int(outside[0])
+                faults.add(
+                    name,
+                    i,
+                    f"{float(values[i])!r} deg is outside the axis limits "
+                    f"[{limits[j, 0]:g}, {limits[j, 1]:g}] deg",
                 )
-    elif not (has_axes or has_targets):
-        raise refuse(
-            "required column missing (axis values a1..a6, or a target pose tx, ty, tz, are needed)"
-            + hint("a1"),
-            "a1",
-        )
+                continue
+        columns.append(values)
+    return np.stack(columns, axis=1) if len(columns) == len(names) else None
 
 
-def reflector_count(header: Sequence[str]) -> int:
-    """K, the number of targets per row that ``header`` names (1 + the highest ``xk``; 1 without any)."""
-    return max((k for k in map(reflector_index, header) if k is not None), default=1)
+def _parse_dirs(table: CellTable, faults: CellFaults) -> NDArray[np.int8] | None:
+    """dir1..dir6 as an (n, 6) array of -1 / +1; None if absent or faulty."""
+    if "dir1" not in table.header:
+        return None
+    dirs = [d for d in (_parse_dir(table, faults, name) for name in DIR_COLUMNS) if d is not None]
+    return np.stack(dirs, axis=1) if len(dirs) == len(DIR_COLUMNS) else None
 
 
-def _check_reflectors(
-    header: Sequence[str],
-    has_xyz: bool,
-    group: Callable[[Sequence[str], str], bool],
-    refuse: Callable[[str, str | None], DatasetError],
-) -> None:
-    """Further targets come as whole triplets ``xk, yk, zk``, numbered 2..K without a gap, after x, y, z."""
-    count = reflector_count(header)
-    if count == 1:
-        return
-    for k in range(2, count + 1):
-        names = reflector_columns(k)
-        if not any(c in header for c in names):
-            raise refuse(
-                f"column missing (targets are numbered without gaps: target {count} is given, "
-                f"target {k} is not)",
-                names[0],
-            )
-        group(names, f"the columns of target {k}")
-    if not has_xyz:
-        raise refuse("column missing (further targets x2, y2, z2 … need the first target's x, y, z)", "x")
+def _parse_gratings(table: CellTable, faults: CellFaults) -> tuple[FloatArray | None, NDArray[np.bool_]]:
+    """The grating readings (n, 6), NaN in the columns not given (None if none is), and which are given."""
+    g_present = np.array([name in table.header for name in GRATING_COLUMNS])
+    if not g_present.any():
+        return None, g_present
+    g_deg = np.full((len(table.row_numbers), 6), np.nan)
+    for j in np.flatnonzero(g_present):
+        values = parse_numbers(table, faults, GRATING_COLUMNS[j])
+        if values is not None:
+            g_deg[:, j] = values
+    return g_deg, g_present
+
+
+def _parse_bounded(
+    table: CellTable, faults: CellFaults, name: str, bad: Callable[[FloatArray], NDArray[np.bool_]], rule: str
+) -> FloatArray | None:
+    """A number column whose values ``bad`` marks are refused by ``rule`` (with the cell's text)."""
+    values = parse_numbers(table, faults, name) if name in table.header else None
+    if values is not None and bad(values).any():
+        i = int(np.flatnonzero(bad(values))[0])
+        faults.add(name, i, f"{rule}, got {table.columns[name][i]!r}")
+    return values
+
+
+def _axis_limits(limits_deg: ArrayLike | None) -> FloatArray | None:
+    if limits_deg is None:
+        return None
+    limits = np.asarray(limits_deg, dtype=float)
+    if limits.shape != (6, 2):
+        raise ValueError(f"limits_deg must have shape (6, 2), got {limits.shape}")
+    return limits
 
 
 def build_dataset(
@@ -341,81 +301,29 @@ def build_dataset(
     """The data set of ``table``, refused whole on its first fault (module docstring)."""
     if kind not in ("measurement", "targets", "any"):
         raise ValueError(f"kind must be 'measurement', 'targets' or 'any', got {kind!r}")
-    _check_header(table, kind)
+    check_header(table.header, kind, source=table.source, row_label=table.row_label)
     n = len(table.row_numbers)
     if n == 0:
         raise DatasetError("no data rows after the header", source=table.source, row=2)
     present = set(table.header)
     faults = CellFaults(table)
-
-    def block(names: Sequence[str], limits: FloatArray | None = None) -> FloatArray | None:
-        """The group of columns as an (n, len(names)) array; None if absent or faulty."""
-        if names[0] not in present:
-            return None
-        columns = []
-        for j, name in enumerate(names):
-            values = parse_numbers(table, faults, name)
-            if values is None:
-                continue
-            if limits is not None:
-                outside = np.flatnonzero((values < limits[j, 0]) | (values > limits[j, 1]))
-                if outside.size:
-                    i = int(outside[0])
-                    faults.add(
-                        name,
-                        i,
-                        f"{float(values[i])!r} deg is outside the axis limits "
-                        f"[{limits[j, 0]:g}, {limits[j, 1]:g}] deg",
-                    )
-                    continue
-            columns.append(values)
-        return np.stack(columns, axis=1) if len(columns) == len(names) else None
-
-    limits = None
-    if limits_deg is not None:
-        limits = np.asarray(limits_deg, dtype=float)
-        if limits.shape != (6, 2):
-            raise ValueError(f"limits_deg must have shape (6, 2), got {limits.shape}")
-    a_deg = block(AXIS_COLUMNS, limits)
-    xyz_mm = block(XYZ_COLUMNS)
-    more = [block(reflector_columns(k)) for k in range(2, reflector_count(table.header) + 1)]
-    target_xyz_mm = block(TARGET_XYZ_COLUMNS)
-    target_abc_deg = block(TARGET_ABC_COLUMNS)
-
-    dir_sign = None
-    if "dir1" in present:
-        dirs = [d for d in (_parse_dir(table, faults, name) for name in DIR_COLUMNS) if d is not None]
-        if len(dirs) == len(DIR_COLUMNS):
-            dir_sign = np.stack(dirs, axis=1)
-
-    g_present = np.array([name in present for name in GRATING_COLUMNS])
-    g_deg = None
-    if g_present.any():
-        g_deg = np.full((n, 6), np.nan)
-        for j in np.flatnonzero(g_present):
-            values = parse_numbers(table, faults, GRATING_COLUMNS[j])
-            if values is not None:
-                g_deg[:, j] = values
-
-    scalars: dict[str, FloatArray | None] = {}
-    for name in SCALAR_NUMBER_COLUMNS:
-        scalars[name] = parse_numbers(table, faults, name) if name in present else None
-    payload = scalars["payload_kg"]
-    if payload is not None and (payload < 0).any():
-        i = int(np.flatnonzero(payload < 0)[0])
-        faults.add("payload_kg", i, f"payload must be >= 0 kg, got {table.columns['payload_kg'][i]!r}")
-
+    a_deg = _parse_block(table, faults, AXIS_COLUMNS, _axis_limits(limits_deg))
+    xyz_mm = _parse_block(table, faults, XYZ_COLUMNS)
+    further = range(2, reflector_count(table.header) + 1)
+    more = [_parse_block(table, faults, reflector_columns(k)) for k in further]
+    target_xyz_mm = _parse_block(table, faults, TARGET_XYZ_COLUMNS)
+    target_abc_deg = _parse_block(table, faults, TARGET_ABC_COLUMNS)
+    dir_sign = _parse_dirs(table, faults)
+    g_deg, g_present = _parse_gratings(table, faults)
+    payload = _parse_bounded(table, faults, "payload_kg", lambda v: v < 0, "payload must be >= 0 kg")
+    temp_c = parse_numbers(table, faults, "temp_c") if "temp_c" in present else None
+    t_s = parse_numbers(table, faults, "t_s") if "t_s" in present else None
     split = _parse_split(table, faults) if "split" in present else None
     repeat = _parse_repeat(table, faults) if "repeat" in present else None
-    probe_q = _parse_quaternions(table, faults, block(QUATERNION_COLUMNS))
-    sigma = parse_numbers(table, faults, "sigma_mm") if "sigma_mm" in present else None
-    if sigma is not None and (sigma <= 0).any():
-        i = int(np.flatnonzero(sigma <= 0)[0])
-        faults.add(
-            "sigma_mm",
-            i,
-            f"sigma_mm must be > 0 mm (a standard deviation), got {table.columns['sigma_mm'][i]!r}",
-        )
+    probe_q = _parse_quaternions(table, faults, _parse_block(table, faults, QUATERNION_COLUMNS))
+    sigma = _parse_bounded(
+        table, faults, "sigma_mm", lambda v: v <= 0, "sigma_mm must be > 0 mm (a standard deviation)"
+    )
     station = _parse_station(table, faults) if "station" in present else None
     faults.raise_first()
 
@@ -431,8 +339,8 @@ def build_dataset(
         g_deg=g_deg,
         g_present=g_present,
         payload_kg=np.zeros(n) if payload is None else payload,
-        temp_c=scalars["temp_c"],
-        t_s=scalars["t_s"],
+        temp_c=temp_c,
+        t_s=t_s,
         split=split,
         repeat=repeat,
         pose_id=tuple(table.columns["pose_id"]) if "pose_id" in present else None,

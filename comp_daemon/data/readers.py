@@ -56,10 +56,10 @@ from comp_daemon.data.cells import (
     DatasetKind,
     build_dataset,
     printable,
-    separator_fault,
     text_fault,
 )
 from comp_daemon.data.columns import DatasetError, is_numeric_column
+from comp_daemon.data.header import separator_fault
 from comp_daemon.data.jsontext import JsonRecords, load_json_records, record_path
 from comp_daemon.data.options import ReadOptions
 from comp_daemon.data.table import Dataset

@@ -488,21 +488,50 @@ def _synced(core: LoopCore, inp: CycleInput) -> tuple[JointLoopState, ...]:
 def _correcting(
     settings: SafetySettings, loop_settings: JointLoopSettings, core: LoopCore, inp: CycleInput
 ) -> CycleResult:
+    """One cycle of the joint loops (CORRECTING, SETTLED): the guards, every joint's step, then the
+    correction limit, divergence and the settling rule, in that order."""
     assert core.loop_target_deg is not None and core.commanded_deg is not None
     now = inp.now_s
     bad = _feedback_fault(core, inp)
     if bad is not None:
         return _to_fault(core, bad[0], bad[1], now)
+    moved = _robot_moved(settings, core, inp)
+    if moved is not None:
+        return _to_fault(core, FaultKind.ROBOT_MOVED, moved, now)
+    core, ak, limited, diverged = _joint_steps(settings, loop_settings, core, inp)
+    if limited:
+        # the step that reached the limit is still sent (it only brings the total up to the
+        # limit); from the next cycle on the fault keeps every step at zero
+        res_fault = _to_fault(
+            core, FaultKind.CORRECTION_LIMIT, "correction limit reached: " + ", ".join(limited), now
+        )
+        return CycleResult(res_fault.core, CycleOutput(ak, True), res_fault.events)
+    if diverged:
+        return _to_fault(
+            core, FaultKind.DIVERGING, "error grows while correcting: " + ", ".join(diverged), now
+        )
+    return _settling(settings, core, now, CycleOutput(ak, False))
+
+
+def _robot_moved(settings: SafetySettings, core: LoopCore, inp: CycleInput) -> str | None:
+    """Why the robot's setpoint has left the commanded pose (more than the tolerance); None if it has not."""
+    assert core.commanded_deg is not None
     sp = _setpoint(core, inp)
-    if sp is not None:
-        moved = max(abs(s - c) for s, c in zip(sp, core.commanded_deg, strict=True))
-        if moved > settings.robot_moved_tolerance_deg:
-            return _to_fault(
-                core,
-                FaultKind.ROBOT_MOVED,
-                f"the setpoint left the commanded pose by {moved:.4f} deg while correcting",
-                now,
-            )
+    if sp is None:
+        return None
+    moved = max(abs(s - c) for s, c in zip(sp, core.commanded_deg, strict=True))
+    if moved > settings.robot_moved_tolerance_deg:
+        return f"the setpoint left the commanded pose by {moved:.4f} deg while correcting"
+    return None
+
+
+def _joint_steps(
+    settings: SafetySettings, loop_settings: JointLoopSettings, core: LoopCore, inp: CycleInput
+) -> tuple[LoopCore, tuple[float, ...], list[str], list[str]]:
+    """Every loop joint's step on its reading: the core with the loops, errors, best errors and clamp
+    count moved on, the AK correction of this cycle, and the joints that reached the correction
+    limit or whose error grew beyond the best so far by more than the divergence margin."""
+    assert core.loop_target_deg is not None
     ak = [0.0] * N_AXES
     loops: list[JointLoopState] = []
     errors: list[float] = []
@@ -529,19 +558,14 @@ def _correcting(
     core = replace(
         core, loops=tuple(loops), errors_deg=tuple(errors), best_abs_error_deg=tuple(best), step_clamps=clamps
     )
-    if limited:
-        # the step that reached the limit is still sent (it only brings the total up to the
-        # limit); from the next cycle on the fault keeps every step at zero
-        res_fault = _to_fault(
-            core, FaultKind.CORRECTION_LIMIT, "correction limit reached: " + ", ".join(limited), now
-        )
-        return CycleResult(res_fault.core, CycleOutput(tuple(ak), True), res_fault.events)
-    if diverged:
-        return _to_fault(
-            core, FaultKind.DIVERGING, "error grows while correcting: " + ", ".join(diverged), now
-        )
+    return core, tuple(ak), limited, diverged
 
-    worst = max(abs(e) for e in errors) if errors else 0.0
+
+def _settling(settings: SafetySettings, core: LoopCore, now: float, output: CycleOutput) -> CycleResult:
+    """The settling rule on the errors of this cycle: every joint within the settle tolerance for the
+    dwell makes CORRECTING SETTLED (once); out of it, the dwell starts again, and a CORRECTING target
+    not settled within the settle timeout is a fault."""
+    worst = max(abs(e) for e in core.errors_deg) if core.errors_deg else 0.0
     events: tuple[Event, ...] = ()
     if worst <= settings.settle_tolerance_deg:
         since = now if math.isnan(core.within_since_s) else core.within_since_s
@@ -568,7 +592,7 @@ def _correcting(
                 f"(worst error {worst:.6f} deg)",
                 now,
             )
-    return CycleResult(core, CycleOutput(tuple(ak), False), events)
+    return CycleResult(core, output, events)
 
 
 def _to_fault(core: LoopCore, kind: FaultKind, detail: str, now_s: float) -> CycleResult:

@@ -25,8 +25,8 @@ import asyncio
 import contextlib
 import time
 import uuid
-from collections.abc import AsyncIterator, Sequence
-from contextlib import asynccontextmanager
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
+from contextlib import AbstractAsyncContextManager, asynccontextmanager
 from pathlib import Path
 from typing import Any
 
@@ -226,6 +226,38 @@ def _error(status: int, code: str, message: str, **extra: Any) -> JSONResponse:
     return JSONResponse(body, status_code=status, headers=headers)
 
 
+#: Store refusals answered with their message alone: exception -> (HTTP status, error code).
+_STORE_REFUSALS: dict[type[Exception], tuple[int, str]] = {
+    NotFoundError: (404, "not_found"),
+    IdempotencyConflict: (409, "idempotency_conflict"),
+    ConflictError: (409, "conflict"),
+}
+
+
+def _refusal(status: int, code: str) -> Callable[[Request, Exception], Awaitable[JSONResponse]]:
+    async def handler(request: Request, exc: Exception) -> JSONResponse:
+        return _error(status, code, str(exc))
+
+    return handler
+
+
+def validation_place(loc: Sequence[str]) -> tuple[int | None, str | None, str | None]:
+    """Where a request validation error's ``loc`` points, as (row, column, row label) for the error
+    body: a target's or a grating pose's row (1-based) and its field (``a1``.. for a pose's value
+    by its index); a query, header or path parameter's name as the column; else nothing."""
+    if len(loc) >= 3 and list(loc[:2]) in (["body", "targets"], ["body", "poses"]):
+        if not loc[2].isdigit():
+            return None, None, None
+        row, row_label = int(loc[2]) + 1, loc[1][:-1]  # target, pose
+        column = None
+        if len(loc) > 3:  # a target's field; a pose's value by its index
+            column = loc[3] if loc[1] == "targets" else f"a{int(loc[3]) + 1}"
+        return row, column, row_label
+    if loc and loc[0] in ("query", "header", "path") and len(loc) > 1:
+        return None, loc[1], None
+    return None, None, None
+
+
 def _install_error_handlers(app: FastAPI) -> None:
     @app.exception_handler(ApiError)
     async def api_error(request: Request, exc: ApiError) -> JSONResponse:
@@ -239,23 +271,14 @@ def _install_error_handlers(app: FastAPI) -> None:
     async def auth_error(request: Request, exc: AuthError) -> JSONResponse:
         return _error(exc.status, "unauthorized" if exc.status == 401 else "forbidden", exc.message)
 
-    @app.exception_handler(NotFoundError)
-    async def not_found(request: Request, exc: NotFoundError) -> JSONResponse:
-        return _error(404, "not_found", str(exc))
-
-    @app.exception_handler(IdempotencyConflict)
-    async def idempotency(request: Request, exc: IdempotencyConflict) -> JSONResponse:
-        return _error(409, "idempotency_conflict", str(exc))
+    for error, (status, code) in _STORE_REFUSALS.items():
+        app.add_exception_handler(error, _refusal(status, code))
 
     @app.exception_handler(StoreFullError)
     async def storage_full(request: Request, exc: StoreFullError) -> JSONResponse:
         _log.error("store: disk full, request refused", path=exc.path, free_bytes=exc.free_bytes)
         details = [{"path": exc.path, "free_bytes": exc.free_bytes}]
         return _error(507, "insufficient_storage", str(exc), details=details)
-
-    @app.exception_handler(ConflictError)
-    async def conflict(request: Request, exc: ConflictError) -> JSONResponse:
-        return _error(409, "conflict", str(exc))
 
     @app.exception_handler(DatasetError)
     async def dataset_error(request: Request, exc: DatasetError) -> JSONResponse:
@@ -271,25 +294,16 @@ def _install_error_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(RequestValidationError)
     async def validation(request: Request, exc: RequestValidationError) -> JSONResponse:
-        details: list[dict[str, Any]] = []
-        locs: list[list[str]] = []
-        for err in exc.errors():
-            loc = [str(p) for p in err.get("loc", ())]
-            locs.append(loc)
-            details.append({"loc": loc, "message": str(err.get("msg", "invalid"))})
+        errors = exc.errors()
+        locs = [[str(p) for p in err.get("loc", ())] for err in errors]
+        details: list[dict[str, Any]] = [
+            {"loc": loc, "message": str(err.get("msg", "invalid"))}
+            for loc, err in zip(locs, errors, strict=True)
+        ]
         first_loc = locs[0] if locs else []
         first_message = str(details[0]["message"]) if details else "invalid request"
         where = ".".join(first_loc)
-        row: int | None = None
-        column: str | None = None
-        row_label = None
-        if len(first_loc) >= 3 and first_loc[:2] in (["body", "targets"], ["body", "poses"]):
-            if first_loc[2].isdigit():
-                row, row_label = int(first_loc[2]) + 1, first_loc[1][:-1]  # target, pose
-                if len(first_loc) > 3:  # a target's field; a pose's value by its index
-                    column = first_loc[3] if first_loc[1] == "targets" else f"a{int(first_loc[3]) + 1}"
-        elif first_loc and first_loc[0] in ("query", "header", "path") and len(first_loc) > 1:
-            column = first_loc[1]
+        row, column, row_label = validation_place(first_loc)
         return _error(
             422,
             "invalid_request",
@@ -407,6 +421,36 @@ def _forward_store_events(state: ServiceState, board: StatusBoard) -> Any:
     return listener
 
 
+def _lifespan(
+    state: ServiceState, board: StatusBoard, uploads: UploadChecker, listener: Any
+) -> Callable[[FastAPI], AbstractAsyncContextManager[None]]:
+    """The service's start (the event bus on the loop, store events forwarded, the job runner, the
+    status snapshots) and its stop in the reverse order: snapshots, bus, jobs drained then their
+    pool, the upload pool, the store's listener."""
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
+        state.bus.bind_loop(asyncio.get_running_loop())
+        state.store.add_listener(listener)
+        metrics.set_queue_depth_source(state.store.queue_depth)
+        state.runner.start()
+        status_task = asyncio.create_task(board.run(), name="status snapshot")
+        _log.info("http service started", robot=state.robot.name, job_kinds=state.runner.kinds())
+        try:
+            yield
+        finally:
+            await board.stop(status_task)
+            state.bus.close()
+            await state.runner.drain()
+            await asyncio.to_thread(state.runner.shutdown)
+            uploads.shutdown()
+            state.store.remove_listener(listener)
+            metrics.set_queue_depth_source(None)
+            _log.info("http service stopped")
+
+    return lifespan
+
+
 def create_app(
     settings: Settings,
     store: Store,
@@ -441,26 +485,6 @@ def create_app(
     board = StatusBoard(state, settings.http.status_interval_s)
     listener = _forward_store_events(state, board)
 
-    @asynccontextmanager
-    async def lifespan(app: FastAPI) -> AsyncIterator[None]:
-        state.bus.bind_loop(asyncio.get_running_loop())
-        store.add_listener(listener)
-        metrics.set_queue_depth_source(store.queue_depth)
-        state.runner.start()
-        status_task = asyncio.create_task(board.run(), name="status snapshot")
-        _log.info("http service started", robot=robot.name, job_kinds=state.runner.kinds())
-        try:
-            yield
-        finally:
-            await board.stop(status_task)
-            state.bus.close()
-            await state.runner.drain()
-            await asyncio.to_thread(state.runner.shutdown)
-            uploads.shutdown()
-            store.remove_listener(listener)
-            metrics.set_queue_depth_source(None)
-            _log.info("http service stopped")
-
     app = FastAPI(
         title="comp-daemon",
         version=__version__,
@@ -469,7 +493,7 @@ def create_app(
             "queue, diagnosis reports and the live state of the closed loop. Authenticate with "
             "`Authorization: Bearer <token>`; roles viewer < operator < engineer."
         ),
-        lifespan=lifespan,
+        lifespan=_lifespan(state, board, uploads, listener),
         docs_url=None,  # Swagger UI and ReDoc load their scripts from a CDN; the cell is offline
         redoc_url=None,
     )

@@ -36,7 +36,7 @@ import socket
 import time
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import h11
 import uvicorn
@@ -142,130 +142,140 @@ class GuardStats:
             )
 
 
-def _guarded_protocol(settings: HttpSettings, stats: GuardStats) -> type[H11Protocol]:
-    """uvicorn's h11 protocol with the time limits and the connection cap of ``settings``."""
+class GuardedH11Protocol(H11Protocol):
+    """uvicorn's h11 protocol with a time limit on each phase of a request (headers, body) and on
+    writing its answer, and a cap on open connections; :func:`_guarded_protocol` gives it the
+    settings and the counters."""
 
-    class GuardedH11Protocol(H11Protocol):
-        _phase = ""
-        _phase_since = 0.0
-        _deadline: asyncio.TimerHandle | None = None
-        _stalled: asyncio.TimerHandle | None = None
+    guard_settings: ClassVar[HttpSettings]
+    guard_stats: ClassVar[GuardStats]
+    _phase = ""
+    _phase_since = 0.0
+    _deadline: asyncio.TimerHandle | None = None
+    _stalled: asyncio.TimerHandle | None = None
 
-        def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
-            super().connection_made(transport)
-            self._enter(_HEADERS)
-            open_now = len(self.connections)
-            stats.max_open = max(stats.max_open, open_now)
-            if open_now > settings.max_connections:
-                self._make_room()
+    def connection_made(self, transport: asyncio.Transport) -> None:  # type: ignore[override]
+        super().connection_made(transport)
+        self._enter(_HEADERS)
+        open_now = len(self.connections)
+        self.guard_stats.max_open = max(self.guard_stats.max_open, open_now)
+        if open_now > self.guard_settings.max_connections:
+            self._make_room()
 
-        def connection_lost(self, exc: Exception | None) -> None:
+    def connection_lost(self, exc: Exception | None) -> None:
+        self._disarm()
+        self._writable()
+        self._phase = ""
+        super().connection_lost(exc)
+
+    def handle_events(self) -> None:
+        super().handle_events()
+        self._follow()
+
+    def on_response_complete(self) -> None:
+        super().on_response_complete()
+        self._follow()
+
+    # ---- the request's phase and its deadline
+
+    def _follow(self) -> None:
+        if self.transport.is_closing():
             self._disarm()
-            self._writable()
-            self._phase = ""
-            super().connection_lost(exc)
+            return
+        state = self.conn.their_state
+        if state is h11.SEND_BODY:
+            self._enter(_BODY)
+        elif state is h11.IDLE:
+            if self._phase != _HEADERS and (self.cycle is None or self.cycle.response_complete):
+                self._enter(_HEADERS)
+        else:
+            self._enter(_APP)
 
-        def handle_events(self) -> None:
-            super().handle_events()
-            self._follow()
+    def _enter(self, phase: str) -> None:
+        if phase == self._phase:
+            return
+        self._disarm()
+        self._phase, self._phase_since = phase, self.loop.time()
+        settings = self.guard_settings
+        limit = {_HEADERS: settings.header_timeout_s, _BODY: settings.body_timeout_s}.get(phase)
+        if limit is not None:
+            self._deadline = self.loop.call_later(limit, self._expire, phase)
 
-        def on_response_complete(self) -> None:
-            super().on_response_complete()
-            self._follow()
-
-        # ---- the request's phase and its deadline
-
-        def _follow(self) -> None:
-            if self.transport.is_closing():
-                self._disarm()
-                return
-            state = self.conn.their_state
-            if state is h11.SEND_BODY:
-                self._enter(_BODY)
-            elif state is h11.IDLE:
-                if self._phase != _HEADERS and (self.cycle is None or self.cycle.response_complete):
-                    self._enter(_HEADERS)
-            else:
-                self._enter(_APP)
-
-        def _enter(self, phase: str) -> None:
-            if phase == self._phase:
-                return
-            self._disarm()
-            self._phase, self._phase_since = phase, self.loop.time()
-            limit = {_HEADERS: settings.header_timeout_s, _BODY: settings.body_timeout_s}.get(phase)
-            if limit is not None:
-                self._deadline = self.loop.call_later(limit, self._expire, phase)
-
-        def _disarm(self) -> None:
-            if self._deadline is not None:
-                self._deadline.cancel()
-                self._deadline = None
-
-        def _expire(self, phase: str) -> None:
+    def _disarm(self) -> None:
+        if self._deadline is not None:
+            self._deadline.cancel()
             self._deadline = None
-            if self._phase != phase or self.transport.is_closing():
-                return
-            if phase == _HEADERS:
-                stats.header_timeouts += 1
-                self._close(_TIMEOUT_408)
-            else:
-                stats.body_timeouts += 1
-                self._close(None)
-            stats.note()
 
-        def _close(self, answer: bytes | None) -> None:
-            self._disarm()
-            self._phase = ""
-            if answer is not None:
-                with contextlib.suppress(Exception):
-                    self.transport.write(answer)
-            self.transport.close()
+    def _expire(self, phase: str) -> None:
+        self._deadline = None
+        if self._phase != phase or self.transport.is_closing():
+            return
+        if phase == _HEADERS:
+            self.guard_stats.header_timeouts += 1
+            self._close(_TIMEOUT_408)
+        else:
+            self.guard_stats.body_timeouts += 1
+            self._close(None)
+        self.guard_stats.note()
 
-        # ---- the write time limit
+    def _close(self, answer: bytes | None) -> None:
+        self._disarm()
+        self._phase = ""
+        if answer is not None:
+            with contextlib.suppress(Exception):
+                self.transport.write(answer)
+        self.transport.close()
 
-        def pause_writing(self) -> None:
-            super().pause_writing()
-            if self._stalled is None:
-                self._stalled = self.loop.call_later(settings.write_timeout_s, self._write_expired)
+    # ---- the write time limit
 
-        def resume_writing(self) -> None:
-            super().resume_writing()
-            self._writable()
+    def pause_writing(self) -> None:
+        super().pause_writing()
+        if self._stalled is None:
+            self._stalled = self.loop.call_later(self.guard_settings.write_timeout_s, self._write_expired)
 
-        def _writable(self) -> None:
-            if self._stalled is not None:
-                self._stalled.cancel()
-                self._stalled = None
+    def resume_writing(self) -> None:
+        super().resume_writing()
+        self._writable()
 
-        def _write_expired(self) -> None:
+    def _writable(self) -> None:
+        if self._stalled is not None:
+            self._stalled.cancel()
             self._stalled = None
-            if self.transport.is_closing() and not self.transport.get_write_buffer_size():
-                return
-            stats.write_timeouts += 1
-            stats.note()
-            self._disarm()
-            self._phase = ""
-            self.transport.abort()  # close() would wait for the unsent bytes; abort frees them
 
-        # ---- the cap
+    def _write_expired(self) -> None:
+        self._stalled = None
+        if self.transport.is_closing() and not self.transport.get_write_buffer_size():
+            return
+        self.guard_stats.write_timeouts += 1
+        self.guard_stats.note()
+        self._disarm()
+        self._phase = ""
+        self.transport.abort()  # close() would wait for the unsent bytes; abort frees them
 
-        def _make_room(self) -> None:
-            waiting = [
-                c
-                for c in self.connections
-                if c is not self and isinstance(c, GuardedH11Protocol) and c._phase == _HEADERS
-            ]
-            if waiting:
-                oldest = min(waiting, key=lambda c: c._phase_since)
-                stats.evicted += 1
-                oldest._close(None)
-            else:
-                stats.refused += 1
-                self._close(_BUSY_503)
-            stats.note()
+    # ---- the cap
 
-    return GuardedH11Protocol
+    def _make_room(self) -> None:
+        waiting = [
+            c
+            for c in self.connections
+            if c is not self and isinstance(c, GuardedH11Protocol) and c._phase == _HEADERS
+        ]
+        if waiting:
+            oldest = min(waiting, key=lambda c: c._phase_since)
+            self.guard_stats.evicted += 1
+            oldest._close(None)
+        else:
+            self.guard_stats.refused += 1
+            self._close(_BUSY_503)
+        self.guard_stats.note()
+
+
+def _guarded_protocol(settings: HttpSettings, stats: GuardStats) -> type[H11Protocol]:
+    """:class:`GuardedH11Protocol` with the time limits and the connection cap of ``settings``,
+    counting into ``stats``."""
+    return type(
+        "GuardedH11Protocol", (GuardedH11Protocol,), {"guard_settings": settings, "guard_stats": stats}
+    )
 
 
 def _addresses(host: str, port: int) -> Iterator[tuple[Any, ...]]:

@@ -61,6 +61,7 @@ __all__ = [
     "run_campaign",
     "sample_poses",
     "solve_axes",
+    "visit_order",
 ]
 
 GRATING_RESOLUTION_MM = 50e-6
@@ -224,6 +225,68 @@ def _tracker(scenario: Scenario, seed: int, in_tracker_frame: bool, moved: bool 
     return LaserTracker(scenario.noise.tracker_sigma_mm, frame, seed=seed)
 
 
+def visit_order(
+    scenario: Scenario, a_deg: NDArray[np.float64], payload_of_pose: NDArray[np.float64]
+) -> NDArray[np.intp]:
+    """The order the poses ``a_deg`` (n, 6) are visited in: payload by payload (in the order of the
+    scenario's ``payload_kg``: the load is changed once each), each group by the nearest-neighbour
+    route in axis time from where the last one ended (the home pose first)."""
+    parts = []
+    here = scenario.campaign.home_deg
+    for load in scenario.campaign.payload_kg:
+        members = np.flatnonzero(payload_of_pose == load)
+        if members.size == 0:
+            continue
+        sub = members[nearest_neighbour_route(a_deg[members], here, scenario.motion.v_max_deg_s)]
+        parts.append(sub)
+        here = a_deg[sub[-1]]
+    return np.concatenate(parts)
+
+
+def _grating_columns(meas: list[Measurement], joints: tuple[int, ...]) -> NDArray[np.float64] | None:
+    """g1..g6 of the measurements: the grating joints' readings, NaN elsewhere (None without gratings)."""
+    if not joints:
+        return None
+    g_deg = np.full((len(meas), 6), np.nan)
+    cols = np.array(joints) - 1
+    g_deg[:, cols] = np.array([m.g_deg for m in meas])[:, cols]
+    return g_deg
+
+
+def _measure_rounds(
+    scenario: Scenario,
+    plant: RobotPlant,
+    trackers: tuple[LaserTracker, LaserTracker],
+    a_deg: NDArray[np.float64],
+    payload_kg: NDArray[np.float64],
+    repeats: int,
+    more_flange: NDArray[np.float64],
+    probe_sigma_deg: float | None,
+) -> list[Measurement]:
+    """The poses ``a_deg`` in their order, ``repeats`` rounds, each with its payload (the plant's
+    load changed only where it differs): the first tracker measures the first half of the rows, the
+    second the rest (the same tracker unless the campaign moves it)."""
+    meas: list[Measurement] = []
+    total = repeats * len(a_deg)
+    for _ in range(repeats):
+        for a, load in zip(a_deg, payload_kg, strict=True):
+            if plant.payload_kg != load:
+                plant.set_payload(float(load))
+            tracker = trackers[1] if 2 * len(meas) >= total else trackers[0]
+            meas.append(
+                measure_at(
+                    plant,
+                    tracker,
+                    a,
+                    scenario.motion.dwell_s,
+                    scenario.cell.grating_radius_mm,
+                    more_flange,
+                    probe_sigma_deg,
+                )
+            )
+    return meas
+
+
 def run_campaign(
     scenario: Scenario,
     n: int,
@@ -265,44 +328,17 @@ def run_campaign(
     plant = RobotPlant.from_scenario(scenario, seed=seed + 1)
     tracker = _tracker(scenario, seed + 2, in_tracker_frame)
     second = _tracker(scenario, seed + 3, in_tracker_frame, moved=True) if restation else tracker
-    order_parts = []
-    here = cam.home_deg
-    for load in cam.payload_kg:
-        members = np.flatnonzero(payload_of_pose == load)
-        if members.size == 0:
-            continue
-        sub = members[nearest_neighbour_route(poses.a_deg[members], here, scenario.motion.v_max_deg_s)]
-        order_parts.append(sub)
-        here = poses.a_deg[sub[-1]]
-    order = np.concatenate(order_parts)
+    order = visit_order(scenario, poses.a_deg, payload_of_pose)
 
-    rows_pose: list[int] = []
-    rows_rep: list[int] = []
-    meas: list[Measurement] = []
-    total = repeats * len(order)
-    for rep in range(repeats):
-        for pose in order:
-            if plant.payload_kg != payload_of_pose[pose]:
-                plant.set_payload(float(payload_of_pose[pose]))
-            meas.append(
-                measure_at(
-                    plant,
-                    second if 2 * len(meas) >= total else tracker,
-                    poses.a_deg[pose],
-                    scenario.motion.dwell_s,
-                    scenario.cell.grating_radius_mm,
-                    more_flange,
-                    probe_sigma_deg,
-                )
-            )
-            rows_pose.append(int(pose))
-            rows_rep.append(rep)
-    idx = np.array(rows_pose)
-    g_deg = None
-    if gratings and scenario.cell.grating_joints:
-        g_deg = np.full((len(idx), 6), np.nan)
-        cols = np.array(scenario.cell.grating_joints) - 1
-        g_deg[:, cols] = np.array([m.g_deg for m in meas])[:, cols]
+    trackers = (tracker, second)
+    a_route, load_route = poses.a_deg[order], payload_of_pose[order]
+    meas = _measure_rounds(
+        scenario, plant, trackers, a_route, load_route, repeats, more_flange, probe_sigma_deg
+    )
+    total = len(meas)
+    idx = np.tile(order, repeats)
+    rows_rep = np.repeat(np.arange(repeats), len(order))
+    g_deg = _grating_columns(meas, scenario.cell.grating_joints) if gratings else None
     return Dataset(
         a_deg=poses.a_deg[idx],
         xyz_mm=np.array([m.xyz_mm for m in meas]),
@@ -312,7 +348,7 @@ def run_campaign(
         temp_c=np.array([m.temp_c for m in meas]),
         t_s=np.array([m.t_s for m in meas]),
         split=split_of_pose[idx],
-        repeat=np.array(rows_rep),
+        repeat=rows_rep,
         pose_id=tuple(f"p{p + 1:04d}" for p in idx),
         target_xyz_mm=poses.target_xyz_mm[idx],
         target_abc_deg=poses.target_abc_deg[idx],

@@ -38,7 +38,7 @@ import json
 import os
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from pathlib import Path
 
 from comp_daemon.common.logs import configure_logging, get_logger
@@ -55,6 +55,103 @@ log = get_logger(__name__)
 
 CONVERTER_ZERO_DEG = -200.0
 CONVERTER_BITS = 26
+
+
+#: The converter commands of the cell port and how many words follow each (the joint first).
+_CONVERTER_ARITY = {"fault": 2, "clear": 1, "unplug": 1, "replug": 1}
+
+
+class CellCommands:
+    """The cell port's line commands (module docstring) on the plant, the tracker, the RSI
+    controller and the converters: one line in, one ``OK …`` or ``ERR <why>`` out."""
+
+    def __init__(
+        self,
+        plant: RobotPlant,
+        tracker: LaserTracker,
+        controller: SimulatedRsiController,
+        converters: Mapping[int, SimulatedConverter],
+    ) -> None:
+        self.plant = plant
+        self.tracker = tracker
+        self.controller = controller
+        self.converters = converters
+        self._queries: dict[str, Callable[[], str]] = {
+            "measure": lambda: _numbers(tracker.measure(plant.tcp_true_mm()), 6),
+            "tcp": lambda: _numbers(plant.tcp_true_mm(), 6),
+            "joints": lambda: _numbers(plant.output_angles_deg(), 8),
+            "status": self._status,
+        }
+
+    async def __call__(self, line: str) -> str:
+        words = line.split()
+        if not words:
+            return "ERR empty command"
+        name, rest = words[0].lower(), words[1:]
+        try:
+            answer = self._answer(name, rest)
+        except (ValueError, RuntimeError) as exc:
+            return f"ERR {exc}"
+        return f"ERR unknown command {line[:40]!r}" if answer is None else answer
+
+    def _answer(self, name: str, rest: list[str]) -> str | None:
+        """The answer to command ``name`` with its words ``rest``; None for a command not known."""
+        if name in self._queries and not rest:
+            return "OK " + self._queries[name]()
+        if name in _CONVERTER_ARITY and rest:
+            return self._converter(name, rest)
+        if name == "payload" and len(rest) == 1:
+            self.plant.set_payload(float(rest[0]))
+            return "OK"
+        return None
+
+    def _converter(self, name: str, rest: list[str]) -> str:
+        conv = self.converters.get(int(rest[0]))
+        if conv is None:
+            return f"ERR no grating on joint {rest[0]}"
+        if len(rest) != _CONVERTER_ARITY[name]:
+            return f"ERR bad arguments to {name}"
+        if name == "fault":
+            conv.inject(ConverterFault(rest[1]))
+        elif name == "clear":
+            conv.clear()
+        elif name == "unplug":
+            conv.unplug()
+        else:
+            conv.replug()
+        return "OK"
+
+    def _status(self) -> str:
+        doc = {
+            "controller": self.controller.status(),
+            "correction_deg": self.plant.correction_deg().tolist(),
+            "output_deg": self.plant.output_angles_deg().tolist(),
+            "converters": {str(j): sorted(map(str, c.faults)) for j, c in self.converters.items()},
+        }
+        return json.dumps(doc)
+
+
+def _numbers(values: Iterable[float], decimals: int) -> str:
+    return " ".join(f"{v:.{decimals}f}" for v in values)
+
+
+def _stop_when_parent_goes(loop: asyncio.AbstractEventLoop, stop: asyncio.Event) -> None:
+    """Set ``stop`` when stdin reaches end of file: the parent, which holds the pipe's other end, is gone."""
+    stdin_fd = sys.stdin.fileno()
+
+    def parent_gone() -> None:
+        try:
+            data = os.read(stdin_fd, 4096)
+        except BlockingIOError:
+            return
+        except OSError:
+            data = b""
+        if not data:
+            loop.remove_reader(stdin_fd)
+            log.warning("the parent process closed the pipe; stopping")
+            stop.set()
+
+    loop.add_reader(stdin_fd, parent_gone)
 
 
 async def _run_cell(args: argparse.Namespace, scenario: Scenario) -> int:
@@ -88,48 +185,7 @@ async def _run_cell(args: argparse.Namespace, scenario: Scenario) -> int:
         converters[j] = SimulatedConverter(cfg, plant)
         converters[j].start()
 
-    async def cell_command(line: str) -> str:
-        words = line.split()
-        if not words:
-            return "ERR empty command"
-        name, rest = words[0].lower(), words[1:]
-        try:
-            if name == "measure" and not rest:
-                p = tracker.measure(plant.tcp_true_mm())
-                return "OK " + " ".join(f"{v:.6f}" for v in p)
-            if name == "tcp" and not rest:
-                return "OK " + " ".join(f"{v:.6f}" for v in plant.tcp_true_mm())
-            if name == "joints" and not rest:
-                return "OK " + " ".join(f"{v:.8f}" for v in plant.output_angles_deg())
-            if name in ("fault", "clear", "unplug", "replug") and rest:
-                conv = converters.get(int(rest[0]))
-                if conv is None:
-                    return f"ERR no grating on joint {rest[0]}"
-                if name == "fault" and len(rest) == 2:
-                    conv.inject(ConverterFault(rest[1]))
-                elif name == "clear" and len(rest) == 1:
-                    conv.clear()
-                elif name == "unplug" and len(rest) == 1:
-                    conv.unplug()
-                elif name == "replug" and len(rest) == 1:
-                    conv.replug()
-                else:
-                    return f"ERR bad arguments to {name}"
-                return "OK"
-            if name == "payload" and len(rest) == 1:
-                plant.set_payload(float(rest[0]))
-                return "OK"
-            if name == "status" and not rest:
-                doc = {
-                    "controller": controller.status(),
-                    "correction_deg": plant.correction_deg().tolist(),
-                    "output_deg": plant.output_angles_deg().tolist(),
-                    "converters": {str(j): sorted(map(str, c.faults)) for j, c in converters.items()},
-                }
-                return "OK " + json.dumps(doc)
-        except (ValueError, RuntimeError) as exc:
-            return f"ERR {exc}"
-        return f"ERR unknown command {line[:40]!r}"
+    cell_command = CellCommands(plant, tracker, controller, converters)
 
     await controller.start(rsi_on=args.rsi_on)
     motion_host, motion_port = await controller.serve_commands("127.0.0.1", 0)
@@ -143,21 +199,7 @@ async def _run_cell(args: argparse.Namespace, scenario: Scenario) -> int:
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
     if args.exit_with_parent:
-        stdin_fd = sys.stdin.fileno()
-
-        def parent_gone() -> None:
-            try:
-                data = os.read(stdin_fd, 4096)
-            except BlockingIOError:
-                return
-            except OSError:
-                data = b""
-            if not data:
-                loop.remove_reader(stdin_fd)
-                log.warning("the parent process closed the pipe; stopping")
-                stop.set()
-
-        loop.add_reader(stdin_fd, parent_gone)
+        _stop_when_parent_goes(loop, stop)
     info = SimCellInfo(
         pid=os.getpid(),
         motion_host=motion_host,

@@ -261,17 +261,19 @@ def _joints(table: dict[str, Any], key: str, where: str, default: tuple[int, ...
     return tuple(value)
 
 
-def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
-    """Parse and validate a scenario file's text."""
-    try:
-        doc = tomllib.loads(text)
-    except tomllib.TOMLDecodeError as exc:
-        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
-    tables = {"scenario", "geometric", "effects", "noise", "motion", "cell", "campaign"}
-    for key in doc:
-        if key not in tables:
-            raise ScenarioError(f"{source}: unknown table [{key}] (allowed: {', '.join(sorted(tables))})")
+def _count(table: dict[str, Any], key: str, where: str, default: int, *, least: int) -> int:
+    """An integer field (not a bool) of at least ``least``."""
+    value = table.get(key, default)
+    if not isinstance(value, int) or isinstance(value, bool) or value < least:
+        raise ScenarioError(f"{where}.{key}: expected an integer >= {least}, got {value!r}")
+    return value
 
+
+# one parser per table: each takes the document and the source, and names the table in its refusals
+
+
+def _parse_header(doc: dict[str, Any], source: str) -> tuple[str, str, RobotDescription, int]:
+    """[scenario]: name, description, the robot (a file beside the scenario file first) and the seed."""
     w = f"{source} [scenario]"
     sc = _table(doc, "scenario", source, {"name", "robot", "seed", "description"})
     name = sc.get("name")
@@ -284,10 +286,12 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         candidate = Path(source).parent / robot_ref  # a robot file beside the scenario file
         robot_ref = str(candidate) if candidate.is_file() else robot_ref
     robot = load_robot(robot_ref)
-    seed = sc.get("seed", 0)
-    if not isinstance(seed, int) or isinstance(seed, bool) or seed < 0:
-        raise ScenarioError(f"{w}.seed: expected an integer >= 0, got {seed!r}")
+    seed = _count(sc, "seed", w, 0, least=0)
+    return name, str(sc.get("description", "")), robot, seed
 
+
+def _parse_geometric(doc: dict[str, Any], source: str) -> GeometricErrors:
+    """[geometric]: the σ of each kind of hidden error (>= 0) and exact values by PARAM_NAMES entry."""
     w = f"{source} [geometric]"
     kinds = {"theta_deg", "d_mm", "a_mm", "alpha_deg", "beta_deg", "base_mm", "base_deg", "tool_mm"}
     geo_t = _table(doc, "geometric", source, kinds | {"beta_joints", "values"})
@@ -301,27 +305,33 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
                 f"{w}.values: unknown parameter '{key}' (expected one of PARAM_NAMES, e.g. theta2)"
             )
         values[key] = _num(values_raw, key, f"{w}.values")
-    geometric = GeometricErrors(
+    return GeometricErrors(
         **{k: _num(geo_t, k, w, 0.0, lo=0.0) for k in kinds},
         beta_joints=_joints(geo_t, "beta_joints", w, ()),
         values=values,
     )
 
+
+_EFFECT_FIELDS = {
+    "backlash_deg",
+    "ratio",
+    "cyclic_sin_deg",
+    "cyclic_cos_deg",
+    "compliance_rad_per_nm",
+    "thermal_per_k",
+    "t_ref_c",
+    "drift_mm_per_h",
+    "drift_mm_per_h2",
+    "step_deg",
+    "step_at_s",
+}
+
+
+def _parse_effects(doc: dict[str, Any], source: str) -> EffectParams:
+    """[effects]: the hidden robot's joint and time effects; the drift as the catalogue's named
+    arrays, a step only with its moment, as many harmonics as ``cyclic_sin_deg``'s first row has."""
     w = f"{source} [effects]"
-    eff_fields = {
-        "backlash_deg",
-        "ratio",
-        "cyclic_sin_deg",
-        "cyclic_cos_deg",
-        "compliance_rad_per_nm",
-        "thermal_per_k",
-        "t_ref_c",
-        "drift_mm_per_h",
-        "drift_mm_per_h2",
-        "step_deg",
-        "step_at_s",
-    }
-    eff_t = _table(doc, "effects", source, eff_fields)
+    eff_t = _table(doc, "effects", source, _EFFECT_FIELDS)
     drift_v = _arr(eff_t, "drift_mm_per_h", w, (3,), [0.0] * 3)
     drift_w = _arr(eff_t, "drift_mm_per_h2", w, (3,), [0.0] * 3)
     drift = {
@@ -336,7 +346,7 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
     sin_raw = eff_t.get("cyclic_sin_deg", [[]] * 6)
     n_harm = len(sin_raw[0]) if isinstance(sin_raw, list) and sin_raw and isinstance(sin_raw[0], list) else 0
     zeros_k = np.zeros((6, n_harm)).tolist()
-    effects = EffectParams(
+    return EffectParams(
         backlash_deg=_arr(eff_t, "backlash_deg", w, (6,), [0.0] * 6, lo=0.0),
         ratio=_arr(eff_t, "ratio", w, (6,), [0.0] * 6),
         cyclic_sin_deg=_arr(eff_t, "cyclic_sin_deg", w, (6, n_harm), zeros_k),
@@ -349,13 +359,19 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         arrays=drift,
     )
 
+
+def _parse_noise(doc: dict[str, Any], source: str) -> NoiseSettings:
+    """[noise]: joint repeatability and tracker σ, both >= 0."""
     w = f"{source} [noise]"
     noise_t = _table(doc, "noise", source, {"joint_repeatability_deg", "tracker_sigma_mm"})
-    noise = NoiseSettings(
+    return NoiseSettings(
         joint_repeatability_deg=_arr(noise_t, "joint_repeatability_deg", w, (6,), [0.0] * 6, lo=0.0),
         tracker_sigma_mm=_num(noise_t, "tracker_sigma_mm", w, 0.01, lo=0.0),
     )
 
+
+def _parse_motion(doc: dict[str, Any], source: str) -> MotionSettings:
+    """[motion]: axis speed and acceleration limits, servo lag, settling tolerance and dwell."""
     w = f"{source} [motion]"
     mot_t = _table(
         doc,
@@ -363,7 +379,7 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         source,
         {"v_max_deg_s", "a_max_deg_s2", "servo_time_constant_s", "settle_tol_deg", "dwell_s"},
     )
-    motion = MotionSettings(
+    return MotionSettings(
         v_max_deg_s=_arr(mot_t, "v_max_deg_s", w, (6,), [100.0, 90.0, 90.0, 150.0, 150.0, 200.0], lo=1e-6),
         a_max_deg_s2=_arr(
             mot_t, "a_max_deg_s2", w, (6,), [200.0, 180.0, 180.0, 300.0, 300.0, 400.0], lo=1e-6
@@ -373,19 +389,24 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         dwell_s=_num(mot_t, "dwell_s", w, 0.5, lo=0.0),
     )
 
+
+_CELL_FIELDS = {
+    "temp_start_c",
+    "temp_drift_k_per_h",
+    "temp_amplitude_k",
+    "temp_period_h",
+    "tracker_xyz_mm",
+    "tracker_abc_deg",
+    "grating_joints",
+    "grating_radius_mm",
+}
+
+
+def _parse_cell(doc: dict[str, Any], source: str) -> CellSettings:
+    """[cell]: the temperature's course, the tracker's pose and the gratings."""
     w = f"{source} [cell]"
-    cell_fields = {
-        "temp_start_c",
-        "temp_drift_k_per_h",
-        "temp_amplitude_k",
-        "temp_period_h",
-        "tracker_xyz_mm",
-        "tracker_abc_deg",
-        "grating_joints",
-        "grating_radius_mm",
-    }
-    cell_t = _table(doc, "cell", source, cell_fields)
-    cell = CellSettings(
+    cell_t = _table(doc, "cell", source, _CELL_FIELDS)
+    return CellSettings(
         temp_start_c=_num(cell_t, "temp_start_c", w, 20.0),
         temp_drift_k_per_h=_num(cell_t, "temp_drift_k_per_h", w, 0.0),
         temp_amplitude_k=_num(cell_t, "temp_amplitude_k", w, 0.0),
@@ -396,20 +417,26 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         grating_radius_mm=_num(cell_t, "grating_radius_mm", w, 400.0, lo=1e-3),
     )
 
+
+_CAMPAIGN_FIELDS = {
+    "box_min_mm",
+    "box_max_mm",
+    "abc_min_deg",
+    "abc_max_deg",
+    "home_deg",
+    "payload_kg",
+    "check_fraction",
+    "repeats",
+    "seed",
+    "targets",
+}
+
+
+def _parse_campaign(doc: dict[str, Any], source: str, robot: RobotDescription) -> CampaignSettings:
+    """[campaign]: a non-empty box and A, B, C range, a home pose within ``robot``'s axis limits, at
+    least one payload, a check fraction below 1, and the counts."""
     w = f"{source} [campaign]"
-    cam_fields = {
-        "box_min_mm",
-        "box_max_mm",
-        "abc_min_deg",
-        "abc_max_deg",
-        "home_deg",
-        "payload_kg",
-        "check_fraction",
-        "repeats",
-        "seed",
-        "targets",
-    }
-    cam_t = _table(doc, "campaign", source, cam_fields)
+    cam_t = _table(doc, "campaign", source, _CAMPAIGN_FIELDS)
     box_min = _arr(cam_t, "box_min_mm", w, (3,))
     box_max = _arr(cam_t, "box_max_mm", w, (3,))
     if np.any(box_max <= box_min):
@@ -428,14 +455,7 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
     check_fraction = _num(cam_t, "check_fraction", w, 0.4, lo=0.0)
     if check_fraction >= 1.0:
         raise ScenarioError(f"{w}.check_fraction: must be below 1, got {check_fraction}")
-    repeats = cam_t.get("repeats", 1)
-    cseed = cam_t.get("seed", 0)
-    targets = cam_t.get("targets", 1)
-    for key, val in (("repeats", repeats), ("seed", cseed), ("targets", targets)):
-        least = 0 if key == "seed" else 1
-        if not isinstance(val, int) or isinstance(val, bool) or val < least:
-            raise ScenarioError(f"{w}.{key}: expected an integer >= {least}, got {val!r}")
-    campaign = CampaignSettings(
+    return CampaignSettings(
         box_min_mm=box_min,
         box_max_mm=box_max,
         abc_min_deg=abc_min,
@@ -443,21 +463,36 @@ def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
         home_deg=home,
         payload_kg=tuple(float(p) for p in payload),
         check_fraction=check_fraction,
-        repeats=repeats,
-        seed=cseed,
-        targets=targets,
+        repeats=_count(cam_t, "repeats", w, 1, least=1),
+        seed=_count(cam_t, "seed", w, 0, least=0),
+        targets=_count(cam_t, "targets", w, 1, least=1),
     )
+
+
+_TABLES = {"scenario", "geometric", "effects", "noise", "motion", "cell", "campaign"}
+
+
+def parse_scenario_toml(text: str, source: str = "<string>") -> Scenario:
+    """Parse and validate a scenario file's text."""
+    try:
+        doc = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ScenarioError(f"{source}: not valid TOML: {exc}") from None
+    for key in doc:
+        if key not in _TABLES:
+            raise ScenarioError(f"{source}: unknown table [{key}] (allowed: {', '.join(sorted(_TABLES))})")
+    name, description, robot, seed = _parse_header(doc, source)
     return Scenario(
         name=name,
-        description=str(sc.get("description", "")),
+        description=description,
         robot=robot,
         seed=seed,
-        geometric=geometric,
-        effects=effects,
-        noise=noise,
-        motion=motion,
-        cell=cell,
-        campaign=campaign,
+        geometric=_parse_geometric(doc, source),
+        effects=_parse_effects(doc, source),
+        noise=_parse_noise(doc, source),
+        motion=_parse_motion(doc, source),
+        cell=_parse_cell(doc, source),
+        campaign=_parse_campaign(doc, source, robot),
         source=source,
     )
 

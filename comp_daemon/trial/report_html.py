@@ -173,10 +173,9 @@ small{color:#666}code{font-size:12px}
 """
 
 
-def render_html(result: TrialResult, *, command: str | None = None) -> str:
-    plan, sizes = result.plan, result.plan["sizes"]
+def _html_cards(result: TrialResult) -> str:
+    """The summary cards: the 3-D max and mean of seed 000's three methods, beside seed 000's figure."""
     t2 = result.table2()
-    v = verdict(result)
     cards = []
     for k in ("uncompensated", "kinematic", "chebyshev+feedback"):
         if k in t2:
@@ -186,45 +185,81 @@ def render_html(result: TrialResult, *, command: str | None = None) -> str:
                 f'<div class=card><small>{_e(result.runs[k].label)}, max</small><b style="color:'
                 f'{COLORS[k]}">{d["max"]:.3f} mm</b><small>mean {d["mean"]:.3f} · {seed}</small></div>'
             )
-    verdict_html = ""
-    if "ordering" in v:
-        o, t = v["ordering"], v["claim"]["trial"]
-        good = o["mean"] and o["max"]
-        verdict_html = (
-            f"<p class={'ok' if good else 'bad'}><b>Ordering</b> (3-D mean and max): closed loop &lt; "
-            f"kinematic calibration &lt; uncompensated: <b>{'holds' if good else 'does not hold'}</b>.</p>"
-            f"<p><b>Seed 000's claim</b>: max 0.76 → 0.19 mm (−75 %; −55 % against kinematic calibration). "
-            f"<b>This trial</b>: max {t['before_max']:.3f} → {t['after_max']:.3f} mm "
-            f"(−{100 * t['reduction']:.0f} %; −{100 * t['vs_kinematic']:.0f} % against kinematic "
-            f"calibration), every axis within ±{t['axis_max_abs']:.3f} mm.</p>"
-        )
-    hist = error_histogram_figure(result, table_rows(result)) + method_histograms_figure(
-        result, table_rows(result)
+    return "".join(cards)
+
+
+def _html_verdict(v: dict[str, Any]) -> str:
+    """Whether the ordering of seed 000's Table 2 holds, and the trial's figures beside the claim."""
+    if "ordering" not in v:
+        return ""
+    o, t = v["ordering"], v["claim"]["trial"]
+    good = o["mean"] and o["max"]
+    return (
+        f"<p class={'ok' if good else 'bad'}><b>Ordering</b> (3-D mean and max): closed loop &lt; "
+        f"kinematic calibration &lt; uncompensated: <b>{'holds' if good else 'does not hold'}</b>.</p>"
+        f"<p><b>Seed 000's claim</b>: max 0.76 → 0.19 mm (−75 %; −55 % against kinematic calibration). "
+        f"<b>This trial</b>: max {t['before_max']:.3f} → {t['after_max']:.3f} mm "
+        f"(−{100 * t['reduction']:.0f} %; −{100 * t['vs_kinematic']:.0f} % against kinematic "
+        f"calibration), every axis within ±{t['axis_max_abs']:.3f} mm.</p>"
     )
-    grat = ""
-    if result.gratings:
-        grat = "<table class=num><tr><th>joint</th><th>readings</th><th>span (°)</th><th>scale</th>" \
-               "<th>zero (°)</th><th>residual rms (°)</th><th>max (°)</th></tr>" + "".join(
-            f"<tr><td>A{m['joint']}</td><td>{m['n_readings']}</td><td>{m['span_deg']:.1f}</td>"
-            f"<td>{grating_scale(m):.6f}</td><td>{m['zero_deg']:.4f}</td><td>{m['residual_rms_deg']:.4f}</td>"
-            f"<td>{m['residual_max_deg']:.4f}</td></tr>"
-            for m in result.gratings["joints"]
-        ) + "</table>"  # fmt: skip
+
+
+def _html_gratings(result: TrialResult) -> str:
+    """The grating calibration's table, one row a joint (empty when it did not run)."""
+    if not result.gratings:
+        return ""
+    rows = "".join(
+        f"<tr><td>A{m['joint']}</td><td>{m['n_readings']}</td><td>{m['span_deg']:.1f}</td>"
+        f"<td>{grating_scale(m):.6f}</td><td>{m['zero_deg']:.4f}</td><td>{m['residual_rms_deg']:.4f}</td>"
+        f"<td>{m['residual_max_deg']:.4f}</td></tr>"
+        for m in result.gratings["joints"]
+    )
+    return (
+        "<table class=num><tr><th>joint</th><th>readings</th><th>span (°)</th><th>scale</th>"
+        f"<th>zero (°)</th><th>residual rms (°)</th><th>max (°)</th></tr>{rows}</table>"
+    )
+
+
+def _html_run(result: TrialResult) -> str:
+    """The run itself: RSI counters and reply latency, the targets that did not finish, those
+    posted again, and the time of each phase."""
     loop = result.loop
     ctl, dmn = loop.get("controller", {}), loop.get("daemon", {})
-    phases = "".join(
-        f"<tr><td>{_e(p['name'])}</td><td>{p['duration_s']:.0f}</td></tr>" for p in result.phases
-    )
+    runs = [*result.sampling.values(), *result.runs.values()]
     failures = [
         f"<li>{_e(run.label)}, point {f['index'] + 1}: {_e(f['state'])} — {_e(f['reason'])}</li>"
-        for run in [*result.sampling.values(), *result.runs.values()]
+        for run in runs
         for f in run.failures()
     ]
     retries = [
         f"<li>{_e(run.label)}, point {f['index'] + 1}: {_e(f['reason'])}</li>"
-        for run in [*result.sampling.values(), *result.runs.values()]
+        for run in runs
         for f in run.retried
     ] + [f"<li>ISO 9283 with joint feedback, {_e(why)}</li>" for why in iso_retried(result)]
+    phases = "".join(
+        f"<tr><td>{_e(p['name'])}</td><td>{p['duration_s']:.0f}</td></tr>" for p in result.phases
+    )
+    failed = "<p>Targets that did not finish:</p><ul>" + "".join(failures) + "</ul>" if failures else ""
+    retried = (
+        "<p>Targets posted again after a failure that says the computer was busy (a grating reading or RSI "
+        "telegrams late), each measured once done:</p><ul>" + "".join(retries) + "</ul>"
+        if retries
+        else ""
+    )
+    sent, late = _e(ctl.get("telegrams_sent")), _e(ctl.get("late_total"))
+    return f"""<p>RSI: {sent} telegrams, {late} late replies counted by the
+controller, {_e(ctl.get("overruns"))} controller overruns; reply latency p50 {_f(dmn.get("latency_p50_ms"))} /
+p99 {_f(dmn.get("latency_p99_ms"))} / max {_f(dmn.get("latency_max_ms"))} ms (recent window); daemon exit
+code {_e(loop.get("daemon_exit_code"))}.</p>
+{failed}
+{retried}
+<table class=num><tr><th>phase</th><th>s</th></tr>{phases}</table>"""
+
+
+def render_html(result: TrialResult, *, command: str | None = None) -> str:
+    plan, sizes = result.plan, result.plan["sizes"]
+    rows = table_rows(result)
+    hist = error_histogram_figure(result, rows) + method_histograms_figure(result, rows)
     env = result.environment
     incomplete = "" if result.complete else f" · <b class=bad>incomplete: {_e(result.error)}</b>"
     return f"""<!doctype html>
@@ -237,15 +272,15 @@ Chebyshev order {sizes["chebyshev_order"]}
 · started {_e(result.started_at)} · {result.duration_s / 60:.1f} min · Python {_e(env.get("python"))},
 {_e(env.get("cpus"))} CPUs{incomplete}
 {"<br><code>" + _e(command) + "</code>" if command else ""}</small></div>
-<div class=summary>{"".join(cards)}</div>
-{verdict_html}
+<div class=summary>{_html_cards(result)}</div>
+{_html_verdict(verdict(result))}
 <h2>Table 2: positioning error of the target points</h2>
 <p>Error = tracker − wanted TCP, robot base frame, mm; per axis the signed components, 3-D the distance.
 Seed 000 gives only the 3-D figures quoted in its text.</p>
 {_html_table2(result)}
 <div class=fig>{hist}</div>
 <h2>Per target point (seed 000 Figs 7–10)</h2>
-<div class=fig>{point_error_figures(result, table_rows(result))}</div>
+<div class=fig>{point_error_figures(result, rows)}</div>
 <h2>ISO 9283 multi-directional pose accuracy (seed 000 Figs 5–6)</h2>
 <p>Each test point approached from +x, +y and +z ({_e(result.iso.get("approach_mm"))} mm moves),
 {_e(result.iso.get("cycles"))} cycles after {_e(result.iso.get("warmup_cycles"))} warm-up cycle(s);
@@ -259,19 +294,8 @@ repeatability ±{_e(result.iso.get("repeatability_rated_mm"))} mm.</p>
 <h2>Data sets and models (over the HTTP API)</h2>
 {_html_models(result)}
 <h2>Grating calibration (seed 000 step 1)</h2>
-{grat}
+{_html_gratings(result)}
 <h2>The run</h2>
-<p>RSI: {_e(ctl.get("telegrams_sent"))} telegrams, {_e(ctl.get("late_total"))} late replies counted by the
-controller, {_e(ctl.get("overruns"))} controller overruns; reply latency p50 {_f(dmn.get("latency_p50_ms"))} /
-p99 {_f(dmn.get("latency_p99_ms"))} / max {_f(dmn.get("latency_max_ms"))} ms (recent window); daemon exit
-code {_e(loop.get("daemon_exit_code"))}.</p>
-{"<p>Targets that did not finish:</p><ul>" + "".join(failures) + "</ul>" if failures else ""}
-{
-        "<p>Targets posted again after a failure that says the computer was busy (a grating reading or RSI "
-        "telegrams late), each measured once done:</p><ul>" + "".join(retries) + "</ul>"
-        if retries
-        else ""
-    }
-<table class=num><tr><th>phase</th><th>s</th></tr>{phases}</table>
+{_html_run(result)}
 </body></html>
 """

@@ -46,6 +46,7 @@ from __future__ import annotations
 
 import asyncio
 import time
+from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -59,12 +60,12 @@ from comp_daemon.rt.grating_cal import default_calibration_poses
 from comp_daemon.sim.scenario import load_scenario
 from comp_daemon.trial.cell import CellError, CellSettings, TrialCell, environment
 from comp_daemon.trial.compare import ComparisonData, compare_models
-from comp_daemon.trial.plan import PlannedPoints, TrialPlan, plan_trial
+from comp_daemon.trial.plan import PlannedPoints, TrialPlan, TrialSizes, plan_trial
 from comp_daemon.trial.result import PointRun, TrialResult
 from comp_daemon.trial.session import Progress, ProgressEvent, TrialError, TrialSession
 from comp_daemon.trial.stats import iso9283_statistics
 
-__all__ = ["ProgressEvent", "TrialError", "run_trial", "with_sizes"]
+__all__ = ["COMPARISON_PHASE", "ProgressEvent", "TrialError", "run_trial", "trial_phases", "with_sizes"]
 
 
 class _Trial(TrialSession):
@@ -153,22 +154,19 @@ class _Trial(TrialSession):
             entry["stats"] = iso9283_statistics(positions)
         self.result.iso.setdefault("runs", {})[key] = entry
 
-    # ------------------------------------------------------------------------------ the trial
+    # ------------------------------------------------------------------------------ the phases
+    # Each phase fills its part of the result and returns the note its progress line ends with.
 
-    async def run(self) -> None:
-        r = self.result
+    async def calibrate_gratings(self) -> str:
+        """Phase 1: the daemon's grating calibration (on the trial's poses when their count is not the
+        daemon's own 6), followed until it ends."""
         s = self.sizes
-        pts = self.points
-        tg = pts.targets
-        order = s.chebyshev_order
-
-        self.begin("grating calibration")
         body = None
         if s.calibration_poses != 6:  # 6: the daemon's own poses
+            robot, cell = self.scenario.robot, self.scenario.cell
             poses = default_calibration_poses(
-                list(pts.home_deg), self.scenario.cell.grating_joints, self.scenario.robot.axis_limits_deg,
-                n=s.calibration_poses,
-            )  # fmt: skip
+                list(self.points.home_deg), cell.grating_joints, robot.axis_limits_deg, n=s.calibration_poses
+            )
             body = {"poses": [list(p) for p in poses]}
         await self.cell.api("POST", "/api/gratings/calibrate", json=body)
         while (status := await self.cell.api("GET", "/api/gratings"))["calibrating"]:
@@ -176,16 +174,18 @@ class _Trial(TrialSession):
             await asyncio.sleep(0.25)
         if status["last_error"] or status["calibration"] is None:
             raise TrialError(f"the grating calibration failed: {status['last_error']}")
-        r.gratings = status["calibration"]
-        joints = r.gratings["joints"] if r.gratings else []
-        self.end(", ".join(f"A{m['joint']} residual rms {m['residual_rms_deg']:.4f}°" for m in joints))
+        self.result.gratings = status["calibration"]
+        joints = self.result.gratings["joints"] if self.result.gratings else []
+        return ", ".join(f"A{m['joint']} residual rms {m['residual_rms_deg']:.4f}°" for m in joints)
 
-        self.begin("ISO 9283, robot alone")
-        r.iso.update(
+    async def iso_alone(self) -> str:
+        """Phase 2: the ISO 9283 points by the robot program, with the set-up they are measured in."""
+        iso, s = self.points.iso, self.sizes
+        self.result.iso.update(
             {
-                "points_mm": pts.iso.points_mm.tolist(),
-                "starts_mm": pts.iso.starts_mm.tolist(),
-                "abc_deg": pts.iso.abc_deg.tolist(),
+                "points_mm": iso.points_mm.tolist(),
+                "starts_mm": iso.starts_mm.tolist(),
+                "abc_deg": iso.abc_deg.tolist(),
                 "approach_mm": s.approach_mm,
                 "cycles": s.iso_cycles,
                 "warmup_cycles": s.iso_warmup_cycles,
@@ -193,39 +193,47 @@ class _Trial(TrialSession):
             }
         )
         await self.iso(feedback=False)
-        self.end(self._iso_note("without"))
+        return self._iso_note("without")
 
-        self.begin("sampling points, robot alone")
-        sp = pts.sampling
-        r.sampling["open"] = await self.open_run(
+    async def sampling_alone(self) -> str:
+        """Phase 3: the sampling points at their nominal axis values by the robot program."""
+        sp = self.points.sampling
+        self.result.sampling["open"] = await self.open_run(
             PointRun.empty(
                 "sampling-open", "sampling, robot alone", "sampling", sp.wanted_mm, feedback=False
             ),
             sp.a_nominal_deg,
         )
-        self.end()
+        return ""
 
-        self.begin("target points, uncompensated")
-        r.runs["uncompensated"] = await self.open_run(
-            PointRun.empty("uncompensated", "uncompensated", "targets", tg.wanted_mm, feedback=False),
-            tg.a_nominal_deg,
-        )
-        self.end(self.running_note(r.runs["uncompensated"]))
+    async def targets_uncompensated(self) -> str:
+        """Phase 4: the target points at their nominal axis values by the robot program."""
+        tg = self.points.targets
+        run = PointRun.empty("uncompensated", "uncompensated", "targets", tg.wanted_mm, feedback=False)
+        self.result.runs["uncompensated"] = await self.open_run(run, tg.a_nominal_deg)
+        return self.running_note(run)
 
-        self.begin("fits on the open-loop data (HTTP)")
-        open_id = await self.upload(
-            "trial-open-loop", [(r.sampling["open"], sp, "fit"), (r.runs["uncompensated"], tg, "check")]
-        )
-        nominal = await self.fit("nominal", open_id, "nominal")
-        kinematic = await self.fit("kinematic", open_id, "kinematic")
-        if not s.loop_sampling:  # the Chebyshev model in the loop's convention: A1..A3 from the gratings
-            runs = [(r.sampling["open"], sp, "fit"), (r.runs["uncompensated"], tg, "check")]
+    async def open_loop_fits(self) -> str:
+        """Phases 3 + 4 as one data set; the nominal and kinematic models on it, and the Chebyshev
+        model on its gratings' joint values when the loop does not sample."""
+        r, sp, tg = self.result, self.points.sampling, self.points.targets
+        runs = [(r.sampling["open"], sp, "fit"), (r.runs["uncompensated"], tg, "check")]
+        open_id = await self.upload("trial-open-loop", runs)
+        await self.fit("nominal", open_id, "nominal")
+        await self.fit("kinematic", open_id, "kinematic")
+        if (
+            not self.sizes.loop_sampling
+        ):  # the Chebyshev model in the loop's convention: A1..A3 from the gratings
             grat_id = await self.upload("trial-open-loop-gratings", runs, joints_from_gratings=True)
-            await self.fit("chebyshev", grat_id, "chebyshev", order)
-        self.end(f"data set {open_id}; models {', '.join(str(m['id']) for m in r.models.values())}")
+            await self.fit("chebyshev", grat_id, "chebyshev", self.sizes.chebyshev_order)
+        return f"data set {open_id}; models {', '.join(str(m['id']) for m in r.models.values())}"
 
-        self.begin("target points, kinematic calibration")
-        model = await self.fetch_model(kinematic["id"])
+    async def targets_kinematic(self) -> str:
+        """Phase 5: the target points compensated offline by the kinematic model's artifact, run by
+        the robot program."""
+        tg = self.points.targets
+        kinematic_id = self.result.models["kinematic"]["id"]
+        model = await self.fetch_model(kinematic_id)
         comp = compensate(
             model,
             tg.wanted_mm,
@@ -237,112 +245,104 @@ class _Trial(TrialSession):
         )
         if not comp.converged:
             raise TrialError("the kinematic compensation of the target points did not converge")
-        r.runs["kinematic"] = await self.open_run(
-            PointRun.empty(
-                "kinematic",
-                "kinematic calibration",
-                "targets",
-                tg.wanted_mm,
-                feedback=False,
-                model="kinematic",
-                model_id=kinematic["id"],
-            ),
-            comp.a_deg,
+        run = PointRun.empty(
+            "kinematic",
+            "kinematic calibration",
+            "targets",
+            tg.wanted_mm,
+            feedback=False,
+            model="kinematic",
+            model_id=kinematic_id,
         )
-        self.end(self.running_note(r.runs["kinematic"]))
+        self.result.runs["kinematic"] = await self.open_run(run, comp.a_deg)
+        return self.running_note(run)
 
-        self.begin("ISO 9283, with joint feedback")
-        await self.activate(nominal["id"])
+    async def iso_with_feedback(self) -> str:
+        """Phase 6: the ISO 9283 points as targets of the daemon under the nominal model."""
+        await self.activate(self.result.models["nominal"]["id"])
         await self.iso(feedback=True)
-        self.end(self._iso_note("with"))
+        return self._iso_note("with")
 
-        if s.loop_sampling:
-            self.begin("sampling points, with joint feedback")
-            r.sampling["closed"] = await self.loop_run(
-                PointRun.empty(
-                    "sampling-closed",
-                    "sampling, joint feedback",
-                    "sampling",
-                    sp.wanted_mm,
-                    feedback=True,
-                    model="nominal",
-                    model_id=nominal["id"],
-                ),
-                sp,
-            )
-            self.end()
-            self.begin("target points, joint feedback only")
-            r.runs["feedback"] = await self.loop_run(
-                PointRun.empty(
-                    "feedback",
-                    "joint feedback only",
-                    "targets",
-                    tg.wanted_mm,
-                    feedback=True,
-                    model="nominal",
-                    model_id=nominal["id"],
-                ),
-                tg,
-            )
-            self.end(self.running_note(r.runs["feedback"]))
-            self.begin("fits on the closed-loop data (HTTP)")
-            closed_id = await self.upload(
-                "trial-closed-loop", [(r.sampling["closed"], sp, "fit"), (r.runs["feedback"], tg, "check")]
-            )
-            await self.fit("chebyshev", closed_id, "chebyshev", order)
-            await self.fit("kinematic (closed-loop data)", closed_id, "kinematic")
-            self.end(f"data set {closed_id}")
-
-        cheb = r.models["chebyshev"]
-        self.begin(f"target points, Chebyshev m={order} + joint feedback")
-        await self.activate(cheb["id"])
-        r.runs["chebyshev+feedback"] = await self.loop_run(
-            PointRun.empty(
-                "chebyshev+feedback",
-                f"Chebyshev m={order} + joint feedback",
-                "targets",
-                tg.wanted_mm,
-                feedback=True,
-                model=f"chebyshev m={order}",
-                model_id=cheb["id"],
-            ),
-            tg,
+    async def sampling_with_feedback(self) -> str:
+        """Phase 7: the sampling points as targets of the daemon under the nominal model (already active)."""
+        sp, nominal_id = self.points.sampling, self.result.models["nominal"]["id"]
+        run = PointRun.empty(
+            "sampling-closed",
+            "sampling, joint feedback",
+            "sampling",
+            sp.wanted_mm,
+            feedback=True,
+            model="nominal",
+            model_id=nominal_id,
         )
-        self.end(self.running_note(r.runs["chebyshev+feedback"]))
+        self.result.sampling["closed"] = await self.loop_run(run, sp)
+        return ""
 
-        if s.seed000_mapping:
-            self.begin(f"target points, Chebyshev m={order} (seed 000 mapping) + joint feedback")
-            r.runs["chebyshev-seed000+feedback"] = await self.seed000_run(cheb["id"], nominal["id"])
-            self.end(self.running_note(r.runs["chebyshev-seed000+feedback"]))
+    async def targets_feedback_only(self) -> str:
+        """Phase 8: the target points through the loop under the nominal model (already active)."""
+        return await self.targets_in_loop(
+            "feedback", "joint feedback only", "nominal", "nominal", activate=False
+        )
 
-        if s.loop_sampling and s.kinematic_with_loop:
-            kin_loop = r.models["kinematic (closed-loop data)"]
-            self.begin("target points, kinematic + joint feedback")
-            await self.activate(kin_loop["id"])
-            r.runs["kinematic+feedback"] = await self.loop_run(
-                PointRun.empty(
-                    "kinematic+feedback",
-                    "kinematic + joint feedback",
-                    "targets",
-                    tg.wanted_mm,
-                    feedback=True,
-                    model="kinematic",
-                    model_id=kin_loop["id"],
-                ),
-                tg,
-            )
-            self.end(self.running_note(r.runs["kinematic+feedback"]))
+    async def closed_loop_fits(self) -> str:
+        """Phases 7 + 8 as one data set; the Chebyshev and kinematic models on it."""
+        r, sp, tg = self.result, self.points.sampling, self.points.targets
+        runs = [(r.sampling["closed"], sp, "fit"), (r.runs["feedback"], tg, "check")]
+        closed_id = await self.upload("trial-closed-loop", runs)
+        await self.fit("chebyshev", closed_id, "chebyshev", self.sizes.chebyshev_order)
+        await self.fit("kinematic (closed-loop data)", closed_id, "kinematic")
+        return f"data set {closed_id}"
 
-        status = await self.cell.api("GET", "/api/status")
-        r.loop = {
+    async def targets_chebyshev(self) -> str:
+        """Phase 9: seed 000's method, the Chebyshev model in the daemon with the joint loop."""
+        order = self.sizes.chebyshev_order
+        label = f"Chebyshev m={order} + joint feedback"
+        return await self.targets_in_loop("chebyshev+feedback", label, f"chebyshev m={order}", "chebyshev")
+
+    async def targets_chebyshev_seed000(self) -> str:
+        """Phase 10: the same model with seed 000's joint mapping (:meth:`seed000_run`)."""
+        models = self.result.models
+        run = await self.seed000_run(models["chebyshev"]["id"], models["nominal"]["id"])
+        self.result.runs["chebyshev-seed000+feedback"] = run
+        return self.running_note(run)
+
+    async def targets_kinematic_in_loop(self) -> str:
+        """Phase 11: the closed-loop kinematic model in the daemon with the joint loop."""
+        label = "kinematic + joint feedback"
+        return await self.targets_in_loop(
+            "kinematic+feedback", label, "kinematic", "kinematic (closed-loop data)"
+        )
+
+    async def targets_in_loop(
+        self, key: str, label: str, model: str, fitted: str, *, activate: bool = True
+    ) -> str:
+        """The target points through the loop under the model fitted as ``fitted`` (activated first
+        unless it is active already), kept as run ``key``."""
+        tg, model_id = self.points.targets, self.result.models[fitted]["id"]
+        if activate:
+            await self.activate(model_id)
+        run = PointRun.empty(
+            key, label, "targets", tg.wanted_mm, feedback=True, model=model, model_id=model_id
+        )
+        self.result.runs[key] = await self.loop_run(run, tg)
+        return self.running_note(run)
+
+    def record_loop(self, status: dict[str, Any], controller: dict[str, Any]) -> None:
+        """The daemon's loop counters and the robot controller's, as the trial ends."""
+        kept = ("state", "stop_reason", "telegrams_sent", "replies_ok", "late_total", "overruns")
+        self.result.loop = {
             "daemon": status["daemon"]["loop"],
-            "controller": {
-                k: v
-                for k, v in (await self.cell.controller_status()).items()
-                if k in ("state", "stop_reason", "telegrams_sent", "replies_ok", "late_total", "overruns")
-            },
+            "controller": {k: v for k, v in controller.items() if k in kept},
             "targets": status.get("targets"),
         }
+
+    async def run(self) -> None:
+        """Every phase of :func:`trial_phases` in order, then the loop's counters."""
+        for name, phase in trial_phases(self.sizes):
+            self.begin(name)
+            self.end(await phase(self))
+        status = await self.cell.api("GET", "/api/status")
+        self.record_loop(status, await self.cell.controller_status())
 
     async def seed000_run(self, model_id: int, nominal_id: int) -> PointRun:
         """The Chebyshev targets with seed 000's joint mapping (:mod:`comp_daemon.models.compensation`,
@@ -383,7 +383,7 @@ class _Trial(TrialSession):
     def comparison(self) -> None:
         """Seed 001's comparison on the open-loop (and closed-loop) data, after the cell is down."""
         r, pts, s = self.result, self.points, self.sizes
-        self.begin("seed 001 model comparison")
+        self.begin(COMPARISON_PHASE)
         sets = [
             ("open", r.sampling.get("open"), r.runs.get("uncompensated"), False),
             ("open-gratings", r.sampling.get("open"), r.runs.get("uncompensated"), True),
@@ -418,6 +418,40 @@ class _Trial(TrialSession):
         self.end()
 
 
+COMPARISON_PHASE = "seed 001 model comparison"
+
+#: A phase's step: it runs on the trial and returns the note its progress line ends with.
+PhaseStep = Callable[[_Trial], Awaitable[str]]
+
+
+def trial_phases(s: TrialSizes) -> list[tuple[str, PhaseStep]]:
+    """The phases the trial runs with sizes ``s`` (module docstring), by name, in order; the model
+    comparison (:data:`COMPARISON_PHASE`) follows them once the cell is down."""
+    order = s.chebyshev_order
+    phases: list[tuple[str, PhaseStep]] = [
+        ("grating calibration", _Trial.calibrate_gratings),
+        ("ISO 9283, robot alone", _Trial.iso_alone),
+        ("sampling points, robot alone", _Trial.sampling_alone),
+        ("target points, uncompensated", _Trial.targets_uncompensated),
+        ("fits on the open-loop data (HTTP)", _Trial.open_loop_fits),
+        ("target points, kinematic calibration", _Trial.targets_kinematic),
+        ("ISO 9283, with joint feedback", _Trial.iso_with_feedback),
+    ]
+    if s.loop_sampling:
+        phases += [
+            ("sampling points, with joint feedback", _Trial.sampling_with_feedback),
+            ("target points, joint feedback only", _Trial.targets_feedback_only),
+            ("fits on the closed-loop data (HTTP)", _Trial.closed_loop_fits),
+        ]
+    phases.append((f"target points, Chebyshev m={order} + joint feedback", _Trial.targets_chebyshev))
+    if s.seed000_mapping:
+        name = f"target points, Chebyshev m={order} (seed 000 mapping) + joint feedback"
+        phases.append((name, _Trial.targets_chebyshev_seed000))
+    if s.loop_sampling and s.kinematic_with_loop:
+        phases.append(("target points, kinematic + joint feedback", _Trial.targets_kinematic_in_loop))
+    return phases
+
+
 async def run_trial(
     plan: TrialPlan,
     workdir: Path,
@@ -438,7 +472,8 @@ async def run_trial(
     )
     t0 = time.monotonic()
     cell = TrialCell(scenario, workdir, seed=plan.seed, payload_kg=plan.payload_kg, settings=cell_settings)
-    trial = _Trial(scenario, plan, points, cell, result, progress or (lambda e: None))
+    names = [name for name, _ in trial_phases(plan.sizes)] + [COMPARISON_PHASE]
+    trial = _Trial(scenario, plan, points, cell, result, names, progress or (lambda e: None))
     try:
         try:
             await cell.start()

@@ -13,7 +13,7 @@ from __future__ import annotations
 import asyncio
 import secrets
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -59,32 +59,6 @@ class ProgressEvent:
 Progress = Callable[[ProgressEvent], None]
 
 
-def phase_names(plan: TrialPlan) -> list[str]:
-    s = plan.sizes
-    names = [
-        "grating calibration",
-        "ISO 9283, robot alone",
-        "sampling points, robot alone",
-        "target points, uncompensated",
-        "fits on the open-loop data (HTTP)",
-        "target points, kinematic calibration",
-        "ISO 9283, with joint feedback",
-    ]
-    if s.loop_sampling:
-        names += [
-            "sampling points, with joint feedback",
-            "target points, joint feedback only",
-            "fits on the closed-loop data (HTTP)",
-        ]
-    names.append(f"target points, Chebyshev m={s.chebyshev_order} + joint feedback")
-    if s.seed000_mapping:
-        names.append(f"target points, Chebyshev m={s.chebyshev_order} (seed 000 mapping) + joint feedback")
-    if s.loop_sampling and s.kinematic_with_loop:
-        names.append("target points, kinematic + joint feedback")
-    names.append("seed 001 model comparison")
-    return names
-
-
 class TrialSession:
     """The state of one trial and the operations of its phases (module docstring)."""
 
@@ -95,6 +69,7 @@ class TrialSession:
         points: TrialPoints,
         cell: TrialCell,
         result: TrialResult,
+        names: Sequence[str],
         progress: Progress,
     ) -> None:
         self.scenario = scenario
@@ -104,7 +79,7 @@ class TrialSession:
         self.cell = cell
         self.result = result
         self.progress = progress
-        self.names = phase_names(plan)
+        self.names = list(names)  # the phases, in order: progress counts by them
         self.step = 0
         self.t0 = time.monotonic()
         self.phase_t0 = self.t0

@@ -15,6 +15,7 @@ from comp_daemon.service.store.records import (
     ModelRecord,
     NotFoundError,
     dumps,
+    record_of,
     without_details,
 )
 
@@ -94,16 +95,8 @@ class DatasetStore(StoreBase):
 
     @staticmethod
     def _dataset(row: sqlite3.Row, with_content: bool) -> DatasetRecord:
-        return DatasetRecord(
-            id=row["id"],
-            name=row["name"],
-            format=row["format"],
-            sha256=row["sha256"],
-            rows=row["rows"],
-            summary=json.loads(row["summary"]),
-            created_at=row["created_at"],
-            content=row["content"] if with_content else None,  # read only when asked for
-        )
+        content = row["content"] if with_content else None  # read only when asked for
+        return record_of(DatasetRecord, row, summary=json.loads(row["summary"]), content=content)
 
     def add_dataset(
         self,
@@ -164,16 +157,9 @@ class ModelStore(StoreBase):
 
     @staticmethod
     def _model(row: sqlite3.Row, with_artifact: bool) -> ModelRecord:
-        return ModelRecord(
-            id=row["id"],
-            kind=row["kind"],
-            order=row["order"],
-            stats=json.loads(row["stats"]),
-            dataset_id=row["dataset_id"],
-            job_id=row["job_id"],
-            active=bool(row["active"]),
-            created_at=row["created_at"],
-            artifact=json.loads(row["artifact"]) if with_artifact else None,
+        artifact = json.loads(row["artifact"]) if with_artifact else None
+        return record_of(
+            ModelRecord, row, stats=json.loads(row["stats"]), active=bool(row["active"]), artifact=artifact
         )
 
     def _model_row(self, conn: sqlite3.Connection, model_id: int, *, with_artifact: bool) -> ModelRecord:

@@ -8,7 +8,7 @@ from collections.abc import Mapping
 from typing import Any
 
 from comp_daemon.service.store.base import StoreBase
-from comp_daemon.service.store.records import EventRecord
+from comp_daemon.service.store.records import EventRecord, record_of
 
 __all__ = ["EventStore"]
 
@@ -18,14 +18,7 @@ class EventStore(StoreBase):
 
     @staticmethod
     def _event_record(row: sqlite3.Row) -> EventRecord:
-        return EventRecord(
-            id=row["id"],
-            time=row["time"],
-            kind=row["kind"],
-            target_id=row["target_id"],
-            job_id=row["job_id"],
-            message=json.loads(row["message"]),
-        )
+        return record_of(EventRecord, row, message=json.loads(row["message"]))
 
     def add_event(
         self,

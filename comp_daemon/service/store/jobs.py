@@ -18,6 +18,7 @@ from comp_daemon.service.store.records import (
     dumps,
     finite,
     loads,
+    record_of,
     without_details,
 )
 
@@ -29,20 +30,7 @@ class JobStore(ModelStore):
 
     @staticmethod
     def _job(row: sqlite3.Row) -> JobRecord:
-        return JobRecord(
-            id=row["id"],
-            kind=row["kind"],
-            params=json.loads(row["params"]),
-            dataset_id=row["dataset_id"],
-            state=row["state"],
-            progress=row["progress"],
-            message=row["message"],
-            result=loads(row["result"]),
-            error=row["error"],
-            created_at=row["created_at"],
-            started_at=row["started_at"],
-            finished_at=row["finished_at"],
-        )
+        return record_of(JobRecord, row, params=json.loads(row["params"]), result=loads(row["result"]))
 
     def _job_row(self, conn: sqlite3.Connection, job_id: int) -> JobRecord:
         return self._job(self._fetch(conn, "job", job_id))

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
+import sqlite3
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any, Literal, TypeVar
 
 __all__ = [
     "JOB_FINAL_STATES",
@@ -34,6 +36,7 @@ __all__ = [
     "dumps",
     "finite",
     "loads",
+    "record_of",
     "without_details",
 ]
 
@@ -241,3 +244,16 @@ def finite(value: float) -> float:
     if not math.isfinite(value):
         raise ValueError("not a finite number")
     return float(value)
+
+
+_R = TypeVar("_R")
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}  # a record class -> its fields' names
+
+
+def record_of(cls: type[_R], row: sqlite3.Row, **decoded: Any) -> _R:
+    """A record of dataclass ``cls`` from a store row: each field from the column of its name, but
+    those ``decoded`` gives (JSON columns, flags, columns the query did not read)."""
+    names = _FIELD_NAMES.get(cls)
+    if names is None:
+        names = _FIELD_NAMES[cls] = tuple(f.name for f in dataclasses.fields(cls))  # type: ignore[arg-type]
+    return cls(**{name: decoded[name] if name in decoded else row[name] for name in names})

@@ -19,6 +19,7 @@ from comp_daemon.service.store.records import (
     dumps,
     finite,
     loads,
+    record_of,
 )
 
 __all__ = ["TargetStore"]
@@ -29,32 +30,16 @@ class TargetStore(StoreBase):
 
     @staticmethod
     def _batch(row: sqlite3.Row) -> BatchRecord:
-        return BatchRecord(
-            id=row["id"],
-            idempotency_key=row["idempotency_key"],
-            request_sha256=row["request_sha256"],
-            source=row["source"],
-            size=row["size"],
-            created_at=row["created_at"],
-        )
+        return record_of(BatchRecord, row)
 
     @staticmethod
     def _target(row: sqlite3.Row) -> TargetRecord:
-        return TargetRecord(
-            id=row["id"],
-            batch_id=row["batch_id"],
-            seq=row["seq"],
-            idempotency_key=row["idempotency_key"],
-            queue_pos=row["queue_pos"],
+        return record_of(
+            TargetRecord,
+            row,
             request=json.loads(row["request"]),
-            state=row["state"],
-            reason=row["reason"],
             commanded_axes_deg=loads(row["commanded_axes"]),
             final_joint_errors_deg=loads(row["final_joint_errors"]),
-            created_at=row["created_at"],
-            updated_at=row["updated_at"],
-            started_at=row["started_at"],
-            finished_at=row["finished_at"],
         )
 
     def _target_row(self, conn: sqlite3.Connection, target_id: int) -> TargetRecord:
