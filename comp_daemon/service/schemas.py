@@ -20,8 +20,10 @@ from comp_daemon.data.columns import AXIS_COLUMNS as _AXES
 from comp_daemon.data.columns import TARGET_ABC_COLUMNS as _ABC
 from comp_daemon.data.columns import TARGET_XYZ_COLUMNS as _TCP
 from comp_daemon.data.target import BOTH_FORMS, FORMS, NO_FORM, Target, missing_fields
+from comp_daemon.diagnosis.options import DiagnosisSettings
 from comp_daemon.models.effects import EFFECTS, effect_by_name
 from comp_daemon.models.registry import KINDS, MAX_ORDER
+from comp_daemon.preparation.options import FitSettings
 from comp_daemon.service.store import (
     STATS_DETAIL_PATHS,
     BatchRecord,
@@ -246,8 +248,12 @@ def _model_name_pattern() -> str:
 MODEL_NAME_PATTERN = _model_name_pattern()
 
 
-class FitIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class FitIn(FitSettings):
+    """A fit job: the data set, the model, and the fit's settings as ``comp-daemon fit`` takes them
+    (:class:`~comp_daemon.preparation.options.FitSettings`: ``frame``, ``folds``, ``seed``,
+    ``infer_dir``, ``probe_sigma_deg``, and for a ballbar or cross-bar campaign
+    ``fix_near_dependent`` and ``ridge``)."""
+
     dataset_id: int = Field(ge=1, le=MAX_ID)
     model: str = Field(
         json_schema_extra={"pattern": MODEL_NAME_PATTERN},
@@ -261,11 +267,6 @@ class FitIn(BaseModel):
     order: int | None = Field(
         None, ge=0, le=8, description="Chebyshev order; omitted: the model name's (default 3, seed 000)"
     )
-    infer_dir: bool = Field(
-        True,
-        description="a data set without dir1..dir6 columns gets the approach directions from the pose "
-        "order when the model needs them (backlash); false: such models refuse the data",
-    )
 
     model_config = ConfigDict(
         extra="forbid",
@@ -275,17 +276,33 @@ class FitIn(BaseModel):
         },
     )
 
+    def settings(self) -> FitSettings:
+        """The fit's settings alone (what the job carries to the pipeline)."""
+        return FitSettings.model_validate(self.model_dump(include=set(FitSettings.model_fields)))
 
-class DiagnosisIn(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+def _diagnosis_schema(schema: dict[str, Any]) -> None:
+    """The names a diagnosis takes, in its JSON schema: effects of the catalogue (at least one) and
+    model names of the registry (:data:`MODEL_NAME_PATTERN`). A comma-separated string, which the
+    server also takes, is left out of the description."""
+    properties = schema["properties"]
+    properties["effects"]["anyOf"] = [
+        {"type": "array", "items": {"enum": list(EFFECTS)}, "minItems": 1},
+        {"type": "null"},
+    ]
+    properties["compare_models"]["items"] = {"type": "string", "pattern": MODEL_NAME_PATTERN}
+
+
+class DiagnosisIn(DiagnosisSettings):
+    """A diagnosis job: the data set and the diagnosis's settings as ``comp-daemon diagnose`` takes
+    them (:class:`~comp_daemon.diagnosis.options.DiagnosisSettings`)."""
+
+    model_config = ConfigDict(json_schema_extra=_diagnosis_schema)
     dataset_id: int = Field(ge=1, le=MAX_ID)
-    tracker_sigma_mm: float | None = Field(
-        None,
-        gt=0.0,
-        le=10.0,
-        description="the tracker's declared uncertainty (σ per axis, mm): the noise floor when the data "
-        "have no repeated poses; omitted with no repeats, the diagnosis reports no noise floor",
-    )
+
+    def settings(self) -> DiagnosisSettings:
+        """The diagnosis's settings alone (what the job carries)."""
+        return DiagnosisSettings.model_validate(self.model_dump(include=set(DiagnosisSettings.model_fields)))
 
 
 #: a JSON number, never a bool or a string (strict); finite (the model's allow_inf_nan)
@@ -295,8 +312,6 @@ Number = Annotated[float, Field(strict=True)]
 Millimetres = Annotated[float, Field(strict=True, ge=-100_000.0, le=100_000.0)]
 #: an orientation angle (deg, KUKA A, B, C)
 Degrees = Annotated[float, Field(strict=True, ge=-360.0, le=360.0)]
-
-
 
 
 def _target_schema(schema: dict[str, Any]) -> None:
