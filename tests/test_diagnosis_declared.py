@@ -19,8 +19,8 @@ from comp_daemon.cli import main
 from comp_daemon.data.dataset import write_dataset
 from comp_daemon.data.table import dataset_to_csv
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
-from comp_daemon.diagnosis.options import DiagnosisSettings
 from comp_daemon.diagnosis.report import render_report_html
+from comp_daemon.preparation.options import DiagnosisSettings
 from comp_daemon.service import job_kinds
 from comp_daemon.service.schemas import DiagnosisIn
 

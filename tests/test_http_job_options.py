@@ -5,6 +5,8 @@ artifact from the same file and options on both doors, a bad value refused in th
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from collections.abc import AsyncIterator
 from pathlib import Path
 from typing import Any
@@ -17,8 +19,10 @@ from test_service_api import auth, make_settings
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import write_dataset
-from comp_daemon.diagnosis.options import DiagnosisSettings
-from comp_daemon.preparation.options import FitSettings
+from comp_daemon.diagnosis import DiagnoseOptions
+from comp_daemon.diagnosis.comparison import DEFAULT_MODELS
+from comp_daemon.diagnosis.options import diagnose_options
+from comp_daemon.preparation.options import DiagnosisSettings, FitSettings
 
 
 @pytest.fixture
@@ -171,5 +175,19 @@ def test_list_options_are_words_on_the_command_line_and_lists_over_http() -> Non
     for effects, compare in (("ratio, drift", "none"), (["ratio", "drift"], [])):
         settings = DiagnosisSettings(effects=effects, compare_models=compare)
         assert settings.effects == ("ratio", "drift") and settings.compare_models == ()
-        assert settings.options().effects == ("ratio", "drift") and settings.options().compare_models == ()
+        options = diagnose_options(settings)
+        assert options.effects == ("ratio", "drift") and options.compare_models == ()
     assert DiagnosisSettings().changed() == {} and FitSettings(ridge=True).changed() == {"ridge": True}
+
+
+def test_the_settings_defaults_are_the_documented_methods() -> None:
+    assert diagnose_options(DiagnosisSettings()) == DiagnoseOptions()
+    assert DiagnosisSettings().compare_models == DEFAULT_MODELS
+
+
+def test_the_service_validates_the_options_without_loading_the_diagnosis() -> None:
+    """The request models import nothing of the diagnosis (its numerics load scipy.stats: seconds of
+    import and a heavier heap for the service's collector)."""
+    code = "import sys, comp_daemon.service.api; print(sorted(m for m in sys.modules if 'diagnosis' in m))"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == "[]"

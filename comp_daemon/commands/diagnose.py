@@ -22,11 +22,12 @@ from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset_file
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
-from comp_daemon.diagnosis.options import DiagnosisSettings
+from comp_daemon.diagnosis.options import diagnose_options
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.estimation.registration import BASE_FRAME_MAX_RMS_MM
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.preparation.options import DiagnosisSettings
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -57,7 +58,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    options = settings_of(args, DiagnosisSettings).options()
+    options = diagnose_options(settings_of(args, DiagnosisSettings))
     # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
     dataset = read_dataset_file(
         Path(args.data),

@@ -2,7 +2,7 @@
 
 :func:`add_settings` adds one option per field of a pydantic settings model
 (:class:`comp_daemon.preparation.options.FitSettings`,
-:class:`comp_daemon.diagnosis.options.DiagnosisSettings`): ``probe_sigma_deg`` becomes
+:class:`comp_daemon.preparation.options.DiagnosisSettings`): ``probe_sigma_deg`` becomes
 ``--probe-sigma-deg``, a flag that is on by default ``--no-…`` (``infer_dir``: ``--no-infer-dir``),
 one that is off ``--…`` (``--ridge``), a choice of words ``choices``; the help is the field's
 description with its default. Each value is checked by the model's own field (its range, its

@@ -34,13 +34,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from comp_daemon.diagnosis.options import DiagnosisSettings
-from comp_daemon.preparation.options import FitSettings
+from comp_daemon.preparation.options import DiagnosisSettings, FitSettings
 from comp_daemon.service.jobs import JobKind
 from comp_daemon.service.store import JobRecord, ModelDraft
 
 if TYPE_CHECKING:
     from comp_daemon.data.table import Dataset
+    from comp_daemon.preparation.pipeline import FitOutcome
 
 __all__ = [
     "DIAGNOSIS",
@@ -94,9 +94,7 @@ def run_fit(
     stats' ``directions`` says so.
     """
     from comp_daemon.data.bars import campaign_kind, read_table, sniff_campaign
-    from comp_daemon.models.evaluation import error_statistics
-    from comp_daemon.models.fitting import FitOptions, ModelSpec
-    from comp_daemon.models.registry import fit_spec, parse_model_name, with_order
+    from comp_daemon.models.registry import parse_model_name, with_order
     from comp_daemon.preparation.pipeline import FitRequest, fit_prepared, prepare_fit
     from comp_daemon.robot.description import load_robot
 
@@ -115,15 +113,25 @@ def run_fit(
     prepared = prepare_fit(ds, robot, request)
     progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
     outcome = fit_prepared(prepared, robot, request)
-    fitted, split = outcome.fitted, prepared.split
     progress(0.9, "judging on the check rows")
+    return {"stats": _judged(outcome, robot, model), "artifact": outcome.artifact()}
+
+
+def _judged(outcome: FitOutcome, robot: Any, model: str) -> dict[str, Any]:
+    """A fit's statistics (the module docstring's ``stats``): the model and the nominal twin,
+    registered on the same fit rows, judged on the check rows by seed 000's Table 2."""
+    from comp_daemon.models.evaluation import error_statistics
+    from comp_daemon.models.fitting import FitOptions, ModelSpec
+    from comp_daemon.models.registry import fit_spec
+
+    prepared, fitted, spec = outcome.prepared, outcome.fitted, outcome.spec
     train = prepared.rows(prepared.fit_rows)
     nominal = fit_spec(ModelSpec("nominal"), robot, train, FitOptions(frame=prepared.frame))
     check = prepared.rows(prepared.check_rows)
     pred_model = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
     pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
     p_check = check.xyz_mm
-    stats = {
+    return {
         "model": model,
         "kind": spec.kind,
         "artifact_kind": fitted.model.kind,
@@ -131,7 +139,7 @@ def run_fit(
         "order": fitted.model.order,
         "frame": fitted.frame,
         "rows": {"fit": len(prepared.fit_rows), "check": len(prepared.check_rows)},
-        "split": split.message,
+        "split": prepared.split.message,
         "directions": prepared.directions.note,
         "table2": {
             "nominal": error_statistics(p_check, pred_nominal),
@@ -143,7 +151,6 @@ def run_fit(
         },
         "fit": outcome.info,
     }
-    return {"stats": stats, "artifact": outcome.artifact()}
 
 
 def _measurement(data: str | Dataset, source: str, robot: Any) -> Dataset:
@@ -231,11 +238,12 @@ def run_diagnosis(
     """The diagnosis of ``docs/diagnosis-output.md`` on the data set: JSON report and HTML report.
 
     ``settings`` are those ``comp-daemon diagnose`` takes
-    (:class:`~comp_daemon.diagnosis.options.DiagnosisSettings`; omitted: the method's), e.g. the
+    (:class:`~comp_daemon.preparation.options.DiagnosisSettings`; omitted: the method's), e.g. the
     tracker uncertainty the engineer declares (``tracker_sigma_mm``, σ per axis, mm: the noise
     floor when the data have no repeated poses). ``data``: as for :func:`run_fit`.
     """
     from comp_daemon.diagnosis import diagnose
+    from comp_daemon.diagnosis.options import diagnose_options
     from comp_daemon.diagnosis.report import render_report_html
     from comp_daemon.robot.description import load_robot
 
@@ -243,7 +251,7 @@ def run_diagnosis(
     progress(0.02, "reading the data set")
     ds = _measurement(data, f"dataset {dataset_id}", robot)
     progress(0.05, "diagnosing")
-    diagnosis = diagnose(ds, robot, (settings or DiagnosisSettings()).options())
+    diagnosis = diagnose(ds, robot, diagnose_options(settings or DiagnosisSettings()))
     progress(0.9, "writing the report")
     return {"report": diagnosis.to_json(), "html": render_report_html(diagnosis)}
 

@@ -21,10 +21,9 @@ from comp_daemon.data.columns import AXIS_COLUMNS as _AXES
 from comp_daemon.data.columns import TARGET_ABC_COLUMNS as _ABC
 from comp_daemon.data.columns import TARGET_XYZ_COLUMNS as _TCP
 from comp_daemon.data.target import BOTH_FORMS, FORMS, NO_FORM, Target, missing_fields
-from comp_daemon.diagnosis.options import DiagnosisSettings
 from comp_daemon.models.effects import EFFECTS, effect_by_name
 from comp_daemon.models.registry import KINDS, MAX_ORDER
-from comp_daemon.preparation.options import FitSettings
+from comp_daemon.preparation.options import DiagnosisSettings, FitSettings
 from comp_daemon.service.store import (
     STATS_DETAIL_PATHS,
     BatchRecord,
@@ -280,7 +279,7 @@ def _diagnosis_schema(schema: dict[str, Any]) -> None:
 
 class DiagnosisIn(DiagnosisSettings):
     """A diagnosis job: the data set and the diagnosis's settings as ``comp-daemon diagnose`` takes
-    them (:class:`~comp_daemon.diagnosis.options.DiagnosisSettings`)."""
+    them (:class:`~comp_daemon.preparation.options.DiagnosisSettings`)."""
 
     model_config = ConfigDict(json_schema_extra=_diagnosis_schema)
     dataset_id: int = Field(ge=1, le=MAX_ID)
