@@ -101,7 +101,6 @@ def paper_layout(robot: RobotDescription) -> PoeLayout:
     same = np.abs(poe_chain(table1, a).tcp_mm - poe_chain(PoeModel.from_robot(robot), a).tcp_mm)
     return "table1" if float(same.max()) < _LAYOUT_TOL_MM else "robot"
 
-
 BASE_NAMES: tuple[str, ...] = ("base_x", "base_y", "base_z", "base_rx", "base_ry", "base_rz")
 # kept first … offered last (fixed first when dependent): spec A.2's order Δθ6, Δl1, Δl5, then Δθ1, Δl2
 POE_PRIORITY: tuple[str, ...] = (
