@@ -17,12 +17,13 @@ from diagnosis_campaigns import make_campaign
 from service_client import in_process_service, job_done
 from test_service_api import auth, make_settings
 
-from comp_daemon.cli import main
+from comp_daemon.cli import build_parser, main
 from comp_daemon.data.dataset import write_dataset
 from comp_daemon.diagnosis import DiagnoseOptions
 from comp_daemon.diagnosis.comparison import DEFAULT_MODELS
 from comp_daemon.diagnosis.options import diagnose_options
 from comp_daemon.preparation.options import DiagnosisSettings, FitSettings
+from comp_daemon.service.schemas import DiagnosisIn, FitIn
 
 
 @pytest.fixture
@@ -177,7 +178,6 @@ def test_list_options_are_words_on_the_command_line_and_lists_over_http() -> Non
         assert settings.effects == ("ratio", "drift") and settings.compare_models == ()
         options = diagnose_options(settings)
         assert options.effects == ("ratio", "drift") and options.compare_models == ()
-    assert DiagnosisSettings().changed() == {} and FitSettings(ridge=True).changed() == {"ridge": True}
 
 
 def test_the_settings_defaults_are_the_documented_methods() -> None:
@@ -191,3 +191,25 @@ def test_the_service_validates_the_options_without_loading_the_diagnosis() -> No
     code = "import sys, comp_daemon.service.api; print(sorted(m for m in sys.modules if 'diagnosis' in m))"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True).stdout
     assert out.strip() == "[]"
+
+
+def _parse(command: str, *extra: str) -> Any:
+    fit = ["--model", "poe", "--out", "y"] if command == "fit" else []
+    return build_parser(command).parse_args([command, "x.csv", "--robot", "kr210", *fit, *extra])
+
+
+@pytest.mark.parametrize(
+    ("command", "settings", "body"),
+    [("fit", FitSettings, FitIn), ("diagnose", DiagnosisSettings, DiagnosisIn)],
+)
+def test_every_setting_is_an_option_of_both_doors(command: str, settings: Any, body: Any) -> None:
+    """One field, two doors: each field of the settings is a command-line option with the field's
+    default (a flag on by default turned off by ``--no-…``) and a field of the HTTP body."""
+    defaults = _parse(command)
+    for name, field in settings.model_fields.items():
+        assert getattr(defaults, name) == field.default, name
+        assert body.model_fields[name].default == field.default, name
+        if field.annotation is bool:
+            flag = name.replace("_", "-")
+            flipped = _parse(command, f"--no-{flag}" if field.default else f"--{flag}")
+            assert getattr(flipped, name) is (not field.default), name

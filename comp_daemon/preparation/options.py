@@ -136,10 +136,6 @@ class FitSettings(BaseModel):
         "as much as 1 mm of length residual on one reading); docs/seeds-002-003.md measures it",
     )
 
-    def changed(self) -> dict[str, object]:
-        """The settings that differ from the defaults (what a job or a summary records)."""
-        return self.model_dump(exclude_defaults=True)
-
 
 def _words(value: Any) -> Any:
     """A comma-separated string as its words (blanks dropped); anything else as it is."""
@@ -213,7 +209,3 @@ class DiagnosisSettings(BaseModel):
         "same fit rows and compared with the ladder on the check rows; none (or an empty list) to leave "
         "the comparison out",
     )
-
-    def changed(self) -> dict[str, object]:
-        """The settings that differ from the method's (what a job records)."""
-        return self.model_dump(exclude_defaults=True)
