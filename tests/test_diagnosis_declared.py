@@ -20,6 +20,7 @@ from comp_daemon.data.dataset import write_dataset
 from comp_daemon.data.table import dataset_to_csv
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
 from comp_daemon.diagnosis.report import render_report_html
+from comp_daemon.preparation.options import DiagnosisSettings
 from comp_daemon.service import job_kinds
 from comp_daemon.service.schemas import DiagnosisIn
 
@@ -59,7 +60,9 @@ def test_report_says_the_remainder_could_not_be_compared_and_lists_the_structure
 
 def test_service_job_passes_the_declared_sigma() -> None:
     camp = make_campaign("kr210", 92, [], n_poses=70, repeat_fraction=0.0)
-    args = job_kinds.diagnosis_job_args(dataset_to_csv(camp.dataset), "kr210", 7, 0.004)
+    args = job_kinds.diagnosis_job_args(
+        dataset_to_csv(camp.dataset), "kr210", 7, DiagnosisSettings(tracker_sigma_mm=0.004)
+    )
     result = job_kinds.run_diagnosis(*args, progress=lambda *a, **k: None)
     assert result["report"]["noise_floor_source"] == "declared"
     assert result["report"]["noise_floor_mm"] == pytest.approx(math.sqrt(3.0) * 0.004)

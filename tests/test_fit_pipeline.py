@@ -15,6 +15,7 @@ from comp_daemon.cli import main
 from comp_daemon.data.dataset import parse_dataset
 from comp_daemon.models.registry import MIN_POSES, parse_model_name
 from comp_daemon.preparation.campaign import CampaignError, PrepareOptions
+from comp_daemon.preparation.options import FitSettings
 from comp_daemon.preparation.pipeline import FitRequest, fit_dataset
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.job_kinds import run_fit
@@ -61,7 +62,8 @@ def test_the_command_line_and_the_job_refuse_in_the_same_words(
     prefix = "comp-daemon fit: error: "
     assert said.startswith(prefix) and words in said
     with pytest.raises(ValueError) as refused:
-        run_fit(text, "kr210", model, None, 5, "--no-infer-dir" not in cli_extra, progress=_quiet)
+        settings = FitSettings(infer_dir="--no-infer-dir" not in cli_extra)
+        run_fit(text, "kr210", model, None, 5, settings, progress=_quiet)
     assert str(refused.value) == said.removeprefix(prefix).replace(str(data), "dataset 5")
 
 

@@ -12,6 +12,7 @@ from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset, write_dataset
 from comp_daemon.models.artifact import load_model
 from comp_daemon.models.registry import ALL_MODELS
+from comp_daemon.preparation.options import FitSettings
 from comp_daemon.robot.description import load_robot
 from comp_daemon.service.job_kinds import run_fit
 
@@ -93,7 +94,15 @@ def test_fit_job_infers_directions_unless_told_not_to(backlash_no_dir: Path) -> 
     assert "inferred" in stats["directions"]
     assert stats["table2"]["model"]["3d"]["rms"] < 0.1
     with pytest.raises(ValueError, match=r"dir1\.\.dir6"):
-        run_fit(csv, "kr210", "kinematic+ratio+backlash", None, 1, False, progress=lambda *a, **k: None)
+        run_fit(
+            csv,
+            "kr210",
+            "kinematic+ratio+backlash",
+            None,
+            1,
+            FitSettings(infer_dir=False),
+            progress=lambda *a, **k: None,
+        )
     plain = run_fit(csv, "kr210", "kinematic", None, 1, progress=lambda *a, **k: None)
     assert plain["stats"]["directions"] is None  # the model does not use them: nothing inferred
 

@@ -584,5 +584,7 @@ def test_the_http_fit_job_names_the_model_the_rows_cannot_determine(
 def test_diagnose_with_an_empty_effects_list_is_refused(
     kr_campaign: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
-    assert main(["diagnose", str(kr_campaign), "--robot", "kr210", "--effects", " , "]) == 2
-    assert "--effects names no effect" in capsys.readouterr().err
+    with pytest.raises(SystemExit) as refused:
+        main(["diagnose", str(kr_campaign), "--robot", "kr210", "--effects", " , "])
+    assert refused.value.code == 2
+    assert "argument --effects: names no effect" in capsys.readouterr().err

@@ -24,6 +24,7 @@ import numpy as np
 
 from comp_daemon.commands.data import read_options_of
 from comp_daemon.commands.errors import UserError
+from comp_daemon.commands.options import settings_of
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.ballbar import BallbarCampaign
 from comp_daemon.data.bars import read_table, sniff_campaign_file
@@ -44,6 +45,7 @@ from comp_daemon.models.covariance import near_dependent_note
 from comp_daemon.models.evaluation import error_statistics
 from comp_daemon.models.poe.calibration import layout_twists, paper_layout
 from comp_daemon.preparation.campaign import CampaignError
+from comp_daemon.preparation.options import FitSettings
 from comp_daemon.preparation.pipeline import calibrate_campaign, nominal_tcp
 from comp_daemon.robot.description import RobotDescription
 
@@ -61,14 +63,7 @@ def fit_campaign_file(args: argparse.Namespace, robot: RobotDescription) -> int:
     :func:`comp_daemon.preparation.pipeline.calibrate_campaign`."""
     try:
         table = read_table(args.data, limits_deg=robot.axis_limits_deg, options=read_options_of(args))
-        outcome = calibrate_campaign(
-            table,
-            robot,
-            args.model,
-            seed=args.seed,
-            fix_near_dependent=bool(getattr(args, "fix_near_dependent", False)),
-            ridge=bool(getattr(args, "ridge", False)),
-        )
+        outcome = calibrate_campaign(table, robot, args.model, settings_of(args, FitSettings))
     except (DatasetError, CampaignError) as exc:
         raise UserError(str(exc)) from None
     fitted, check, info = outcome.fitted, outcome.check, outcome.info

@@ -142,25 +142,32 @@ def _compensate(args: argparse.Namespace) -> int:
         print(f"{args.targets}: refused {refusal}", file=sys.stderr)
     if done.targets is None:
         raise UserError(f"{args.targets}: no target could be compensated ({len(done.refused)} refused)")
-    targets, result, limits = done.targets, done.result, done.limits
-    assert result is not None and limits is not None
-    n = len(targets)
-    dir_ = done.dir
-    if dir_ is None and uses_approach_directions(model):
+    if done.dir is None and uses_approach_directions(model):
         print(
-            f"{targets.source}: no dir1..dir6 columns: the model's backlash is not applied (approach "
+            f"{done.targets.source}: no dir1..dir6 columns: the model's backlash is not applied (approach "
             "directions unknown); give the direction each axis will approach its target from"
         )
+    write_dataset(_compensated_table(done, model, args.out), args.out)
+    print(_summary(done, model, args.mapping, args.out))
+    return SOME_REFUSED if done.refused else 0
+
+
+def _compensated_table(done: CompensatedRows, model: ErrorModel, source: str) -> Dataset:
+    """The compensated target file: each target with its compensated axes and, as further columns,
+    its row in the target file, the axis changes ``da1..da6``, the predicted error, the predicted
+    3-D 1-σ uncertainty (a model that has one) and the model's kind."""
+    targets, result = done.targets, done.result
+    assert targets is not None and result is not None
     extra = dict(targets.extra)
     extra["target_row"] = tuple(str(int(r)) for r in targets.row_numbers)
     for k in range(6):
         extra[f"da{k + 1}"] = tuple(repr(float(v)) for v in result.da_deg[:, k])
     extra["predicted_error_mm"] = tuple(repr(float(v)) for v in result.residual_mm)
-    sigma = model.predict_std_mm(result.a_deg, dir_, targets.payload_kg, targets.temp_c)
+    sigma = model.predict_std_mm(result.a_deg, done.dir, targets.payload_kg, targets.temp_c)
     if sigma is not None:  # 3-D 1-sigma uncertainty of the model's TCP at the compensated axes
         extra["predicted_sigma_mm"] = tuple(repr(float(v)) for v in np.sqrt(np.sum(sigma**2, axis=1)))
-    extra["model_kind"] = (model.kind,) * n
-    out = Dataset(
+    extra["model_kind"] = (model.kind,) * len(targets)
+    return Dataset(
         a_deg=result.a_deg,
         dir=targets.dir,
         payload_kg=targets.payload_kg,
@@ -169,9 +176,14 @@ def _compensate(args: argparse.Namespace) -> int:
         target_xyz_mm=done.wanted,
         target_abc_deg=targets.target_abc_deg,
         extra=extra,
-        source=args.out,
+        source=source,
     )
-    write_dataset(out, args.out)
+
+
+def _summary(done: CompensatedRows, model: ErrorModel, mapping: str, out: str) -> str:
+    """The line ``compensate`` ends with: how many, how far the axes moved, the region kept to."""
+    targets, result, limits = done.targets, done.result, done.limits
+    assert targets is not None and result is not None and limits is not None
     outside = ""
     if isinstance(model, ChebyshevModel) and model.order > 0:
         n_out = int(model.outside_range(result.a_deg).sum())
@@ -185,14 +197,13 @@ def _compensate(args: argparse.Namespace) -> int:
         else f"the {model.kind} model has no sampled region to keep to"
     )
     refused = f"; {len(done.refused)} refused (listed on stderr)" if done.refused else ""
-    print(
-        f"{n} targets compensated with the {model.kind} model ({args.mapping} mapping) "
+    return (
+        f"{len(targets)} targets compensated with the {model.kind} model ({mapping} mapping) "
         f"in {result.iterations} iterations "
         f"(max predicted error {result.residual_mm.max():.2e} mm, "
         f"max axis change {da.max():.4f} deg on A{worst_axis + 1} from the nominal solution; {region})"
-        f"{outside}{refused} -> {args.out}"
+        f"{outside}{refused} -> {out}"
     )
-    return SOME_REFUSED if done.refused else 0
 
 
 @dataclass(frozen=True)

@@ -17,16 +17,17 @@ from pathlib import Path
 from typing import Any
 
 from comp_daemon.commands.data import read_options_of, reader_options
-from comp_daemon.commands.errors import UserError
+from comp_daemon.commands.options import add_settings, settings_of
 from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_text_atomic
 from comp_daemon.data.dataset import read_dataset_file
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
-from comp_daemon.diagnosis.comparison import DEFAULT_MODELS
+from comp_daemon.diagnosis.options import diagnose_options
 from comp_daemon.diagnosis.report import render_report_html
 from comp_daemon.diagnosis.result import Diagnosis
 from comp_daemon.estimation.registration import BASE_FRAME_MAX_RMS_MM
 from comp_daemon.models.effects import EFFECTS
+from comp_daemon.preparation.options import DiagnosisSettings
 from comp_daemon.robot.description import PRESETS, load_robot
 
 
@@ -51,93 +52,20 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--report", type=Path, metavar="OUT.html", help="also write the HTML report here")
     reader_options(p)
-    p.add_argument(
-        "--frame",
-        choices=("auto", "base", "tracker"),
-        default="auto",
-        help="frame of x, y, z: robot base, the tracker's own (registered first), or auto (default)",
-    )
-    p.add_argument("--harmonics", type=int, default=2, help="harmonics K of the cyclic effect (default 2)")
-    p.add_argument(
-        "--folds", type=int, default=5, help="cross-validation folds inside the fit rows (default 5)"
-    )
-    p.add_argument(
-        "--alpha",
-        type=float,
-        default=DiagnoseOptions().alpha,
-        help="false-alarm level of the significance test per selection round (default %(default)s)",
-    )
-    p.add_argument(
-        "--seed",
-        type=int,
-        default=DiagnoseOptions().seed,
-        help="seed of the folds and of drawn check rows (default %(default)s)",
-    )
-    p.add_argument(
-        "--tracker-sigma-mm",
-        type=float,
-        metavar="S",
-        help="the tracker's uncertainty (σ per axis, mm): the noise floor (√3·S, 3-D) when the data "
-        "have no repeated poses (over a sigma_mm column and over the spread of several targets); "
-        "without any, no noise floor is claimed",
-    )
-    p.add_argument(
-        "--probe-sigma-deg",
-        type=float,
-        default=DiagnoseOptions().probe_sigma_deg,
-        metavar="DEG",
-        help="a 6-DOF probe's orientation uncertainty (σ per axis, deg): weighs its qw..qz against the "
-        "positions (default %(default)s)",
-    )
-    p.add_argument(
-        "--effects",
-        metavar="E1,E2",
-        help=f"try only these effects (comma-separated, of {', '.join(EFFECTS)}; default: all)",
-    )
-    p.add_argument(
-        "--no-infer-dir",
-        dest="infer_dir",
-        action="store_false",
-        help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
-        "(backlash is then not tested)",
-    )
-    p.add_argument(
-        "--compare-models",
-        metavar="M1,M2",
-        default=",".join(DEFAULT_MODELS),
-        help="compensation models (names as for evaluate --models) fitted on the same fit rows and "
-        "compared with the ladder on the check rows; 'none' to leave the comparison out "
-        "(default: %(default)s)",
-    )
+    add_settings(p, DiagnosisSettings)
     p.set_defaults(func=_run)
 
 
 def _run(args: argparse.Namespace) -> int:
     robot = load_robot(args.robot)
-    effects = None if args.effects is None else tuple(e.strip() for e in args.effects.split(",") if e.strip())
-    if effects == ():
-        raise UserError(
-            f"--effects names no effect; give one or more of {', '.join(EFFECTS)}, or leave it out to try all"
-        )
-    compare = tuple(m.strip() for m in args.compare_models.split(",") if m.strip())
-    if compare == ("none",):
-        compare = ()
-    options = DiagnoseOptions(
-        frame=args.frame,
-        harmonics=args.harmonics,
-        folds=args.folds,
-        alpha=args.alpha,
-        seed=args.seed,
-        tracker_sigma_mm=args.tracker_sigma_mm,
-        effects=effects,
-        infer_directions=args.infer_dir,
-        probe_sigma_deg=args.probe_sigma_deg,
-        compare_models=compare,
-    )
-    path = Path(args.data)
+    options = diagnose_options(settings_of(args, DiagnosisSettings))
     # the row floor is the geometric step's, on the fit rows (diagnosis.ladder.diagnose says it)
     dataset = read_dataset_file(
-        path, limits_deg=robot.axis_limits_deg, min_rows=0, kind="measurement", options=read_options_of(args)
+        Path(args.data),
+        limits_deg=robot.axis_limits_deg,
+        min_rows=0,
+        kind="measurement",
+        options=read_options_of(args),
     )
     for target in (args.json_out, args.report):
         if target is not None and not target.expanduser().parent.is_dir():
@@ -157,80 +85,87 @@ def _run(args: argparse.Namespace) -> int:
         write_text_atomic(args.json_out.expanduser(), doc + "\n")
     if report is not None:
         write_text_atomic(args.report.expanduser(), report)
-    if args.json_out is not None:
-        out = sys.stdout
-        print(
-            f"{robot.name}: baseline {diag.baseline_check_rms_mm:.4f} mm RMS "
-            f"on {len(diag.check_rows)} check rows",
-            file=out,
-        )
-        if args.frame == "base" and diag.baseline_check_rms_mm > BASE_FRAME_MAX_RMS_MM:
-            print(
-                f"--frame base, but the nominal twin misses the measurements by "
-                f"{diag.baseline_check_rms_mm:.1f} mm RMS (more than {BASE_FRAME_MAX_RMS_MM:g} mm): they "
-                "look like a tracker's frame; the baseline and the geometric shrink then measure the "
-                "frame, not the robot (--frame auto or tracker registers it first)",
-                file=out,
-            )
-        for s in diag.steps:
-            joints = ",".join(map(str, s.joints)) or "-"
-            flag = "significant" if s.significant else "not significant"
-            print(
-                f"  {s.effect:<10s} joints {joints:<12s} check {s.check_rms_mm:.4f} mm "
-                f"(shrink {s.shrink_pct:5.1f} %)  {flag}",
-                file=out,
-            )
-        floor = (
-            "no noise floor (no repeats, no --tracker-sigma-mm or sigma_mm, no second target): "
-            "not compared with noise"
-            if diag.noise_floor_mm is None
-            else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
-        )
-        floor += _against_floor(diag)
-        if args.tracker_sigma_mm is not None and diag.noise_floor_source not in (None, "declared"):
-            floor += f"; --tracker-sigma-mm not used: the {diag.noise_floor_source} measure the noise"
-        print(
-            f"unmodelled: {', '.join(diag.unmodelled) or 'none found'}; "
-            f"unexplained {diag.unexplained_rms_mm:.4f} mm, {floor}",
-            file=out,
-        )
-        for unnamed in diag.unnamed:
-            print(unnamed["summary"], file=out)
-        if diag.agreement is not None and not diag.agreement.agree:
-            print(diag.agreement.describe(), file=out)
-        timed = [s.effect for s in diag.steps if s.significant and s.effect in ("drift", "step")]
-        if timed and diag.obs.clock_name != "t_s":
-            print(
-                f"clock: the row order (no t_s column): {' and '.join(timed)} assume the rows are in "
-                "the order they were measured",
-                file=out,
-            )
-        if diag.directions is not None and diag.directions.inferred:
-            named = "named" if "backlash" in diag.unmodelled else "tested"
-            assumed = (
-                " (assumed to be the order the robot visited the poses)"
-                if diag.directions.order == "row order"
-                else ""
-            )
-            print(
-                f"directions: backlash {named} on approach directions inferred from the "
-                f"{diag.directions.order}{assumed}; give dir1..dir6 to make them certain",
-                file=out,
-            )
-        untested = untested_effects(diag.skipped)
-        if untested:
-            print(f"not tested: {untested}", file=out)
-        found = [r for r in diag.residual_structure if r.significant]
-        if found:
-            print(
-                "remainder follows: " + ", ".join(f"{r.against} ({r.share_pct:.0f} %)" for r in found),
-                file=out,
-            )
-        if diag.remainder_model is not None and diag.remainder_model.tried:
-            print(diag.remainder_model.describe(), file=out)
-        if diag.model_comparison is not None:
-            print(f"models: {diag.model_comparison.describe()}", file=out)
+    if args.json_out is not None:  # the document went to a file: its summary on the terminal
+        print("\n".join(summary_lines(diag, robot.name, options)))
     return 0
+
+
+def summary_lines(diag: Diagnosis, robot: str, options: DiagnoseOptions) -> list[str]:
+    """The terminal summary of a diagnosis: the baseline, each rung, the noise floor and what is
+    unmodelled, then what the reader should know about the data and the comparison."""
+    lines = [
+        f"{robot}: baseline {diag.baseline_check_rms_mm:.4f} mm RMS on {len(diag.check_rows)} check rows"
+    ]
+    if options.frame == "base" and diag.baseline_check_rms_mm > BASE_FRAME_MAX_RMS_MM:
+        lines.append(
+            f"--frame base, but the nominal twin misses the measurements by "
+            f"{diag.baseline_check_rms_mm:.1f} mm RMS (more than {BASE_FRAME_MAX_RMS_MM:g} mm): they "
+            "look like a tracker's frame; the baseline and the geometric shrink then measure the "
+            "frame, not the robot (--frame auto or tracker registers it first)"
+        )
+    for s in diag.steps:
+        joints = ",".join(map(str, s.joints)) or "-"
+        flag = "significant" if s.significant else "not significant"
+        lines.append(
+            f"  {s.effect:<10s} joints {joints:<12s} check {s.check_rms_mm:.4f} mm "
+            f"(shrink {s.shrink_pct:5.1f} %)  {flag}"
+        )
+    lines.append(
+        f"unmodelled: {', '.join(diag.unmodelled) or 'none found'}; "
+        f"unexplained {diag.unexplained_rms_mm:.4f} mm, {_floor(diag, options.tracker_sigma_mm)}"
+    )
+    lines.extend(unnamed["summary"] for unnamed in diag.unnamed)
+    if diag.agreement is not None and not diag.agreement.agree:
+        lines.append(diag.agreement.describe())
+    return lines + _caveats(diag)
+
+
+def _floor(diag: Diagnosis, declared_mm: float | None) -> str:
+    """The noise floor, where it comes from, and the unexplained error against it."""
+    floor = (
+        "no noise floor (no repeats, no --tracker-sigma-mm or sigma_mm, no second target): "
+        "not compared with noise"
+        if diag.noise_floor_mm is None
+        else f"noise floor {diag.noise_floor_mm:.4f} mm ({diag.noise_floor_source})"
+    )
+    floor += _against_floor(diag)
+    if declared_mm is not None and diag.noise_floor_source not in (None, "declared"):
+        floor += f"; --tracker-sigma-mm not used: the {diag.noise_floor_source} measure the noise"
+    return floor
+
+
+def _caveats(diag: Diagnosis) -> list[str]:
+    """What the data assumed (the clock, the approach directions), what could not be tested, what
+    the remainder follows, and the compensation models compared."""
+    lines = []
+    timed = [s.effect for s in diag.steps if s.significant and s.effect in ("drift", "step")]
+    if timed and diag.obs.clock_name != "t_s":
+        lines.append(
+            f"clock: the row order (no t_s column): {' and '.join(timed)} assume the rows are in "
+            "the order they were measured"
+        )
+    if diag.directions is not None and diag.directions.inferred:
+        named = "named" if "backlash" in diag.unmodelled else "tested"
+        assumed = (
+            " (assumed to be the order the robot visited the poses)"
+            if diag.directions.order == "row order"
+            else ""
+        )
+        lines.append(
+            f"directions: backlash {named} on approach directions inferred from the "
+            f"{diag.directions.order}{assumed}; give dir1..dir6 to make them certain"
+        )
+    untested = untested_effects(diag.skipped)
+    if untested:
+        lines.append(f"not tested: {untested}")
+    found = [r for r in diag.residual_structure if r.significant]
+    if found:
+        lines.append("remainder follows: " + ", ".join(f"{r.against} ({r.share_pct:.0f} %)" for r in found))
+    if diag.remainder_model is not None and diag.remainder_model.tried:
+        lines.append(diag.remainder_model.describe())
+    if diag.model_comparison is not None:
+        lines.append(f"models: {diag.model_comparison.describe()}")
+    return lines
 
 
 #: above this multiple of the noise floor the unexplained error is said not to be noise

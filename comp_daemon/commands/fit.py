@@ -43,6 +43,7 @@ from comp_daemon.commands.campaigns import (
 )
 from comp_daemon.commands.data import read_options_of, reader_options
 from comp_daemon.commands.errors import UserError
+from comp_daemon.commands.options import add_settings, settings_of
 from comp_daemon.commands.progress import progress
 from comp_daemon.common.atomic import write_json_atomic
 from comp_daemon.data.dataset import Dataset, DatasetError, read_dataset_file
@@ -60,7 +61,6 @@ from comp_daemon.models.evaluation import (
     registered_nominal,
 )
 from comp_daemon.models.fitting import FitOptions, FittedModel
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
@@ -74,6 +74,7 @@ from comp_daemon.models.registry import (
     with_order,
 )
 from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign
+from comp_daemon.preparation.options import FitSettings
 from comp_daemon.preparation.pipeline import (
     FitRequest,
     fit_prepared,
@@ -112,12 +113,6 @@ def _jobs_arg(text: str) -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
-def _folds_arg(text: str) -> int:
-    if not (text.strip().isdigit() and 2 <= int(text) <= 20):
-        raise argparse.ArgumentTypeError(f"expected 2..20 folds, got {text!r}")
-    return int(text)
-
-
 def register(subparsers: argparse._SubParsersAction) -> None:
     fit = subparsers.add_parser("fit", help="fit an error model on a measurement data set, write MODEL.json")
     fit.add_argument(
@@ -128,20 +123,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     fit.add_argument("--robot", required=True, help=ROBOT_HELP)
     fit.add_argument("--model", required=True, help=MODEL_HELP)
     fit.add_argument("--order", type=_order_arg, default=None, help=ORDER_HELP)
-    _common(fit)
+    _common(fit, campaign=True)
     fit.add_argument("--out", required=True, help="model artifact to write (JSON)")
-    fit.add_argument(
-        "--fix-near-dependent",
-        action="store_true",
-        help="ballbar campaigns: hold the weaker parameter of each near-dependent pair (|correlation| > 0.9) "
-        "at zero and fit again (never a pivot offset); the pairs are named either way",
-    )
-    fit.add_argument(
-        "--ridge",
-        action="store_true",
-        help="ballbar campaigns: pull every POE error toward zero (5 mm of dl or 2 deg of dtheta cost as "
-        "much as 1 mm of length residual on one reading); docs/seeds-002-003.md measures it",
-    )
     fit.set_defaults(func=_fit)
 
     ev = subparsers.add_parser(
@@ -188,43 +171,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     ev.set_defaults(func=_evaluate)
 
 
-def _common(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
-        "--frame",
-        choices=("auto", "base", "tracker"),
-        default="auto",
-        help="frame of x, y, z: robot base, tracker (registered first), or auto (default)",
-    )
-    parser.add_argument(
-        "--folds", type=_folds_arg, default=5, help="cross-validation folds, 2..20 (default 5)"
-    )
-    parser.add_argument("--seed", type=int, default=0, help="seed of the cross-validation folds (default 0)")
-    parser.add_argument(
-        "--no-infer-dir",
-        dest="infer_dir",
-        action="store_false",
-        help="without dir1..dir6 columns, do not derive the approach directions from the pose order "
-        "(models with backlash then refuse the data)",
-    )
-    parser.add_argument(
-        "--probe-sigma-deg",
-        type=_probe_sigma_arg,
-        default=DEFAULT_PROBE_SIGMA_DEG,
-        metavar="DEG",
-        help="a 6-DOF probe's orientation uncertainty (σ per axis, deg): weighs its qw..qz against the "
-        "positions in the kinematic calibration (default %(default)s)",
-    )
+def _common(parser: argparse.ArgumentParser, *, campaign: bool = False) -> None:
+    """The fit's settings (:class:`~comp_daemon.preparation.options.FitSettings`, the HTTP fit job's
+    too; the ballbar ones with ``campaign``) and the reader options."""
+    add_settings(parser, FitSettings, skip=() if campaign else ("fix_near_dependent", "ridge"))
     reader_options(parser)
-
-
-def _probe_sigma_arg(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
-    if not (np.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected an angle in degrees > 0, got {text!r}")
-    return value
 
 
 def _prepare(
@@ -234,13 +185,7 @@ def _prepare(
     the refusals as :class:`UserError`."""
     try:
         return prepare_for_models(
-            dataset,
-            load_robot_cached(args),
-            specs,
-            frame=args.frame,
-            infer_directions=args.infer_dir,
-            hold_out=hold_out,
-            probe_sigma_deg=args.probe_sigma_deg,
+            dataset, load_robot_cached(args), specs, settings_of(args, FitSettings), hold_out=hold_out
         )
     except CampaignError as exc:
         raise UserError(str(exc)) from None
@@ -358,15 +303,7 @@ def _fit(args: argparse.Namespace) -> int:
     spec = _parse_model(args.model, args.order)
     robot = load_robot_cached(args)
     dataset = read_data(args.data, robot, 0, "measurement", read_options_of(args))
-    request = FitRequest(
-        spec,
-        frame=args.frame,
-        infer_directions=args.infer_dir,
-        hold_out=False,
-        cv_folds=args.folds,
-        seed=args.seed,
-        probe_sigma_deg=args.probe_sigma_deg,
-    )
+    request = FitRequest(spec, settings_of(args, FitSettings), hold_out=False)
     try:
         prepared = prepare_fit(dataset, robot, request)
         for sentence in prepared.describe():

@@ -17,9 +17,12 @@ import os
 import secrets
 import sys
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from comp_daemon.sim_client import check_scenario, preset_scenarios
+
+if TYPE_CHECKING:
+    from comp_daemon.service.config import Settings
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -107,20 +110,16 @@ def _address(text: str) -> tuple[str, int]:
     return host.strip("[]"), int(port)
 
 
-def _run(args: argparse.Namespace) -> int:
+def _settings(args: argparse.Namespace) -> Settings:
+    """The daemon's settings (``--config``, or the simulated cell's quick start, which then
+    calibrates the gratings and prints where its dashboard is), checked, with the logging set up and
+    the umask made private."""
     from pydantic import ValidationError
 
     from comp_daemon.common.logs import configure_logging
-    from comp_daemon.daemon.app import Daemon, SimOptions
     from comp_daemon.rt.scheduling import check_cpus
     from comp_daemon.service.config import load_settings
 
-    if args.sim and args.motion:
-        raise ValueError("--motion and --sim exclude each other (the simulated cell has its own)")
-    if args.config is None and not args.sim:
-        raise ValueError("--config FILE is required (only the simulated cell, --sim, has a quick start)")
-    if args.sim:
-        check_scenario(args.scenario)
     # everything the daemon and its children create (data folder, database with its -wal/-shm,
     # model artifacts, grating calibrations, spooled uploads) is private to its user, whatever the
     # umask it was started with; the umask only takes bits away, so a stricter one is kept
@@ -144,6 +143,19 @@ def _run(args: argparse.Namespace) -> int:
             file=sys.stderr,
             flush=True,
         )
+    return settings
+
+
+def _run(args: argparse.Namespace) -> int:
+    from comp_daemon.daemon.app import Daemon, SimOptions
+
+    if args.sim and args.motion:
+        raise ValueError("--motion and --sim exclude each other (the simulated cell has its own)")
+    if args.config is None and not args.sim:
+        raise ValueError("--config FILE is required (only the simulated cell, --sim, has a quick start)")
+    if args.sim:
+        check_scenario(args.scenario)
+    settings = _settings(args)
     rearm = args.rearm_after_s if args.rearm_after_s > 0 else None
     sim = SimOptions(args.scenario, args.sim_seed, args.servo_lag_cycles, rearm) if args.sim else None
     motion = _address(args.motion) if args.motion else None

@@ -20,7 +20,7 @@ fails with it, so both say the same words.
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -33,15 +33,14 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
 from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import fit_spec, undetermined_reason, uses_directions
 from comp_daemon.preparation.campaign import (
     CampaignError,
-    FrameChoice,
     PreparedCampaign,
     PrepareOptions,
     prepare_campaign,
 )
+from comp_daemon.preparation.options import FitSettings
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -61,20 +60,16 @@ __all__ = [
 
 @dataclass(frozen=True)
 class FitRequest:
-    """What a door asks of the pipeline.
-
+    """What a door asks of the pipeline: the model, the user's
+    :class:`~comp_daemon.preparation.options.FitSettings` (the frame, the folds and seed of
+    :class:`~comp_daemon.models.fitting.FitOptions`, the directions, the probe's σ), and
     ``hold_out``: draw check rows when the file has no ``split`` column (the HTTP job judges on
-    them); without it every row is a fit row (``comp-daemon fit``). ``frame``, ``cv_folds`` and
-    ``seed`` are the fit's (:class:`~comp_daemon.models.fitting.FitOptions`).
+    them); without it every row is a fit row (``comp-daemon fit``).
     """
 
     spec: ModelSpec
-    frame: FrameChoice = "auto"
-    infer_directions: bool = True
+    settings: FitSettings = field(default_factory=FitSettings)
     hold_out: bool = True
-    cv_folds: int = 5
-    seed: int = 0
-    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG  # a 6-DOF probe's orientation σ per axis
 
 
 @dataclass(frozen=True)
@@ -109,21 +104,19 @@ def prepare_for_models(
     dataset: Dataset,
     robot: RobotDescription,
     specs: Sequence[ModelSpec],
+    settings: FitSettings,
     *,
-    frame: FrameChoice = "auto",
-    infer_directions: bool = True,
     hold_out: bool = True,
-    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG,
 ) -> PreparedCampaign:
-    """The campaign prepared for these models: directions inferred when one of them needs them,
-    check rows drawn and required when ``hold_out``."""
+    """The campaign prepared for these models with the ``settings``' frame, directions and probe σ:
+    directions inferred when one of them needs them, check rows drawn and required when ``hold_out``."""
     options = PrepareOptions(
-        frame=frame,
+        frame=settings.frame,
         need_directions=any(uses_directions(s) for s in specs),
-        infer_directions=infer_directions,
+        infer_directions=settings.infer_dir,
         hold_out=hold_out,
         require_check=hold_out,
-        probe_sigma_deg=probe_sigma_deg,
+        probe_sigma_deg=settings.probe_sigma_deg,
     )
     return prepare_campaign(dataset, robot, options)
 
@@ -131,15 +124,7 @@ def prepare_for_models(
 def prepare_fit(dataset: Dataset, robot: RobotDescription, request: FitRequest) -> PreparedCampaign:
     """The first two steps: the model's refusal of too few rows, then the preparation."""
     refuse_undetermined(request.spec, robot, dataset)
-    return prepare_for_models(
-        dataset,
-        robot,
-        [request.spec],
-        frame=request.frame,
-        infer_directions=request.infer_directions,
-        hold_out=request.hold_out,
-        probe_sigma_deg=request.probe_sigma_deg,
-    )
+    return prepare_for_models(dataset, robot, [request.spec], request.settings, hold_out=request.hold_out)
 
 
 def fit_rows_checked(
@@ -162,7 +147,7 @@ def fit_rows_checked(
 def fit_prepared(prepared: PreparedCampaign, robot: RobotDescription, request: FitRequest) -> FitOutcome:
     """The fit on the prepared campaign's fit rows, and the information its artifact keeps."""
     spec, rows = request.spec, prepared.fit_rows
-    options = FitOptions(frame=prepared.frame, cv_folds=request.cv_folds, seed=request.seed)
+    options = FitOptions(frame=prepared.frame, cv_folds=request.settings.folds, seed=request.settings.seed)
     fitted = fit_rows_checked(prepared, spec, robot, options, rows)
     identifiable = fitted.info.get("identifiability", {}).get("identifiable", 0)
     if spec.kind == "kinematic" and len(rows) < identifiable:
@@ -178,6 +163,8 @@ def fit_prepared(prepared: PreparedCampaign, robot: RobotDescription, request: F
     }
     if prepared.directions.note:
         info["directions"] = prepared.directions.note
+    if prepared.dataset.probe_q_wxyz is not None:  # the weight its orientation rows had
+        info["probe_sigma_deg"] = request.settings.probe_sigma_deg
     return FitOutcome(prepared, spec, fitted, info)
 
 
@@ -212,14 +199,13 @@ def calibrate_campaign(
     table: Dataset,
     robot: RobotDescription,
     model: str,
-    *,
-    seed: int = 0,
-    fix_near_dependent: bool = False,
-    ridge: bool = False,
+    settings: FitSettings | None = None,
 ) -> CampaignOutcome:
     """A ballbar campaign calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
-    (:func:`comp_daemon.instruments.campaign_fit.fit_campaign`), from the table read with every column;
-    refusals as :class:`CampaignError` naming the campaign."""
+    (:func:`comp_daemon.instruments.campaign_fit.fit_campaign`), from the table read with every column,
+    with the ``settings``' seed, ``fix_near_dependent`` and ``ridge``; refusals as
+    :class:`CampaignError` naming the campaign."""
+    settings = settings or FitSettings()
     try:
         campaign = campaign_of(table, tcp_mm=nominal_tcp(robot))
     except ValueError as exc:
@@ -228,7 +214,12 @@ def calibrate_campaign(
         raise CampaignError(f"{table.source}: neither a ballbar nor a cross-bar campaign")
     try:
         fitted, check = fit_campaign(
-            robot, campaign, model=model, seed=seed, fix_near_dependent=fix_near_dependent, ridge=ridge
+            robot,
+            campaign,
+            model=model,
+            seed=settings.seed,
+            fix_near_dependent=settings.fix_near_dependent,
+            ridge=settings.ridge,
         )
     except ValueError as exc:
         raise CampaignError(f"{campaign.source}: {exc}") from None

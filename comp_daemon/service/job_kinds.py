@@ -34,11 +34,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from comp_daemon.preparation.options import DiagnosisSettings, FitSettings
 from comp_daemon.service.jobs import JobKind
 from comp_daemon.service.store import JobRecord, ModelDraft
 
 if TYPE_CHECKING:
     from comp_daemon.data.table import Dataset
+    from comp_daemon.preparation.pipeline import FitOutcome
 
 __all__ = [
     "DIAGNOSIS",
@@ -61,9 +63,14 @@ Progress = Callable[..., None]
 
 
 def fit_job_args(
-    data: str | Dataset, robot: str, model: str, order: int | None, dataset_id: int, *, infer_dir: bool = True
+    data: str | Dataset,
+    robot: str,
+    model: str,
+    order: int | None,
+    dataset_id: int,
+    settings: FitSettings | None = None,
 ) -> tuple[Any, ...]:
-    return (data, robot, model, order, dataset_id, infer_dir)
+    return (data, robot, model, order, dataset_id, settings)
 
 
 def run_fit(
@@ -72,7 +79,7 @@ def run_fit(
     model: str,
     order: int | None,
     dataset_id: int,
-    infer_dir: bool = True,
+    settings: FitSettings | None = None,
     *,
     progress: Progress,
 ) -> dict[str, Any]:
@@ -80,40 +87,51 @@ def run_fit(
 
     ``data`` is the data set as parsed at its upload (:class:`ParsedDatasets`), or its stored
     canonical CSV text, parsed here, when the service no longer holds it. The fit is the pipeline
-    ``comp-daemon fit`` runs (:mod:`comp_daemon.preparation.pipeline`), with check rows drawn when
-    the file has no split; ``infer_dir``: a data set without ``dir`` columns gets the approach
-    directions from the pose order when the model needs them, and the stats' ``directions`` says so.
+    ``comp-daemon fit`` runs (:mod:`comp_daemon.preparation.pipeline`) with the same ``settings``
+    (:class:`~comp_daemon.preparation.options.FitSettings`; omitted: the defaults), with check rows
+    drawn when the file has no split; a data set without ``dir`` columns gets the approach
+    directions from the pose order when the model needs them (unless ``infer_dir`` is off), and the
+    stats' ``directions`` says so.
     """
     from comp_daemon.data.bars import campaign_kind, read_table, sniff_campaign
-    from comp_daemon.models.evaluation import error_statistics
-    from comp_daemon.models.fitting import FitOptions, ModelSpec
-    from comp_daemon.models.registry import fit_spec, parse_model_name, with_order
+    from comp_daemon.models.registry import parse_model_name, with_order
     from comp_daemon.preparation.pipeline import FitRequest, fit_prepared, prepare_fit
     from comp_daemon.robot.description import load_robot
 
+    settings = settings or FitSettings()
     spec = with_order(parse_model_name(model), order)
     robot = load_robot(robot_name)
     progress(0.02, "reading the data set")
     source = f"dataset {dataset_id}"
     if isinstance(data, str) and sniff_campaign(data) is not None:
         table = read_table(data.encode("utf-8"), fmt="csv", source=source, limits_deg=robot.axis_limits_deg)
-        return _run_campaign_fit(table, robot, model, progress)
+        return _run_campaign_fit(table, robot, model, settings, progress)
     if not isinstance(data, str) and campaign_kind(data) is not None:
-        return _run_campaign_fit(data, robot, model, progress)
+        return _run_campaign_fit(data, robot, model, settings, progress)
     ds = _measurement(data, source, robot)
-    request = FitRequest(spec, infer_directions=infer_dir, hold_out=True)
+    request = FitRequest(spec, settings, hold_out=True)
     prepared = prepare_fit(ds, robot, request)
     progress(0.05, f"fitting {spec.name}" + (" (order by cross-validation)" if spec.order_by_cv else ""))
     outcome = fit_prepared(prepared, robot, request)
-    fitted, split = outcome.fitted, prepared.split
     progress(0.9, "judging on the check rows")
+    return {"stats": _judged(outcome, robot, model), "artifact": outcome.artifact()}
+
+
+def _judged(outcome: FitOutcome, robot: Any, model: str) -> dict[str, Any]:
+    """A fit's statistics (the module docstring's ``stats``): the model and the nominal twin,
+    registered on the same fit rows, judged on the check rows by seed 000's Table 2."""
+    from comp_daemon.models.evaluation import error_statistics
+    from comp_daemon.models.fitting import FitOptions, ModelSpec
+    from comp_daemon.models.registry import fit_spec
+
+    prepared, fitted, spec = outcome.prepared, outcome.fitted, outcome.spec
     train = prepared.rows(prepared.fit_rows)
     nominal = fit_spec(ModelSpec("nominal"), robot, train, FitOptions(frame=prepared.frame))
     check = prepared.rows(prepared.check_rows)
     pred_model = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
     pred_nominal = nominal.model.predict_tcp_mm(check.a_deg)
     p_check = check.xyz_mm
-    stats = {
+    return {
         "model": model,
         "kind": spec.kind,
         "artifact_kind": fitted.model.kind,
@@ -121,7 +139,7 @@ def run_fit(
         "order": fitted.model.order,
         "frame": fitted.frame,
         "rows": {"fit": len(prepared.fit_rows), "check": len(prepared.check_rows)},
-        "split": split.message,
+        "split": prepared.split.message,
         "directions": prepared.directions.note,
         "table2": {
             "nominal": error_statistics(p_check, pred_nominal),
@@ -133,7 +151,6 @@ def run_fit(
         },
         "fit": outcome.info,
     }
-    return {"stats": stats, "artifact": outcome.artifact()}
 
 
 def _measurement(data: str | Dataset, source: str, robot: Any) -> Dataset:
@@ -150,7 +167,9 @@ def _measurement(data: str | Dataset, source: str, robot: Any) -> Dataset:
     )
 
 
-def _run_campaign_fit(table: Dataset, robot: Any, model: str, progress: Progress) -> dict[str, Any]:
+def _run_campaign_fit(
+    table: Dataset, robot: Any, model: str, settings: FitSettings, progress: Progress
+) -> dict[str, Any]:
     """A ballbar campaign calibrates the ``poe`` model, a cross-bar campaign the ``kinematic`` model
     (:func:`comp_daemon.preparation.pipeline.calibrate_campaign`, as ``comp-daemon fit`` does); the
     stats give the rank reached, the directions the instrument cannot see, with a ``split`` the bar
@@ -161,7 +180,7 @@ def _run_campaign_fit(table: Dataset, robot: Any, model: str, progress: Progress
     from comp_daemon.preparation.pipeline import calibrate_campaign
 
     progress(0.05, f"calibrating from the {campaign_kind(table)} campaign")
-    outcome = calibrate_campaign(table, robot, model)
+    outcome = calibrate_campaign(table, robot, model, settings)
     fitted, check, info = outcome.fitted, outcome.check, outcome.info
     stats = {
         "model": model,
@@ -203,25 +222,28 @@ def fit_done(job: JobRecord, result: Mapping[str, Any]) -> ModelDraft:
 
 
 def diagnosis_job_args(
-    data: str | Dataset, robot: str, dataset_id: int, tracker_sigma_mm: float | None = None
+    data: str | Dataset, robot: str, dataset_id: int, settings: DiagnosisSettings | None = None
 ) -> tuple[Any, ...]:
-    return (data, robot, dataset_id, tracker_sigma_mm)
+    return (data, robot, dataset_id, settings)
 
 
 def run_diagnosis(
     data: str | Dataset,
     robot_name: str,
     dataset_id: int,
-    tracker_sigma_mm: float | None = None,
+    settings: DiagnosisSettings | None = None,
     *,
     progress: Progress,
 ) -> dict[str, Any]:
     """The diagnosis of ``docs/diagnosis-output.md`` on the data set: JSON report and HTML report.
 
-    ``tracker_sigma_mm`` is the tracker uncertainty the engineer declares (σ per axis, mm): the
-    noise floor when the data have no repeated poses. ``data``: as for :func:`run_fit`.
+    ``settings`` are those ``comp-daemon diagnose`` takes
+    (:class:`~comp_daemon.preparation.options.DiagnosisSettings`; omitted: the method's), e.g. the
+    tracker uncertainty the engineer declares (``tracker_sigma_mm``, σ per axis, mm: the noise
+    floor when the data have no repeated poses). ``data``: as for :func:`run_fit`.
     """
-    from comp_daemon.diagnosis import DiagnoseOptions, diagnose
+    from comp_daemon.diagnosis import diagnose
+    from comp_daemon.diagnosis.options import diagnose_options
     from comp_daemon.diagnosis.report import render_report_html
     from comp_daemon.robot.description import load_robot
 
@@ -229,7 +251,7 @@ def run_diagnosis(
     progress(0.02, "reading the data set")
     ds = _measurement(data, f"dataset {dataset_id}", robot)
     progress(0.05, "diagnosing")
-    diagnosis = diagnose(ds, robot, DiagnoseOptions(tracker_sigma_mm=tracker_sigma_mm))
+    diagnosis = diagnose(ds, robot, diagnose_options(settings or DiagnosisSettings()))
     progress(0.9, "writing the report")
     return {"report": diagnosis.to_json(), "html": render_report_html(diagnosis)}
 

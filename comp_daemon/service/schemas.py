@@ -8,13 +8,14 @@ value in a JSON upload).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime as dt
 import re
 from collections.abc import Iterable, Mapping
 from typing import Annotated, Any, Literal
 
 from fastapi.responses import Response
-from pydantic import BaseModel, ConfigDict, Field, ValidationInfo, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, ValidationInfo, field_validator
 
 from comp_daemon.data.columns import AXIS_COLUMNS as _AXES
 from comp_daemon.data.columns import TARGET_ABC_COLUMNS as _ABC
@@ -22,6 +23,7 @@ from comp_daemon.data.columns import TARGET_XYZ_COLUMNS as _TCP
 from comp_daemon.data.target import BOTH_FORMS, FORMS, NO_FORM, Target, missing_fields
 from comp_daemon.models.effects import EFFECTS, effect_by_name
 from comp_daemon.models.registry import KINDS, MAX_ORDER
+from comp_daemon.preparation.options import DiagnosisSettings, FitSettings
 from comp_daemon.service.store import (
     STATS_DETAIL_PATHS,
     BatchRecord,
@@ -61,6 +63,20 @@ def iso(t: float | None) -> str | None:
     if t is None:
         return None
     return dt.datetime.fromtimestamp(t, tz=dt.UTC).isoformat(timespec="milliseconds").replace("+00:00", "Z")
+
+
+def _iso_of(value: Any) -> Any:
+    return iso(value) if isinstance(value, int | float) else value
+
+
+#: a time the store keeps as UNIX seconds, answered as an ISO 8601 UTC string (:func:`iso`)
+Time = Annotated[str | None, BeforeValidator(_iso_of)]
+
+
+def record_fields(record: Any, **changes: Any) -> dict[str, Any]:
+    """A store record's fields by name (the values themselves, not copies) with ``changes`` over
+    them: what a response model is validated from (the fields it does not name are ignored)."""
+    return {**{f.name: getattr(record, f.name) for f in dataclasses.fields(record)}, **changes}
 
 
 class _Out(BaseModel):
@@ -104,19 +120,11 @@ class DatasetOut(_Out):
     sha256: str
     rows: int
     summary: dict[str, Any]
-    created_at: str | None
+    created_at: Time
 
     @classmethod
     def of(cls, r: DatasetRecord) -> DatasetOut:
-        return cls(
-            id=r.id,
-            name=r.name,
-            format=r.format,
-            sha256=r.sha256,
-            rows=r.rows,
-            summary=r.summary,
-            created_at=iso(r.created_at),
-        )
+        return cls.model_validate(record_fields(r))
 
 
 #: Top-level entries of fit statistics that lists leave out (the store's STATS_DETAIL_PATHS).
@@ -153,9 +161,9 @@ class JobOut(_Out):
         description="result statistics; omitted for diagnoses (see the report)"
     )
     error: str | None
-    created_at: str | None
-    started_at: str | None
-    finished_at: str | None
+    created_at: Time
+    started_at: Time
+    finished_at: Time
 
     @classmethod
     def of(cls, r: JobRecord, *, with_result: bool = True, summary: bool = False) -> JobOut:
@@ -163,20 +171,7 @@ class JobOut(_Out):
         result = r.result if with_result else None
         if summary:
             result = _result_summary(result)
-        return cls(
-            id=r.id,
-            kind=r.kind,
-            state=r.state,  # type: ignore[arg-type]
-            progress=r.progress,
-            message=r.message,
-            params=r.params,
-            dataset_id=r.dataset_id,
-            result=result,
-            error=r.error,
-            created_at=iso(r.created_at),
-            started_at=iso(r.started_at),
-            finished_at=iso(r.finished_at),
-        )
+        return cls.model_validate(record_fields(r, result=result))
 
 
 class ModelOut(_Out):
@@ -187,21 +182,12 @@ class ModelOut(_Out):
     dataset_id: int | None
     job_id: int | None
     stats: dict[str, Any]
-    created_at: str | None
+    created_at: Time
 
     @classmethod
     def of(cls, r: ModelRecord, *, summary: bool = False) -> ModelOut:
         """``summary``: the statistics as in a list (:func:`stats_summary`)."""
-        return cls(
-            id=r.id,
-            kind=r.kind,
-            order=r.order,
-            active=r.active,
-            dataset_id=r.dataset_id,
-            job_id=r.job_id,
-            stats=stats_summary(r.stats) if summary else r.stats,
-            created_at=iso(r.created_at),
-        )
+        return cls.model_validate(record_fields(r, stats=stats_summary(r.stats) if summary else r.stats))
 
 
 #: one pose: the six axis values A1..A6 (deg)
@@ -246,8 +232,12 @@ def _model_name_pattern() -> str:
 MODEL_NAME_PATTERN = _model_name_pattern()
 
 
-class FitIn(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+class FitIn(FitSettings):
+    """A fit job: the data set, the model, and the fit's settings as ``comp-daemon fit`` takes them
+    (:class:`~comp_daemon.preparation.options.FitSettings`: ``frame``, ``folds``, ``seed``,
+    ``infer_dir``, ``probe_sigma_deg``, and for a ballbar or cross-bar campaign
+    ``fix_near_dependent`` and ``ridge``)."""
+
     dataset_id: int = Field(ge=1, le=MAX_ID)
     model: str = Field(
         json_schema_extra={"pattern": MODEL_NAME_PATTERN},
@@ -261,11 +251,6 @@ class FitIn(BaseModel):
     order: int | None = Field(
         None, ge=0, le=8, description="Chebyshev order; omitted: the model name's (default 3, seed 000)"
     )
-    infer_dir: bool = Field(
-        True,
-        description="a data set without dir1..dir6 columns gets the approach directions from the pose "
-        "order when the model needs them (backlash); false: such models refuse the data",
-    )
 
     model_config = ConfigDict(
         extra="forbid",
@@ -275,17 +260,33 @@ class FitIn(BaseModel):
         },
     )
 
+    def settings(self) -> FitSettings:
+        """The fit's settings alone (what the job carries to the pipeline)."""
+        return FitSettings.model_validate(self.model_dump(include=set(FitSettings.model_fields)))
 
-class DiagnosisIn(BaseModel):
-    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+def _diagnosis_schema(schema: dict[str, Any]) -> None:
+    """The names a diagnosis takes, in its JSON schema: effects of the catalogue (at least one) and
+    model names of the registry (:data:`MODEL_NAME_PATTERN`). A comma-separated string, which the
+    server also takes, is left out of the description."""
+    properties = schema["properties"]
+    properties["effects"]["anyOf"] = [
+        {"type": "array", "items": {"enum": list(EFFECTS)}, "minItems": 1},
+        {"type": "null"},
+    ]
+    properties["compare_models"]["items"] = {"type": "string", "pattern": MODEL_NAME_PATTERN}
+
+
+class DiagnosisIn(DiagnosisSettings):
+    """A diagnosis job: the data set and the diagnosis's settings as ``comp-daemon diagnose`` takes
+    them (:class:`~comp_daemon.preparation.options.DiagnosisSettings`)."""
+
+    model_config = ConfigDict(json_schema_extra=_diagnosis_schema)
     dataset_id: int = Field(ge=1, le=MAX_ID)
-    tracker_sigma_mm: float | None = Field(
-        None,
-        gt=0.0,
-        le=10.0,
-        description="the tracker's declared uncertainty (σ per axis, mm): the noise floor when the data "
-        "have no repeated poses; omitted with no repeats, the diagnosis reports no noise floor",
-    )
+
+    def settings(self) -> DiagnosisSettings:
+        """The diagnosis's settings alone (what the job carries)."""
+        return DiagnosisSettings.model_validate(self.model_dump(include=set(DiagnosisSettings.model_fields)))
 
 
 #: a JSON number, never a bool or a string (strict); finite (the model's allow_inf_nan)
@@ -295,8 +296,6 @@ Number = Annotated[float, Field(strict=True)]
 Millimetres = Annotated[float, Field(strict=True, ge=-100_000.0, le=100_000.0)]
 #: an orientation angle (deg, KUKA A, B, C)
 Degrees = Annotated[float, Field(strict=True, ge=-360.0, le=360.0)]
-
-
 
 
 def _target_schema(schema: dict[str, Any]) -> None:
@@ -399,10 +398,10 @@ class TargetOut(_Out):
     request: dict[str, Any]
     commanded_axes_deg: list[float] | None
     final_joint_errors_deg: dict[str, float | None] | None
-    created_at: str | None
-    updated_at: str | None
-    started_at: str | None
-    finished_at: str | None
+    created_at: Time
+    updated_at: Time
+    started_at: Time
+    finished_at: Time
     model_id: int | None = Field(None, description="the model that compensated the commanded axes")
     predicted_sigma_mm: float | None = Field(
         None,
@@ -417,21 +416,12 @@ class TargetOut(_Out):
         comp = compensation or {}
         sigma = comp.get("predicted_sigma_mm")
         model_id = comp.get("model_id")
-        return cls(
-            model_id=None if model_id is None else int(model_id),
-            predicted_sigma_mm=None if sigma is None else float(sigma),
-            id=r.id,
-            batch_id=r.batch_id,
-            seq=r.seq,
-            state=r.state,  # type: ignore[arg-type]
-            reason=r.reason,
-            request=r.request,
-            commanded_axes_deg=r.commanded_axes_deg,
-            final_joint_errors_deg=r.final_joint_errors_deg,
-            created_at=iso(r.created_at),
-            updated_at=iso(r.updated_at),
-            started_at=iso(r.started_at),
-            finished_at=iso(r.finished_at),
+        return cls.model_validate(
+            record_fields(
+                r,
+                model_id=None if model_id is None else int(model_id),
+                predicted_sigma_mm=None if sigma is None else float(sigma),
+            )
         )
 
 
@@ -440,7 +430,7 @@ class BatchOut(_Out):
     idempotency_key: str
     size: int
     source: str | None
-    created_at: str | None
+    created_at: Time
     targets: list[TargetOut]
 
     @classmethod
@@ -450,19 +440,13 @@ class BatchOut(_Out):
         targets: list[TargetRecord],
         compensations: Mapping[int, Mapping[str, Any]] | None = None,
     ) -> BatchOut:
-        return cls(
-            id=b.id,
-            idempotency_key=b.idempotency_key,
-            size=b.size,
-            source=b.source,
-            created_at=iso(b.created_at),
-            targets=[TargetOut.of(t, (compensations or {}).get(t.id)) for t in targets],
-        )
+        out = [TargetOut.of(t, (compensations or {}).get(t.id)) for t in targets]
+        return cls.model_validate(record_fields(b, targets=out))
 
 
 class EventOut(_Out):
     id: int
-    time: str | None
+    time: Time
     kind: str
     target_id: int | None
     job_id: int | None
@@ -470,9 +454,7 @@ class EventOut(_Out):
 
     @classmethod
     def of(cls, e: EventRecord) -> EventOut:
-        return cls(
-            id=e.id, time=iso(e.time), kind=e.kind, target_id=e.target_id, job_id=e.job_id, message=e.message
-        )
+        return cls.model_validate(record_fields(e))
 
 
 class ReadyOut(_Out):

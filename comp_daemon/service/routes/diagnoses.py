@@ -43,12 +43,13 @@ _REPORT_CSP = (
 )
 async def start_diagnosis(body: DiagnosisIn, svc: State, who: Engineer) -> JobOut:
     robot_name = svc.settings.robot.name
+    settings = body.settings()
     job = await launch_job(
         svc,
         job_kinds.DIAGNOSIS,
-        {"dataset_id": body.dataset_id, "by": who.name, "tracker_sigma_mm": body.tracker_sigma_mm},
+        {"dataset_id": body.dataset_id, "by": who.name, **settings.model_dump(mode="json")},
         body.dataset_id,
-        lambda data: job_kinds.diagnosis_job_args(data, robot_name, body.dataset_id, body.tracker_sigma_mm),
+        lambda data: job_kinds.diagnosis_job_args(data, robot_name, body.dataset_id, settings),
         parsed=True,
     )
     _log.info("diagnosis queued", job_id=job.id, dataset_id=body.dataset_id, by=who.name)

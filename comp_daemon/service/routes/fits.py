@@ -82,10 +82,11 @@ async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
         with_order(parse_model_name(body.model), body.order)
     except UnknownModelError as exc:
         raise ApiError(422, "invalid_request", str(exc), column="model") from None
+    settings = body.settings()
     params = {
         "model": body.model,
         "order": body.order,
-        "infer_dir": body.infer_dir,
+        **settings.model_dump(mode="json"),
         "dataset_id": body.dataset_id,
         "by": who.name,
     }
@@ -96,7 +97,7 @@ async def start_fit(body: FitIn, svc: State, who: Engineer) -> JobOut:
         params,
         body.dataset_id,
         lambda data: job_kinds.fit_job_args(
-            data, robot_name, body.model, body.order, body.dataset_id, infer_dir=body.infer_dir
+            data, robot_name, body.model, body.order, body.dataset_id, settings
         ),
         parsed=True,
     )
