@@ -130,6 +130,7 @@ async def test_a_bad_option_is_refused_naming_the_field_in_the_command_lines_wor
     assert r.status_code == 422, r.text
     message = r.json()["message"]
     assert message.startswith(f"body.{field}: ")
+    assert r.json()["column"] == field
     command = "fit" if path == "/api/fits" else "diagnose"
     text = value if isinstance(value, str) else ",".join(value) if isinstance(value, list) else str(value)
     argv = [command, "x.csv", "--robot", "irb120", f"{flag}={text}"]

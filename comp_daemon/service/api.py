@@ -244,7 +244,8 @@ def _refusal(status: int, code: str) -> Callable[[Request, Exception], Awaitable
 def validation_place(loc: Sequence[str]) -> tuple[int | None, str | None, str | None]:
     """Where a request validation error's ``loc`` points, as (row, column, row label) for the error
     body: a target's or a grating pose's row (1-based) and its field (``a1``.. for a pose's value
-    by its index); a query, header or path parameter's name as the column; else nothing."""
+    by its index); a query, header or path parameter's name, or a body field's (``body.ridge``), as
+    the column; else nothing."""
     if len(loc) >= 3 and list(loc[:2]) in (["body", "targets"], ["body", "poses"]):
         if not loc[2].isdigit():
             return None, None, None
@@ -253,8 +254,8 @@ def validation_place(loc: Sequence[str]) -> tuple[int | None, str | None, str | 
         if len(loc) > 3:  # a target's field; a pose's value by its index
             column = loc[3] if loc[1] == "targets" else f"a{int(loc[3]) + 1}"
         return row, column, row_label
-    if loc and loc[0] in ("query", "header", "path") and len(loc) > 1:
-        return None, loc[1], None
+    if loc and loc[0] in ("query", "header", "path", "body") and len(loc) > 1:
+        return None, str(loc[1]), None
     return None, None, None
 
 
