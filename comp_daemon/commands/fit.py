@@ -60,7 +60,6 @@ from comp_daemon.models.evaluation import (
     registered_nominal,
 )
 from comp_daemon.models.fitting import FitOptions, FittedModel
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import (
     ALL_MODELS,
     KINDS,
@@ -73,6 +72,7 @@ from comp_daemon.models.registry import (
     uses_directions,
     with_order,
 )
+from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.preparation.campaign import CampaignError, PreparedCampaign
 from comp_daemon.preparation.pipeline import (
     FitRequest,

@@ -79,7 +79,6 @@ from comp_daemon.diagnosis.candidates import (
 from comp_daemon.diagnosis.comparison import compare_models
 from comp_daemon.diagnosis.fitting import (
     FitResult,
-    Observations,
     at_fit,
     linearize_targets,
     predict_mm,
@@ -96,6 +95,7 @@ from comp_daemon.estimation.identifiability import analyze_identifiability, mdh_
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import TIME_EFFECTS, EffectParams, MassModel
 from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription
 
@@ -105,50 +105,16 @@ __all__ = [
     "Diagnosis",
     "Step",
     "diagnose",
-    "observations_from_dataset",
 ]
 
 FloatArray = NDArray[np.float64]
-
-
-def observations_from_dataset(dataset: Dataset, dir: FloatArray | None = None) -> Observations:
-    """The arrays of a measurement data set; pose groups by ``pose_id``, else by identical axes.
-
-    ``dir`` (n, 6): the approach directions to use (the prepared ones, 0 where unknown); by
-    default the data set's ``dir`` columns."""
-    if dataset.a_deg is None or dataset.xyz_mm is None:
-        raise ValueError(f"{dataset.source}: diagnosis needs axis values a1..a6 and measured x, y, z")
-    if dataset.pose_id is not None:
-        _, group = np.unique(np.asarray(dataset.pose_id, dtype=str), return_inverse=True)
-    else:
-        _, group = np.unique(dataset.a_deg, axis=0, return_inverse=True)
-    n = len(dataset.a_deg)
-    if dataset.t_s is not None and np.all(np.isfinite(np.asarray(dataset.t_s, dtype=float))):
-        t = np.asarray(dataset.t_s, dtype=float)
-        clock, clock_name = (t - t.min()) / 3600.0, "t_s"
-    else:
-        clock, clock_name = np.arange(n, dtype=float), "pose_order"
-    return Observations(
-        a_deg=np.array(dataset.a_deg, dtype=float),
-        xyz_mm=np.array(dataset.xyz_mm, dtype=float),
-        dir=np.array(dir, dtype=float) if dir is not None else _dir_columns(dataset),
-        payload_kg=np.array(dataset.payload_kg, dtype=float),
-        temp_c=None if dataset.temp_c is None else np.array(dataset.temp_c, dtype=float),
-        pose_group=np.asarray(group, dtype=np.int64).reshape(-1),
-        clock=clock,
-        clock_name=clock_name,
-    )
-
-
-def _dir_columns(dataset: Dataset) -> FloatArray | None:
-    return None if dataset.dir is None else np.array(dataset.dir, dtype=float)
 
 
 def _shrink(before: float, after: float) -> float:
     return 100.0 * (1.0 - after / before) if before > 0 else 0.0
 
 
-def _noise_floor_from_repeats(obs: Observations) -> float | None:
+def _noise_floor_from_repeats(obs: MeasuredRows) -> float | None:
     """3-D RMS scatter of repeated measurements of one pose (same pose, axes, direction, load).
 
     Per axis, the within-pose variance pooled over every repeated pose (``Σ (x − x̄_pose)²`` over
@@ -192,7 +158,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
             probe_sigma_deg=options.probe_sigma_deg,
         ),
     )
-    obs = observations_from_dataset(prepared.dataset, prepared.dir_of(np.arange(len(dataset))))
+    obs = prepared.measured
     split = prepared.split
     fit_rows, check_rows = prepared.fit_rows, prepared.check_rows
     mass = MassModel.from_robot(robot)
@@ -412,7 +378,7 @@ def _ladder(
 
 
 def _noise_floor(
-    obs: Observations,
+    obs: MeasuredRows,
     tracker_sigma_mm: float | None,
     reflectors_mm: FloatArray | None = None,
     sigma_mm: FloatArray | None = None,
@@ -582,7 +548,7 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
 
 def _agreement(
     ctx: Context,
-    obs: Observations,
+    obs: MeasuredRows,
     fit_rows: NDArray[np.int64],
     check_rows: NDArray[np.int64],
     dataset: Dataset,
@@ -627,15 +593,15 @@ def _orientation_words(probe_sigma_deg: float) -> str:
 
 
 def _every_target(
-    obs: Observations,
+    obs: MeasuredRows,
     more_mm: FloatArray,
     offsets_mm: FloatArray,
     fit_rows: NDArray[np.int64],
     check_rows: NDArray[np.int64],
-) -> tuple[Observations, NDArray[np.int64], NDArray[np.int64]]:
-    """The observations of every target (:meth:`Observations.with_targets`) and their fit and check rows."""
+) -> tuple[MeasuredRows, NDArray[np.int64], NDArray[np.int64]]:
+    """The rows of every target (:meth:`MeasuredRows.stack_targets`) and their fit and check rows."""
     k, n = 1 + more_mm.shape[1], len(obs)
-    every = obs.with_targets(np.asarray(more_mm, dtype=float), offsets_mm)
+    every = obs.stack_targets(np.asarray(more_mm, dtype=float), offsets_mm)
     return (
         every,
         np.concatenate([fit_rows + i * n for i in range(k)]),

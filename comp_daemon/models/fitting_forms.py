@@ -27,7 +27,6 @@ from comp_daemon.models.compliance import COMPLIANCE_JOINTS, ComplianceFit, cali
 from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.models.fitting import (
     FitOptions,
-    FitRows,
     FittedModel,
     ModelSpec,
     identified_info,
@@ -37,20 +36,21 @@ from comp_daemon.models.fitting import (
 )
 from comp_daemon.models.poe.calibration import LAYOUTS
 from comp_daemon.models.poe.model import fit_poe
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["fit_compliance_kind", "fit_poe_kind"]
 
 
 def fit_compliance_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """Seed 004's compliance of joints 2 and 3 under the rows' payloads, on the whole kinematic
     geometry (``compliance``; the compliance kept only if it earns its place, every time with
     ``:all``) or on the zero offsets alone (``compliance:paper``, the paper's form)."""
     geometry = not spec.paper
 
-    def calibrate(effs: Sequence[str], sub: FitRows, fo: FitOptions) -> ComplianceFit:
+    def calibrate(effs: Sequence[str], sub: MeasuredRows, fo: FitOptions) -> ComplianceFit:
         return calibrate_compliance(
             robot,
             sub.a_deg,
@@ -85,7 +85,9 @@ def fit_compliance_kind(
     return FittedModel(cf.model, cf.frame, info)
 
 
-def fit_poe_kind(robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions) -> FittedModel:
+def fit_poe_kind(
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
     """The POE calibration: a twist error per joint, the tool offset and the base frame
     (``poe``), or seed 002's errors Δl, Δθ and the base frame (``poe:paper``)."""
     nominal = KinematicParams.from_robot(robot)

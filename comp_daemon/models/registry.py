@@ -49,7 +49,6 @@ from comp_daemon.models.effects import EFFECTS, TRANSMISSION_EFFECTS, effect_by_
 from comp_daemon.models.fitting import (
     DEFAULT_CHEBYSHEV_ORDER,
     FitOptions,
-    FitRows,
     FittedModel,
     ModelSpec,
     fit_chebyshev_kind,
@@ -63,6 +62,7 @@ from comp_daemon.models.kinematic import KinematicModel
 from comp_daemon.models.kriging import KrigingModel
 from comp_daemon.models.poe.model import PoeErrorModel
 from comp_daemon.models.poe.twist import N_TWIST_PARAMS
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import RobotDescription
 
@@ -97,7 +97,7 @@ KRIGING_OPTIONS = ("k=N", "aniso", "all")
 OPTION_ORDER = ("aniso", "all", "paper")  # canonical order of the option words after k=N
 KINEMATIC_PARAMETERS = 39  # 30 MDH + 6 base + 3 tool
 
-FitFunction = Callable[[RobotDescription, FitRows, ModelSpec, FitOptions], FittedModel]
+FitFunction = Callable[[RobotDescription, MeasuredRows, ModelSpec, FitOptions], FittedModel]
 Loader = Callable[[RobotDescription, dict[str, Any], "int | None", NDArray[np.float64]], ErrorModel]
 
 
@@ -440,7 +440,7 @@ def undetermined_reason(
 
 
 def fit_spec(
-    spec: ModelSpec, robot: RobotDescription, rows: FitRows, options: FitOptions | None = None
+    spec: ModelSpec, robot: RobotDescription, rows: MeasuredRows, options: FitOptions | None = None
 ) -> FittedModel:
     """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack,
     :class:`UndeterminedModelError` when a compliance has no masses and no payload to load the joints
@@ -504,7 +504,7 @@ def fit_model(
     """Fit the model ``name`` (a model name; ``effects`` and ``order`` may also be given apart)."""
     spec = parse_model_name("+".join([name, *effects]))
     spec = with_order(spec, order)
-    rows = FitRows(a_deg, xyz_mm, dir, payload_kg, temp_c)
+    rows = MeasuredRows(a_deg, xyz_mm, dir, np.asarray(payload_kg, dtype=float), temp_c)
     return fit_spec(spec, robot, rows, FitOptions(frame, cv_folds, seed))
 
 

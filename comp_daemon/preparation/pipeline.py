@@ -33,8 +33,8 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.artifact import model_document
 from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import fit_spec, undetermined_reason, uses_directions
+from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.preparation.campaign import (
     CampaignError,
     FrameChoice,
