@@ -14,14 +14,9 @@ from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset_file, write_dataset
 from comp_daemon.diagnosis import diagnose
 from comp_daemon.diagnosis.ladder import _noise_floor
-from comp_daemon.kinematics.so3 import rotvec_to_matrix
+from comp_daemon.kinematics.so3 import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
 from comp_daemon.models.fitting import FitOptions
-from comp_daemon.models.observations import (
-    matrix_to_quat,
-    orientation_weight,
-    probe_axis_points_mm,
-    quat_to_matrix,
-)
+from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
 from comp_daemon.models.registry import fit_spec, parse_model_name
 from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.preparation.campaign import CampaignError, prepare_campaign
