@@ -14,7 +14,7 @@ Linear least squares is done with columns scaled to unit norm (the raw columns d
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -196,6 +196,79 @@ def _solve_scaled(jac: FloatArray, rhs: FloatArray) -> FloatArray:
     return np.asarray(step / norms)
 
 
+def _profiled_cost(
+    mass: MassModel, obs: MeasuredRows, params: KinematicParams, effects: EffectParams
+) -> tuple[float, MeasuredRows]:
+    """The sum of squared errors (mm²) of the twin at ``obs`` with the further targets at their
+    least-squares places on its flange, and the rows with them there (one twin evaluation for the
+    targets that share their poses)."""
+    if obs.target is None or obs.target_offsets_mm is None:
+        r = obs.xyz_mm - predict_mm(mass, params, effects, obs)
+        return float(np.sum(r * r)), obs
+    offsets = np.array(obs.target_offsets_mm, dtype=float)
+    sse = 0.0
+    for sub, members in by_poses(obs):
+        st = twin_state_of(mass, params, effects, sub)
+        flange = st.chain.world_T_frame[:, 6]
+        rot, origin = flange[:, :3, :3], flange[:, :3, 3]
+        for rows, offset in members:
+            measured = obs.xyz_mm[rows]
+            if offset is None:
+                pred = st.tcp_mm
+            else:
+                place = seen_from_flange(rot, origin, measured)
+                offsets[int(obs.target[rows[0]]) - 1] = place
+                pred = origin + rot @ place
+            sse += float(np.sum((measured - pred) ** 2))
+    return sse, dataclasses.replace(obs, target_offsets_mm=offsets)
+
+
+def _gauss_newton_step(
+    mass: MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: list[str],
+    obs: MeasuredRows,
+    cols: NDArray[np.int64],
+) -> FloatArray:
+    """The Gauss–Newton step of the columns ``cols`` at the twin, the further targets' places
+    profiled out (variable projection)."""
+    resid, jac, tcols = linearize_targets(mass, params, effects, names, obs)
+    jac = jac[:, :, cols]
+    if obs.target is not None:
+        resid, jac = project_out(tcols, resid, jac)
+    return _solve_scaled(jac.reshape(-1, len(cols)), resid.reshape(-1))
+
+
+#: a step that raises the cost is halved at most this many times
+MAX_HALVINGS = 20
+
+
+def _descend(
+    cost_at: Callable[[KinematicParams, EffectParams], tuple[float, MeasuredRows]],
+    cost: float,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: list[str],
+    geo_idx: NDArray[np.int64],
+    step: FloatArray,
+) -> tuple[KinematicParams, EffectParams, MeasuredRows, float] | None:
+    """The first of ``t·step`` (t = 1, ½, ¼, …) that does not raise ``cost``: the twin there, its
+    rows and its cost; None when no halving does."""
+    n_geo = len(geo_idx)
+    t = 1.0
+    for _ in range(MAX_HALVINGS):
+        dx = np.zeros(N_PARAMS)
+        dx[geo_idx] = t * step[:n_geo]
+        trial_p = params.apply(dx)
+        trial_e = effects.add(names, t * step[n_geo:]) if names else effects
+        new_cost, trial_obs = cost_at(trial_p, trial_e)
+        if new_cost <= cost * (1.0 + 1e-12) + 1e-30:
+            return trial_p, trial_e, trial_obs, new_cost
+        t *= 0.5
+    return None
+
+
 def fit_twin(
     mass: MassModel,
     obs: MeasuredRows,
@@ -212,61 +285,27 @@ def fit_twin(
     Starts from ``params`` / ``effects``; geometric steps are applied with
     :meth:`KinematicParams.apply` (the base-frame rotation as a left-multiplied small rotation, as
     the identification Jacobian defines it), effect steps are added. A step that raises the cost is
-    halved (up to 20 times). Stops when the cost changes by less than ``rtol`` relative, or after
-    ``max_iter`` iterations.
+    halved (up to :data:`MAX_HALVINGS` times). Further targets sit at their least-squares places
+    for each twin tried (:func:`_profiled_cost`). Stops when the cost changes by less than ``rtol``
+    relative, or after ``max_iter`` iterations.
     """
     names = list(names)
     geo_idx = np.flatnonzero(geo_free)
-    n_geo = len(geo_idx)
     cols = np.concatenate([geo_idx, N_PARAMS + np.arange(len(names))])
 
-    def cost_of(p: KinematicParams, e: EffectParams) -> tuple[float, MeasuredRows]:
-        """The cost with the further targets at their least-squares places for this twin, and the
-        rows with them there (one twin evaluation per target)."""
-        if obs.target is None or obs.target_offsets_mm is None:
-            r = obs.xyz_mm - predict_mm(mass, p, e, obs)
-            return float(np.sum(r * r)), obs
-        offsets = np.array(obs.target_offsets_mm, dtype=float)
-        sse = 0.0
-        for sub, members in by_poses(obs):  # the targets share their poses: one twin
-            st = twin_state_of(mass, p, e, sub)
-            flange = st.chain.world_T_frame[:, 6]
-            rot, origin = flange[:, :3, :3], flange[:, :3, 3]
-            for rows, offset in members:
-                measured = obs.xyz_mm[rows]
-                if offset is None:
-                    pred = st.tcp_mm
-                else:
-                    place = seen_from_flange(rot, origin, measured)
-                    offsets[int(obs.target[rows[0]]) - 1] = place
-                    pred = origin + rot @ place
-                sse += float(np.sum((measured - pred) ** 2))
-        return sse, dataclasses.replace(obs, target_offsets_mm=offsets)
+    def cost_at(p: KinematicParams, e: EffectParams) -> tuple[float, MeasuredRows]:
+        return _profiled_cost(mass, obs, p, e)
 
-    cost, current = cost_of(params, effects)
+    cost, current = cost_at(params, effects)
     converged = False
     iterations = 0
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        resid, jac, tcols = linearize_targets(mass, params, effects, names, current)
-        jac = jac[:, :, cols]
-        if current.target is not None:  # the targets' places are profiled out (variable projection)
-            resid, jac = project_out(tcols, resid, jac)
-        step = _solve_scaled(jac.reshape(-1, len(cols)), resid.reshape(-1))
-        new_cost = cost
-        t = 1.0
-        for _ in range(20):
-            dx = np.zeros(N_PARAMS)
-            dx[geo_idx] = t * step[:n_geo]
-            trial_p = params.apply(dx)
-            trial_e = effects.add(names, t * step[n_geo:]) if names else effects
-            new_cost, trial_obs = cost_of(trial_p, trial_e)
-            if new_cost <= cost * (1.0 + 1e-12) + 1e-30:
-                params, effects, current = trial_p, trial_e, trial_obs
-                break
-            t *= 0.5
-        else:
+        step = _gauss_newton_step(mass, params, effects, names, current, cols)
+        found = _descend(cost_at, cost, params, effects, names, geo_idx, step)
+        if found is None:
             converged = True  # no descent direction left: at the optimum to numerical precision
             break
+        params, effects, current, new_cost = found
         change = abs(cost - new_cost)
         cost = new_cost
         if change <= rtol * max(cost, 1e-30):
