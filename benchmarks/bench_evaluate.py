@@ -92,11 +92,9 @@ def bench_model(token: str, robot: RobotDescription, camp: PreparedCampaign, pro
     if prof is not None:
         prof.disable()
     cpu, wall = time.process_time() - c0, time.perf_counter() - t0
-    assert ds.a_deg is not None and ds.xyz_mm is not None
-    dir_check = camp.dir_of(check)
-    temp = None if ds.temp_c is None else ds.temp_c[check]
-    pred = fitted.model.predict_tcp_mm(ds.a_deg[check], dir_check, ds.payload_kg[check], temp)
-    stats = error_statistics(ds.xyz_mm[check], pred)
+    rows = camp.rows(check)
+    pred = fitted.model.predict_tcp_mm(rows.a_deg, rows.dir, rows.payload_kg, rows.temp_c)
+    stats = error_statistics(rows.xyz_mm, pred)
     sel = fitted.info.get("selection") or {}
     out = {
         "model": token,

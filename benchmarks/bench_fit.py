@@ -52,9 +52,9 @@ from comp_daemon.models.chebyshev import (
 from comp_daemon.models.compensation import compensate
 from comp_daemon.models.effects import EffectParams, effect_param_names, twin_jacobian, twin_tcp_mm
 from comp_daemon.models.evaluation import error_statistics, format_table2
-from comp_daemon.models.fitting import FitRows
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.registry import ALL_MODELS, fit_model, fit_spec, parse_model_name
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.sim.campaign import measure_at, run_campaign, sample_poses
 from comp_daemon.sim.plant import RobotPlant
 from comp_daemon.sim.scenario import load_scenario
@@ -135,7 +135,7 @@ def kind_times(sizes: list[int], cv_max: int) -> None:
     for n in sizes:
         robot, a, p, dirs = campaign(n)
         payload = np.where(np.arange(n) % 2 == 0, 0.0, 120.0)
-        data[n] = (robot, FitRows(a, p, dirs, payload))
+        data[n] = (robot, MeasuredRows(a, p, dirs, payload))
     _, q_a, _, q_dirs = campaign(1000, seed=7)
     for name in ALL_MODELS:
         cells = []

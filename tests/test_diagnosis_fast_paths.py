@@ -18,10 +18,11 @@ import pytest
 from diagnosis_campaigns import FURTHER_TARGETS_MM, random_geometry, sample_poses
 
 from comp_daemon.diagnosis import structure
-from comp_daemon.diagnosis.fitting import Observations, linearize_targets, predict_mm
+from comp_daemon.diagnosis.fitting import linearize_targets, predict_mm
 from comp_daemon.diagnosis.stats import LinearProblem, make_folds
 from comp_daemon.kinematics.params import N_PARAMS, TOOL_SLICE, KinematicParams
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import load_robot
 
 
@@ -92,7 +93,7 @@ def residual_structure_of(
     return structure.residual_structure(resid, cols, np.arange(len(resid)), folds=5, seed=7)
 
 
-def _three_targets(payload_kg: float) -> tuple[MassModel, KinematicParams, EffectParams, Observations]:
+def _three_targets(payload_kg: float) -> tuple[MassModel, KinematicParams, EffectParams, MeasuredRows]:
     rng = np.random.default_rng(11)
     robot = load_robot("irb120")
     a, direction = sample_poses(robot, 40, rng)
@@ -102,7 +103,7 @@ def _three_targets(payload_kg: float) -> tuple[MassModel, KinematicParams, Effec
         [0.01, 2e-4, 0.01, -0.01, 2e-5, 3e-5, 1.2e-5, 0.2, -0.1],
     )
     n = len(a)
-    obs = Observations(
+    obs = MeasuredRows(
         a_deg=a,
         xyz_mm=np.zeros((n, 3)),
         dir=direction,
@@ -116,7 +117,7 @@ def _three_targets(payload_kg: float) -> tuple[MassModel, KinematicParams, Effec
         MassModel.from_robot(robot),
         params,
         effects,
-        obs.with_targets(np.zeros((n, 2, 3)), FURTHER_TARGETS_MM),
+        obs.stack_targets(np.zeros((n, 2, 3)), FURTHER_TARGETS_MM),
     )
 
 
@@ -156,7 +157,7 @@ def test_the_shared_jacobian_of_every_target_is_exact() -> None:
     resid, jac, tcols = linearize_targets(mass, params, effects, names, obs)
     assert np.all(jac[len(obs) // 3 :, :, TOOL_SLICE] == 0.0)  # the further targets' tool is their place
 
-    def pred(p: KinematicParams, e: EffectParams, o: Observations = obs) -> np.ndarray:
+    def pred(p: KinematicParams, e: EffectParams, o: MeasuredRows = obs) -> np.ndarray:
         return predict_mm(mass, p, e, o)
 
     for col in range(N_PARAMS):

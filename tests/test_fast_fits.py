@@ -18,8 +18,9 @@ from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset
 from comp_daemon.estimation.identifiability import analyze_identifiability
 from comp_daemon.models import fitting
-from comp_daemon.models.fitting import FitOptions, FitRows, directions_of
+from comp_daemon.models.fitting import FitOptions
 from comp_daemon.models.registry import fit_spec, parse_model_name
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import load_robot
 
 CAMPAIGNS = {  # name: (scenario, robot, poses, extra sample options)
@@ -57,13 +58,11 @@ def _fit_and_check(path: Path, robot_name: str, model: str) -> dict[str, Any]:
     robot = load_robot(robot_name)
     ds = read_dataset(path, limits_deg=robot.axis_limits_deg, min_rows=0, kind="measurement")
     split = ds.split_or_draw()
-    fitted = fit_spec(parse_model_name(model), robot, FitRows.of(ds, split.fit_rows), FitOptions())
-    check = split.check_rows
-    assert ds.a_deg is not None and ds.xyz_mm is not None
-    d = None if ds.dir is None else directions_of(ds, check, None)
-    temp = None if ds.temp_c is None else ds.temp_c[check]
-    pred = fitted.model.predict_tcp_mm(ds.a_deg[check], d, ds.payload_kg[check], temp)
-    err = np.linalg.norm(ds.xyz_mm[check] - pred, axis=1)
+    rows = MeasuredRows.of_dataset(ds)
+    fitted = fit_spec(parse_model_name(model), robot, rows.take(split.fit_rows), FitOptions())
+    check = rows.take(split.check_rows)
+    pred = fitted.model.predict_tcp_mm(check.a_deg, check.dir, check.payload_kg, check.temp_c)
+    err = np.linalg.norm(check.xyz_mm - pred, axis=1)
     return {"info": fitted.info, "check_rms": float(np.sqrt(np.mean(err**2))), "pred": pred}
 
 

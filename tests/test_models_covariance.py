@@ -14,8 +14,8 @@ from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to
 from comp_daemon.models.artifact import load_model, save_model
 from comp_daemon.models.covariance import covariance_from_fit
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
-from comp_daemon.models.fitting import FitRows
 from comp_daemon.models.registry import fit_model, fit_spec, parse_model_name
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import load_robot
 
 KR = load_robot("kr210")
@@ -85,7 +85,7 @@ def test_kinematic_sigma_is_calibrated_on_check_rows(geometric: Path, n_fit: int
     ds = read_dataset(geometric)
     fit_rows = ds.fit_rows()[:n_fit]
     check = np.flatnonzero(ds.split == "check")
-    model = fit_spec(parse_model_name("kinematic"), KR, FitRows.of(ds, fit_rows)).model
+    model = fit_spec(parse_model_name("kinematic"), KR, MeasuredRows.of_dataset(ds).take(fit_rows)).model
     a = ds.a_deg[check]
     err = ds.xyz_mm[check] - model.predict_tcp_mm(a)
     sigma = model.predict_std_mm(a)
@@ -102,8 +102,8 @@ def test_sigma_survives_the_artifact_and_shrinks_with_rows(
     ds = read_dataset(geometric)
     check = np.flatnonzero(ds.split == "check")[:20]
     a, d = ds.a_deg[check], ds.dir[check].astype(float)
-    few = fit_spec(parse_model_name(name), KR, FitRows.of(ds, ds.fit_rows()[:70])).model
-    many = fit_spec(parse_model_name(name), KR, FitRows.of(ds, ds.fit_rows())).model
+    few = fit_spec(parse_model_name(name), KR, MeasuredRows.of_dataset(ds).take(ds.fit_rows()[:70])).model
+    many = fit_spec(parse_model_name(name), KR, MeasuredRows.of_dataset(ds).take(ds.fit_rows())).model
     s_few, s_many = few.predict_std_mm(a, d), many.predict_std_mm(a, d)
     assert s_few is not None and s_many is not None
     assert np.mean(s_many) < np.mean(s_few)

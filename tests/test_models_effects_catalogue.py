@@ -30,6 +30,7 @@ from comp_daemon.models.effects import (
     twin_state,
     twin_tcp_mm,
 )
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import load_robot
 
 ROBOT = load_robot("kr210")
@@ -188,30 +189,19 @@ def test_data_check_names_missing_and_constant_columns(effect: Effect) -> None:
     rng = np.random.default_rng(13)
     a, d, payload, temp = _poses(rng)
     st = twin_state(ROBOT, PARAMS, EffectParams.zeros(K), a, d, payload, temp, with_torques=True)
-    full = EffectData(
-        a_deg=a,
-        dir=d,
-        payload_kg=payload,
-        temp_c=temp,
-        tau_nm=st.tau_nm,
-        moves_tcp=np.ones(6, dtype=bool),
-        clock=_clock(a),
-    )
+    rows = MeasuredRows(a, np.zeros((len(a), 3)), d, payload, temp, clock=_clock(a))
+    full = EffectData(rows, st.tau_nm, np.ones(6, dtype=bool))
     joint = 2 if effect.per_joint else None
     assert effect.unfit_reason(full, joint) is None
     for column, words in effect.required.items():
-        assert effect.unfit_reason(replace(full, **{column: None}), joint) == words
+        assert effect.unfit_reason(replace(full, rows=replace(rows, **{column: None})), joint) == words
     if effect.per_joint:
         still = replace(full, moves_tcp=np.array([True, False, True, True, True, True]))
         assert "does not move the TCP" in (effect.unfit_reason(still, 2) or "")
     # every pose the same, at one temperature and load: nothing an effect can be identified from
     frozen = EffectData(
-        a_deg=np.repeat(a[:1], len(a), axis=0),
-        dir=np.repeat(d[:1], len(a), axis=0),
-        payload_kg=np.full(len(a), payload[0]),
-        temp_c=np.full(len(a), temp[0]),
-        tau_nm=np.repeat(st.tau_nm[:1], len(a), axis=0),
-        moves_tcp=np.ones(6, dtype=bool),
-        clock=np.zeros(len(a)),
+        replace(rows.take(np.zeros(len(a), dtype=np.int64)), clock=np.zeros(len(a))),
+        np.repeat(st.tau_nm[:1], len(a), axis=0),
+        np.ones(6, dtype=bool),
     )
     assert effect.unfit_reason(frozen, joint)

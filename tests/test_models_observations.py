@@ -6,14 +6,12 @@ import numpy as np
 
 from comp_daemon.kinematics.forward import flange_pose, tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
-from comp_daemon.kinematics.so3 import rotvec_to_matrix
+from comp_daemon.kinematics.so3 import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
 from comp_daemon.models.effects import EffectParams
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.observations import (
     FrameObservations,
     ObservedProblem,
-    matrix_to_quat,
-    quat_to_matrix,
 )
 from comp_daemon.robot.description import RobotDescription, load_robot
 

@@ -23,9 +23,10 @@ from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to
 from comp_daemon.kinematics.so3 import rotvec_to_matrix
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.effects import EffectParams
-from comp_daemon.models.fitting import FitOptions, FitRows
+from comp_daemon.models.fitting import FitOptions
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.registry import fit_spec, parse_model_name
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.sim.campaign import reflector_offsets_mm, run_campaign
 from comp_daemon.sim.scenario import Scenario, load_scenario
 
@@ -213,7 +214,7 @@ def test_every_model_kind_fits_a_multi_target_campaign() -> None:
     assert ds.a_deg is not None and ds.xyz_mm is not None
     fit, check = ds.fit_rows(), ds.check_rows()
     for name in ("kinematic", "kinematic+ratio+backlash", "chebyshev", "compliance", "poe", "kriging"):
-        rows = FitRows.of(ds, fit)
+        rows = MeasuredRows.of_dataset(ds).take(fit)
         assert rows.more_xyz_mm is not None and rows.more_xyz_mm.shape == (len(fit), 2, 3)
         fitted = fit_spec(parse_model_name(name), sc.robot, rows, FitOptions())
         pred = fitted.model.predict_tcp_mm(

@@ -22,6 +22,7 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.effects.base import EffectData
 from comp_daemon.models.effects.catalogue import COMPLIANCE
 from comp_daemon.models.registry import parse_model_name, undetermined_reason
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.preparation.campaign import prepare_directions
 from comp_daemon.robot.description import load_robot
 
@@ -366,20 +367,14 @@ def test_an_unseen_reflector_says_how_to_leave_it_out(kr_campaign: Path, tmp_pat
 
 def test_compliance_on_a_massless_robot_is_skipped_for_the_masses_not_a_vertical_axis() -> None:
     n = 20
-    data = EffectData(
-        a_deg=np.zeros((n, 6)),
-        dir=None,
-        payload_kg=np.zeros(n),
-        temp_c=None,
-        tau_nm=np.zeros((n, 6)),
-        moves_tcp=np.ones(6, dtype=bool),
-    )
+    rows = MeasuredRows(np.zeros((n, 6)), np.zeros((n, 3)))
+    data = EffectData(rows, np.zeros((n, 6)), np.ones(6, dtype=bool))
     for joint in (1, 2, 3):
         reason = COMPLIANCE.data_reason(data, joint)
         assert reason is not None and "the robot description has no link masses" in reason
     tau = np.zeros((n, 6))
     tau[:, 1] = np.linspace(10.0, 200.0, n)  # joint 2 loaded, joint 1 vertical
-    loaded = EffectData(np.zeros((n, 6)), None, np.zeros(n), None, tau, np.ones(6, dtype=bool))
+    loaded = EffectData(rows, tau, np.ones(6, dtype=bool))
     assert "its axis is vertical" in str(COMPLIANCE.data_reason(loaded, 1))
     assert COMPLIANCE.data_reason(loaded, 2) is None
 

@@ -13,16 +13,12 @@ from diagnosis_campaigns import NOISE_FLOOR_MM, make_campaign
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset_file, write_dataset
 from comp_daemon.diagnosis import diagnose
-from comp_daemon.diagnosis.ladder import _noise_floor, observations_from_dataset
-from comp_daemon.kinematics.so3 import rotvec_to_matrix
+from comp_daemon.diagnosis.ladder import _noise_floor
+from comp_daemon.kinematics.so3 import matrix_to_quat, quat_to_matrix, rotvec_to_matrix
 from comp_daemon.models.fitting import FitOptions
-from comp_daemon.models.observations import (
-    matrix_to_quat,
-    orientation_weight,
-    probe_axis_points_mm,
-    quat_to_matrix,
-)
+from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
 from comp_daemon.models.registry import fit_spec, parse_model_name
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.preparation.campaign import CampaignError, prepare_campaign
 from comp_daemon.robot.description import load_robot
 from comp_daemon.sim.scenario import load_scenario
@@ -157,13 +153,13 @@ def test_declared_sigma_sets_the_floor_over_a_probes_virtual_reflectors() -> Non
     rot = rotvec_to_matrix(np.random.default_rng(0).normal(size=(n, 3)))
     virtual = ds.xyz_mm[:, None, :] + 100.0 * np.swapaxes(rot, 1, 2)[:, :2, :]  # exact: 100 mm along x, y
     probe = dataclasses.replace(ds, more_xyz_mm=virtual, sigma_mm=np.full(n, 0.02))
-    obs = observations_from_dataset(probe)
+    obs = MeasuredRows.of_dataset(probe)
     floor, source = _noise_floor(obs, None, probe.reflectors_mm, probe.sigma_mm)
     assert source == "declared" and floor == pytest.approx(np.sqrt(3.0) * 0.02)
     floor, source = _noise_floor(obs, 0.05, probe.reflectors_mm, probe.sigma_mm)
     assert source == "declared" and floor == pytest.approx(np.sqrt(3.0) * 0.05)
     without = dataclasses.replace(probe, sigma_mm=None)
-    floor, source = _noise_floor(observations_from_dataset(without), None, without.reflectors_mm, None)
+    floor, source = _noise_floor(MeasuredRows.of_dataset(without), None, without.reflectors_mm, None)
     assert source == "targets" and floor < 1e-6  # what the σ column overrides
 
 

@@ -33,8 +33,8 @@ import numpy as np
 from numpy.typing import NDArray
 
 from comp_daemon.data.table import Dataset
-from comp_daemon.diagnosis.fitting import Observations
 from comp_daemon.estimation.registration import frame_changes, rigid_registration
+from comp_daemon.models.rows import MeasuredRows
 
 __all__ = ["Agreement", "fit_check_agreement"]
 
@@ -94,7 +94,7 @@ class Agreement:
 def fit_check_agreement(
     check_rms_mm: Sequence[float],
     cv_rms_mm: Sequence[float | None],
-    obs: Observations,
+    obs: MeasuredRows,
     fit_rows: NDArray[np.int64],
     check_rows: NDArray[np.int64],
     predicted_check_mm: FloatArray,
@@ -123,7 +123,7 @@ def fit_check_agreement(
 
 
 def _differences(
-    obs: Observations,
+    obs: MeasuredRows,
     fit_rows: NDArray[np.int64],
     check_rows: NDArray[np.int64],
     predicted_check_mm: FloatArray,

@@ -16,18 +16,17 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.diagnosis.fitting import Observations
 from comp_daemon.diagnosis.result import rounded
-from comp_daemon.kinematics.forward import gravity_torques_nm
-from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
+from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import (
     EFFECT_CATALOGUE,
     EFFECTS,
-    EffectData,
     EffectParams,
     MassModel,
     effect_by_name,
+    effect_data,
 )
+from comp_daemon.models.rows import MeasuredRows
 
 __all__ = [
     "CANDIDATE_RTOL",
@@ -77,22 +76,14 @@ def all_candidates(harmonics: int) -> list[Candidate]:
 
 def data_reasons(
     cands: Sequence[Candidate],
-    obs_fit: Observations,
+    obs_fit: MeasuredRows,
     mass: MassModel,
     params: KinematicParams,
     jac_theta_norm: FloatArray,
 ) -> dict[Candidate, str]:
     """Why candidates cannot be fitted from these data (absent columns, no variation)."""
-    q = axes_deg_to_q_rad(obs_fit.a_deg, params.sign)
-    data = EffectData(
-        a_deg=obs_fit.a_deg,
-        dir=obs_fit.dir,
-        payload_kg=obs_fit.payload_kg,
-        temp_c=obs_fit.temp_c,
-        tau_nm=gravity_torques_nm(params, q, mass.link_mass_kg, mass.link_com_mm, obs_fit.payload_kg),
-        moves_tcp=jac_theta_norm > 1e-6 * max(float(jac_theta_norm.max(initial=0.0)), 1e-300),
-        clock=obs_fit.clock,
-    )
+    moves_tcp = jac_theta_norm > 1e-6 * max(float(jac_theta_norm.max(initial=0.0)), 1e-300)
+    data = effect_data(mass, params, obs_fit, moves_tcp)
     reasons: dict[Candidate, str] = {}
     for c in cands:
         why = effect_by_name(c.effect).unfit_reason(data, c.joint)

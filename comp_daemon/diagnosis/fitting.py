@@ -14,7 +14,7 @@ Linear least squares is done with columns scaled to unit norm (the raw columns d
 from __future__ import annotations
 
 import dataclasses
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -26,12 +26,12 @@ from comp_daemon.models.effects import (
     MassModel,
     TwinState,
     twin_jacobian_targets,
-    twin_state,
+    twin_state_of,
 )
+from comp_daemon.models.rows import MeasuredRows
 
 __all__ = [
     "FitResult",
-    "Observations",
     "at_fit",
     "by_poses",
     "fit_twin",
@@ -47,117 +47,20 @@ __all__ = [
 FloatArray = NDArray[np.float64]
 
 
-@dataclass(frozen=True)
-class Observations:
-    """The measured poses the diagnosis works on (rows in data-set order).
-
-    ``dir`` (n, 6) holds −1/+1, or is ``None`` when the data has no approach directions;
-    ``temp_c`` is ``None`` without temperatures. ``pose_group`` (n,) numbers the distinct commanded
-    poses (repeats of a pose share a number); it is the unit of cross-validation folds and of the
-    cluster-robust covariance. ``clock`` (n,) is the campaign clock of the time effects: hours
-    since the first ``t_s``, or the row number when the data has no times (``clock_name`` says
-    which: ``t_s`` or ``pose_order``).
-    """
-
-    a_deg: FloatArray
-    xyz_mm: FloatArray
-    dir: FloatArray | None
-    payload_kg: FloatArray
-    temp_c: FloatArray | None
-    pose_group: NDArray[np.int64]
-    clock: FloatArray | None = None
-    clock_name: str = "pose_order"
-    # several targets per pose: the row's target (0 = the TCP, the twin's tool) and the further
-    # targets' positions in the flange frame ((K − 1, 3), mm); None: every row is the TCP
-    target: NDArray[np.int64] | None = None
-    target_offsets_mm: FloatArray | None = None
-
-    def __len__(self) -> int:
-        return int(self.a_deg.shape[0])
-
-    def take(self, idx: NDArray[np.int64]) -> Observations:
-        return Observations(
-            a_deg=self.a_deg[idx],
-            xyz_mm=self.xyz_mm[idx],
-            dir=None if self.dir is None else self.dir[idx],
-            payload_kg=self.payload_kg[idx],
-            temp_c=None if self.temp_c is None else self.temp_c[idx],
-            pose_group=self.pose_group[idx],
-            clock=None if self.clock is None else self.clock[idx],
-            clock_name=self.clock_name,
-            target=None if self.target is None else self.target[idx],
-            target_offsets_mm=self.target_offsets_mm,
-        )
-
-    def with_targets(self, more_xyz_mm: FloatArray, offsets_mm: FloatArray) -> Observations:
-        """Every target as rows of their own: these rows (target 0, the TCP), then each further
-        target's (``more_xyz_mm`` (n, K − 1, 3) measured, ``offsets_mm`` (K − 1, 3) its position in
-        the flange frame); row ``i + k·n`` is target ``k`` of pose ``i``."""
-        k = 1 + more_xyz_mm.shape[1]
-
-        def tiled(x: FloatArray | None) -> FloatArray | None:
-            return None if x is None else np.concatenate([x] * k, axis=0)
-
-        return Observations(
-            a_deg=np.concatenate([self.a_deg] * k, axis=0),
-            xyz_mm=np.concatenate([self.xyz_mm, *np.moveaxis(more_xyz_mm, 1, 0)], axis=0),
-            dir=tiled(self.dir),
-            payload_kg=np.concatenate([self.payload_kg] * k),
-            temp_c=tiled(self.temp_c),
-            pose_group=np.concatenate([self.pose_group] * k),
-            clock=tiled(self.clock),
-            clock_name=self.clock_name,
-            target=np.repeat(np.arange(k, dtype=np.int64), len(self)),
-            target_offsets_mm=np.asarray(offsets_mm, dtype=float).reshape(k - 1, 3),
-        )
-
-    def by_target(self) -> list[tuple[NDArray[np.int64], Observations, FloatArray | None]]:
-        """(rows, their observations, the target's flange-frame position or None for the TCP) per
-        target; one entry holding every row when there is one target."""
-        if self.target is None or self.target_offsets_mm is None:
-            return [(np.arange(len(self)), self, None)]
-        out = []
-        for k in range(len(self.target_offsets_mm) + 1):
-            rows = np.flatnonzero(self.target == k)
-            if len(rows):
-                sub = dataclasses.replace(self.take(rows), target=None, target_offsets_mm=None)
-                out.append((rows, sub, None if k == 0 else self.target_offsets_mm[k - 1]))
-        return out
-
-
-def _same_poses(a: Observations, b: Observations) -> bool:
-    """Whether two sets of rows are the same poses in the same order (one twin serves both)."""
-
-    def same(x: FloatArray | None, y: FloatArray | None) -> bool:
-        return (x is None and y is None) or (x is not None and y is not None and np.array_equal(x, y))
-
-    return (
-        np.array_equal(a.a_deg, b.a_deg)
-        and np.array_equal(a.payload_kg, b.payload_kg)
-        and same(a.dir, b.dir)
-        and same(a.temp_c, b.temp_c)
-        and same(a.clock, b.clock)
-    )
-
-
 def by_poses(
-    obs: Observations,
-) -> list[tuple[Observations, list[tuple[NDArray[np.int64], FloatArray | None]]]]:
+    obs: MeasuredRows,
+) -> list[tuple[MeasuredRows, list[tuple[NDArray[np.int64], FloatArray | None]]]]:
     """The targets grouped by the poses they were measured at: per group, the first target's
     observations and each member's rows and place on the flange (None for the TCP). The targets of
     a campaign share their poses, so there is one group and one twin evaluation for all of them."""
-    groups: list[tuple[Observations, list[tuple[NDArray[np.int64], FloatArray | None]]]] = []
+    groups: list[tuple[MeasuredRows, list[tuple[NDArray[np.int64], FloatArray | None]]]] = []
     for rows, sub, offset in obs.by_target():
-        group = next((g for g in groups if _same_poses(g[0], sub)), None)
+        group = next((g for g in groups if g[0].same_poses(sub)), None)
         if group is None:
             groups.append((sub, [(rows, offset)]))
         else:
             group[1].append((rows, offset))
     return groups
-
-
-def _twin(mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations) -> TwinState:
-    return twin_state(mass, params, effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock)
 
 
 def on_flange(st: TwinState, place_mm: FloatArray | None) -> FloatArray:
@@ -170,14 +73,14 @@ def on_flange(st: TwinState, place_mm: FloatArray | None) -> FloatArray:
 
 
 def predict_mm(
-    mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
+    mass: MassModel, params: KinematicParams, effects: EffectParams, obs: MeasuredRows
 ) -> FloatArray:
     """(n, 3) the twin's position of each row's target at the observed poses (mm, world frame).
 
     The targets of one pose share one twin (its gravity torques with the payload at the TCP)."""
     out = np.empty((len(obs), 3))
     for sub, members in by_poses(obs):
-        st = _twin(mass, params, effects, sub)
+        st = twin_state_of(mass, params, effects, sub)
         for rows, offset in members:
             out[rows] = on_flange(st, offset)
     return out
@@ -188,22 +91,13 @@ def _jacobians(
     params: KinematicParams,
     effects: EffectParams,
     names: Sequence[str],
-    obs: Observations,
+    obs: MeasuredRows,
 ) -> Iterator[tuple[NDArray[np.int64], FloatArray, FloatArray, FloatArray | None]]:
     """Per target: its rows, the twin's positions there and their Jacobian, and its place on the
     flange (None for the TCP); one twin per group of targets that share their poses."""
     for sub, members in by_poses(obs):
         parts = twin_jacobian_targets(
-            mass,
-            params,
-            effects,
-            list(names),
-            [offset for _, offset in members],
-            sub.a_deg,
-            sub.dir,
-            sub.payload_kg,
-            sub.temp_c,
-            clock=sub.clock,
+            mass, params, effects, list(names), [offset for _, offset in members], sub
         )
         for (rows, offset), (tcp, jac) in zip(members, parts, strict=True):
             yield rows, tcp, jac, offset
@@ -214,7 +108,7 @@ def linearize(
     params: KinematicParams,
     effects: EffectParams,
     names: Sequence[str],
-    obs: Observations,
+    obs: MeasuredRows,
 ) -> tuple[FloatArray, FloatArray]:
     """Residual (n, 3) and Jacobian (n, 3, 39 + len(names)) of the twin at the observed poses.
 
@@ -229,7 +123,7 @@ def linearize_targets(
     params: KinematicParams,
     effects: EffectParams,
     names: Sequence[str],
-    obs: Observations,
+    obs: MeasuredRows,
 ) -> tuple[FloatArray, FloatArray, FloatArray]:
     """:func:`linearize`, and (n, 3, 3·(K − 1)) the derivative of each row's position by its
     further target's place on the flange (zero on the other rows; (n, 3, 0) with one target)."""
@@ -259,7 +153,7 @@ class FitResult:
     target_offsets_mm: FloatArray | None = None  # the further targets' places on the flange, fitted
 
 
-def at_fit(obs: Observations, fit: FitResult) -> Observations:
+def at_fit(obs: MeasuredRows, fit: FitResult) -> MeasuredRows:
     """``obs`` with the further targets at the places ``fit`` found for them (unchanged otherwise)."""
     if obs.target is None or fit.target_offsets_mm is None:
         return obs
@@ -267,10 +161,10 @@ def at_fit(obs: Observations, fit: FitResult) -> Observations:
 
 
 def flange_mm(
-    mass: MassModel, params: KinematicParams, effects: EffectParams, obs: Observations
+    mass: MassModel, params: KinematicParams, effects: EffectParams, obs: MeasuredRows
 ) -> tuple[FloatArray, FloatArray]:
     """The twin's flange rotation (n, 3, 3) and origin (n, 3, mm) at the observed poses."""
-    st = twin_state(mass, params, effects, obs.a_deg, obs.dir, obs.payload_kg, obs.temp_c, clock=obs.clock)
+    st = twin_state_of(mass, params, effects, obs)
     flange = st.chain.world_T_frame[:, 6]
     return flange[:, :3, :3], flange[:, :3, 3]
 
@@ -302,9 +196,82 @@ def _solve_scaled(jac: FloatArray, rhs: FloatArray) -> FloatArray:
     return np.asarray(step / norms)
 
 
+def _profiled_cost(
+    mass: MassModel, obs: MeasuredRows, params: KinematicParams, effects: EffectParams
+) -> tuple[float, MeasuredRows]:
+    """The sum of squared errors (mm²) of the twin at ``obs`` with the further targets at their
+    least-squares places on its flange, and the rows with them there (one twin evaluation for the
+    targets that share their poses)."""
+    if obs.target is None or obs.target_offsets_mm is None:
+        r = obs.xyz_mm - predict_mm(mass, params, effects, obs)
+        return float(np.sum(r * r)), obs
+    offsets = np.array(obs.target_offsets_mm, dtype=float)
+    sse = 0.0
+    for sub, members in by_poses(obs):
+        st = twin_state_of(mass, params, effects, sub)
+        flange = st.chain.world_T_frame[:, 6]
+        rot, origin = flange[:, :3, :3], flange[:, :3, 3]
+        for rows, offset in members:
+            measured = obs.xyz_mm[rows]
+            if offset is None:
+                pred = st.tcp_mm
+            else:
+                place = seen_from_flange(rot, origin, measured)
+                offsets[int(obs.target[rows[0]]) - 1] = place
+                pred = origin + rot @ place
+            sse += float(np.sum((measured - pred) ** 2))
+    return sse, dataclasses.replace(obs, target_offsets_mm=offsets)
+
+
+def _gauss_newton_step(
+    mass: MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: list[str],
+    obs: MeasuredRows,
+    cols: NDArray[np.int64],
+) -> FloatArray:
+    """The Gauss–Newton step of the columns ``cols`` at the twin, the further targets' places
+    profiled out (variable projection)."""
+    resid, jac, tcols = linearize_targets(mass, params, effects, names, obs)
+    jac = jac[:, :, cols]
+    if obs.target is not None:
+        resid, jac = project_out(tcols, resid, jac)
+    return _solve_scaled(jac.reshape(-1, len(cols)), resid.reshape(-1))
+
+
+#: a step that raises the cost is halved at most this many times
+MAX_HALVINGS = 20
+
+
+def _descend(
+    cost_at: Callable[[KinematicParams, EffectParams], tuple[float, MeasuredRows]],
+    cost: float,
+    params: KinematicParams,
+    effects: EffectParams,
+    names: list[str],
+    geo_idx: NDArray[np.int64],
+    step: FloatArray,
+) -> tuple[KinematicParams, EffectParams, MeasuredRows, float] | None:
+    """The first of ``t·step`` (t = 1, ½, ¼, …) that does not raise ``cost``: the twin there, its
+    rows and its cost; None when no halving does."""
+    n_geo = len(geo_idx)
+    t = 1.0
+    for _ in range(MAX_HALVINGS):
+        dx = np.zeros(N_PARAMS)
+        dx[geo_idx] = t * step[:n_geo]
+        trial_p = params.apply(dx)
+        trial_e = effects.add(names, t * step[n_geo:]) if names else effects
+        new_cost, trial_obs = cost_at(trial_p, trial_e)
+        if new_cost <= cost * (1.0 + 1e-12) + 1e-30:
+            return trial_p, trial_e, trial_obs, new_cost
+        t *= 0.5
+    return None
+
+
 def fit_twin(
     mass: MassModel,
-    obs: Observations,
+    obs: MeasuredRows,
     params: KinematicParams,
     effects: EffectParams,
     geo_free: NDArray[np.bool_],
@@ -318,61 +285,27 @@ def fit_twin(
     Starts from ``params`` / ``effects``; geometric steps are applied with
     :meth:`KinematicParams.apply` (the base-frame rotation as a left-multiplied small rotation, as
     the identification Jacobian defines it), effect steps are added. A step that raises the cost is
-    halved (up to 20 times). Stops when the cost changes by less than ``rtol`` relative, or after
-    ``max_iter`` iterations.
+    halved (up to :data:`MAX_HALVINGS` times). Further targets sit at their least-squares places
+    for each twin tried (:func:`_profiled_cost`). Stops when the cost changes by less than ``rtol``
+    relative, or after ``max_iter`` iterations.
     """
     names = list(names)
     geo_idx = np.flatnonzero(geo_free)
-    n_geo = len(geo_idx)
     cols = np.concatenate([geo_idx, N_PARAMS + np.arange(len(names))])
 
-    def cost_of(p: KinematicParams, e: EffectParams) -> tuple[float, Observations]:
-        """The cost with the further targets at their least-squares places for this twin, and the
-        rows with them there (one twin evaluation per target)."""
-        if obs.target is None or obs.target_offsets_mm is None:
-            r = obs.xyz_mm - predict_mm(mass, p, e, obs)
-            return float(np.sum(r * r)), obs
-        offsets = np.array(obs.target_offsets_mm, dtype=float)
-        sse = 0.0
-        for sub, members in by_poses(obs):  # the targets share their poses: one twin
-            st = _twin(mass, p, e, sub)
-            flange = st.chain.world_T_frame[:, 6]
-            rot, origin = flange[:, :3, :3], flange[:, :3, 3]
-            for rows, offset in members:
-                measured = obs.xyz_mm[rows]
-                if offset is None:
-                    pred = st.tcp_mm
-                else:
-                    place = seen_from_flange(rot, origin, measured)
-                    offsets[int(obs.target[rows[0]]) - 1] = place
-                    pred = origin + rot @ place
-                sse += float(np.sum((measured - pred) ** 2))
-        return sse, dataclasses.replace(obs, target_offsets_mm=offsets)
+    def cost_at(p: KinematicParams, e: EffectParams) -> tuple[float, MeasuredRows]:
+        return _profiled_cost(mass, obs, p, e)
 
-    cost, current = cost_of(params, effects)
+    cost, current = cost_at(params, effects)
     converged = False
     iterations = 0
     for iterations in range(1, max_iter + 1):  # noqa: B007 - the count is reported
-        resid, jac, tcols = linearize_targets(mass, params, effects, names, current)
-        jac = jac[:, :, cols]
-        if current.target is not None:  # the targets' places are profiled out (variable projection)
-            resid, jac = project_out(tcols, resid, jac)
-        step = _solve_scaled(jac.reshape(-1, len(cols)), resid.reshape(-1))
-        new_cost = cost
-        t = 1.0
-        for _ in range(20):
-            dx = np.zeros(N_PARAMS)
-            dx[geo_idx] = t * step[:n_geo]
-            trial_p = params.apply(dx)
-            trial_e = effects.add(names, t * step[n_geo:]) if names else effects
-            new_cost, trial_obs = cost_of(trial_p, trial_e)
-            if new_cost <= cost * (1.0 + 1e-12) + 1e-30:
-                params, effects, current = trial_p, trial_e, trial_obs
-                break
-            t *= 0.5
-        else:
+        step = _gauss_newton_step(mass, params, effects, names, current, cols)
+        found = _descend(cost_at, cost, params, effects, names, geo_idx, step)
+        if found is None:
             converged = True  # no descent direction left: at the optimum to numerical precision
             break
+        params, effects, current, new_cost = found
         change = abs(cost - new_cost)
         cost = new_cost
         if change <= rtol * max(cost, 1e-30):

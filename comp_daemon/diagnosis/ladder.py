@@ -79,7 +79,6 @@ from comp_daemon.diagnosis.candidates import (
 from comp_daemon.diagnosis.comparison import compare_models
 from comp_daemon.diagnosis.fitting import (
     FitResult,
-    Observations,
     at_fit,
     linearize_targets,
     predict_mm,
@@ -96,7 +95,8 @@ from comp_daemon.estimation.identifiability import analyze_identifiability, mdh_
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams
 from comp_daemon.models.effects import TIME_EFFECTS, EffectParams, MassModel
 from comp_daemon.models.observations import orientation_weight, probe_axis_points_mm
-from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
+from comp_daemon.models.rows import MeasuredRows
+from comp_daemon.preparation.campaign import PreparedCampaign, PrepareOptions, prepare_campaign
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -105,50 +105,16 @@ __all__ = [
     "Diagnosis",
     "Step",
     "diagnose",
-    "observations_from_dataset",
 ]
 
 FloatArray = NDArray[np.float64]
-
-
-def observations_from_dataset(dataset: Dataset, dir: FloatArray | None = None) -> Observations:
-    """The arrays of a measurement data set; pose groups by ``pose_id``, else by identical axes.
-
-    ``dir`` (n, 6): the approach directions to use (the prepared ones, 0 where unknown); by
-    default the data set's ``dir`` columns."""
-    if dataset.a_deg is None or dataset.xyz_mm is None:
-        raise ValueError(f"{dataset.source}: diagnosis needs axis values a1..a6 and measured x, y, z")
-    if dataset.pose_id is not None:
-        _, group = np.unique(np.asarray(dataset.pose_id, dtype=str), return_inverse=True)
-    else:
-        _, group = np.unique(dataset.a_deg, axis=0, return_inverse=True)
-    n = len(dataset.a_deg)
-    if dataset.t_s is not None and np.all(np.isfinite(np.asarray(dataset.t_s, dtype=float))):
-        t = np.asarray(dataset.t_s, dtype=float)
-        clock, clock_name = (t - t.min()) / 3600.0, "t_s"
-    else:
-        clock, clock_name = np.arange(n, dtype=float), "pose_order"
-    return Observations(
-        a_deg=np.array(dataset.a_deg, dtype=float),
-        xyz_mm=np.array(dataset.xyz_mm, dtype=float),
-        dir=np.array(dir, dtype=float) if dir is not None else _dir_columns(dataset),
-        payload_kg=np.array(dataset.payload_kg, dtype=float),
-        temp_c=None if dataset.temp_c is None else np.array(dataset.temp_c, dtype=float),
-        pose_group=np.asarray(group, dtype=np.int64).reshape(-1),
-        clock=clock,
-        clock_name=clock_name,
-    )
-
-
-def _dir_columns(dataset: Dataset) -> FloatArray | None:
-    return None if dataset.dir is None else np.array(dataset.dir, dtype=float)
 
 
 def _shrink(before: float, after: float) -> float:
     return 100.0 * (1.0 - after / before) if before > 0 else 0.0
 
 
-def _noise_floor_from_repeats(obs: Observations) -> float | None:
+def _noise_floor_from_repeats(obs: MeasuredRows) -> float | None:
     """3-D RMS scatter of repeated measurements of one pose (same pose, axes, direction, load).
 
     Per axis, the within-pose variance pooled over every repeated pose (``Σ (x − x̄_pose)²`` over
@@ -178,21 +144,8 @@ def _noise_floor_from_repeats(obs: Observations) -> float | None:
 def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions | None = None) -> Diagnosis:
     """Diagnose the gap between ``robot``'s nominal twin and the measurements in ``dataset``."""
     options = options or DiagnoseOptions()
-    prepared = prepare_campaign(
-        dataset,
-        robot,
-        PrepareOptions(
-            frame=options.frame,
-            need_directions=True,
-            infer_directions=options.infer_directions,
-            min_fit_rows=N_PARAMS,
-            min_fit_rows_for="parameters of the geometric step",
-            seed=options.seed,
-            check_fraction=options.check_fraction,
-            probe_sigma_deg=options.probe_sigma_deg,
-        ),
-    )
-    obs = observations_from_dataset(prepared.dataset, prepared.dir_of(np.arange(len(dataset))))
+    prepared = prepare_campaign(dataset, robot, _preparation(options))
+    obs = prepared.measured
     split = prepared.split
     fit_rows, check_rows = prepared.fit_rows, prepared.check_rows
     mass = MassModel.from_robot(robot)
@@ -205,23 +158,10 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     start_params = nominal.with_base(world_T_base)
     start = FitResult(start_params, effects0, rms_nominal, 0, True)
     # every target: the further ones as rows of their own, at their place on the flange
-    more = prepared.dataset.more_xyz_mm
-    probe = _probe_targets(prepared.dataset, options.tracker_sigma_mm, prepared.probe_sigma_deg)
-    if probe is not None:  # a 6-DOF probe's orientation: three further targets along its axes
-        more = probe if more is None else np.concatenate([more, probe], axis=1)
-    obs_all, fit_all, check_all = obs, fit_rows, check_rows
-    if more is not None:
-        offsets = target_offsets_mm(mass, start, obs.take(fit_rows), more[fit_rows])
-        obs_all, fit_all, check_all = _every_target(obs, more, offsets, fit_rows, check_rows)
+    obs_all, fit_all, check_all, probe = _every_target(prepared, mass, start, options.tracker_sigma_mm)
 
     # 2. geometric step: identifiability, then Gauss–Newton
-    obs_all_fit = obs_all.take(fit_all)
-    _, jac0, tcols0 = linearize_targets(mass, start_params, effects0, [], obs_all_fit)
-    (jac0_free,) = project_out(tcols0, jac0)
-    ident = analyze_identifiability(jac0_free, PARAM_NAMES, priority=mdh_priority(start_params))
-    geo_free = np.zeros(N_PARAMS, dtype=bool)
-    geo_free[ident.identifiable_index] = True
-    unidentifiable = [r.describe() for r in ident.removed]
+    geo_free, unidentifiable, jac0 = _free_geometry(mass, start, obs_all.take(fit_all))
     ctx = Context(mass, obs_all, fit_all, check_all, geo_free, options)
     base_rms, base_max = ctx.check_stats(start)
     geo_fit = ctx.fit(start, [])
@@ -230,11 +170,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
     geo_fit = _with_step_at(geo_fit, step_at)
 
     # 3. candidates and selection
-    cands = [
-        dataclasses.replace(c, searched=searched) if c.effect == "step" else c
-        for c in all_candidates(options.harmonics)
-        if options.effects is None or c.effect in options.effects
-    ]
+    cands = _candidates(options, searched)
     theta_norm = np.linalg.norm(jac0[:, :, 0:30:5], axis=(0, 1))
     reasons = data_reasons(cands, ctx.obs_fit, mass, start_params, theta_norm)
     avail = _identifiable(ctx, geo_fit, [c for c in cands if c not in reasons], reasons)
@@ -302,7 +238,7 @@ def diagnose(dataset: Dataset, robot: RobotDescription, options: DiagnoseOptions
         where=where,
         directions=prepared.directions,
         stations=None if prepared.stations is None else prepared.stations.to_json(),
-        orientation=None if probe is None else _orientation_words(prepared.probe_sigma_deg),
+        orientation=_orientation_words(prepared.probe_sigma_deg) if probe else None,
         agreement=agreement,
         unnamed=[u.to_json() for u in unnamed],
         residual_structure=structure,
@@ -412,7 +348,7 @@ def _ladder(
 
 
 def _noise_floor(
-    obs: Observations,
+    obs: MeasuredRows,
     tracker_sigma_mm: float | None,
     reflectors_mm: FloatArray | None = None,
     sigma_mm: FloatArray | None = None,
@@ -582,7 +518,7 @@ def _structure(ctx: Context, dataset: Dataset, steps: list[Step]) -> list[Struct
 
 def _agreement(
     ctx: Context,
-    obs: Observations,
+    obs: MeasuredRows,
     fit_rows: NDArray[np.int64],
     check_rows: NDArray[np.int64],
     dataset: Dataset,
@@ -627,20 +563,66 @@ def _orientation_words(probe_sigma_deg: float) -> str:
 
 
 def _every_target(
-    obs: Observations,
-    more_mm: FloatArray,
-    offsets_mm: FloatArray,
-    fit_rows: NDArray[np.int64],
-    check_rows: NDArray[np.int64],
-) -> tuple[Observations, NDArray[np.int64], NDArray[np.int64]]:
-    """The observations of every target (:meth:`Observations.with_targets`) and their fit and check rows."""
-    k, n = 1 + more_mm.shape[1], len(obs)
-    every = obs.with_targets(np.asarray(more_mm, dtype=float), offsets_mm)
+    prepared: PreparedCampaign, mass: MassModel, start: FitResult, tracker_sigma_mm: float | None
+) -> tuple[MeasuredRows, NDArray[np.int64], NDArray[np.int64], bool]:
+    """The rows of every target (:meth:`MeasuredRows.stack_targets`: the data set's further
+    reflectors, then a 6-DOF probe's orientation as three further targets along its axes, each at
+    its place on the flange of the twin ``start``), their fit and check rows, and whether the
+    probe's orientation is among them. The rows as they are with one target and no probe."""
+    obs, fit_rows, check_rows = prepared.measured, prepared.fit_rows, prepared.check_rows
+    more = prepared.dataset.more_xyz_mm
+    probe = _probe_targets(prepared.dataset, tracker_sigma_mm, prepared.probe_sigma_deg)
+    if probe is not None:
+        more = probe if more is None else np.concatenate([more, probe], axis=1)
+    if more is None:
+        return obs, fit_rows, check_rows, False
+    offsets = target_offsets_mm(mass, start, obs.take(fit_rows), more[fit_rows])
+    k, n = 1 + more.shape[1], len(obs)
     return (
-        every,
+        obs.stack_targets(np.asarray(more, dtype=float), offsets),
         np.concatenate([fit_rows + i * n for i in range(k)]),
         np.concatenate([check_rows + i * n for i in range(k)]),
+        probe is not None,
     )
+
+
+def _preparation(options: DiagnoseOptions) -> PrepareOptions:
+    """How the diagnosis prepares a campaign: directions inferred when the file has none, and at
+    least as many fit rows as the geometric step has parameters."""
+    return PrepareOptions(
+        frame=options.frame,
+        need_directions=True,
+        infer_directions=options.infer_directions,
+        min_fit_rows=N_PARAMS,
+        min_fit_rows_for="parameters of the geometric step",
+        seed=options.seed,
+        check_fraction=options.check_fraction,
+        probe_sigma_deg=options.probe_sigma_deg,
+    )
+
+
+def _free_geometry(
+    mass: MassModel, start: FitResult, obs_fit: MeasuredRows
+) -> tuple[NDArray[np.bool_], list[str], FloatArray]:
+    """The geometric step's free entries (mask of 39: the identifiable ones at the fit rows, in MDH
+    priority, with the targets' places profiled out), the others in words, and the identification
+    Jacobian (n, 3, 39) of ``start`` there."""
+    _, jac0, tcols0 = linearize_targets(mass, start.params, start.effects, [], obs_fit)
+    (jac0_free,) = project_out(tcols0, jac0)
+    ident = analyze_identifiability(jac0_free, PARAM_NAMES, priority=mdh_priority(start.params))
+    geo_free = np.zeros(N_PARAMS, dtype=bool)
+    geo_free[ident.identifiable_index] = True
+    return geo_free, [r.describe() for r in ident.removed], jac0
+
+
+def _candidates(options: DiagnoseOptions, searched: int) -> list[Candidate]:
+    """The candidates tried (``options.effects``, else every one); the step's carry the number of
+    moments searched."""
+    return [
+        dataclasses.replace(c, searched=searched) if c.effect == "step" else c
+        for c in all_candidates(options.harmonics)
+        if options.effects is None or c.effect in options.effects
+    ]
 
 
 def _remainder(ctx: Context, steps: list[Step]) -> RemainderModel:

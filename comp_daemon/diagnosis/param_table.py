@@ -15,11 +15,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from comp_daemon.diagnosis.candidates import geometric_json_key
-from comp_daemon.diagnosis.fitting import Observations, linearize
+from comp_daemon.diagnosis.fitting import linearize
 from comp_daemon.diagnosis.result import Diagnosis, Step
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES
 from comp_daemon.models.effects import MassModel, effect_by_name
+from comp_daemon.models.rows import MeasuredRows
 
 __all__ = ["ParamRow", "parameter_rows"]
 
@@ -74,7 +75,7 @@ def parameter_rows(diag: Diagnosis) -> list[ParamRow]:
 
 
 def _standard_errors(
-    mass: MassModel, obs: Observations, step: Step, geo_idx: np.ndarray, names: list[str]
+    mass: MassModel, obs: MeasuredRows, step: Step, geo_idx: np.ndarray, names: list[str]
 ) -> np.ndarray | None:
     """Standard errors of [free geometric | names] at the step's fit, or None when not computable."""
     resid, jac = linearize(mass, step.fit.params, step.fit.effects, names, obs)

@@ -54,7 +54,7 @@ from comp_daemon.diagnosis.fitting import linearize, predict_mm
 from comp_daemon.diagnosis.result import Diagnosis, Step
 from comp_daemon.diagnosis.where import equivalent_joint_error_deg
 from comp_daemon.estimation.variogram import empirical_semivariogram
-from comp_daemon.models.effects import MassModel, effect_by_name, twin_inputs
+from comp_daemon.models.effects import MassModel, effect_by_name, twin_inputs_of
 
 __all__ = [
     "check_histogram_figure",
@@ -417,16 +417,11 @@ def predicted_measured_figure(
 
 def _driver(diag: Diagnosis, step: Step) -> tuple[FloatArray, str]:
     """The variable an effect depends on, per row, and its axis label (the catalogue's driver)."""
-    obs = diag.obs
-    inputs = twin_inputs(
+    inputs = twin_inputs_of(
         MassModel.from_robot(diag.robot),
         diag.baseline_fit.params,
-        obs.a_deg,
-        obs.dir,
-        obs.payload_kg,
-        obs.temp_c,
+        diag.obs,
         t_ref_c=diag.options.t_ref_c,
-        clock=obs.clock,
         step_at=diag.baseline_fit.effects.step_at,
     )
     return effect_by_name(step.effect).driver(inputs, step.joints[0] if step.joints else None)

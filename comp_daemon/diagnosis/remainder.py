@@ -287,6 +287,63 @@ class RemainderModel:
         )
 
 
+def _out_of_fold(
+    lp: LinearProblem,
+    cols: Sequence[int],
+    a_fit: FloatArray,
+    resid_fit: FloatArray,
+    joints: list[int],
+    seed: int,
+) -> tuple[FloatArray, FloatArray, list[GPHyper]]:
+    """Per fold of ``lp``: the parametric model and the remainder model fitted without it. The
+    remainder (n, k) of each fit row before and after the remainder model, out of fold, and each
+    fold's hyperparameters."""
+    fold_resid = _fold_fits(lp, cols)
+    before = np.empty_like(resid_fit)
+    after = np.empty_like(resid_fit)
+    hypers: list[GPHyper] = []
+    for f in range(lp.k):
+        test = lp.fold == f
+        train = ~test
+        r_train = fold_resid[f][train]
+        hyper = fit_hyperparameters(a_fit[train], r_train, joints, seed=seed + f)
+        hypers.append(hyper)
+        gp = GaussianProcessRemainder(hyper, a_fit[train], r_train)
+        before[test] = fold_resid[f][test]
+        after[test] = fold_resid[f][test] - gp.predict(a_fit[test])
+    return before, after, hypers
+
+
+def _gain_p_value(lp: LinearProblem, before: FloatArray, after: FloatArray, n_groups: int) -> float:
+    """One-sided t-test that the remainder model lowers the squared error, pose group by pose
+    group (the groups are the independent units); 1 when every group gains alike."""
+    gain = np.bincount(lp.cluster, weights=np.sum(before**2 - after**2, axis=1), minlength=n_groups)
+    if float(np.std(gain)) > 0.0:
+        return float(scipy.stats.ttest_1samp(gain, 0.0, alternative="greater").pvalue)
+    return 1.0
+
+
+def _pooled(hypers: list[GPHyper], joints: list[int]) -> GPHyper:
+    """The folds' hyperparameters pooled: the geometric mean of each."""
+    return GPHyper(
+        joints=tuple(joints),
+        length_deg=np.exp(np.mean([np.log(h.length_deg) for h in hypers], axis=0)),
+        signal_var=float(np.exp(np.mean([math.log(h.signal_var) for h in hypers]))),
+        noise_var=float(np.exp(np.mean([math.log(h.noise_var) for h in hypers]))),
+    )
+
+
+def _verdict(cv_before: float, cv_after: float, p_value: float, *, wins: bool, kept: bool) -> str:
+    """Why the remainder model is kept or not, in words."""
+    gain_pct = 100.0 * (1.0 - cv_after / cv_before) if cv_before > 0 else 0.0
+    if kept:
+        return f"cross-validated RMS −{gain_pct:.1f} %, p = {p_value:.2g}"
+    if not wins:
+        moved = f"{abs(gain_pct):.1f} % {'lower' if gain_pct >= 0 else 'higher'}"
+        return f"cross-validated RMS {moved}, needs {MIN_GAIN_PCT:g} % lower"
+    return f"cross-validated RMS −{gain_pct:.1f} % but p = {p_value:.2g} ≥ {ALPHA:g}"
+
+
 def _fold_fits(lp: LinearProblem, cols: Sequence[int]) -> list[FloatArray]:
     """For each fold, the (n, k) residual of every fit row under ``cols`` fitted without that fold."""
     idx = np.asarray(cols, dtype=np.int64)
@@ -328,42 +385,14 @@ def judge_remainder(
     joints = _moving_joints(a_fit)
     if not joints:
         return RemainderModel(False, False, "no joint moves over the fit rows")
-    fold_resid = _fold_fits(lp, cols)
-    before = np.empty_like(resid_fit)
-    after = np.empty_like(resid_fit)
-    hypers: list[GPHyper] = []
-    for f in range(lp.k):
-        test = lp.fold == f
-        train = ~test
-        r_train = fold_resid[f][train]
-        hyper = fit_hyperparameters(a_fit[train], r_train, joints, seed=seed + f)
-        hypers.append(hyper)
-        gp = GaussianProcessRemainder(hyper, a_fit[train], r_train)
-        before[test] = fold_resid[f][test]
-        after[test] = fold_resid[f][test] - gp.predict(a_fit[test])
+    before, after, hypers = _out_of_fold(lp, cols, a_fit, resid_fit, joints, seed)
     cv_before, cv_after = _rms(before), _rms(after)
-    gain = np.bincount(lp.cluster, weights=np.sum(before**2 - after**2, axis=1), minlength=n_groups)
-    if float(np.std(gain)) > 0.0:
-        p_value = float(scipy.stats.ttest_1samp(gain, 0.0, alternative="greater").pvalue)
-    else:
-        p_value = 1.0
+    p_value = _gain_p_value(lp, before, after, n_groups)
     wins = cv_after < cv_before * (1.0 - MIN_GAIN_PCT / 100.0)
     kept = wins and p_value < ALPHA
-    hyper = GPHyper(
-        joints=tuple(joints),
-        length_deg=np.exp(np.mean([np.log(h.length_deg) for h in hypers], axis=0)),
-        signal_var=float(np.exp(np.mean([math.log(h.signal_var) for h in hypers]))),
-        noise_var=float(np.exp(np.mean([math.log(h.noise_var) for h in hypers]))),
-    )
+    hyper = _pooled(hypers, joints)
     k = resid_fit.shape[1]
-    gain_pct = 100.0 * (1.0 - cv_after / cv_before) if cv_before > 0 else 0.0
-    if kept:
-        reason = f"cross-validated RMS −{gain_pct:.1f} %, p = {p_value:.2g}"
-    elif not wins:
-        moved = f"{abs(gain_pct):.1f} % {'lower' if gain_pct >= 0 else 'higher'}"
-        reason = f"cross-validated RMS {moved}, needs {MIN_GAIN_PCT:g} % lower"
-    else:
-        reason = f"cross-validated RMS −{gain_pct:.1f} % but p = {p_value:.2g} ≥ {ALPHA:g}"
+    reason = _verdict(cv_before, cv_after, p_value, wins=wins, kept=kept)
     common: dict[str, Any] = {
         "joints": [j + 1 for j in joints],
         "length_scales_deg": {str(j + 1): float(v) for j, v in zip(joints, hyper.length_deg, strict=True)},

@@ -17,11 +17,11 @@ from numpy.typing import NDArray
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
 from comp_daemon.diagnosis.agreement import Agreement
 from comp_daemon.diagnosis.comparison import DEFAULT_MODELS, ModelComparison, check_model_names
-from comp_daemon.diagnosis.fitting import FitResult, Observations
+from comp_daemon.diagnosis.fitting import FitResult
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
 from comp_daemon.models.effects import EFFECTS
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
+from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG, MeasuredRows
 from comp_daemon.preparation.campaign import Directions
 from comp_daemon.robot.description import RobotDescription
 
@@ -150,7 +150,7 @@ class Diagnosis:
 
     robot: RobotDescription
     dataset: Dataset
-    obs: Observations
+    obs: MeasuredRows
     fit_rows: NDArray[np.int64]
     check_rows: NDArray[np.int64]
     split_message: str

@@ -23,7 +23,6 @@ from numpy.typing import NDArray
 from comp_daemon.diagnosis.candidates import Candidate
 from comp_daemon.diagnosis.fitting import (
     FitResult,
-    Observations,
     at_fit,
     fit_twin,
     linearize_targets,
@@ -34,6 +33,7 @@ from comp_daemon.diagnosis.result import DiagnoseOptions, rounded
 from comp_daemon.diagnosis.stats import LinearProblem, make_folds
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams
 from comp_daemon.models.effects import MassModel
+from comp_daemon.models.rows import MeasuredRows
 
 __all__ = ["TIME_NUISANCE_BINS", "Context", "distance_stats", "names_of", "select", "time_nuisance"]
 
@@ -61,7 +61,7 @@ class Context:
     def __init__(
         self,
         mass: MassModel,
-        obs: Observations,
+        obs: MeasuredRows,
         fit_rows: NDArray[np.int64],
         check_rows: NDArray[np.int64],
         geo_free: NDArray[np.bool_],
@@ -136,7 +136,7 @@ class Context:
         return distance_stats(obs.xyz_mm - predict_mm(self.mass, fit.params, fit.effects, obs))
 
 
-def _tcp_rows(obs: Observations) -> NDArray[np.int64]:
+def _tcp_rows(obs: MeasuredRows) -> NDArray[np.int64]:
     return np.arange(len(obs)) if obs.target is None else np.flatnonzero(obs.target == 0)
 
 

@@ -39,9 +39,10 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.diagnosis.fitting import FitResult, Observations, flange_mm, seen_from_flange
+from comp_daemon.diagnosis.fitting import FitResult, flange_mm, seen_from_flange
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state
 from comp_daemon.models.kinematic import calibrate_kinematic
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["flange_errors", "flange_pose_errors", "flange_words", "noise_from_targets", "target_offsets_mm"]
@@ -105,7 +106,7 @@ def _summary(position: FloatArray, angle: FloatArray) -> dict[str, float]:
 
 def _six_dof(
     robot: RobotDescription,
-    obs: Observations,
+    obs: MeasuredRows,
     meas: FloatArray,
     frame: str,
     fit_rows: NDArray[np.int64],
@@ -127,7 +128,7 @@ def _six_dof(
     return _summary(*flange_pose_errors(origin, twin, meas[check_rows]))
 
 
-def target_offsets_mm(mass: MassModel, fit: FitResult, obs: Observations, more_mm: FloatArray) -> FloatArray:
+def target_offsets_mm(mass: MassModel, fit: FitResult, obs: MeasuredRows, more_mm: FloatArray) -> FloatArray:
     """(K − 1, 3) the further targets' positions in the flange frame (mm): each the mean of its
     measured points ``more_mm`` (n, K − 1, 3) seen from the flange of the twin ``fit`` at ``obs``."""
     rot, origin = flange_mm(mass, fit.params, fit.effects, obs)
@@ -138,7 +139,7 @@ def target_offsets_mm(mass: MassModel, fit: FitResult, obs: Observations, more_m
 def flange_errors(
     mass: MassModel,
     fit: FitResult,
-    obs: Observations,
+    obs: MeasuredRows,
     reflectors_mm: FloatArray | None,
     fit_rows: NDArray[np.int64],
     check_rows: NDArray[np.int64],

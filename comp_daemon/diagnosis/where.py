@@ -25,10 +25,11 @@ from typing import Any
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.diagnosis.fitting import FitResult, Observations, linearize
+from comp_daemon.diagnosis.fitting import FitResult, linearize
 from comp_daemon.diagnosis.result import Step, final_step, implicated_joints
 from comp_daemon.diagnosis.stats import LinearProblem
 from comp_daemon.models.effects import MassModel, effect_by_name
+from comp_daemon.models.rows import MeasuredRows
 
 __all__ = ["Baseline", "equivalent_joint_error_deg", "locate", "signed_pct"]
 
@@ -121,7 +122,7 @@ def _regions(xyz_mm: FloatArray, dist_mm: FloatArray) -> list[dict[str, Any]]:
 
 
 def locate(
-    obs: Observations,
+    obs: MeasuredRows,
     mass: MassModel,
     steps: Sequence[Step],
     baseline: Baseline,

@@ -1,4 +1,5 @@
-"""SO(3) conversions, in one place: skew matrices, rotation vectors ↔ matrices, the left Jacobian.
+"""SO(3) conversions, in one place: skew matrices, rotation vectors ↔ matrices, unit quaternions ↔
+matrices, the left Jacobian.
 
 Batch-first: every function takes (…, 3) rotation vectors (rad) or (…, 3, 3) matrices and keeps the
 leading shape. Rotation vectors are axis × angle (rad), Rodrigues' formula.
@@ -8,8 +9,16 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import NDArray
+from scipy.spatial.transform import Rotation
 
-__all__ = ["left_jacobian", "matrix_to_rotvec", "rotvec_to_matrix", "skew"]
+__all__ = [
+    "left_jacobian",
+    "matrix_to_quat",
+    "matrix_to_rotvec",
+    "quat_to_matrix",
+    "rotvec_to_matrix",
+    "skew",
+]
 
 FloatArray = NDArray[np.float64]
 
@@ -64,3 +73,14 @@ def left_jacobian(rotvec: FloatArray) -> FloatArray:
     safe = np.where(small, 1.0, angle)
     big = np.eye(3) + (1.0 - np.cos(safe)) / safe**2 * k + (safe - np.sin(safe)) / safe**3 * kk
     return np.where(small, np.eye(3) + 0.5 * k + kk / 6.0, big)
+
+
+def quat_to_matrix(q_wxyz: FloatArray) -> FloatArray:
+    """(n, 3, 3) rotation matrices of unit quaternions (n, 4), w first."""
+    return np.asarray(Rotation.from_quat(np.asarray(q_wxyz, dtype=float), scalar_first=True).as_matrix())
+
+
+def matrix_to_quat(rot: FloatArray) -> FloatArray:
+    """(n, 4) unit quaternions (w first, w ≥ 0) of rotation matrices (n, 3, 3)."""
+    q = np.asarray(Rotation.from_matrix(np.asarray(rot, dtype=float)).as_quat(scalar_first=True))
+    return np.where(q[..., :1] < 0, -q, q)

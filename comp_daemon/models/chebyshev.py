@@ -62,8 +62,9 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, measured_positions
 from comp_daemon.models.covariance import attach_covariance
-from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, ModelSpec, lm_info, report_info
+from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec, lm_info, report_info
 from comp_daemon.models.kind import ModelKind
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -569,7 +570,7 @@ def select_order(
 
 
 def fit_chebyshev_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """The Chebyshev model of seed 000: the spec's order (default 3), or chosen by cross-validation."""
     selection_info: dict[str, Any] | None = None

@@ -69,7 +69,6 @@ from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
 from comp_daemon.models.fitting import (
     FitOptions,
-    FitRows,
     FittedModel,
     ModelSpec,
     identified_info,
@@ -80,6 +79,7 @@ from comp_daemon.models.fitting import (
 from comp_daemon.models.kind import ModelKind
 from comp_daemon.models.kinematic import mdh_payload, params_from_payload
 from comp_daemon.models.kinematic_kind import KINEMATIC_PARAMETERS
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -397,14 +397,14 @@ def calibrate_compliance(
 
 
 def fit_compliance_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """Seed 004's compliance of joints 2 and 3 under the rows' payloads, on the whole kinematic
     geometry (``compliance``; the compliance kept only if it earns its place, every time with
     ``:all``) or on the zero offsets alone (``compliance:paper``, the paper's form)."""
     geometry = not spec.paper
 
-    def calibrate(effs: Sequence[str], sub: FitRows, fo: FitOptions) -> ComplianceFit:
+    def calibrate(effs: Sequence[str], sub: MeasuredRows, fo: FitOptions) -> ComplianceFit:
         return calibrate_compliance(
             robot,
             sub.a_deg,

@@ -3,12 +3,13 @@ they share, and the summaries of a fit.
 
 Each kind's module (:mod:`comp_daemon.models.registry` lists them) has a fit function of one
 signature, ``fit(robot, rows, spec, options) -> FittedModel``: ``rows`` are the measured rows
-(:class:`FitRows`: axis values, TCP positions, and the optional columns a kind may use), ``spec``
-the parsed model name (:class:`ModelSpec`: kind, joint effects, Chebyshev order, options),
-``options`` the door's settings (:class:`FitOptions`: frame, cross-validation folds and seed). The
-result holds the model, the frame the data were in and a JSON-ready summary of the fit (rows, RMS,
-solver, identifiability, selection) built with :func:`lm_info`, :func:`report_info`,
-:func:`identified_info` and, for a kinematic base, :func:`kinematic_info`.
+(:class:`~comp_daemon.models.rows.MeasuredRows`: axis values, TCP positions, and the optional
+columns a kind may use), ``spec`` the parsed model name (:class:`ModelSpec`: kind, joint effects,
+Chebyshev order, options), ``options`` the door's settings (:class:`FitOptions`: frame,
+cross-validation folds and seed). The result holds the model, the frame the data were in and a
+JSON-ready summary of the fit (rows, RMS, solver, identifiability, selection) built with
+:func:`lm_info`, :func:`report_info`, :func:`identified_info` and, for a kinematic base,
+:func:`kinematic_info`.
 
 What earns its place. The joint effects of the kinematic, kriging and compliance kinds, a kriging
 stage on its base and per-joint kriging ranges are kept only if they lower the error of held-out
@@ -20,7 +21,7 @@ back to what is left (a kriging kind whose kriging is dropped is its kinematic b
 (``kinematic:all+ratio+backlash``, ``kriging-backlash:all``, ``compliance:all``) keeps every part, as
 the papers do.
 
-Several targets per pose (``x2, y2, z2`` … of the data set, :attr:`FitRows.more_xyz_mm`): the
+Several targets per pose (``x2, y2, z2`` … of the data set, ``MeasuredRows.more_xyz_mm``): the
 kinematic calibration, and the kinematic base of both kriging kinds, identify every target's flange
 offset with the rest and fit all targets' positions (6-DOF with three or more targets,
 :mod:`comp_daemon.models.kinematic`); the model predicts, and every kind is judged on, the TCP (the
@@ -42,20 +43,19 @@ import hashlib
 import threading
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.data.dataset import Dataset
 from comp_daemon.estimation.identifiability import IdentifiabilityReport
 from comp_daemon.estimation.lm import LMResult
 from comp_daemon.estimation.registration import detect_frame
 from comp_daemon.estimation.selection import Selection, keep_all, select_kinematic_effects
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.base import ErrorModel, as_axes, further_targets, measured_positions
+from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.covariance import (
     ParameterCovariance,
     attach_covariance,
@@ -63,12 +63,11 @@ from comp_daemon.models.covariance import (
     near_dependent_pairs,
 )
 from comp_daemon.models.kinematic import KinematicFit, calibrate_kinematic
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG, quat_to_matrix
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
     "FitOptions",
-    "FitRows",
     "FittedModel",
     "ModelSpec",
     "attach_tcp_covariance",
@@ -148,98 +147,6 @@ class FitOptions:
 
 
 @dataclass(frozen=True, slots=True)
-class FitRows:
-    """Measured rows: commanded axes (n, 6, deg), TCP (n, 3, mm) and the optional columns."""
-
-    a_deg: NDArray[np.float64]
-    xyz_mm: NDArray[np.float64]
-    dir: NDArray[np.float64] | None = None
-    payload_kg: NDArray[np.float64] | float = 0.0
-    temp_c: NDArray[np.float64] | None = None
-    more_xyz_mm: NDArray[np.float64] | None = None  # (n, K − 1, 3) further targets on the flange
-    sigma_mm: NDArray[np.float64] | None = (
-        None  # (n,) declared position σ per row (weights the kinematic fit)
-    )
-    station: NDArray[np.intp] | None = None  # (n,) each row's tracker station (index into station_names)
-    station_names: tuple[str, ...] | None = None
-    probe_r: NDArray[np.float64] | None = None  # (n, 3, 3) a 6-DOF probe's measured rotations
-    probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG  # the probe's orientation σ per axis
-    n: int = field(init=False)
-
-    def __post_init__(self) -> None:
-        a = as_axes(self.a_deg)
-        p = measured_positions(self.xyz_mm, a.shape[0])
-        if self.more_xyz_mm is not None:
-            object.__setattr__(self, "more_xyz_mm", further_targets(self.more_xyz_mm, a.shape[0]))
-        object.__setattr__(self, "a_deg", a)
-        object.__setattr__(self, "xyz_mm", p)
-        object.__setattr__(self, "n", a.shape[0])
-
-    def take(self, rows: NDArray[np.intp]) -> FitRows:
-        """These rows only (every column)."""
-        payload = self.payload_kg if np.ndim(self.payload_kg) == 0 else np.asarray(self.payload_kg)[rows]
-        return FitRows(
-            self.a_deg[rows],
-            self.xyz_mm[rows],
-            None if self.dir is None else self.dir[rows],
-            payload,
-            None if self.temp_c is None else self.temp_c[rows],
-            None if self.more_xyz_mm is None else self.more_xyz_mm[rows],
-            None if self.sigma_mm is None else self.sigma_mm[rows],
-            None if self.station is None else self.station[rows],
-            self.station_names,
-            None if self.probe_r is None else self.probe_r[rows],
-            self.probe_sigma_deg,
-        )
-
-    def errors(self, model: ErrorModel) -> NDArray[np.float64]:
-        """(n, 3) measured − predicted of ``model`` on these rows (mm)."""
-        return self.xyz_mm - model.predict_tcp_mm(self.a_deg, self.dir, self.payload_kg, self.temp_c)
-
-    @classmethod
-    def of(
-        cls,
-        dataset: Dataset,
-        rows: NDArray[np.intp] | slice = slice(None),
-        unknown_dir: NDArray[np.bool_] | None = None,
-        probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG,
-    ) -> FitRows:
-        """These rows of a measurement data set (axis values and positions required);
-        ``unknown_dir`` (n, 6) marks approach directions that are not known (set to 0);
-        ``probe_sigma_deg`` the orientation σ of the probe whose ``qw…qz`` the rows carry."""
-        if dataset.a_deg is None or dataset.xyz_mm is None:
-            raise ValueError(f"{dataset.source}: a fit needs a1..a6 and x, y, z")
-        station, names = None, None
-        if dataset.station is not None:
-            labels, index = np.unique(np.asarray(dataset.station, dtype=str), return_inverse=True)
-            station, names = np.asarray(index, dtype=np.intp).reshape(-1)[rows], tuple(str(s) for s in labels)
-        return cls(
-            dataset.a_deg[rows],
-            dataset.xyz_mm[rows],
-            dir=None if dataset.dir is None else directions_of(dataset, rows, unknown_dir),
-            payload_kg=dataset.payload_kg[rows],
-            temp_c=None if dataset.temp_c is None else dataset.temp_c[rows],
-            more_xyz_mm=None if dataset.more_xyz_mm is None else dataset.more_xyz_mm[rows],
-            sigma_mm=None if dataset.sigma_mm is None else dataset.sigma_mm[rows],
-            station=station,
-            station_names=names,
-            probe_r=None if dataset.probe_q_wxyz is None else quat_to_matrix(dataset.probe_q_wxyz[rows]),
-            probe_sigma_deg=probe_sigma_deg,
-        )
-
-
-def directions_of(
-    dataset: Dataset, rows: NDArray[np.intp] | slice, unknown_dir: NDArray[np.bool_] | None
-) -> NDArray[np.float64]:
-    """The ``dir`` columns of ``rows`` as floats, 0 (unknown) where ``unknown_dir`` says so."""
-    assert dataset.dir is not None
-    d = dataset.dir[rows].astype(float)
-    if unknown_dir is not None:
-        d[unknown_dir[rows]] = 0.0
-    return d
-
-
-@dataclass(frozen=True, slots=True)
 class FittedModel:
     model: ErrorModel
     frame: Literal["base", "tracker"]
@@ -288,14 +195,14 @@ def identified_info(
     return {n: {"value": float(v), "std": float(s)} for n, v, s in zip(names, values, std, strict=True)}
 
 
-def rms_mm(model: ErrorModel, rows: FitRows) -> float:
+def rms_mm(model: ErrorModel, rows: MeasuredRows) -> float:
     err = model.predict_tcp_mm(rows.a_deg, rows.dir, rows.payload_kg, rows.temp_c) - rows.xyz_mm
     return float(np.sqrt(np.mean(np.sum(err**2, axis=1))))
 
 
 def _kinematic(
     robot: RobotDescription,
-    rows: FitRows,
+    rows: MeasuredRows,
     effects: Sequence[str],
     options: FitOptions,
     *,
@@ -401,7 +308,9 @@ def _angle_deg(t: NDArray[np.float64]) -> float:
     return float(np.degrees(np.arccos(np.clip((np.trace(t[:3, :3]) - 1.0) / 2.0, -1.0, 1.0))))
 
 
-def _data_frame(robot: RobotDescription, rows: FitRows, options: FitOptions) -> Literal["base", "tracker"]:
+def _data_frame(
+    robot: RobotDescription, rows: MeasuredRows, options: FitOptions
+) -> Literal["base", "tracker"]:
     """The frame of the measured positions: ``options.frame``, or detected on every row."""
     if options.frame != "auto":
         return options.frame
@@ -411,11 +320,11 @@ def _data_frame(robot: RobotDescription, rows: FitRows, options: FitOptions) -> 
 
 def select_effects(
     robot: RobotDescription,
-    rows: FitRows,
+    rows: MeasuredRows,
     spec: ModelSpec,
     options: FitOptions,
     effects: Sequence[str],
-    fit_on: Callable[[Sequence[str], FitRows, FitOptions], ErrorModel] | None = None,
+    fit_on: Callable[[Sequence[str], MeasuredRows, FitOptions], ErrorModel] | None = None,
 ) -> tuple[tuple[str, ...], Selection]:
     """The ``effects`` that earn their place on the fit rows (:mod:`comp_daemon.estimation.selection`),
     every one of them with the spec's ``all`` option. ``fit_on(effects, rows, options)`` fits the
@@ -426,7 +335,7 @@ def select_effects(
         return tuple(effects), keep_all(effects)
     fold_options = FitOptions(_data_frame(robot, rows, options), options.cv_folds, options.seed)
 
-    def kinematic_on(effs: Sequence[str], sub: FitRows, fo: FitOptions) -> ErrorModel:
+    def kinematic_on(effs: Sequence[str], sub: MeasuredRows, fo: FitOptions) -> ErrorModel:
         return _kinematic(robot, sub, effs, fo, report_ranks=not FOLD_SHORTCUTS).model
 
     fit = fit_on or kinematic_on
@@ -462,7 +371,7 @@ def forget_base_fits() -> None:
 
 def _base_key(
     robot: RobotDescription,
-    rows: FitRows,
+    rows: MeasuredRows,
     keep_all_effects: bool,
     options: FitOptions,
     effects: Sequence[str],
@@ -503,7 +412,7 @@ def _base_key(
 
 
 def selected_base(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions, effects: Sequence[str]
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions, effects: Sequence[str]
 ) -> _BaseFit:
     """The ``effects`` that earn their place (:func:`select_effects`) and the calibration with
     them, made once for every kind that asks for the same (module docstring); the caller gets its

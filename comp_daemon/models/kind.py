@@ -14,12 +14,13 @@ from dataclasses import dataclass
 
 from comp_daemon.models.base import ErrorModel
 from comp_daemon.models.effects import effect_by_name
-from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, ModelSpec
+from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["FitFunction", "ModelKind"]
 
-FitFunction = Callable[[RobotDescription, FitRows, ModelSpec, FitOptions], FittedModel]
+FitFunction = Callable[[RobotDescription, MeasuredRows, ModelSpec, FitOptions], FittedModel]
 
 
 @dataclass(frozen=True, slots=True)

@@ -77,12 +77,12 @@ from comp_daemon.models.effects import (
     twin_tcp_mm,
 )
 from comp_daemon.models.observations import (
-    DEFAULT_PROBE_SIGMA_DEG,
     FrameObservations,
     ObservedProblem,
     angle_deg,
     mean_rotation,
 )
+from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [

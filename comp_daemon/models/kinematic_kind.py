@@ -15,7 +15,6 @@ from __future__ import annotations
 from comp_daemon.models.effects import effect_param_names
 from comp_daemon.models.fitting import (
     FitOptions,
-    FitRows,
     FittedModel,
     ModelSpec,
     attach_tcp_covariance,
@@ -24,6 +23,7 @@ from comp_daemon.models.fitting import (
 )
 from comp_daemon.models.kind import ModelKind
 from comp_daemon.models.kinematic import KinematicModel
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["KIND", "KINEMATIC_PARAMETERS", "fit_kinematic_kind", "kinematic_parameters"]
@@ -37,7 +37,7 @@ def kinematic_parameters(spec: ModelSpec) -> int:
 
 
 def fit_kinematic_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """MDH calibration with those of the spec's joint effects that earn their place (all of them
     with ``:all``)."""

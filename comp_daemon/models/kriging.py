@@ -94,7 +94,6 @@ from comp_daemon.models.base import (
 from comp_daemon.models.effects import TRANSMISSION_EFFECTS
 from comp_daemon.models.fitting import (
     FitOptions,
-    FitRows,
     FittedModel,
     ModelSpec,
     attach_tcp_covariance,
@@ -104,6 +103,7 @@ from comp_daemon.models.fitting import (
 )
 from comp_daemon.models.kind import ModelKind
 from comp_daemon.models.kinematic_kind import kinematic_parameters
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -609,7 +609,7 @@ def _search_weights(
     return w, tuple(tried)
 
 
-def _kriging_info(kg: KrigingFit, rows: FitRows) -> dict[str, Any]:
+def _kriging_info(kg: KrigingFit, rows: MeasuredRows) -> dict[str, Any]:
     model = kg.model
     return {
         "rms_mm": rms_mm(model, rows),
@@ -630,7 +630,7 @@ def _kriging_info(kg: KrigingFit, rows: FitRows) -> dict[str, Any]:
 
 def _fit_kriging(
     robot: RobotDescription,
-    rows: FitRows,
+    rows: MeasuredRows,
     spec: ModelSpec,
     options: FitOptions,
     effects: Sequence[str],
@@ -693,7 +693,7 @@ def _decided(decision: Decision) -> Selection:
 
 
 def fit_kriging_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """Kriging of the residual of the kinematic calibration (with the spec's effects, if any) over
     the plain joint-space distance."""
@@ -701,7 +701,7 @@ def fit_kriging_kind(
 
 
 def fit_kriging_backlash_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """Seed 001 §2: direction-aware kriging on the kinematic + ratio + backlash calibration (and
     the spec's further effects, e.g. ``kriging-backlash+compliance``)."""

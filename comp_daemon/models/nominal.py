@@ -16,8 +16,9 @@ from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, Query, StoredModel
-from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, ModelSpec, rms_mm
+from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec, rms_mm
 from comp_daemon.models.kind import ModelKind
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["KIND", "NominalModel", "fit_nominal_kind"]
@@ -49,7 +50,7 @@ class NominalModel(ErrorModel):
 
 
 def fit_nominal_kind(
-    robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """The nominal geometry; on tracker data the base frame is registered (rigid fit), nothing else."""
     nominal = KinematicParams.from_robot(robot)

@@ -23,8 +23,9 @@ the difference of the three axes of the predicted and the measured frame, ``R_pr
 (k = x, y, z): for a small rotation error ``δθ`` its squared norm is ``2|δθ|²``. It is weighted against
 the positions by the declared uncertainties: with ``σ_p`` the row's position σ per axis (``sigma_mm``,
 else :data:`DEFAULT_PROBE_SIGMA_MM`) and ``σ_θ`` the probe's orientation σ per axis (option, default
-:data:`DEFAULT_PROBE_SIGMA_DEG`), the orientation residual is multiplied by ``σ_p/(σ_θ·√2)`` mm/rad,
-so that each row's cost is ``σ_p²·(|Δp|²/σ_p² + |δθ|²/σ_θ²)``: weighted least squares in mm.
+:data:`~comp_daemon.models.rows.DEFAULT_PROBE_SIGMA_DEG`), the orientation residual is multiplied
+by ``σ_p/(σ_θ·√2)`` mm/rad, so that each row's cost is ``σ_p²·(|Δp|²/σ_p² + |δθ|²/σ_θ²)``:
+weighted least squares in mm.
 
 The Jacobian is exact: the flange axis ``R_flange·m`` is the TCP of the twin with the tool at ``m``
 minus the one with the tool at the flange origin, whose Jacobians the twin gives.
@@ -38,33 +39,26 @@ from typing import Any
 
 import numpy as np
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 from comp_daemon.kinematics.params import N_PARAMS
-from comp_daemon.kinematics.so3 import left_jacobian, rotvec_to_matrix, skew
+from comp_daemon.kinematics.so3 import left_jacobian, quat_to_matrix, rotvec_to_matrix, skew
 from comp_daemon.models.effects import twin_state
 
 __all__ = [
-    "DEFAULT_PROBE_SIGMA_DEG",
     "DEFAULT_PROBE_SIGMA_MM",
     "MIN_STATION_ROWS",
     "MOUNT_NAMES",
     "FrameObservations",
     "ObservedProblem",
     "angle_deg",
-    "matrix_to_quat",
     "mean_rotation",
     "orientation_weight",
     "probe_axis_points_mm",
-    "quat_to_matrix",
     "station_param_names",
 ]
 
 FloatArray = NDArray[np.float64]
 
-#: a 6-DOF probe's orientation σ per axis (deg) unless the door is told otherwise: the class of a
-#: tracker's 6-DOF probe (Leica T-Mac: ±0.01° stated)
-DEFAULT_PROBE_SIGMA_DEG = 0.01
 #: the position σ per axis (mm) the orientation is weighted against when the rows declare none
 DEFAULT_PROBE_SIGMA_MM = 0.025
 #: a station gets its own correction in a fit only with at least this many rows in it
@@ -76,17 +70,6 @@ MOUNT_NAMES = ("probe_rx", "probe_ry", "probe_rz")
 def station_param_names(labels: Sequence[str]) -> list[str]:
     """The six correction parameters of each station: ``station_<name>_x`` … ``_rz``."""
     return [f"station_{s}_{c}" for s in labels for c in STATION_SUFFIXES]
-
-
-def quat_to_matrix(q_wxyz: FloatArray) -> FloatArray:
-    """(n, 3, 3) rotation matrices of unit quaternions (n, 4), w first."""
-    return np.asarray(Rotation.from_quat(np.asarray(q_wxyz, dtype=float), scalar_first=True).as_matrix())
-
-
-def matrix_to_quat(rot: FloatArray) -> FloatArray:
-    """(n, 4) unit quaternions (w first, w ≥ 0) of rotation matrices (n, 3, 3)."""
-    q = np.asarray(Rotation.from_matrix(np.asarray(rot, dtype=float)).as_quat(scalar_first=True))
-    return np.where(q[..., :1] < 0, -q, q)
 
 
 def mean_rotation(rot: FloatArray) -> FloatArray:

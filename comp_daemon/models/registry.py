@@ -46,9 +46,10 @@ from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models import chebyshev, compliance, kinematic_kind, kriging, nominal
 from comp_daemon.models.base import ErrorModel, StoredModel
 from comp_daemon.models.effects import EFFECTS, effect_by_name
-from comp_daemon.models.fitting import FitOptions, FitRows, FittedModel, ModelSpec
+from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec
 from comp_daemon.models.kind import ModelKind
 from comp_daemon.models.poe import model as poe
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.models.units import millimetre_problem
 from comp_daemon.robot.description import RobotDescription
 
@@ -302,7 +303,7 @@ def undetermined_reason(
 
 
 def fit_spec(
-    spec: ModelSpec, robot: RobotDescription, rows: FitRows, options: FitOptions | None = None
+    spec: ModelSpec, robot: RobotDescription, rows: MeasuredRows, options: FitOptions | None = None
 ) -> FittedModel:
     """Fit ``spec`` on ``rows``; :class:`MissingColumnError` naming a needed column the rows lack,
     :class:`UndeterminedModelError` when a compliance has no masses and no payload to load the joints
@@ -366,7 +367,7 @@ def fit_model(
     """Fit the model ``name`` (a model name; ``effects`` and ``order`` may also be given apart)."""
     spec = parse_model_name("+".join([name, *effects]))
     spec = with_order(spec, order)
-    rows = FitRows(a_deg, xyz_mm, dir, payload_kg, temp_c)
+    rows = MeasuredRows(a_deg, xyz_mm, dir, np.asarray(payload_kg, dtype=float), temp_c)
     return fit_spec(spec, robot, rows, FitOptions(frame, cv_folds, seed))
 
 

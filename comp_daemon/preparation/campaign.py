@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import dataclasses
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any, Literal
 
 import numpy as np
@@ -43,9 +44,8 @@ from comp_daemon.data.table import DEFAULT_CHECK_FRACTION, DEFAULT_SPLIT_SEED, D
 from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.fitting import FitRows, directions_of
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import MIN_POSES
+from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG, MeasuredRows
 from comp_daemon.models.units import millimetre_problem
 from comp_daemon.preparation.stations import Stations, register_stations
 from comp_daemon.robot.description import RobotDescription
@@ -187,15 +187,15 @@ class PreparedCampaign:
         """Reflectors measured per pose (1 + the further ``x2, y2, z2`` …)."""
         return self.dataset.n_reflectors
 
-    def dir_of(self, rows: NDArray[np.int64]) -> FloatArray | None:
-        """The ``dir`` columns of ``rows`` as floats, 0 where the inferred direction is unknown."""
-        if self.dataset.dir is None:
-            return None
-        return directions_of(self.dataset, rows, self.directions.unknown)
+    @cached_property
+    def measured(self) -> MeasuredRows:
+        """Every row of the data set as measured rows (:meth:`MeasuredRows.of_dataset`: every
+        target, the directions with unknown ones 0, the probe's σ), built once."""
+        return MeasuredRows.of_dataset(self.dataset, self.directions.unknown, self.probe_sigma_deg)
 
-    def rows(self, rows: NDArray[np.int64]) -> FitRows:
-        """The model-fitting view of ``rows`` (every target, the directions with unknown ones 0)."""
-        return FitRows.of(self.dataset, rows, self.directions.unknown, self.probe_sigma_deg)
+    def rows(self, rows: NDArray[np.int64]) -> MeasuredRows:
+        """These rows of :attr:`measured`."""
+        return self.measured.take(rows)
 
     def describe(self) -> list[str]:
         """The sentences a door says about the preparation (directions, axes that stand still,

@@ -41,8 +41,8 @@ from pydantic_core import PydanticCustomError
 
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED
 from comp_daemon.models.effects import EFFECTS
-from comp_daemon.models.observations import DEFAULT_PROBE_SIGMA_DEG
 from comp_daemon.models.registry import UnknownModelError, parse_model_name
+from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG
 
 __all__ = [
     "COMPARED_MODELS",

@@ -36,9 +36,10 @@ from comp_daemon.data.table import Dataset
 from comp_daemon.estimation.registration import frame_changes, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.fitting import FitRows
+from comp_daemon.kinematics.so3 import matrix_to_quat, quat_to_matrix
 from comp_daemon.models.kinematic import calibrate_kinematic
-from comp_daemon.models.observations import MIN_STATION_ROWS, matrix_to_quat, quat_to_matrix
+from comp_daemon.models.observations import MIN_STATION_ROWS
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["Station", "Stations", "judge_stations", "register_stations"]
@@ -149,7 +150,7 @@ def register_stations(
         int(s): np.asarray(world_ref @ _inverse(registration_of(int(s)))) for s in np.flatnonzero(n_fit)
     }
     first = _mapped(dataset, index, ref_T)
-    rows = FitRows.of(first, fit_rows, probe_sigma_deg=probe_sigma_deg)
+    rows = MeasuredRows.of_dataset(first, probe_sigma_deg=probe_sigma_deg).take(fit_rows)
     joint = calibrate_kinematic(
         robot,
         rows.a_deg,

@@ -9,7 +9,9 @@ One batch numerics package shared by the simulated plant, the calibration core a
 * :mod:`~comp_daemon.models.effects.params`: :class:`EffectParams`, the sizes of all effects, and
   the parameter names (:func:`effect_param_names`);
 * :mod:`~comp_daemon.models.effects.twin`: the twin's TCP (:func:`twin_tcp_mm`), its intermediates
-  (:func:`twin_state`) and the exact Jacobians (:func:`effect_jacobian`, :func:`twin_jacobian`).
+  (:func:`twin_state`, or :func:`twin_state_of` at measured rows) and the exact Jacobians
+  (:func:`effect_jacobian`, :func:`twin_jacobian`); what the effects derive from measured rows
+  (:func:`twin_inputs_of`, :func:`effect_data`).
 
 The effects, their composition and the table of their parameters and units are in the docstring
 of :mod:`~comp_daemon.models.effects.catalogue`; how the twin composes them by stage in that of
@@ -28,12 +30,15 @@ from comp_daemon.models.effects.params import EffectParams, effect_param_names
 from comp_daemon.models.effects.twin import (
     MassModel,
     TwinState,
+    effect_data,
     effect_jacobian,
     joint_output_axes_deg,
     twin_inputs,
+    twin_inputs_of,
     twin_jacobian,
     twin_jacobian_targets,
     twin_state,
+    twin_state_of,
     twin_tcp_mm,
 )
 
@@ -50,12 +55,15 @@ __all__ = [
     "TwinInputs",
     "TwinState",
     "effect_by_name",
+    "effect_data",
     "effect_jacobian",
     "effect_param_names",
     "joint_output_axes_deg",
     "twin_inputs",
+    "twin_inputs_of",
     "twin_jacobian",
     "twin_jacobian_targets",
     "twin_state",
+    "twin_state_of",
     "twin_tcp_mm",
 ]

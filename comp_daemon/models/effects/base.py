@@ -29,6 +29,7 @@ from numpy.typing import NDArray
 
 from comp_daemon.kinematics.forward import Chain
 from comp_daemon.kinematics.params import KinematicParams
+from comp_daemon.models.rows import MeasuredRows
 
 __all__ = [
     "N_JOINTS",
@@ -95,7 +96,10 @@ class ParamRef:
 
 @dataclass(frozen=True, slots=True)
 class TwinInputs:
-    """The per-pose inputs of the effects (n poses; every array already checked)."""
+    """The per-pose inputs of the effects (n poses; every array already checked): the poses'
+    columns and what the twin derives from them (``delta_t_k``, ``tau_nm``). Built by
+    :func:`~comp_daemon.models.effects.twin.twin_inputs` from arrays, and from measured rows by
+    :func:`~comp_daemon.models.effects.twin.twin_inputs_of`."""
 
     a_deg: FloatArray  # (n, 6) commanded axis values
     dir: FloatArray  # (n, 6) approach directions −1 / +1 (0 = unknown)
@@ -109,15 +113,34 @@ class TwinInputs:
 
 @dataclass(frozen=True, slots=True)
 class EffectData:
-    """What the fit rows of a campaign offer for identifying effects (the diagnosis's data check)."""
+    """What the fit rows of a campaign offer for identifying effects (the diagnosis's data check):
+    the rows, and what the twin adds to them (built by
+    :func:`~comp_daemon.models.effects.twin.effect_data`). A column the rows lack is None
+    (``dir``, ``temp_c``, ``clock``)."""
 
-    a_deg: FloatArray  # (n, 6)
-    dir: FloatArray | None  # (n, 6) or None without dir columns
-    payload_kg: FloatArray  # (n,)
-    temp_c: FloatArray | None  # (n,) or None without a temp_c column
+    rows: MeasuredRows
     tau_nm: FloatArray  # (n, 6) gravity torques of the nominal twin at the commanded poses
     moves_tcp: NDArray[np.bool_]  # (6,) whether each joint moves the TCP in these poses
-    clock: FloatArray | None = None  # (n,) campaign clock of the fit rows (h, or row number)
+
+    @property
+    def a_deg(self) -> FloatArray:
+        return self.rows.a_deg
+
+    @property
+    def dir(self) -> FloatArray | None:
+        return self.rows.dir
+
+    @property
+    def payload_kg(self) -> FloatArray:
+        return self.rows.payload_kg
+
+    @property
+    def temp_c(self) -> FloatArray | None:
+        return self.rows.temp_c
+
+    @property
+    def clock(self) -> FloatArray | None:
+        return self.rows.clock
 
     @property
     def tau_scale_nm(self) -> float:

@@ -39,9 +39,10 @@ from numpy.typing import NDArray
 from comp_daemon.kinematics.forward import Chain, chain, gravity_torques_nm, identification_jacobian
 from comp_daemon.kinematics.params import KinematicParams, as_six_columns
 from comp_daemon.models.base import approach_directions
-from comp_daemon.models.effects.base import N_JOINTS, Effect, TwinInputs
+from comp_daemon.models.effects.base import N_JOINTS, Effect, EffectData, TwinInputs
 from comp_daemon.models.effects.catalogue import EFFECT_CATALOGUE
 from comp_daemon.models.effects.params import EffectParams, parse_param_name
+from comp_daemon.models.rows import MeasuredRows
 
 if TYPE_CHECKING:
     from comp_daemon.robot.description import RobotDescription
@@ -49,12 +50,15 @@ if TYPE_CHECKING:
 __all__ = [
     "MassModel",
     "TwinState",
+    "effect_data",
     "effect_jacobian",
     "joint_output_axes_deg",
     "twin_inputs",
+    "twin_inputs_of",
     "twin_jacobian",
     "twin_jacobian_targets",
     "twin_state",
+    "twin_state_of",
     "twin_tcp_mm",
 ]
 
@@ -158,6 +162,41 @@ def twin_inputs(
     )
 
 
+def twin_inputs_of(
+    mass: MassModel,
+    params: KinematicParams,
+    rows: MeasuredRows,
+    *,
+    t_ref_c: float = 20.0,
+    with_torques: bool = True,
+    step_at: float = float("inf"),
+) -> TwinInputs:
+    """:func:`twin_inputs` at measured rows: the one place their columns (axis values,
+    directions, payload, temperature, clock) enter the twin."""
+    return twin_inputs(
+        mass,
+        params,
+        rows.a_deg,
+        rows.dir,
+        rows.payload_kg,
+        rows.temp_c,
+        t_ref_c=t_ref_c,
+        with_torques=with_torques,
+        clock=rows.clock,
+        step_at=step_at,
+    )
+
+
+def effect_data(
+    mass: MassModel, params: KinematicParams, rows: MeasuredRows, moves_tcp: NDArray[np.bool_]
+) -> EffectData:
+    """What ``rows`` offer for identifying effects: the rows, the gravity torques of ``params`` at
+    their commanded poses and ``moves_tcp`` (6,), whether each joint moves the TCP there."""
+    tau = twin_inputs_of(mass, params, rows).tau_nm
+    assert tau is not None  # asked for
+    return EffectData(rows, tau, moves_tcp)
+
+
 def _stage_delta(effect: Effect, values: tuple[Any, ...], basis: tuple[FloatArray, ...]) -> FloatArray:
     """(n, 6) what a linear axis / joint effect adds: Σ over its arrays of value·basis."""
     out: FloatArray = np.zeros(basis[0].shape[:2])
@@ -186,8 +225,6 @@ def twin_state(
     active effect needs them or ``with_torques`` asks for them (a Jacobian w.r.t. a compliance needs
     them even where every compliance is zero).
     """
-    active = [e for e in EFFECT_CATALOGUE if not effects.is_zero(e)]
-    torques = with_torques or any(e.needs_torques for e in active)
     x = twin_inputs(
         robot_or_arrays,
         params,
@@ -196,10 +233,45 @@ def twin_state(
         payload_kg,
         temp_c,
         t_ref_c=effects.t_ref_c,
-        with_torques=torques,
+        with_torques=with_torques or _torques_needed(effects),
         clock=clock,
         step_at=effects.step_at,
     )
+    return _state_at(params, effects, x)
+
+
+def twin_state_of(
+    mass: MassModel,
+    params: KinematicParams,
+    effects: EffectParams,
+    rows: MeasuredRows,
+    *,
+    with_torques: bool = False,
+) -> TwinState:
+    """:func:`twin_state` at measured rows (their inputs by :func:`twin_inputs_of`)."""
+    x = twin_inputs_of(
+        mass,
+        params,
+        rows,
+        t_ref_c=effects.t_ref_c,
+        with_torques=with_torques or _torques_needed(effects),
+        step_at=effects.step_at,
+    )
+    return _state_at(params, effects, x)
+
+
+def _active(effects: EffectParams) -> list[Effect]:
+    """The catalogue's effects with a non-zero parameter: the only ones evaluated."""
+    return [e for e in EFFECT_CATALOGUE if not effects.is_zero(e)]
+
+
+def _torques_needed(effects: EffectParams) -> bool:
+    return any(e.needs_torques for e in _active(effects))
+
+
+def _state_at(params: KinematicParams, effects: EffectParams, x: TwinInputs) -> TwinState:
+    """The twin's intermediates and TCP with ``effects`` at the checked inputs ``x``."""
+    active = _active(effects)
     n = x.a_deg.shape[0]
     a_eff = x.a_deg
     joint_delta: FloatArray = np.zeros((n, N_JOINTS))
@@ -376,19 +448,14 @@ def twin_jacobian(
 
 
 def twin_jacobian_targets(
-    robot_or_arrays: RobotDescription | MassModel,
+    mass: MassModel,
     params: KinematicParams,
     effects: EffectParams,
     names: Sequence[str],
     targets_mm: Sequence[FloatArray | None],
-    a_deg: FloatArray,
-    dir: FloatArray | None = None,
-    payload_kg: FloatArray | float = 0.0,
-    temp_c: FloatArray | None = None,
-    *,
-    clock: FloatArray | None = None,
+    rows: MeasuredRows,
 ) -> list[tuple[FloatArray, FloatArray]]:
-    """:func:`twin_jacobian` of several points on the flange at the same poses, from one twin.
+    """:func:`twin_jacobian` of several points on the flange at the poses of ``rows``, from one twin.
 
     ``targets_mm`` holds each point's place in the flange frame (mm), None for the TCP (the tool
     of ``params``). The twin (its effects, frames and the gravity torques, whose payload sits at the
@@ -396,10 +463,7 @@ def twin_jacobian_targets(
     those of :func:`twin_jacobian` with the point as the tool. Returns (position (n, 3), Jacobian
     (n, 3, 39 + len(names))) per point, in the order given.
     """
-    torques = _needs_torques(effects, names)
-    st = twin_state(
-        robot_or_arrays, params, effects, a_deg, dir, payload_kg, temp_c, with_torques=torques, clock=clock
-    )
+    st = twin_state_of(mass, params, effects, rows, with_torques=_needs_torques(effects, names))
     flange = st.chain.world_T_frame[:, 6]
     out = []
     for place in targets_mm:

@@ -46,7 +46,6 @@ from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, fin
 from comp_daemon.models.covariance import ParameterCovariance
 from comp_daemon.models.fitting import (
     FitOptions,
-    FitRows,
     FittedModel,
     ModelSpec,
     identified_info,
@@ -72,6 +71,7 @@ from comp_daemon.models.poe.twist import (
     twist_chain,
     twist_world_jacobian,
 )
+from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = ["KIND", "POE_MODEL_NAMES", "PoeErrorFit", "PoeErrorModel", "fit_poe", "fit_poe_kind"]
@@ -214,7 +214,9 @@ def fit_poe(
     return PoeErrorFit(model, fit, rms)
 
 
-def fit_poe_kind(robot: RobotDescription, rows: FitRows, spec: ModelSpec, options: FitOptions) -> FittedModel:
+def fit_poe_kind(
+    robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
+) -> FittedModel:
     """The POE calibration: a twist error per joint, the tool offset and the base frame
     (``poe``), or seed 002's errors Δl, Δθ and the base frame (``poe:paper``)."""
     nominal = KinematicParams.from_robot(robot)
