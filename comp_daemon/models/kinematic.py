@@ -31,10 +31,12 @@ tracker noise as the positions: the least-squares optimum of the measurements as
 choice of weight between millimetres and radians. A parameter that only the orientation sees (a
 wrist twist the TCP hardly feels) becomes better determined; parameters that move every target
 alike with an offset (``d6``, ``theta6`` against the targets' offsets) drop out as dependent.
-The target positions are computed from the twin's flange frame (payload at the TCP); the
-Jacobian of target k is the twin's with target k as the tool, whose compliance columns carry the
-payload at that target (exact without a payload or a compliance effect; otherwise a few per cent
-on those columns, which changes the steps, not the fixed point of an exact residual).
+The target positions are computed from the twin's flange frame (payload at the TCP); every
+target's Jacobian comes from that one twin (:func:`~comp_daemon.models.effects.twin_jacobian_targets`),
+target k's columns those of the twin with target k as the tool and the payload still at the TCP, so
+that its compliance columns are the derivative of its residual (with the payload moved onto
+target k they would be wrong by up to several times their size, and the steps near the optimum
+rejected until the step tolerance stopped the iteration short of it).
 
 Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`); effect units as in
 :mod:`comp_daemon.models.effects` (the catalogue: deg for backlash, 1 for the ratio error …).
@@ -43,7 +45,7 @@ Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`)
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -65,6 +67,7 @@ from comp_daemon.models.effects import (
     EffectParams,
     effect_param_names,
     twin_jacobian,
+    twin_jacobian_targets,
     twin_state,
     twin_tcp_mm,
 )
@@ -311,12 +314,26 @@ class KinematicProblem:
     def _target_jacobian(
         self, params: KinematicParams, eff: EffectParams, dx: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        tcp, jac = twin_jacobian(
-            self.robot, params, eff, self.eff_names, self.a, self.dir, self.payload, self.temp
+        return self._targets_jacobians(params, eff, dx, [None])[0]
+
+    def _targets_jacobians(
+        self,
+        params: KinematicParams,
+        eff: EffectParams,
+        dx: NDArray[np.float64],
+        places: Sequence[NDArray[np.float64] | None],
+    ) -> list[NDArray[np.float64]]:
+        """(n, 3, 39 + effects) per point on the flange (None: the tool of ``params``), from one
+        twin whose gravity torques carry the payload at the TCP, as the residual's do."""
+        parts = twin_jacobian_targets(
+            self.robot, params, eff, self.eff_names, places, self.a, self.dir, self.payload, self.temp
         )
-        # the base rotation is the rotation vector dx[33:36] applied on the left of the start frame
-        jac[:, :, 33:36] = -skew(tcp - dx[30:33]) @ left_jacobian(dx[33:36])
-        return jac
+        out = []
+        for tcp, jac in parts:
+            # the base rotation is the rotation vector dx[33:36] applied on the left of the start frame
+            jac[:, :, 33:36] = -skew(tcp - dx[30:33]) @ left_jacobian(dx[33:36])
+            out.append(jac)
+        return out
 
     def jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         raw = self._jacobian(x)
@@ -324,15 +341,16 @@ class KinematicProblem:
 
     def _jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         params, eff, dx = self.unpack(x)
-        jac = self._target_jacobian(params, eff, dx)
         if self.more_meas is None:
+            jac = self._target_jacobian(params, eff, dx)
             return jac[:, :, self._cols].reshape(-1, self._cols.size)
         n = self.a.shape[0]
         more = self.more_targets(x)
         m = more.shape[0]
-        blocks = [np.concatenate([jac[:, :, self._cols], np.zeros((n, 3, self.more_idx.size))], axis=2)]
+        jacs = self._targets_jacobians(params, eff, dx, [None, *more])
+        blocks = [np.concatenate([jacs[0][:, :, self._cols], np.zeros((n, 3, self.more_idx.size))], axis=2)]
         for k in range(m):
-            jk = self._target_jacobian(replace(params, tool_xyz_mm=more[k]), eff, dx)
+            jk = jacs[k + 1]
             offset = np.zeros((n, 3, 3 * m))
             offset[:, :, 3 * k : 3 * k + 3] = jk[:, :, 36:39]  # ∂p_k/∂(its flange offset)
             jk[:, :, 36:39] = 0.0  # the tool is the first target's offset
