@@ -422,9 +422,11 @@ def calibrate_kinematic(
     rows but the largest gets its own rigid correction, estimated with the rest; ``probe_r``
     (n, 3, 3) a 6-DOF probe's measured rotations, fitted with its unknown rotation on the flange and
     weighted by ``probe_sigma_deg`` against the rows' position σ (:mod:`comp_daemon.models.observations`).
-    ``report_ranks=False`` leaves the identifiability report's rank checks and condition number
-    out (-1 and NaN; the identified parameters are the same): for fits whose report nobody reads,
-    the folds of a cross-validation.
+    ``report_ranks=False`` leaves the identifiability report's rank checks, condition number and
+    the combinations that reproduce the dependent columns out (-1, NaN, empty), and the standard
+    errors (NaN), and the solver's Jacobian is its last one rather than one at the solution; the
+    identified parameters and their values are the same: for fits whose report nobody reads, the
+    folds of a cross-validation.
     """
     a = as_axes(a_deg)
     n = a.shape[0]
@@ -495,10 +497,12 @@ def calibrate_kinematic(
         )
         return ObservedProblem(inner, obs, extra_idx, mount0) if obs.active else inner
 
+    whole = None  # the Jacobian of the problem with every parameter, at the start (when it is made)
     if more_meas is None and not obs.active:
         _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
     else:
-        jac0 = problem_of(np.arange(N_PARAMS), eff_names, None, None).jacobian(np.zeros(len(all_names)))
+        whole = problem_of(np.arange(N_PARAMS), eff_names, None, None).jacobian(np.zeros(len(all_names)))
+        jac0 = whole
     report = analyze_identifiability(
         jac0,
         all_names,
@@ -507,6 +511,7 @@ def calibrate_kinematic(
         rtol=rtol,
         check_rank=report_ranks,
         check_condition=report_ranks,
+        describe_dependent=report_ranks,
     )
     idx = report.identifiable_index
     n_eff = len(eff_names)
@@ -518,7 +523,18 @@ def calibrate_kinematic(
     inner = problem.inner if isinstance(problem, ObservedProblem) else problem
 
     x0 = np.zeros(idx.size)
-    result = improved_lm(problem.residual, problem.jacobian, x0, x_scale="jac", max_iter=max_iter)
+    # the iteration's first Jacobian: the identified columns of the analysed one, where that is the
+    # problem's own (each column is computed on its own: the same numbers)
+    first = None if whole is None else whole[:, idx]
+    result = improved_lm(
+        problem.residual,
+        problem.jacobian,
+        x0,
+        x_scale="jac",
+        max_iter=max_iter,
+        jacobian_x0=first,
+        jacobian_at_solution=report_ranks,
+    )
     n_pos = 3 * n * (1 + n_more)
     position = result.residual[:n_pos]
     unweighted = position if inner.weights is None else position / inner.weights
@@ -526,7 +542,7 @@ def calibrate_kinematic(
     params, eff, _ = inner.unpack(x_in)
     more_fit = None if more_meas is None else inner.more_targets(x_in)
     model = KinematicModel(robot, params, eff if effects else None, registration, more_fit)
-    std = _standard_errors(result.jacobian, result.residual)
+    std = _standard_errors(result.jacobian, result.residual) if report_ranks else np.full(idx.size, np.nan)
     per_point = np.sum(unweighted.reshape(-1, n, 3) ** 2, axis=2)  # (K, n)
     rms = float(np.sqrt(np.mean(per_point[0])))
     observed: dict[str, Any] = {}
