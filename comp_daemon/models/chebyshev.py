@@ -43,7 +43,7 @@ The order is chosen by k-fold cross-validation on the fit rows.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -466,28 +466,135 @@ def fit_chebyshev(
     p_meas = measured_positions(p_measured_mm, n)
     if order < 0:
         raise ValueError(f"Chebyshev order must be >= 0, got {order}")
+    chosen, params = _registered(robot, a, p_meas, frame)
+    if range_deg is None:
+        range_deg = motion_range_deg(a) if range_source == "data" else robot.axis_limits_deg
+    rng = np.asarray(range_deg, dtype=float)
+    st = chebyshev_setup(params, a, rng, order)
+    report = chebyshev_identifiability(st, rtol, check_rank=check_rank)
+    result, coef, active = _identify(st, report.identifiable_index, p_meas, max_iter)
+    model = ChebyshevModel(robot, params.world_T_base, order, rng, coef, active)
+    rms = float(np.sqrt(np.mean(np.sum(result.residual.reshape(n, 3) ** 2, axis=1))))
+    return ChebyshevFit(model=model, frame=chosen, report=report, lm=result, rms_mm=rms, n_rows=n)
+
+
+def _registered(
+    robot: RobotDescription, a: NDArray[np.float64], p_meas: NDArray[np.float64], frame: FrameChoice
+) -> tuple[Literal["base", "tracker"], KinematicParams]:
+    """The frame of the measured TCPs and the nominal geometry with its base registered in it."""
     nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
-    if range_deg is None:
-        range_deg = motion_range_deg(a) if range_source == "data" else robot.axis_limits_deg
-    params = nominal.with_base(registration)
-    st = chebyshev_setup(params, a, np.asarray(range_deg, dtype=float), order)
-    names = coefficient_names(order)
-    report = chebyshev_identifiability(st, rtol, check_rank=check_rank)
-    idx = report.identifiable_index
+    return chosen, nominal.with_base(registration)
+
+
+def _identify(
+    st: ChebyshevSetup,
+    idx: NDArray[np.intp],
+    p_meas: NDArray[np.float64],
+    max_iter: int,
+    jacobian_x0: NDArray[np.float64] | None = None,
+    fold: bool = False,
+) -> tuple[LMResult, NDArray[np.float64], NDArray[np.bool_]]:
+    """The coefficients ``idx`` iterated from zero (the others held there): the solver's result,
+    every coefficient and which ones were free; a ``fold``'s result lacks the Jacobian at the
+    solution, which only a reported fit needs."""
     problem = ChebyshevProblem(st, idx, p_meas)
     result = improved_lm(
-        problem.residual, problem.jacobian, np.zeros(idx.size), x_scale="jac", max_iter=max_iter
+        problem.residual,
+        problem.jacobian,
+        np.zeros(idx.size),
+        x_scale="jac",
+        max_iter=max_iter,
+        jacobian_x0=jacobian_x0,
+        jacobian_at_solution=not fold,
     )
-    active = np.zeros(len(names), bool)
+    active = np.zeros(problem.n_all, bool)
     active[idx] = True
-    model = ChebyshevModel(
-        robot, registration, order, np.asarray(range_deg, dtype=float), problem.full(result.x), active
-    )
-    rms = float(np.sqrt(np.mean(np.sum(result.residual.reshape(n, 3) ** 2, axis=1))))
-    return ChebyshevFit(model=model, frame=chosen, report=report, lm=result, rms_mm=rms, n_rows=n)
+    return result, problem.full(result.x), active
+
+
+#: the cross-validation shares, per fold, the setup, the Jacobian at zero and one identifiability
+#: analysis per threshold among the orders (:func:`select_order`); False fits every candidate on
+#: its own with :func:`fit_chebyshev` (the reference the tests compare with: the same numbers)
+SHARED_FOLDS = True
+
+
+def _fold_sq_errors(
+    robot: RobotDescription,
+    a: NDArray[np.float64],
+    p_meas: NDArray[np.float64],
+    test: NDArray[np.bool_],
+    orders: Sequence[int],
+    rtols: Sequence[float],
+    frame: Literal["base", "tracker"],
+    range_deg: NDArray[np.float64],
+    fitted: Callable[[], None],
+) -> NDArray[np.float64]:
+    """(orders, rtols) the summed squared held-out errors (mm²) of every candidate fitted on the
+    rows outside ``test``; ``fitted()`` is called after each fit.
+
+    The candidates share what does not depend on them: the registration and the setup of the
+    highest order (a lower order's basis is the first columns of it), the Jacobian at zero (a
+    lower order's columns are some of its columns, the same numbers) and, per threshold, one
+    identifiability analysis: the candidates are offered low orders first, so the analysis of
+    order m is the first part of that of the highest order, with the same decisions (the
+    largest column norm, which the zero test is relative to, is an order-0 one: ``|c_k| ≤ 1``).
+    Each candidate's iteration then starts with its columns of that Jacobian.
+    """
+    train = ~test
+    out = np.empty((len(orders), len(rtols)))
+    if not SHARED_FOLDS:
+        for i, m in enumerate(orders):
+            for j, tol in enumerate(rtols):
+                fit = fit_chebyshev(
+                    robot,
+                    a[train],
+                    p_meas[train],
+                    m,
+                    frame=frame,
+                    range_deg=range_deg,
+                    rtol=tol,
+                    check_rank=False,
+                )
+                out[i, j] = np.sum((fit.model.predict_tcp_mm(a[test]) - p_meas[test]) ** 2)
+                fitted()
+        return out
+    _, params = _registered(robot, a[train], p_meas[train], frame)
+    top_order = max(orders)
+    top = chebyshev_setup(params, a[train], range_deg, top_order)
+    top_names = coefficient_names(top_order)
+    _, jac_top = _jacobian(top, np.zeros(len(top_names)))
+    column = {name: i for i, name in enumerate(top_names)}
+    for j, tol in enumerate(rtols):
+        report = analyze_identifiability(
+            jac_top,
+            top_names,
+            priority=_priority(top_order),
+            rtol={name: (GEOMETRIC_RTOL if name.endswith(".c0") else tol) for name in top_names},
+            check_rank=False,
+            check_condition=False,
+            describe_dependent=False,
+        )
+        kept = set(report.identifiable)
+        for i, m in enumerate(orders):
+            st = ChebyshevSetup(
+                top.links,
+                np.ascontiguousarray(top.basis[:, :, : m + 1]),
+                top.world_T_base,
+                top.tool_xyz_mm,
+                m,
+            )
+            names = coefficient_names(m)
+            idx = np.array([k for k, name in enumerate(names) if name in kept], dtype=np.intp)
+            cols = np.array([column[names[k]] for k in idx], dtype=np.intp)
+            first = jac_top[:, :, cols].reshape(-1, idx.size)
+            _, coef, active = _identify(st, idx, p_meas[train], 100, first, fold=True)
+            model = ChebyshevModel(robot, params.world_T_base, m, range_deg, coef, active)
+            out[i, j] = np.sum((model.predict_tcp_mm(a[test]) - p_meas[test]) ** 2)
+            fitted()
+    return out
 
 
 def select_order(
@@ -520,30 +627,18 @@ def select_order(
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen_frame = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     fold_of = np.random.default_rng(seed).permutation(n) % folds
-    table: list[tuple[float, ...]] = []
     done, total = 0, len(orders) * len(rtols) * folds
-    for m in orders:
-        row = []
-        for tol in rtols:
-            sq = 0.0
-            for f in range(folds):
-                train, test = fold_of != f, fold_of == f
-                fit = fit_chebyshev(
-                    robot,
-                    a[train],
-                    p_meas[train],
-                    m,
-                    frame=chosen_frame,
-                    range_deg=rng_deg,
-                    rtol=tol,
-                    check_rank=False,
-                )
-                err = fit.model.predict_tcp_mm(a[test]) - p_meas[test]
-                sq += float(np.sum(err**2))
-                done += 1
-                steps.report("cross-validation fits", done, total)
-            row.append(float(np.sqrt(sq / n)))
-        table.append(tuple(row))
+
+    def fitted() -> None:
+        nonlocal done
+        done += 1
+        steps.report("cross-validation fits", done, total)
+
+    sq = np.zeros((len(orders), len(rtols)))
+    for f in range(folds):
+        rng = np.asarray(rng_deg, dtype=float)
+        sq += _fold_sq_errors(robot, a, p_meas, fold_of == f, orders, rtols, chosen_frame, rng, fitted)
+    table = [tuple(float(np.sqrt(v / n)) for v in row) for row in sq]
     scores = np.array(table)
     i_order, i_rtol = (int(i) for i in np.unravel_index(int(np.argmin(scores)), scores.shape))
     return OrderSelection(
