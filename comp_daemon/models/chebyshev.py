@@ -239,12 +239,14 @@ def _jacobian(
         suf[:, i - 1] = s
     lin = pre[:, :, :3, :3]  # (n, 7, 3, 3)
     d_rot = np.einsum("kij,nlj->nlik", _GEN_ROT, suf)  # (n, 7, 3, 3): column k = e_k × s
-    d_term = np.concatenate([d_rot, np.broadcast_to(np.eye(3), (n, N_LINKS, 3, 3))], axis=3)  # (n,7,3,6)
-    d_world = lin @ d_term  # (n, 7, 3, 6)
+    d_world = np.empty((n, N_LINKS, 3, 6))  # lin · [d_rot | I]
+    np.matmul(lin, d_rot, out=d_world[..., :3])
+    d_world[..., 3:] = lin
     jac = np.empty((n, 3, n_coefficients(st.order)))
     jac[:, :, :6] = d_world[:, 0]
-    series = d_world[:, 1:, :, :, None] * st.basis[:, :, None, None, :]  # (n, 6, 3, 6, m+1)
-    jac[:, :, 6:] = series.transpose(0, 2, 1, 3, 4).reshape(n, 3, -1)
+    # the series columns (link, term, order) of each TCP coordinate, written in place
+    series = jac[:, :, 6:].reshape(n, 3, 6, 6, st.order + 1)
+    np.multiply(d_world[:, 1:].transpose(0, 2, 1, 3)[..., None], st.basis[:, None, :, None, :], out=series)
     return tcp, jac
 
 
