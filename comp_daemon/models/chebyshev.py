@@ -164,20 +164,26 @@ def _terms(coef: NDArray[np.float64], order: int, basis: NDArray[np.float64]) ->
     n = basis.shape[0]
     out = np.empty((n, N_LINKS, 6))
     out[:, 0] = base
-    out[:, 1:] = np.einsum("itk,nik->nit", series, basis)
+    # per link: (n, m+1) basis · (m+1, 6) coefficients
+    np.matmul(basis.transpose(1, 0, 2), series.transpose(0, 2, 1), out=out[:, 1:].transpose(1, 0, 2))
     return out
+
+
+# E's entries as a flat row-major 4 x 4: the diagonal, the skew part (entry, term, sign), the translation
+_DIAGONAL = np.array([0, 5, 10, 15])
+_SKEW = np.array([1, 2, 4, 6, 8, 9])  # (0, 1) (0, 2) (1, 0) (1, 2) (2, 0) (2, 1)
+_SKEW_TERM = np.array([2, 1, 2, 0, 1, 0])  # -eps_z, eps_y, eps_z, -eps_x, -eps_y, eps_x
+_SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
+_TRANSLATION = np.array([3, 7, 11])
 
 
 def _error_matrices(terms: NDArray[np.float64]) -> NDArray[np.float64]:
     """(n, 7, 4, 4) E = I + Δ from the (n, 7, 6) terms (eps_x, eps_y, eps_z, delta_x, delta_y, delta_z)."""
-    ex, ey, ez = terms[..., 0], terms[..., 1], terms[..., 2]
-    e = np.zeros((*terms.shape[:-1], 4, 4))
-    e[..., 0, 0] = e[..., 1, 1] = e[..., 2, 2] = e[..., 3, 3] = 1.0
-    e[..., 0, 1], e[..., 0, 2] = -ez, ey
-    e[..., 1, 0], e[..., 1, 2] = ez, -ex
-    e[..., 2, 0], e[..., 2, 1] = -ey, ex
-    e[..., :3, 3] = terms[..., 3:]
-    return e
+    e = np.zeros((*terms.shape[:-1], 16))  # row after row
+    e[..., _DIAGONAL] = 1.0
+    e[..., _SKEW] = terms[..., _SKEW_TERM] * _SKEW_SIGN
+    e[..., _TRANSLATION] = terms[..., 3:]
+    return e.reshape(*terms.shape[:-1], 4, 4)
 
 
 @dataclass(frozen=True, slots=True)
