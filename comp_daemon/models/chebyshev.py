@@ -169,20 +169,20 @@ def _terms(coef: NDArray[np.float64], order: int, basis: NDArray[np.float64]) ->
     return out
 
 
-# E's entries as a flat row-major 4 x 4: the diagonal, the skew part (entry, term, sign), the translation
-_DIAGONAL = np.array([0, 5, 10, 15])
-_SKEW = np.array([1, 2, 4, 6, 8, 9])  # (0, 1) (0, 2) (1, 0) (1, 2) (2, 0) (2, 1)
-_SKEW_TERM = np.array([2, 1, 2, 0, 1, 0])  # -eps_z, eps_y, eps_z, -eps_x, -eps_y, eps_x
-_SKEW_SIGN = np.array([-1.0, 1.0, 1.0, -1.0, -1.0, 1.0])
-_TRANSLATION = np.array([3, 7, 11])
+# E − I as a linear map of the six terms, flat row-major 4 x 4: (0, 1) −eps_z, (0, 2) eps_y,
+# (1, 0) eps_z, (1, 2) −eps_x, (2, 0) −eps_y, (2, 1) eps_x, and the translation (0..2, 3)
+_TERMS_TO_E = np.zeros((6, 16))
+for _entry, _term, _sign in ((1, 2, -1.0), (2, 1, 1.0), (4, 2, 1.0), (6, 0, -1.0), (8, 1, -1.0), (9, 0, 1.0)):
+    _TERMS_TO_E[_term, _entry] = _sign
+_TERMS_TO_E[3, 3] = _TERMS_TO_E[4, 7] = _TERMS_TO_E[5, 11] = 1.0
+_IDENTITY_FLAT = np.eye(4).reshape(16)
 
 
 def _error_matrices(terms: NDArray[np.float64]) -> NDArray[np.float64]:
     """(n, 7, 4, 4) E = I + Δ from the (n, 7, 6) terms (eps_x, eps_y, eps_z, delta_x, delta_y, delta_z)."""
-    e = np.zeros((*terms.shape[:-1], 16))  # row after row
-    e[..., _DIAGONAL] = 1.0
-    e[..., _SKEW] = terms[..., _SKEW_TERM] * _SKEW_SIGN
-    e[..., _TRANSLATION] = terms[..., 3:]
+    # each entry is one term times ±1 (or 0): the product is exact, whatever the summation order
+    e = terms @ _TERMS_TO_E
+    e += _IDENTITY_FLAT
     return e.reshape(*terms.shape[:-1], 4, 4)
 
 
