@@ -25,10 +25,12 @@ Jacobian of the iteration, accepted by a trust-region ratio):
 
 - ``ftol``: an accepted, well-predicted step (``r_k ≥ p1``) reduced ``||F||²`` by less than ``phi``
   of its value, and the linear model predicted no more (the seed's "error norm very close"); or,
-  at a new Jacobian, the LM step ``d1`` predicts a reduction below :data:`PRED_FTOL` of ``||F||²``
-  (``phi²`` by default): the point is converged far below ``phi``, and the approximate steps and
-  their residuals are not made (at that level a cost's change is the model's and the rounding's
-  noise, and a step taken there moves a prediction by less than ``sqrt(PRED_FTOL)·||F||``);
+  at a new Jacobian and a damping no larger than at the start (``upsilon_k ≤ upsilon_1``: a
+  heavily damped step predicts little wherever it is), the LM step ``d1`` predicts a reduction
+  below :data:`PRED_FTOL` of ``||F||²`` (``phi²`` by default): the point is converged far below
+  ``phi``, and the approximate steps and their residuals are not made (at that level a cost's
+  change is the model's and the rounding's noise, and a step taken there moves a prediction by
+  less than ``sqrt(PRED_FTOL)·||F||``);
 - ``gtol``: the residual is orthogonal to every Jacobian column to within ``gtol`` (the cosine
   ``max_j |J_jᵀF| / (||J_j|| ||F||)``; a least-squares optimum);
 - ``xtol``: the step is below ``xtol`` relative to ``x`` (in the scaled variables);
@@ -195,6 +197,7 @@ def improved_lm(
             factor = scipy.linalg.cho_factor(a, lower=False, check_finite=False)
         except np.linalg.LinAlgError:
             upsilon *= 4.0
+            fresh = False
             history.append(IterationRecord(k, 0.5 * ff, float(mu), upsilon, float("nan"), False, 0.0))
             continue
 
@@ -206,7 +209,7 @@ def improved_lm(
         # step 3: LM step; step 4: two approximate LM steps with the same Jacobian
         d1 = solve(g)
         pred = ff - float(np.sum((f + js @ d1) ** 2))
-        if fresh and pred <= PRED_FTOL * ff:
+        if fresh and upsilon <= upsilon1 and pred <= PRED_FTOL * ff:
             history.append(
                 IterationRecord(
                     k, 0.5 * ff, float(mu), upsilon, float("nan"), False, float(np.linalg.norm(d1))
