@@ -152,18 +152,7 @@ def improved_lm(
         jac = np.asarray(jacobian_x0, dtype=float)
         if jac.shape != (f.size, x.size):
             raise ValueError(f"jacobian_x0 must have shape {(f.size, x.size)}, got {jac.shape}")
-    if isinstance(x_scale, str):
-        if x_scale != "jac":
-            raise ValueError(f"x_scale must be 'jac', an array or None, got {x_scale!r}")
-        norms = np.linalg.norm(jac, axis=0)
-        scale = 1.0 / np.where(norms > 0.0, norms, 1.0)
-    elif x_scale is None:
-        scale = np.ones_like(x)
-    else:
-        scale = np.asarray(x_scale, dtype=float)
-        if scale.shape != x.shape or np.any(scale <= 0.0):
-            raise ValueError("x_scale must be positive and shaped like x0")
-
+    scale = _variable_scale(x_scale, jac, x)
     ff = float(f @ f)
     upsilon = upsilon1
     history: list[IterationRecord] = []
@@ -278,3 +267,21 @@ def improved_lm(
         time_s=time.perf_counter() - t_start,
         history=tuple(history),
     )
+
+
+def _variable_scale(
+    x_scale: Literal["jac"] | NDArray[np.float64] | None, jac: NDArray[np.float64], x: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The fixed change of variables ``x = scale · u`` (module docstring): ``"jac"`` the inverse
+    column norms of the first Jacobian ``jac``, None ones, or the caller's positive array."""
+    if isinstance(x_scale, str):
+        if x_scale != "jac":
+            raise ValueError(f"x_scale must be 'jac', an array or None, got {x_scale!r}")
+        norms = np.linalg.norm(jac, axis=0)
+        return np.asarray(1.0 / np.where(norms > 0.0, norms, 1.0))
+    if x_scale is None:
+        return np.ones_like(x)
+    scale = np.asarray(x_scale, dtype=float)
+    if scale.shape != x.shape or np.any(scale <= 0.0):
+        raise ValueError("x_scale must be positive and shaped like x0")
+    return scale
