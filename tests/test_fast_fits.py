@@ -1,9 +1,12 @@
 """The fits' shortcuts change nothing a user sees: on several small campaigns every model keeps and
-drops the same parts, with the same held-out gains, and predicts the check rows to 1e-6 mm, with the
-shortcuts (``fitting.FOLD_SHORTCUTS``, the identifiability analysis's Gram–Schmidt on a preallocated
-basis, the base calibration shared by the kinds built on it) and without them (every
+drops the same parts, with the same held-out gains, chooses the same Chebyshev order and threshold,
+and predicts the check rows to 1e-6 mm, with the shortcuts (``fitting.FOLD_SHORTCUTS``, the
+identifiability analysis's Gram–Schmidt on a preallocated basis, the base calibration shared by
+the kinds built on it, the LM's stop at a converged Jacobian ``lm.PRED_FTOL``, the Chebyshev
+cross-validation's shared folds ``chebyshev.SHARED_FOLDS``) and without them (every
 cross-validation fold a full fit, the basis grown column by column as before, every kind
-calibrating its own base)."""
+calibrating its own base, every LM iteration evaluating its steps, every Chebyshev candidate
+fitted on its own)."""
 
 from __future__ import annotations
 
@@ -16,8 +19,9 @@ from numpy.typing import NDArray
 
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import read_dataset
+from comp_daemon.estimation import lm
 from comp_daemon.estimation.identifiability import analyze_identifiability
-from comp_daemon.models import fitting
+from comp_daemon.models import chebyshev, fitting
 from comp_daemon.models.fitting import FitOptions
 from comp_daemon.models.registry import fit_spec, parse_model_name
 from comp_daemon.models.rows import MeasuredRows
@@ -31,7 +35,9 @@ CAMPAIGNS = {  # name: (scenario, robot, poses, extra sample options)
 MODELS = (  # those whose fits select their parts out of fold; a kriging kind after its base's kind
     "kinematic+ratio+backlash+compliance",
     "kriging-backlash+compliance",
+    "kinematic+compliance",
     "compliance",
+    "chebyshev:cv",
 )
 
 
@@ -51,6 +57,8 @@ def _reference(m: pytest.MonkeyPatch) -> None:
     """Every shortcut off: full folds, no shared base calibration."""
     m.setattr(fitting, "FOLD_SHORTCUTS", False)
     m.setattr(fitting, "BASE_FITS_KEPT", 0)
+    m.setattr(lm, "PRED_FTOL", 0.0)
+    m.setattr(chebyshev, "SHARED_FOLDS", False)
     fitting.forget_base_fits()
 
 
@@ -124,6 +132,11 @@ def test_shortcuts_keep_the_selection_and_the_check_errors(
                 assert a["part"] == b["part"] and a["kept"] == b["kept"], where
                 assert a["rms_with_mm"] == pytest.approx(b["rms_with_mm"], abs=1e-6), where
                 assert a["rms_without_mm"] == pytest.approx(b["rms_without_mm"], abs=1e-6), where
+        order_fast, order_ref = fast["info"].get("order_selection"), ref["info"].get("order_selection")
+        if order_ref is not None:
+            assert order_fast["chosen_order"] == order_ref["chosen_order"], where
+            assert order_fast["chosen_rtol"] == order_ref["chosen_rtol"], where
+            np.testing.assert_allclose(order_fast["cv_rms_mm"], order_ref["cv_rms_mm"], rtol=0, atol=1e-6)
         assert abs(fast["check_rms"] - ref["check_rms"]) < 1e-6, where
         assert np.max(np.abs(fast["pred"] - ref["pred"])) < 1e-6, where
 

@@ -9,6 +9,7 @@ import pytest
 from numpy.typing import NDArray
 from scipy.optimize import least_squares
 
+from comp_daemon.estimation import lm
 from comp_daemon.estimation.lm import improved_lm
 
 Vec = NDArray[np.float64]
@@ -150,3 +151,45 @@ def test_stops_at_max_iter_when_told() -> None:
     assert res.iterations == 3
     assert not res.converged
     assert res.reason == "max_iter"
+
+
+def test_a_converged_point_stops_at_its_jacobian_without_evaluating_the_steps(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A nearly linear problem (the calibrations): the second iteration's LM step predicts nothing
+    left to gain, so the iteration stops there (``ftol``) instead of evaluating its three steps,
+    at the same point to the model's accuracy."""
+    rng = np.random.default_rng(5)
+    a = rng.normal(size=(300, 8))
+    b = rng.normal(size=300)
+
+    def f(x: Vec) -> Vec:
+        return a @ x + 1e-5 * np.sin(3.0 * x).sum() - b
+
+    def j(x: Vec) -> Vec:
+        return a + 3e-5 * np.cos(3.0 * x)[None, :]
+
+    fast = improved_lm(f, j, np.zeros(8), x_scale="jac")
+    pred_ftol = lm.PRED_FTOL
+    monkeypatch.setattr(lm, "PRED_FTOL", 0.0)
+    slow = improved_lm(f, j, np.zeros(8), x_scale="jac")
+    assert fast.reason == "ftol" and slow.reason == "ftol"
+    assert (fast.n_residual_evals, slow.n_residual_evals) == (4, 7)
+    assert fast.history[-1].accepted is False and np.isnan(fast.history[-1].ratio)
+    assert fast.cost - slow.cost <= pred_ftol * slow.cost
+    # a step the test leaves out moves the fitted values by less than sqrt(PRED_FTOL)·||F||
+    bound = np.sqrt(pred_ftol * 2.0 * slow.cost)
+    assert 0.0 < np.max(np.abs(a @ fast.x - a @ slow.x)) < bound
+
+
+def test_a_jacobian_at_the_start_is_used_instead_of_a_first_evaluation() -> None:
+    x0 = np.array([0.5, 1.5, -1.0, 0.01, 0.02])
+    plain = improved_lm(osborne1, osborne1_jac, x0)
+    given = improved_lm(osborne1, osborne1_jac, x0, jacobian_x0=osborne1_jac(x0))
+    assert given.n_jacobian_evals == plain.n_jacobian_evals - 1
+    np.testing.assert_array_equal(given.x, plain.x)
+    with pytest.raises(ValueError, match="jacobian_x0 must have shape"):
+        improved_lm(osborne1, osborne1_jac, x0, jacobian_x0=np.zeros((3, 5)))
+    last = improved_lm(osborne1, osborne1_jac, x0, jacobian_at_solution=False)
+    np.testing.assert_array_equal(last.x, plain.x)
+    assert last.n_jacobian_evals <= plain.n_jacobian_evals

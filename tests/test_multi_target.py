@@ -22,7 +22,7 @@ from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.so3 import rotvec_to_matrix
 from comp_daemon.models.base import ErrorModel
-from comp_daemon.models.effects import EffectParams
+from comp_daemon.models.effects import EffectParams, effect_param_names
 from comp_daemon.models.fitting import FitOptions
 from comp_daemon.models.kinematic import KinematicProblem, calibrate_kinematic
 from comp_daemon.models.registry import fit_spec, parse_model_name
@@ -182,6 +182,48 @@ def test_multi_target_jacobian_matches_finite_differences() -> None:
         axis=1,
     )
     assert np.allclose(jac, numeric, atol=1e-5 * np.abs(numeric).max())
+
+
+def test_multi_target_compliance_columns_carry_the_payload_at_the_tcp() -> None:
+    """With a payload and a compliance, every target's columns are the derivative of its residual:
+    the gravity torques of the further targets' rows carry the payload at the TCP, as the residual's
+    twin has it (not at the target), so the calibration's steps are exact Gauss–Newton steps."""
+    robot = load_scenario("real-like").robot
+    rng = np.random.default_rng(4)
+    a = rng.uniform(-40, 40, size=(12, 6))
+    a[:, 4] = rng.uniform(20, 80, size=12)
+    nominal = KinematicParams.from_robot(robot)
+    names = effect_param_names(["ratio", "compliance"], (1, 2, 3, 4, 5, 6))
+    problem = KinematicProblem(
+        robot,
+        nominal,
+        EffectParams.zeros(),
+        np.arange(N_PARAMS),
+        names,
+        a,
+        np.zeros((12, 3)),
+        None,
+        rng.uniform(2.0, 5.0, size=12),
+        None,
+        more_measured_mm=rng.normal(size=(12, 2, 3)),
+        more_start_mm=reflector_offsets_mm(nominal.tool_xyz_mm, 3)[1:],
+    )
+    x = np.zeros(N_PARAMS + len(names) + 6)
+    x[N_PARAMS : N_PARAMS + 6] = rng.normal(scale=1e-4, size=6)  # ratio errors
+    x[N_PARAMS + 6 : N_PARAMS + 12] = rng.uniform(1e-7, 5e-7, size=6)  # compliances, rad/(N m)
+    jac = problem.jacobian(x)
+    cols = np.arange(N_PARAMS, N_PARAMS + len(names))
+    h = np.where(cols < N_PARAMS + 6, 1e-7, 1e-9)
+    numeric = np.stack(
+        [
+            (problem.residual(x + hk * np.eye(x.size)[k]) - problem.residual(x - hk * np.eye(x.size)[k]))
+            / (2 * hk)
+            for k, hk in zip(cols, h, strict=True)
+        ],
+        axis=1,
+    )
+    scale = np.abs(numeric).max(axis=0)
+    assert np.all(np.abs(jac[:, cols] - numeric) <= 1e-5 * scale + 1e-9)
 
 
 def test_six_dof_identification_beats_position_only_on_check_rows() -> None:

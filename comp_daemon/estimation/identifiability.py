@@ -142,6 +142,7 @@ def analyze_identifiability(
     rank_rtol: float = 1e-8,
     check_rank: bool = True,
     check_condition: bool = True,
+    describe_dependent: bool = True,
 ) -> IdentifiabilityReport:
     """Zero and dependent columns of ``jac`` ((n, 3, p) or (m, p)), by name (module docstring).
 
@@ -151,7 +152,9 @@ def analyze_identifiability(
     candidate name. ``check_rank=False`` skips the independent rank checks (reported as -1),
     ``check_condition=False`` the condition number (reported as NaN): neither changes which
     parameters are identifiable, and a fit that needs only those (a cross-validation fold) saves
-    two thirds of the analysis.
+    two thirds of the analysis. ``describe_dependent=False`` reports the dependent columns without
+    the combination of kept columns that reproduces them (``depends_on`` and ``coefficients``
+    empty), for the same fits.
     """
     a = np.asarray(jac, dtype=float)
     if a.ndim == 3:
@@ -213,7 +216,8 @@ def analyze_identifiability(
 
     removed: list[RemovedParameter] = []
     dependent = [pos for pos in sorted(status) if status[pos][0] == "dependent"]
-    if dependent and kept:
+    explain = describe_dependent and bool(kept)
+    if dependent and explain:
         # all dependent columns at once, in the kept columns' scaled basis
         coef_all, *_ = np.linalg.lstsq(scaled[:, kept], scaled[:, dependent], rcond=None)
     for pos in sorted(status):
@@ -221,8 +225,8 @@ def analyze_identifiability(
         if reason == "zero":
             removed.append(RemovedParameter(order[pos], "zero", (), (), 0.0))
             continue
-        scaled_coef = coef_all[:, dependent.index(pos)] if kept else np.zeros(0)
-        coef = scaled_coef * norms[pos] / norms[kept]
+        scaled_coef = coef_all[:, dependent.index(pos)] if explain else np.zeros(0)
+        coef = scaled_coef * norms[pos] / norms[kept] if explain else scaled_coef
         contrib = np.abs(scaled_coef)
         significant = np.flatnonzero(contrib >= 1e-6)
         significant = significant[np.argsort(-contrib[significant], kind="stable")]

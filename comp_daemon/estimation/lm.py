@@ -24,7 +24,13 @@ Jacobian of the iteration, accepted by a trust-region ratio):
 "Converged" is made concrete by these tests, each recorded as the result's ``reason``:
 
 - ``ftol``: an accepted, well-predicted step (``r_k ≥ p1``) reduced ``||F||²`` by less than ``phi``
-  of its value, and the linear model predicted no more (the seed's "error norm very close");
+  of its value, and the linear model predicted no more (the seed's "error norm very close"); or,
+  at a new Jacobian and a damping no larger than at the start (``upsilon_k ≤ upsilon_1``: a
+  heavily damped step predicts little wherever it is), the LM step ``d1`` predicts a reduction
+  below :data:`PRED_FTOL` of ``||F||²`` (``phi²`` by default): the point is converged far below
+  ``phi``, and the approximate steps and their residuals are not made (at that level a cost's
+  change is the model's and the rounding's noise, and a step taken there moves a prediction by
+  less than ``sqrt(PRED_FTOL)·||F||``);
 - ``gtol``: the residual is orthogonal to every Jacobian column to within ``gtol`` (the cosine
   ``max_j |J_jᵀF| / (||J_j|| ||F||)``; a least-squares optimum);
 - ``xtol``: the step is below ``xtol`` relative to ``x`` (in the scaled variables);
@@ -53,7 +59,11 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-__all__ = ["IterationRecord", "LMResult", "improved_lm"]
+__all__ = ["PRED_FTOL", "IterationRecord", "LMResult", "improved_lm"]
+
+#: converged at a new Jacobian when the LM step predicts less than this fraction of ||F||² (module
+#: docstring, ``ftol``); 0 turns the test off (every iteration then evaluates its steps)
+PRED_FTOL = 1e-10
 
 ResidualFn = Callable[[NDArray[np.float64]], NDArray[np.float64]]
 JacobianFn = Callable[[NDArray[np.float64]], NDArray[np.float64]]
@@ -77,7 +87,7 @@ class LMResult:
     x: NDArray[np.float64]
     cost: float  # ||F(x)||² / 2 at the solution
     residual: NDArray[np.float64]
-    jacobian: NDArray[np.float64]  # at the last iterate where it was evaluated
+    jacobian: NDArray[np.float64]  # at the solution (or the last one made: jacobian_at_solution)
     iterations: int
     n_residual_evals: int
     n_jacobian_evals: int
@@ -104,10 +114,16 @@ def improved_lm(
     p2: float = 0.75,
     delta: float = 1.0,
     x_scale: Literal["jac"] | NDArray[np.float64] | None = None,
+    jacobian_x0: NDArray[np.float64] | None = None,
+    jacobian_at_solution: bool = True,
 ) -> LMResult:
     """Minimise ``||residual(x)||²`` from ``x0`` by the improved LM method (module docstring).
 
-    ``residual(x)`` returns (M,), ``jacobian(x)`` returns (M, N) = dF/dx.
+    ``residual(x)`` returns (M,), ``jacobian(x)`` returns (M, N) = dF/dx. ``jacobian_x0``: the
+    Jacobian at ``x0`` when the caller has it already (an identifiability analysis at the start),
+    used instead of a first ``jacobian(x0)``. ``jacobian_at_solution=False``: the result's
+    Jacobian is the last one the iteration made (not evaluated again at the solution), for a
+    caller that needs only the solution (a cross-validation fold).
     """
     if not (0.0 < p0 < p1 < p2 < 1.0):
         raise ValueError(f"need 0 < p0 < p1 < p2 < 1, got p0={p0}, p1={p1}, p2={p2}")
@@ -130,19 +146,13 @@ def improved_lm(
         return np.asarray(jacobian(xx), dtype=float)
 
     f = f_of(x)
-    jac = j_of(x)
-    if isinstance(x_scale, str):
-        if x_scale != "jac":
-            raise ValueError(f"x_scale must be 'jac', an array or None, got {x_scale!r}")
-        norms = np.linalg.norm(jac, axis=0)
-        scale = 1.0 / np.where(norms > 0.0, norms, 1.0)
-    elif x_scale is None:
-        scale = np.ones_like(x)
+    if jacobian_x0 is None:
+        jac = j_of(x)
     else:
-        scale = np.asarray(x_scale, dtype=float)
-        if scale.shape != x.shape or np.any(scale <= 0.0):
-            raise ValueError("x_scale must be positive and shaped like x0")
-
+        jac = np.asarray(jacobian_x0, dtype=float)
+        if jac.shape != (f.size, x.size):
+            raise ValueError(f"jacobian_x0 must have shape {(f.size, x.size)}, got {jac.shape}")
+    scale = _variable_scale(x_scale, jac, x)
     ff = float(f @ f)
     upsilon = upsilon1
     history: list[IterationRecord] = []
@@ -150,11 +160,13 @@ def improved_lm(
     eye = np.eye(x.size)
     k = 0
     need_jac = False
+    fresh = True  # the Jacobian is new at x (the start, or an accepted step)
     while k < max_iter:
         k += 1
         if need_jac:
             jac = j_of(x)
             need_jac = False
+            fresh = True
         js = jac * scale  # Jacobian w.r.t. the scaled variables u = x / scale
         g = js.T @ f
         col = np.linalg.norm(js, axis=0)
@@ -174,6 +186,7 @@ def improved_lm(
             factor = scipy.linalg.cho_factor(a, lower=False, check_finite=False)
         except np.linalg.LinAlgError:
             upsilon *= 4.0
+            fresh = False
             history.append(IterationRecord(k, 0.5 * ff, float(mu), upsilon, float("nan"), False, 0.0))
             continue
 
@@ -185,6 +198,15 @@ def improved_lm(
         # step 3: LM step; step 4: two approximate LM steps with the same Jacobian
         d1 = solve(g)
         pred = ff - float(np.sum((f + js @ d1) ** 2))
+        if fresh and upsilon <= upsilon1 and pred <= PRED_FTOL * ff:
+            history.append(
+                IterationRecord(
+                    k, 0.5 * ff, float(mu), upsilon, float("nan"), False, float(np.linalg.norm(d1))
+                )
+            )
+            reason = "ftol"
+            break
+        fresh = False
         y = x + scale * d1
         f_y = f_of(y)
         d2 = solve(js.T @ f_y)
@@ -230,7 +252,7 @@ def improved_lm(
         if step_norm <= xtol * (u_norm + xtol):
             reason = "xtol"
             break
-    if need_jac:
+    if need_jac and jacobian_at_solution:
         jac = j_of(x)
     return LMResult(
         x=x,
@@ -245,3 +267,21 @@ def improved_lm(
         time_s=time.perf_counter() - t_start,
         history=tuple(history),
     )
+
+
+def _variable_scale(
+    x_scale: Literal["jac"] | NDArray[np.float64] | None, jac: NDArray[np.float64], x: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """The fixed change of variables ``x = scale · u`` (module docstring): ``"jac"`` the inverse
+    column norms of the first Jacobian ``jac``, None ones, or the caller's positive array."""
+    if isinstance(x_scale, str):
+        if x_scale != "jac":
+            raise ValueError(f"x_scale must be 'jac', an array or None, got {x_scale!r}")
+        norms = np.linalg.norm(jac, axis=0)
+        return np.asarray(1.0 / np.where(norms > 0.0, norms, 1.0))
+    if x_scale is None:
+        return np.ones_like(x)
+    scale = np.asarray(x_scale, dtype=float)
+    if scale.shape != x.shape or np.any(scale <= 0.0):
+        raise ValueError("x_scale must be positive and shaped like x0")
+    return scale

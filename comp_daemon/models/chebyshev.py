@@ -47,7 +47,7 @@ given (:func:`select_order`; the fit's summary says what was chosen).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
@@ -177,20 +177,26 @@ def _terms(coef: NDArray[np.float64], order: int, basis: NDArray[np.float64]) ->
     n = basis.shape[0]
     out = np.empty((n, N_LINKS, 6))
     out[:, 0] = base
-    out[:, 1:] = np.einsum("itk,nik->nit", series, basis)
+    # per link: (n, m+1) basis · (m+1, 6) coefficients
+    np.matmul(basis.transpose(1, 0, 2), series.transpose(0, 2, 1), out=out[:, 1:].transpose(1, 0, 2))
     return out
+
+
+# E − I as a linear map of the six terms, flat row-major 4 x 4: (0, 1) −eps_z, (0, 2) eps_y,
+# (1, 0) eps_z, (1, 2) −eps_x, (2, 0) −eps_y, (2, 1) eps_x, and the translation (0..2, 3)
+_TERMS_TO_E = np.zeros((6, 16))
+for _entry, _term, _sign in ((1, 2, -1.0), (2, 1, 1.0), (4, 2, 1.0), (6, 0, -1.0), (8, 1, -1.0), (9, 0, 1.0)):
+    _TERMS_TO_E[_term, _entry] = _sign
+_TERMS_TO_E[3, 3] = _TERMS_TO_E[4, 7] = _TERMS_TO_E[5, 11] = 1.0
+_IDENTITY_FLAT = np.eye(4).reshape(16)
 
 
 def _error_matrices(terms: NDArray[np.float64]) -> NDArray[np.float64]:
     """(n, 7, 4, 4) E = I + Δ from the (n, 7, 6) terms (eps_x, eps_y, eps_z, delta_x, delta_y, delta_z)."""
-    ex, ey, ez = terms[..., 0], terms[..., 1], terms[..., 2]
-    e = np.zeros((*terms.shape[:-1], 4, 4))
-    e[..., 0, 0] = e[..., 1, 1] = e[..., 2, 2] = e[..., 3, 3] = 1.0
-    e[..., 0, 1], e[..., 0, 2] = -ez, ey
-    e[..., 1, 0], e[..., 1, 2] = ez, -ex
-    e[..., 2, 0], e[..., 2, 1] = -ey, ex
-    e[..., :3, 3] = terms[..., 3:]
-    return e
+    # each entry is one term times ±1 (or 0): the product is exact, whatever the summation order
+    e = terms @ _TERMS_TO_E
+    e += _IDENTITY_FLAT
+    return e.reshape(*terms.shape[:-1], 4, 4)
 
 
 @dataclass(frozen=True, slots=True)
@@ -252,12 +258,14 @@ def _jacobian(
         suf[:, i - 1] = s
     lin = pre[:, :, :3, :3]  # (n, 7, 3, 3)
     d_rot = np.einsum("kij,nlj->nlik", _GEN_ROT, suf)  # (n, 7, 3, 3): column k = e_k × s
-    d_term = np.concatenate([d_rot, np.broadcast_to(np.eye(3), (n, N_LINKS, 3, 3))], axis=3)  # (n,7,3,6)
-    d_world = lin @ d_term  # (n, 7, 3, 6)
+    d_world = np.empty((n, N_LINKS, 3, 6))  # lin · [d_rot | I]
+    np.matmul(lin, d_rot, out=d_world[..., :3])
+    d_world[..., 3:] = lin
     jac = np.empty((n, 3, n_coefficients(st.order)))
     jac[:, :, :6] = d_world[:, 0]
-    series = d_world[:, 1:, :, :, None] * st.basis[:, :, None, None, :]  # (n, 6, 3, 6, m+1)
-    jac[:, :, 6:] = series.transpose(0, 2, 1, 3, 4).reshape(n, 3, -1)
+    # the series columns (link, term, order) of each TCP coordinate, written in place
+    series = jac[:, :, 6:].reshape(n, 3, 6, 6, st.order + 1)
+    np.multiply(d_world[:, 1:].transpose(0, 2, 1, 3)[..., None], st.basis[:, None, :, None, :], out=series)
     return tcp, jac
 
 
@@ -479,28 +487,135 @@ def fit_chebyshev(
     p_meas = measured_positions(p_measured_mm, n)
     if order < 0:
         raise ValueError(f"Chebyshev order must be >= 0, got {order}")
+    chosen, params = _registered(robot, a, p_meas, frame)
+    if range_deg is None:
+        range_deg = motion_range_deg(a) if range_source == "data" else robot.axis_limits_deg
+    rng = np.asarray(range_deg, dtype=float)
+    st = chebyshev_setup(params, a, rng, order)
+    report = chebyshev_identifiability(st, rtol, check_rank=check_rank)
+    result, coef, active = _identify(st, report.identifiable_index, p_meas, max_iter)
+    model = ChebyshevModel(robot, params.world_T_base, order, rng, coef, active)
+    rms = float(np.sqrt(np.mean(np.sum(result.residual.reshape(n, 3) ** 2, axis=1))))
+    return ChebyshevFit(model=model, frame=chosen, report=report, lm=result, rms_mm=rms, n_rows=n)
+
+
+def _registered(
+    robot: RobotDescription, a: NDArray[np.float64], p_meas: NDArray[np.float64], frame: FrameChoice
+) -> tuple[Literal["base", "tracker"], KinematicParams]:
+    """The frame of the measured TCPs and the nominal geometry with its base registered in it."""
     nominal = KinematicParams.from_robot(robot)
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
-    if range_deg is None:
-        range_deg = motion_range_deg(a) if range_source == "data" else robot.axis_limits_deg
-    params = nominal.with_base(registration)
-    st = chebyshev_setup(params, a, np.asarray(range_deg, dtype=float), order)
-    names = coefficient_names(order)
-    report = chebyshev_identifiability(st, rtol, check_rank=check_rank)
-    idx = report.identifiable_index
+    return chosen, nominal.with_base(registration)
+
+
+def _identify(
+    st: ChebyshevSetup,
+    idx: NDArray[np.intp],
+    p_meas: NDArray[np.float64],
+    max_iter: int,
+    jacobian_x0: NDArray[np.float64] | None = None,
+    fold: bool = False,
+) -> tuple[LMResult, NDArray[np.float64], NDArray[np.bool_]]:
+    """The coefficients ``idx`` iterated from zero (the others held there): the solver's result,
+    every coefficient and which ones were free; a ``fold``'s result lacks the Jacobian at the
+    solution, which only a reported fit needs."""
     problem = ChebyshevProblem(st, idx, p_meas)
     result = improved_lm(
-        problem.residual, problem.jacobian, np.zeros(idx.size), x_scale="jac", max_iter=max_iter
+        problem.residual,
+        problem.jacobian,
+        np.zeros(idx.size),
+        x_scale="jac",
+        max_iter=max_iter,
+        jacobian_x0=jacobian_x0,
+        jacobian_at_solution=not fold,
     )
-    active = np.zeros(len(names), bool)
+    active = np.zeros(problem.n_all, bool)
     active[idx] = True
-    model = ChebyshevModel(
-        robot, registration, order, np.asarray(range_deg, dtype=float), problem.full(result.x), active
-    )
-    rms = float(np.sqrt(np.mean(np.sum(result.residual.reshape(n, 3) ** 2, axis=1))))
-    return ChebyshevFit(model=model, frame=chosen, report=report, lm=result, rms_mm=rms, n_rows=n)
+    return result, problem.full(result.x), active
+
+
+#: the cross-validation shares, per fold, the setup, the Jacobian at zero and one identifiability
+#: analysis per threshold among the orders (:func:`select_order`); False fits every candidate on
+#: its own with :func:`fit_chebyshev` (the reference the tests compare with: the same numbers)
+SHARED_FOLDS = True
+
+
+def _fold_sq_errors(
+    robot: RobotDescription,
+    a: NDArray[np.float64],
+    p_meas: NDArray[np.float64],
+    test: NDArray[np.bool_],
+    orders: Sequence[int],
+    rtols: Sequence[float],
+    frame: Literal["base", "tracker"],
+    range_deg: NDArray[np.float64],
+    fitted: Callable[[], None],
+) -> NDArray[np.float64]:
+    """(orders, rtols) the summed squared held-out errors (mm²) of every candidate fitted on the
+    rows outside ``test``; ``fitted()`` is called after each fit.
+
+    The candidates share what does not depend on them: the registration and the setup of the
+    highest order (a lower order's basis is the first columns of it), the Jacobian at zero (a
+    lower order's columns are some of its columns, the same numbers) and, per threshold, one
+    identifiability analysis: the candidates are offered low orders first, so the analysis of
+    order m is the first part of that of the highest order, with the same decisions (the
+    largest column norm, which the zero test is relative to, is an order-0 one: ``|c_k| ≤ 1``).
+    Each candidate's iteration then starts with its columns of that Jacobian.
+    """
+    train = ~test
+    out = np.empty((len(orders), len(rtols)))
+    if not SHARED_FOLDS:
+        for i, m in enumerate(orders):
+            for j, tol in enumerate(rtols):
+                fit = fit_chebyshev(
+                    robot,
+                    a[train],
+                    p_meas[train],
+                    m,
+                    frame=frame,
+                    range_deg=range_deg,
+                    rtol=tol,
+                    check_rank=False,
+                )
+                out[i, j] = np.sum((fit.model.predict_tcp_mm(a[test]) - p_meas[test]) ** 2)
+                fitted()
+        return out
+    _, params = _registered(robot, a[train], p_meas[train], frame)
+    top_order = max(orders)
+    top = chebyshev_setup(params, a[train], range_deg, top_order)
+    top_names = coefficient_names(top_order)
+    _, jac_top = _jacobian(top, np.zeros(len(top_names)))
+    column = {name: i for i, name in enumerate(top_names)}
+    for j, tol in enumerate(rtols):
+        report = analyze_identifiability(
+            jac_top,
+            top_names,
+            priority=_priority(top_order),
+            rtol={name: (GEOMETRIC_RTOL if name.endswith(".c0") else tol) for name in top_names},
+            check_rank=False,
+            check_condition=False,
+            describe_dependent=False,
+        )
+        kept = set(report.identifiable)
+        for i, m in enumerate(orders):
+            st = ChebyshevSetup(
+                top.links,
+                np.ascontiguousarray(top.basis[:, :, : m + 1]),
+                top.world_T_base,
+                top.tool_xyz_mm,
+                m,
+            )
+            names = coefficient_names(m)
+            idx = np.array([k for k, name in enumerate(names) if name in kept], dtype=np.intp)
+            cols = np.array([column[names[k]] for k in idx], dtype=np.intp)
+            first = jac_top[:, :, cols].reshape(-1, idx.size)
+            _, coef, active = _identify(st, idx, p_meas[train], 100, first, fold=True)
+            model = ChebyshevModel(robot, params.world_T_base, m, range_deg, coef, active)
+            out[i, j] = np.sum((model.predict_tcp_mm(a[test]) - p_meas[test]) ** 2)
+            fitted()
+    return out
 
 
 def select_order(
@@ -533,30 +648,18 @@ def select_order(
     p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
     chosen_frame = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
     fold_of = np.random.default_rng(seed).permutation(n) % folds
-    table: list[tuple[float, ...]] = []
     done, total = 0, len(orders) * len(rtols) * folds
-    for m in orders:
-        row = []
-        for tol in rtols:
-            sq = 0.0
-            for f in range(folds):
-                train, test = fold_of != f, fold_of == f
-                fit = fit_chebyshev(
-                    robot,
-                    a[train],
-                    p_meas[train],
-                    m,
-                    frame=chosen_frame,
-                    range_deg=rng_deg,
-                    rtol=tol,
-                    check_rank=False,
-                )
-                err = fit.model.predict_tcp_mm(a[test]) - p_meas[test]
-                sq += float(np.sum(err**2))
-                done += 1
-                steps.report("cross-validation fits", done, total)
-            row.append(float(np.sqrt(sq / n)))
-        table.append(tuple(row))
+
+    def fitted() -> None:
+        nonlocal done
+        done += 1
+        steps.report("cross-validation fits", done, total)
+
+    sq = np.zeros((len(orders), len(rtols)))
+    for f in range(folds):
+        rng = np.asarray(rng_deg, dtype=float)
+        sq += _fold_sq_errors(robot, a, p_meas, fold_of == f, orders, rtols, chosen_frame, rng, fitted)
+    table = [tuple(float(np.sqrt(v / n)) for v in row) for row in sq]
     scores = np.array(table)
     i_order, i_rtol = (int(i) for i in np.unravel_index(int(np.argmin(scores)), scores.shape))
     return OrderSelection(

@@ -66,7 +66,7 @@ from comp_daemon.kinematics.params import (
 from comp_daemon.kinematics.so3 import left_jacobian, skew
 from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, finite_array, measured_positions
 from comp_daemon.models.covariance import attach_covariance
-from comp_daemon.models.effects import EffectParams, MassModel, twin_state, twin_tcp_mm
+from comp_daemon.models.effects import EffectParams, MassModel, TwinState, twin_state, twin_tcp_mm
 from comp_daemon.models.fitting import (
     FitOptions,
     FittedModel,
@@ -250,6 +250,17 @@ def _unpack(
     return start.apply(dx), comp, dx
 
 
+def _twin(
+    mass: MassModel,
+    params: KinematicParams,
+    comp: NDArray[np.float64],
+    a: NDArray[np.float64],
+    payload: NDArray[np.float64] | float,
+) -> TwinState:
+    """The twin of the model (torques at the commanded configuration, as in predict_tcp_mm)."""
+    return twin_state(mass, params, EffectParams(compliance_rad_per_nm=comp), a, None, payload, None)
+
+
 def _tcp_and_jac(
     mass: MassModel,
     start: KinematicParams,
@@ -261,8 +272,7 @@ def _tcp_and_jac(
 ) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
     """TCP (n, 3) and its derivative (n, 3, len(x)) w.r.t. the unknowns ``x`` of the calibration."""
     params, comp, dx = _unpack(start, geo_idx, cj, x)
-    # the twin of the model (torques at the commanded configuration, as in predict_tcp_mm)
-    st = twin_state(mass, params, EffectParams(compliance_rad_per_nm=comp), a, None, payload, None)
+    st = _twin(mass, params, comp, a, payload)
     ch = st.chain
     tau = st.tau_nm
     if not cj or not np.any(comp != 0.0):
@@ -363,14 +373,18 @@ def calibrate_compliance(
         return out
 
     def residual(xk: NDArray[np.float64]) -> NDArray[np.float64]:
-        tcp, _ = tcp_and_jac(expand(xk))
-        return (tcp - p_meas).reshape(-1)
+        params, comp, _ = unpack(expand(xk))
+        return (_twin(mass, params, comp, a, payload).tcp_mm - p_meas).reshape(-1)
 
     def jacobian(xk: NDArray[np.float64]) -> NDArray[np.float64]:
         _, jac = tcp_and_jac(expand(xk))
         return jac[:, :, keep].reshape(3 * n, keep.size)
 
-    result = improved_lm(residual, jacobian, np.zeros(keep.size), x_scale="jac", max_iter=max_iter)
+    # the analysed Jacobian's identified columns are the iteration's first Jacobian
+    first = jac0[:, :, keep].reshape(3 * n, keep.size)
+    result = improved_lm(
+        residual, jacobian, np.zeros(keep.size), x_scale="jac", max_iter=max_iter, jacobian_x0=first
+    )
     params, comp, _ = unpack(expand(result.x))
     offsets = params.theta_offset_rad - nominal.theta_offset_rad
     model = ComplianceModel(

@@ -31,10 +31,12 @@ tracker noise as the positions: the least-squares optimum of the measurements as
 choice of weight between millimetres and radians. A parameter that only the orientation sees (a
 wrist twist the TCP hardly feels) becomes better determined; parameters that move every target
 alike with an offset (``d6``, ``theta6`` against the targets' offsets) drop out as dependent.
-The target positions are computed from the twin's flange frame (payload at the TCP); the
-Jacobian of target k is the twin's with target k as the tool, whose compliance columns carry the
-payload at that target (exact without a payload or a compliance effect; otherwise a few per cent
-on those columns, which changes the steps, not the fixed point of an exact residual).
+The target positions are computed from the twin's flange frame (payload at the TCP); every
+target's Jacobian comes from that one twin (:func:`~comp_daemon.models.effects.twin_jacobian_targets`),
+target k's columns those of the twin with target k as the tool and the payload still at the TCP, so
+that its compliance columns are the derivative of its residual (with the payload moved onto
+target k they would be wrong by up to several times their size, and the steps near the optimum
+rejected until the step tolerance stopped the iteration short of it).
 
 Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`); effect units as in
 :mod:`comp_daemon.models.effects` (the catalogue: deg for backlash, 1 for the ratio error …).
@@ -43,7 +45,7 @@ Units: mm, rad for the geometry (``dx`` layout of :meth:`KinematicParams.apply`)
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -71,8 +73,10 @@ from comp_daemon.models.base import (
 from comp_daemon.models.effects import (
     EFFECTS,
     EffectParams,
+    MassModel,
     effect_param_names,
     twin_jacobian,
+    twin_jacobian_targets,
     twin_state,
     twin_tcp_mm,
 )
@@ -82,7 +86,7 @@ from comp_daemon.models.observations import (
     angle_deg,
     mean_rotation,
 )
-from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG
+from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG, MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -293,6 +297,7 @@ class KinematicProblem:
         self.geo_idx = np.asarray(geo_idx, dtype=np.intp)
         self.eff_names = list(eff_names)
         self.a, self.p_meas, self.dir, self.payload, self.temp = a_deg, p_measured_mm, dir, payload_kg, temp_c
+        self._rows: MeasuredRows | None = None  # the twin's inputs as rows, made on first use
         self._cols = np.concatenate([self.geo_idx, np.arange(N_PARAMS, N_PARAMS + len(self.eff_names))])
         self.more_meas = more_measured_mm  # (n, K − 1, 3) or None
         m = 0 if more_measured_mm is None else more_measured_mm.shape[1]
@@ -339,12 +344,28 @@ class KinematicProblem:
     def _target_jacobian(
         self, params: KinematicParams, eff: EffectParams, dx: NDArray[np.float64]
     ) -> NDArray[np.float64]:
-        tcp, jac = twin_jacobian(
-            self.robot, params, eff, self.eff_names, self.a, self.dir, self.payload, self.temp
-        )
-        # the base rotation is the rotation vector dx[33:36] applied on the left of the start frame
-        jac[:, :, 33:36] = -skew(tcp - dx[30:33]) @ left_jacobian(dx[33:36])
-        return jac
+        return self._targets_jacobians(params, eff, dx, [None])[0]
+
+    def _targets_jacobians(
+        self,
+        params: KinematicParams,
+        eff: EffectParams,
+        dx: NDArray[np.float64],
+        places: Sequence[NDArray[np.float64] | None],
+    ) -> list[NDArray[np.float64]]:
+        """(n, 3, 39 + effects) per point on the flange (None: the tool of ``params``), from one
+        twin whose gravity torques carry the payload at the TCP, as the residual's do."""
+        if self._rows is None:
+            payload = np.asarray(self.payload, dtype=float)
+            self._rows = MeasuredRows(self.a, self.p_meas, self.dir, payload, self.temp)
+        mass = MassModel.from_robot(self.robot)
+        parts = twin_jacobian_targets(mass, params, eff, self.eff_names, places, self._rows)
+        out = []
+        for tcp, jac in parts:
+            # the base rotation is the rotation vector dx[33:36] applied on the left of the start frame
+            jac[:, :, 33:36] = -skew(tcp - dx[30:33]) @ left_jacobian(dx[33:36])
+            out.append(jac)
+        return out
 
     def jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         raw = self._jacobian(x)
@@ -352,15 +373,16 @@ class KinematicProblem:
 
     def _jacobian(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         params, eff, dx = self.unpack(x)
-        jac = self._target_jacobian(params, eff, dx)
         if self.more_meas is None:
+            jac = self._target_jacobian(params, eff, dx)
             return jac[:, :, self._cols].reshape(-1, self._cols.size)
         n = self.a.shape[0]
         more = self.more_targets(x)
         m = more.shape[0]
-        blocks = [np.concatenate([jac[:, :, self._cols], np.zeros((n, 3, self.more_idx.size))], axis=2)]
+        jacs = self._targets_jacobians(params, eff, dx, [None, *more])
+        blocks = [np.concatenate([jacs[0][:, :, self._cols], np.zeros((n, 3, self.more_idx.size))], axis=2)]
         for k in range(m):
-            jk = self._target_jacobian(replace(params, tool_xyz_mm=more[k]), eff, dx)
+            jk = jacs[k + 1]
             offset = np.zeros((n, 3, 3 * m))
             offset[:, :, 3 * k : 3 * k + 3] = jk[:, :, 36:39]  # ∂p_k/∂(its flange offset)
             jk[:, :, 36:39] = 0.0  # the tool is the first target's offset
@@ -432,9 +454,11 @@ def calibrate_kinematic(
     rows but the largest gets its own rigid correction, estimated with the rest; ``probe_r``
     (n, 3, 3) a 6-DOF probe's measured rotations, fitted with its unknown rotation on the flange and
     weighted by ``probe_sigma_deg`` against the rows' position σ (:mod:`comp_daemon.models.observations`).
-    ``report_ranks=False`` leaves the identifiability report's rank checks and condition number
-    out (-1 and NaN; the identified parameters are the same): for fits whose report nobody reads,
-    the folds of a cross-validation.
+    ``report_ranks=False`` leaves the identifiability report's rank checks, condition number and
+    the combinations that reproduce the dependent columns out (-1, NaN, empty), and the standard
+    errors (NaN), and the solver's Jacobian is its last one rather than one at the solution; the
+    identified parameters and their values are the same: for fits whose report nobody reads, the
+    folds of a cross-validation.
     """
     a = as_axes(a_deg)
     n = a.shape[0]
@@ -505,10 +529,12 @@ def calibrate_kinematic(
         )
         return ObservedProblem(inner, obs, extra_idx, mount0) if obs.active else inner
 
+    whole = None  # the Jacobian of the problem with every parameter, at the start (when it is made)
     if more_meas is None and not obs.active:
         _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
     else:
-        jac0 = problem_of(np.arange(N_PARAMS), eff_names, None, None).jacobian(np.zeros(len(all_names)))
+        whole = problem_of(np.arange(N_PARAMS), eff_names, None, None).jacobian(np.zeros(len(all_names)))
+        jac0 = whole
     report = analyze_identifiability(
         jac0,
         all_names,
@@ -517,6 +543,7 @@ def calibrate_kinematic(
         rtol=rtol,
         check_rank=report_ranks,
         check_condition=report_ranks,
+        describe_dependent=report_ranks,
     )
     idx = report.identifiable_index
     n_eff = len(eff_names)
@@ -528,7 +555,18 @@ def calibrate_kinematic(
     inner = problem.inner if isinstance(problem, ObservedProblem) else problem
 
     x0 = np.zeros(idx.size)
-    result = improved_lm(problem.residual, problem.jacobian, x0, x_scale="jac", max_iter=max_iter)
+    # the iteration's first Jacobian: the identified columns of the analysed one, where that is the
+    # problem's own (each column is computed on its own: the same numbers)
+    first = None if whole is None else whole[:, idx]
+    result = improved_lm(
+        problem.residual,
+        problem.jacobian,
+        x0,
+        x_scale="jac",
+        max_iter=max_iter,
+        jacobian_x0=first,
+        jacobian_at_solution=report_ranks,
+    )
     n_pos = 3 * n * (1 + n_more)
     position = result.residual[:n_pos]
     unweighted = position if inner.weights is None else position / inner.weights
@@ -536,7 +574,7 @@ def calibrate_kinematic(
     params, eff, _ = inner.unpack(x_in)
     more_fit = None if more_meas is None else inner.more_targets(x_in)
     model = KinematicModel(robot, params, eff if effects else None, registration, more_fit)
-    std = _standard_errors(result.jacobian, result.residual)
+    std = _standard_errors(result.jacobian, result.residual) if report_ranks else np.full(idx.size, np.nan)
     per_point = np.sum(unweighted.reshape(-1, n, 3) ** 2, axis=2)  # (K, n)
     rms = float(np.sqrt(np.mean(per_point[0])))
     observed: dict[str, Any] = {}
