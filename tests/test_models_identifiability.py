@@ -7,7 +7,13 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from comp_daemon.estimation.identifiability import analyze_identifiability, mdh_priority, parallel_joints
+from comp_daemon.estimation.identifiability import (
+    analyze_identifiability,
+    mdh_priority,
+    offer_order,
+    parallel_joints,
+    select_columns,
+)
 from comp_daemon.kinematics.forward import identification_jacobian, tcp_position_mm
 from comp_daemon.kinematics.params import PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
 from comp_daemon.robot.description import RobotDescription, load_robot
@@ -156,3 +162,29 @@ def test_bad_input_is_refused_by_name() -> None:
         analyze_identifiability(jac, ["a", "b"], candidates=["a", "x"])
     with pytest.raises(ValueError, match="no tolerance for: b"):
         analyze_identifiability(jac, ["a", "b"], rtol={"a": 1e-8})
+
+
+def test_offer_order_puts_the_priority_first_and_skips_what_is_not_a_candidate() -> None:
+    index = {name: i for i, name in enumerate(["a", "b", "c", "d"])}
+    assert offer_order(index, None, None) == ["a", "b", "c", "d"]
+    assert offer_order(index, ["d", "b", "a"], None) == ["d", "b", "a"]
+    # "c" is a column but not a candidate: the priority's mention of it is skipped
+    assert offer_order(index, ["a", "b", "d"], ["c", "d", "b"]) == ["d", "b", "a"]
+    with pytest.raises(ValueError, match="in priority: x"):
+        offer_order(index, None, ["x", "a"])
+
+
+def test_select_columns_keeps_a_column_only_when_its_new_part_exceeds_its_tolerance() -> None:
+    e1, e2, e3 = np.eye(3)
+    tilted = (e1 + 0.01 * e2) / np.linalg.norm(e1 + 0.01 * e2)  # new part 0.01/|.| beside e1
+    scaled = np.stack([e1, np.zeros(3), tilted, tilted, e3], axis=1)
+    is_zero = np.array([False, True, False, False, False])
+    new_part = 0.01 / np.linalg.norm(e1 + 0.01 * e2)
+    # the first tilted column's tolerance is just above its new part, the second's just below
+    tol = np.array([1e-8, 1e-8, new_part * 1.001, new_part * 0.999, 1e-8])
+    kept, kept_res, status = select_columns(scaled, is_zero, tol)
+    assert kept == [0, 3, 4]
+    assert kept_res == pytest.approx([1.0, new_part, 1.0])
+    assert status[1] == ("zero", 0.0)
+    assert status[2][0] == "dependent"
+    assert status[2][1] == pytest.approx(new_part)

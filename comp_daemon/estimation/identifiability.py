@@ -41,7 +41,9 @@ __all__ = [
     "RemovedParameter",
     "analyze_identifiability",
     "mdh_priority",
+    "offer_order",
     "parallel_joints",
+    "select_columns",
 ]
 
 
@@ -167,38 +169,81 @@ def analyze_identifiability(
     if len(set(names)) != len(names):
         raise ValueError("parameter names must be unique")
     index = {n: i for i, n in enumerate(names)}
-    cand = tuple(names if candidates is None else candidates)
-    unknown = [n for n in cand if n not in index]
-    if unknown:
-        raise ValueError(f"unknown parameter name(s): {', '.join(unknown)}")
-    if priority is not None:
-        missing = [n for n in priority if n not in index]
-        if missing:
-            raise ValueError(f"unknown parameter name(s) in priority: {', '.join(missing)}")
-        cand_set = set(cand)
-        order = [n for n in priority if n in cand_set]
-        order += [n for n in cand if n not in set(order)]
-    else:
-        order = list(cand)
+    order = offer_order(index, candidates, priority)
     cols = np.array([index[n] for n in order], dtype=np.intp)
-    if isinstance(rtol, Mapping):
-        missing_tol = [n for n in order if n not in rtol]
-        if missing_tol:
-            raise ValueError(f"no tolerance for: {', '.join(missing_tol)}")
-        tol = np.array([float(rtol[n]) for n in order])
-    else:
-        tol = np.full(len(order), float(rtol))
+    tol = _tolerances(rtol, order)
     sub = a[:, cols]
     norms = np.linalg.norm(sub, axis=0)
     max_norm = float(norms.max(initial=0.0))
     is_zero = norms <= zero_rtol * max_norm if max_norm > 0 else np.ones(len(order), dtype=bool)
     scaled = sub / np.where(is_zero, 1.0, norms)
 
-    rows_basis = np.empty((len(order), a.shape[0]))  # the orthonormal basis, one vector a row
-    kept: list[int] = []  # positions in `order`
+    kept, kept_res, status = select_columns(scaled, is_zero, tol)
+    removed = _removed(order, scaled, norms, kept, status, describe_dependent)
+    rank_qr, rank_svd, sv = _ranks(scaled[:, ~is_zero], rank_rtol) if check_rank else (-1, -1, np.zeros(0))
+    if kept and check_condition:
+        sv_kept = np.linalg.svd(scaled[:, kept], compute_uv=False)
+        cond = float(sv_kept[0] / sv_kept[-1]) if sv_kept[-1] > 0 else float("inf")
+    else:
+        cond = float("nan")
+    kept_index = np.sort(cols[kept])
+    return IdentifiabilityReport(
+        names=names,
+        candidates=tuple(order),
+        identifiable=tuple(names[i] for i in kept_index),
+        identifiable_index=kept_index,
+        removed=tuple(removed),
+        rank_qr=rank_qr,
+        rank_svd=rank_svd,
+        singular_values=sv,
+        condition_number=cond,
+        smallest_kept_residual=min(kept_res, default=float("nan")),
+    )
+
+
+def offer_order(
+    index: Mapping[str, int], candidates: Sequence[str] | None, priority: Sequence[str] | None
+) -> list[str]:
+    """The candidates (default every name of ``index``) in the order they are offered: those named in
+    ``priority`` first, in its order, then the rest in candidate order; a name neither column of
+    the Jacobian is a ``ValueError`` naming it."""
+    cand = tuple(index if candidates is None else candidates)
+    unknown = [n for n in cand if n not in index]
+    if unknown:
+        raise ValueError(f"unknown parameter name(s): {', '.join(unknown)}")
+    if priority is None:
+        return list(cand)
+    missing = [n for n in priority if n not in index]
+    if missing:
+        raise ValueError(f"unknown parameter name(s) in priority: {', '.join(missing)}")
+    cand_set = set(cand)
+    order = [n for n in priority if n in cand_set]
+    order += [n for n in cand if n not in set(order)]
+    return order
+
+
+def _tolerances(rtol: float | Mapping[str, float], order: Sequence[str]) -> NDArray[np.float64]:
+    """The Gram–Schmidt tolerance of every offered column: one for all, or the caller's per name."""
+    if not isinstance(rtol, Mapping):
+        return np.full(len(order), float(rtol))
+    missing_tol = [n for n in order if n not in rtol]
+    if missing_tol:
+        raise ValueError(f"no tolerance for: {', '.join(missing_tol)}")
+    return np.array([float(rtol[n]) for n in order])
+
+
+def select_columns(
+    scaled: NDArray[np.float64], is_zero: NDArray[np.bool_], tol: NDArray[np.float64]
+) -> tuple[list[int], list[float], dict[int, tuple[str, float]]]:
+    """The basis of the column space in offer order (module docstring): the unit-norm columns
+    ``scaled`` (m, q) are offered one by one and kept when the part the kept ones cannot express
+    is longer than ``tol``. Returns the kept positions, their Gram–Schmidt residuals, and for every
+    other position ``("zero", 0.0)`` or ``("dependent", residual)``."""
+    rows_basis = np.empty((scaled.shape[1], scaled.shape[0]))  # the orthonormal basis, one vector a row
+    kept: list[int] = []
     kept_res: list[float] = []
     status: dict[int, tuple[str, float]] = {}
-    for pos in range(len(order)):
+    for pos in range(scaled.shape[1]):
         if is_zero[pos]:
             status[pos] = ("zero", 0.0)
             continue
@@ -213,10 +258,23 @@ def analyze_identifiability(
             kept_res.append(res)
         else:
             status[pos] = ("dependent", res)
+    return kept, kept_res, status
 
+
+def _removed(
+    order: Sequence[str],
+    scaled: NDArray[np.float64],
+    norms: NDArray[np.float64],
+    kept: list[int],
+    status: Mapping[int, tuple[str, float]],
+    describe: bool,
+) -> list[RemovedParameter]:
+    """The removed columns in offer order; a dependent one with the least-squares combination of the
+    kept columns that reproduces it (unscaled coefficients, largest contribution first) when
+    ``describe`` and anything was kept."""
     removed: list[RemovedParameter] = []
     dependent = [pos for pos in sorted(status) if status[pos][0] == "dependent"]
-    explain = describe_dependent and bool(kept)
+    explain = describe and bool(kept)
     if dependent and explain:
         # all dependent columns at once, in the kept columns' scaled basis
         coef_all, *_ = np.linalg.lstsq(scaled[:, kept], scaled[:, dependent], rcond=None)
@@ -239,35 +297,17 @@ def analyze_identifiability(
                 res,
             )
         )
+    return removed
 
-    nonzero = scaled[:, ~is_zero]
-    if not check_rank:
-        sv = np.zeros(0)
-        rank_qr = rank_svd = -1
-    elif nonzero.shape[1]:
-        _, r_qr, _ = scipy.linalg.qr(nonzero, mode="economic", pivoting=True)
-        diag = np.abs(np.diag(r_qr))
-        rank_qr = int(np.sum(diag > rank_rtol * diag[0])) if diag[0] > 0 else 0
-        sv = np.asarray(np.linalg.svd(nonzero, compute_uv=False), dtype=np.float64)
-        rank_svd = int(np.sum(sv > rank_rtol * sv[0])) if sv[0] > 0 else 0
-    else:
-        sv = np.zeros(0)
-        rank_qr = rank_svd = 0
-    if kept and check_condition:
-        sv_kept = np.linalg.svd(scaled[:, kept], compute_uv=False)
-        cond = float(sv_kept[0] / sv_kept[-1]) if sv_kept[-1] > 0 else float("inf")
-    else:
-        cond = float("nan")
-    kept_index = np.sort(cols[kept])
-    return IdentifiabilityReport(
-        names=names,
-        candidates=tuple(order),
-        identifiable=tuple(names[i] for i in kept_index),
-        identifiable_index=kept_index,
-        removed=tuple(removed),
-        rank_qr=rank_qr,
-        rank_svd=rank_svd,
-        singular_values=sv,
-        condition_number=cond,
-        smallest_kept_residual=min(kept_res, default=float("nan")),
-    )
+
+def _ranks(nonzero: NDArray[np.float64], rank_rtol: float) -> tuple[int, int, NDArray[np.float64]]:
+    """The independent rank checks of the non-zero scaled columns: by pivoted QR, by SVD (relative
+    tolerance ``rank_rtol``), and the singular values."""
+    if not nonzero.shape[1]:
+        return 0, 0, np.zeros(0)
+    _, r_qr, _ = scipy.linalg.qr(nonzero, mode="economic", pivoting=True)
+    diag = np.abs(np.diag(r_qr))
+    rank_qr = int(np.sum(diag > rank_rtol * diag[0])) if diag[0] > 0 else 0
+    sv = np.asarray(np.linalg.svd(nonzero, compute_uv=False), dtype=np.float64)
+    rank_svd = int(np.sum(sv > rank_rtol * sv[0])) if sv[0] > 0 else 0
+    return rank_qr, rank_svd, sv
