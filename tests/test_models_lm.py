@@ -193,3 +193,13 @@ def test_a_jacobian_at_the_start_is_used_instead_of_a_first_evaluation() -> None
     last = improved_lm(osborne1, osborne1_jac, x0, jacobian_at_solution=False)
     np.testing.assert_array_equal(last.x, plain.x)
     assert last.n_jacobian_evals <= plain.n_jacobian_evals
+
+
+def test_damping_factor_rule_of_step_7() -> None:
+    rule = dict(m=1e-8, p1=0.25, p2=0.75)
+    assert lm.next_upsilon(1e-4, 0.1, **rule) == 4e-4  # poorly predicted: more damping
+    assert lm.next_upsilon(1e-4, -np.inf, **rule) == 4e-4  # a non-finite trial cost counts as poor
+    assert lm.next_upsilon(1e-4, 0.25, **rule) == 1e-4  # p1 ≤ r ≤ p2: unchanged, bounds included
+    assert lm.next_upsilon(1e-4, 0.75, **rule) == 1e-4
+    assert lm.next_upsilon(1e-4, 0.9, **rule) == 2.5e-5  # well predicted: less damping
+    assert lm.next_upsilon(2e-8, 0.9, **rule) == 1e-8  # but never below m

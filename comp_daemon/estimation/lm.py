@@ -59,7 +59,7 @@ import numpy as np
 import scipy.linalg
 from numpy.typing import NDArray
 
-__all__ = ["PRED_FTOL", "IterationRecord", "LMResult", "improved_lm"]
+__all__ = ["PRED_FTOL", "IterationRecord", "LMResult", "improved_lm", "next_upsilon"]
 
 #: converged at a new Jacobian when the LM step predicts less than this fraction of ||F||² (module
 #: docstring, ``ftol``); 0 turns the test off (every iteration then evaluates its steps)
@@ -133,21 +133,11 @@ def improved_lm(
     x = np.array(x0, dtype=float, copy=True)
     if x.ndim != 1:
         raise ValueError(f"x0 must be a vector, got shape {x.shape}")
-    n_f = n_j = 0
+    ev = _Evaluations(residual, jacobian)
 
-    def f_of(xx: NDArray[np.float64]) -> NDArray[np.float64]:
-        nonlocal n_f
-        n_f += 1
-        return np.asarray(residual(xx), dtype=float)
-
-    def j_of(xx: NDArray[np.float64]) -> NDArray[np.float64]:
-        nonlocal n_j
-        n_j += 1
-        return np.asarray(jacobian(xx), dtype=float)
-
-    f = f_of(x)
+    f = ev.f(x)
     if jacobian_x0 is None:
-        jac = j_of(x)
+        jac = ev.j(x)
     else:
         jac = np.asarray(jacobian_x0, dtype=float)
         if jac.shape != (f.size, x.size):
@@ -163,41 +153,29 @@ def improved_lm(
     fresh = True  # the Jacobian is new at x (the start, or an accepted step)
     while k < max_iter:
         k += 1
-        if need_jac:
-            jac = j_of(x)
+        if need_jac:  # step 2 at the point a step was accepted to
+            jac = ev.j(x)
             need_jac = False
             fresh = True
         js = jac * scale  # Jacobian w.r.t. the scaled variables u = x / scale
         g = js.T @ f
-        col = np.linalg.norm(js, axis=0)
         f_norm = np.sqrt(ff)
-        if f_norm <= fatol:
-            reason = "fatol"
+        stop = _stationary(js, g, f_norm, fatol, gtol)
+        if stop is not None:
+            reason = stop
             k -= 1
             break
-        cosine = np.abs(g) / np.where(col > 0.0, col * f_norm, 1.0)
-        if float(cosine.max(initial=0.0)) <= gtol:
-            reason = "gtol"
-            k -= 1
-            break
+        # step 3: adaptive damping and the LM step
         mu = upsilon * f_norm**delta
-        a = js.T @ js + mu * eye
         try:
-            factor = scipy.linalg.cho_factor(a, lower=False, check_finite=False)
+            factor = scipy.linalg.cho_factor(js.T @ js + mu * eye, lower=False, check_finite=False)
         except np.linalg.LinAlgError:
             upsilon *= 4.0
             fresh = False
             history.append(IterationRecord(k, 0.5 * ff, float(mu), upsilon, float("nan"), False, 0.0))
             continue
-
-        def solve(
-            rhs: NDArray[np.float64], fac: tuple[NDArray[np.float64], bool] = factor
-        ) -> NDArray[np.float64]:
-            return -scipy.linalg.cho_solve(fac, rhs, check_finite=False)
-
-        # step 3: LM step; step 4: two approximate LM steps with the same Jacobian
-        d1 = solve(g)
-        pred = ff - float(np.sum((f + js @ d1) ** 2))
+        d1 = _lm_step(factor, g)
+        pred = _predicted(js, f, ff, d1)
         if fresh and upsilon <= upsilon1 and pred <= PRED_FTOL * ff:
             history.append(
                 IterationRecord(
@@ -207,19 +185,17 @@ def improved_lm(
             reason = "ftol"
             break
         fresh = False
+        # step 4: two approximate LM steps with the same Jacobian and factorisation
         y = x + scale * d1
-        f_y = f_of(y)
-        d2 = solve(js.T @ f_y)
-        ff_y = float(f_y @ f_y)
-        pred += ff_y - float(np.sum((f_y + js @ d2) ** 2))
+        d2, pred2 = _approximate_step(factor, js, ev.f(y))
+        pred += pred2
         z = y + scale * d2
-        f_z = f_of(z)
-        d3 = solve(js.T @ f_z)
-        ff_z = float(f_z @ f_z)
-        pred += ff_z - float(np.sum((f_z + js @ d3) ** 2))
+        d3, pred3 = _approximate_step(factor, js, ev.f(z))
+        pred += pred3
         s = d1 + d2 + d3  # step 5
+        # step 6: actual against predicted reduction
         x_new = x + scale * s
-        f_new = f_of(x_new)
+        f_new = ev.f(x_new)
         ff_new = float(f_new @ f_new)
         ared = ff - ff_new
         step_norm = float(np.linalg.norm(s))
@@ -232,16 +208,12 @@ def improved_lm(
             break
         else:
             ratio = ared / pred
+        # step 7: accept, and the damping factor for the next iteration
         accepted = ratio >= p0
-        upsilon_k = upsilon
-        # step 7
-        if ratio < p1:
-            upsilon = 4.0 * upsilon
-        elif ratio > p2:
-            upsilon = max(upsilon / 4.0, m)
         history.append(
-            IterationRecord(k, 0.5 * ff, float(mu), upsilon_k, float(ratio), bool(accepted), step_norm)
+            IterationRecord(k, 0.5 * ff, float(mu), upsilon, float(ratio), bool(accepted), step_norm)
         )
+        upsilon = next_upsilon(upsilon, ratio, m=m, p1=p1, p2=p2)
         if accepted:
             ff_old = ff
             x, f, ff = x_new, f_new, ff_new
@@ -253,20 +225,85 @@ def improved_lm(
             reason = "xtol"
             break
     if need_jac and jacobian_at_solution:
-        jac = j_of(x)
+        jac = ev.j(x)
     return LMResult(
         x=x,
         cost=0.5 * ff,
         residual=f,
         jacobian=jac,
         iterations=k,
-        n_residual_evals=n_f,
-        n_jacobian_evals=n_j,
+        n_residual_evals=ev.n_f,
+        n_jacobian_evals=ev.n_j,
         converged=reason != "max_iter",
         reason=reason,
         time_s=time.perf_counter() - t_start,
         history=tuple(history),
     )
+
+
+def next_upsilon(upsilon: float, ratio: float, *, m: float, p1: float, p2: float) -> float:
+    """Step 7's damping factor after an iteration whose reduction ratio was ``ratio``: four times
+    larger below ``p1``, four times smaller (not below ``m``) above ``p2``, unchanged between."""
+    if ratio < p1:
+        return 4.0 * upsilon
+    if ratio > p2:
+        return max(upsilon / 4.0, m)
+    return upsilon
+
+
+class _Evaluations:
+    """The caller's residual and Jacobian as float arrays, with the number of calls of each."""
+
+    def __init__(self, residual: ResidualFn, jacobian: JacobianFn) -> None:
+        self._residual, self._jacobian = residual, jacobian
+        self.n_f = self.n_j = 0
+
+    def f(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        self.n_f += 1
+        return np.asarray(self._residual(x), dtype=float)
+
+    def j(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
+        self.n_j += 1
+        return np.asarray(self._jacobian(x), dtype=float)
+
+
+def _stationary(
+    js: NDArray[np.float64], g: NDArray[np.float64], f_norm: float, fatol: float, gtol: float
+) -> Literal["fatol", "gtol"] | None:
+    """The tests that hold at a point before any step (module docstring): ``fatol`` when
+    ``||F|| ≤ fatol``, ``gtol`` when the residual is orthogonal to every column of the scaled
+    Jacobian ``js`` to within ``gtol`` (``g = jsᵀF``); None otherwise."""
+    if f_norm <= fatol:
+        return "fatol"
+    col = np.linalg.norm(js, axis=0)
+    cosine = np.abs(g) / np.where(col > 0.0, col * f_norm, 1.0)
+    if float(cosine.max(initial=0.0)) <= gtol:
+        return "gtol"
+    return None
+
+
+Factor = tuple[NDArray[np.float64], bool]  # Cholesky factor of JᵀJ + mu·I (scipy.linalg.cho_factor)
+
+
+def _lm_step(factor: Factor, rhs: NDArray[np.float64]) -> NDArray[np.float64]:
+    """``-(JᵀJ + mu I)⁻¹ rhs`` from the iteration's one factorisation."""
+    return -np.asarray(scipy.linalg.cho_solve(factor, rhs, check_finite=False))
+
+
+def _predicted(
+    js: NDArray[np.float64], f_w: NDArray[np.float64], ff_w: float, d: NDArray[np.float64]
+) -> float:
+    """The linear model's predicted reduction ``||F(w)||² − ||F(w) + J d||²`` of a step ``d`` at ``w``."""
+    return ff_w - float(np.sum((f_w + js @ d) ** 2))
+
+
+def _approximate_step(
+    factor: Factor, js: NDArray[np.float64], f_w: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], float]:
+    """Step 4's approximate LM step at a point ``w`` with residual ``f_w`` (the iteration's Jacobian
+    and factorisation, no new Jacobian) and the reduction the linear model predicts for it."""
+    d = _lm_step(factor, js.T @ f_w)
+    return d, _predicted(js, f_w, float(f_w @ f_w), d)
 
 
 def _variable_scale(
