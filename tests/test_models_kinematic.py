@@ -18,8 +18,11 @@ from comp_daemon.kinematics.so3 import rotvec_to_matrix as rotation_from_rotvec
 from comp_daemon.models.effects import TRANSMISSION_EFFECTS, EffectParams, effect_param_names, twin_tcp_mm
 from comp_daemon.models.kinematic import (
     KinematicProblem,
+    _Layout,
     calibrate_kinematic,
+    target_param_names,
 )
+from comp_daemon.models.observations import MOUNT_NAMES, station_param_names
 from comp_daemon.robot.description import RobotDescription, load_robot
 
 SIZES = np.tile([1e-3, 0.5, 0.5, 1e-3, 1e-3], 6)  # theta, d, a, alpha, beta per joint (rad, mm)
@@ -196,3 +199,31 @@ def test_gravity_compliance_is_identified_from_zero() -> None:
     assert {"C2", "C3"} <= set(fit.identified)
     assert fit.model.effects is not None
     np.testing.assert_allclose(fit.model.effects.get(["C2", "C3"]), [2e-8, 3e-8], rtol=1e-6)
+
+
+def test_parameter_layout_offers_stations_first_and_flange_points_after_the_tool() -> None:
+    start = KinematicParams.from_robot(load_robot("kr210"))
+    stations = station_param_names(["B"])
+    layout = _Layout(("eps2",), tuple(target_param_names(1)), (*stations, *MOUNT_NAMES))
+    order = layout.priority(start)
+    assert sorted(order) == sorted(layout.names)
+    tool_end = order.index("tool_z") + 1
+    assert list(order[:6]) == stations  # a station's frame: nothing of the robot stands in for it
+    assert order[6] == "base_x"
+    assert list(order[tool_end : tool_end + 6]) == ["target2_x", "target2_y", "target2_z", *MOUNT_NAMES]
+    assert not any(n.startswith("tool_") or n.startswith("base_") for n in order[tool_end:])
+    assert "base_x" not in layout.candidates(fit_base=False, fit_tool=True)
+    assert "tool_x" not in layout.candidates(fit_base=True, fit_tool=False)
+    assert layout.candidates(fit_base=True, fit_tool=True) == list(layout.names)
+
+
+def test_parameter_layout_splits_kept_columns_into_the_problems_blocks() -> None:
+    layout = _Layout(("eps2", "h3"), tuple(target_param_names(2)), tuple(MOUNT_NAMES))
+    names = layout.names
+    kept = ["theta2", "tool_z", "h3", "target2_y", "target3_x", "probe_rz"]
+    idx = np.array([names.index(n) for n in kept], dtype=np.intp)
+    geo, effs, more, extra = layout.split(idx)
+    assert [PARAM_NAMES[i] for i in geo] == ["theta2", "tool_z"]
+    assert effs == ["h3"]
+    assert more.tolist() == [1, 3]  # into the flattened (K − 1, 3) offsets: target2_y, target3_x
+    assert extra.tolist() == [2]  # probe_rz

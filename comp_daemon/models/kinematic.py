@@ -470,22 +470,11 @@ def calibrate_kinematic(
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
-    nominal = KinematicParams.from_robot(robot)
-    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
-    chosen = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
-    registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
-    start = nominal.with_base(registration)
+    start, chosen, registration = registered_start(robot, a, p_meas, frame)
     eff_names = effect_param_names(list(effects), effect_joints, n_harmonics) if effects else []
     eff0 = EffectParams.zeros(n_harmonics)
     dir_arr = None if dir is None else np.asarray(dir, dtype=float)
-
-    geo_candidates = [
-        name
-        for name in PARAM_NAMES
-        if (fit_base or not name.startswith("base_")) and (fit_tool or not name.startswith("tool_"))
-    ]
     n_more = 0 if more_meas is None else more_meas.shape[1]
-    more_names = target_param_names(n_more)
     weights = None if sigma_mm is None else _row_weights(sigma_mm, n)
     obs = FrameObservations.of(
         n,
@@ -495,15 +484,12 @@ def calibrate_kinematic(
         sigma_mm,
         probe_sigma_deg,
     )
-    extra_names = obs.names if obs.active else []
-    all_names = (*PARAM_NAMES, *eff_names, *more_names, *extra_names)
-    more_start = None
-    mount0 = None
-    if more_meas is not None:
-        more_start = _start_offsets(robot, start, eff0, a, dir_arr, payload_kg, temp_c, more_meas)
-    if obs.probe_r is not None:
-        flange = twin_state(robot, start, eff0, a, dir_arr, payload_kg, temp_c).chain.world_T_frame[:, 6]
-        mount0 = mean_rotation(np.swapaxes(flange[:, :3, :3], 1, 2) @ obs.probe_r)
+    layout = _Layout(
+        tuple(eff_names), tuple(target_param_names(n_more)), tuple(obs.names if obs.active else ())
+    )
+    more_start, mount0 = _flange_starts(
+        robot, start, eff0, a, dir_arr, payload_kg, temp_c, more_meas, obs.probe_r
+    )
 
     def problem_of(
         geo: NDArray[np.intp],
@@ -533,25 +519,20 @@ def calibrate_kinematic(
     if more_meas is None and not obs.active:
         _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
     else:
-        whole = problem_of(np.arange(N_PARAMS), eff_names, None, None).jacobian(np.zeros(len(all_names)))
+        whole = problem_of(np.arange(N_PARAMS), eff_names, None, None).jacobian(np.zeros(len(layout.names)))
         jac0 = whole
     report = analyze_identifiability(
         jac0,
-        all_names,
-        candidates=[*geo_candidates, *eff_names, *more_names, *extra_names],
-        priority=_priority(start, eff_names, more_names, extra_names),
+        layout.names,
+        candidates=layout.candidates(fit_base, fit_tool),
+        priority=layout.priority(start),
         rtol=rtol,
         check_rank=report_ranks,
         check_condition=report_ranks,
         describe_dependent=report_ranks,
     )
     idx = report.identifiable_index
-    n_eff = len(eff_names)
-    n_in = N_PARAMS + n_eff + len(more_names)
-    geo_idx = idx[idx < N_PARAMS]
-    eff_sel = [all_names[i] for i in idx[(idx >= N_PARAMS) & (idx < N_PARAMS + n_eff)]]
-    more_idx = idx[(idx >= N_PARAMS + n_eff) & (idx < n_in)] - (N_PARAMS + n_eff)
-    problem = problem_of(geo_idx, eff_sel, more_idx, idx[idx >= n_in] - n_in)
+    problem = problem_of(*layout.split(idx))
     inner = problem.inner if isinstance(problem, ObservedProblem) else problem
 
     x0 = np.zeros(idx.size)
@@ -567,33 +548,20 @@ def calibrate_kinematic(
         jacobian_x0=first,
         jacobian_at_solution=report_ranks,
     )
-    n_pos = 3 * n * (1 + n_more)
-    position = result.residual[:n_pos]
-    unweighted = position if inner.weights is None else position / inner.weights
     x_in = result.x[: inner._cols.size + inner.more_idx.size]
     params, eff, _ = inner.unpack(x_in)
     more_fit = None if more_meas is None else inner.more_targets(x_in)
     model = KinematicModel(robot, params, eff if effects else None, registration, more_fit)
     std = _standard_errors(result.jacobian, result.residual) if report_ranks else np.full(idx.size, np.nan)
-    per_point = np.sum(unweighted.reshape(-1, n, 3) ** 2, axis=2)  # (K, n)
+    per_point = _squared_errors(result.residual, inner.weights, n, 1 + n_more)
     rms = float(np.sqrt(np.mean(per_point[0])))
-    observed: dict[str, Any] = {}
-    if isinstance(problem, ObservedProblem):
-        motions = problem.station_motion(result.x)
-        observed["stations"] = {
-            name: _rigid(rot, t) for name, (rot, t) in zip(obs.labels, motions, strict=True)
-        }
-        if obs.probe_r is not None:
-            ang = angle_deg(problem.predicted_rotations(result.x), problem.measured_rotations(result.x))
-            observed["orientation_rms_deg"] = float(np.sqrt(np.mean(ang**2)))
-            observed["probe_mount"] = problem.mount(result.x)
-            observed["orientation_weight"] = obs.orientation_weight
+    observed = _observed_fit(problem, obs, result.x) if isinstance(problem, ObservedProblem) else {}
     return KinematicFit(
         model=model,
         frame=chosen,
         registration=registration,
         report=report,
-        identified=tuple(all_names[i] for i in idx),
+        identified=tuple(layout.names[i] for i in idx),
         values=result.x.copy(),
         std=std,
         lm=result,
@@ -604,6 +572,92 @@ def calibrate_kinematic(
         weighted=sigma_mm is not None,
         **observed,
     )
+
+
+def registered_start(
+    robot: RobotDescription, a_deg: NDArray[np.float64], p_meas_mm: NDArray[np.float64], frame: FrameChoice
+) -> tuple[KinematicParams, Literal["base", "tracker"], NDArray[np.float64]]:
+    """The calibration's start: the nominal geometry with its base frame registered in the frame
+    the measured points are in (``frame``, or detected from the nominal TCPs of ``a_deg``), that
+    frame, and the (4, 4) registration (the identity in the robot's base frame)."""
+    nominal = KinematicParams.from_robot(robot)
+    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a_deg, nominal.sign))
+    chosen: Literal["base", "tracker"] = detect_frame(p_nominal, p_meas_mm) if frame == "auto" else frame
+    registration = rigid_registration(p_nominal, p_meas_mm) if chosen == "tracker" else np.eye(4)
+    return nominal.with_base(registration), chosen, registration
+
+
+@dataclass(frozen=True, slots=True)
+class _Layout:
+    """The columns of the calibration's Jacobian, in order: the 39 geometric parameters
+    (:data:`PARAM_NAMES`), the effects', the further targets' flange offsets, then the frame
+    observations' (the stations' corrections, the probe's rotation on the flange)."""
+
+    effects: tuple[str, ...]
+    targets: tuple[str, ...]
+    observed: tuple[str, ...]
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (*PARAM_NAMES, *self.effects, *self.targets, *self.observed)
+
+    def candidates(self, fit_base: bool, fit_tool: bool) -> list[str]:
+        """Every column but the base frame's (``fit_base=False``) and the tool's (``fit_tool=False``)."""
+        geometry = [
+            name
+            for name in PARAM_NAMES
+            if (fit_base or not name.startswith("base_")) and (fit_tool or not name.startswith("tool_"))
+        ]
+        return [*geometry, *self.effects, *self.targets, *self.observed]
+
+    def priority(self, start: KinematicParams) -> tuple[str, ...]:
+        """MDH priority with the further targets' offsets (and the probe's rotation on the flange)
+        offered right after the tool (the first target's), and the stations' corrections first: a
+        station's frame is not the robot's, and nothing of the robot stands in for it."""
+        order = list(mdh_priority(start, extra=self.effects))
+        at = max(i for i, name in enumerate(order) if name.startswith("tool_")) + 1
+        stations = [name for name in self.observed if name.startswith("station_")]
+        mount = [name for name in self.observed if not name.startswith("station_")]
+        return tuple(stations + order[:at] + list(self.targets) + mount + order[at:])
+
+    def split(
+        self, idx: NDArray[np.intp]
+    ) -> tuple[NDArray[np.intp], list[str], NDArray[np.intp], NDArray[np.intp]]:
+        """The kept columns ``idx`` block by block, as :class:`KinematicProblem` and
+        :class:`ObservedProblem` take them: geometric indices into :data:`PARAM_NAMES`, effect
+        names, then indices into the flattened target offsets and into the observations' names."""
+        n_geo_eff = N_PARAMS + len(self.effects)
+        n_in = n_geo_eff + len(self.targets)
+        names = self.names
+        geo_idx = idx[idx < N_PARAMS]
+        eff_sel = [names[i] for i in idx[(idx >= N_PARAMS) & (idx < n_geo_eff)]]
+        more_idx = idx[(idx >= n_geo_eff) & (idx < n_in)] - n_geo_eff
+        return geo_idx, eff_sel, more_idx, idx[idx >= n_in] - n_in
+
+
+def _squared_errors(
+    residual: NDArray[np.float64], weights: NDArray[np.float64] | None, n: int, targets: int
+) -> NDArray[np.float64]:
+    """(K, n) every target's squared 3-D position error (mm²) in each row, from the solver's
+    residual (the position errors target after target, weighted by ``weights``, then any other)."""
+    position = residual[: 3 * n * targets]
+    unweighted = position if weights is None else position / weights
+    return np.sum(unweighted.reshape(-1, n, 3) ** 2, axis=2)
+
+
+def _observed_fit(problem: ObservedProblem, obs: FrameObservations, x: NDArray[np.float64]) -> dict[str, Any]:
+    """The frame observations' part of a :class:`KinematicFit` at the solution ``x``: every
+    corrected station's rigid motion, and the probe's orientation residual, mount and weight."""
+    motions = problem.station_motion(x)
+    out: dict[str, Any] = {
+        "stations": {name: _rigid(rot, t) for name, (rot, t) in zip(obs.labels, motions, strict=True)}
+    }
+    if obs.probe_r is not None:
+        ang = angle_deg(problem.predicted_rotations(x), problem.measured_rotations(x))
+        out["orientation_rms_deg"] = float(np.sqrt(np.mean(ang**2)))
+        out["probe_mount"] = problem.mount(x)
+        out["orientation_weight"] = obs.orientation_weight
+    return out
 
 
 def _rigid(rot: NDArray[np.float64], t: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -627,23 +681,7 @@ def _row_weights(sigma_mm: NDArray[np.float64], n: int) -> NDArray[np.float64]:
     return float(np.median(sigma)) / sigma
 
 
-def _priority(
-    start: KinematicParams,
-    eff_names: Sequence[str],
-    more_names: Sequence[str],
-    extra_names: Sequence[str] = (),
-) -> tuple[str, ...]:
-    """MDH priority with the further targets' offsets (and the probe's rotation on the flange)
-    offered right after the tool (the first target's), and the stations' corrections first: a
-    station's frame is not the robot's, and nothing of the robot stands in for it."""
-    order = list(mdh_priority(start, extra=eff_names))
-    at = max(i for i, name in enumerate(order) if name.startswith("tool_")) + 1
-    stations = [name for name in extra_names if name.startswith("station_")]
-    mount = [name for name in extra_names if not name.startswith("station_")]
-    return tuple(stations + order[:at] + list(more_names) + mount + order[at:])
-
-
-def _start_offsets(
+def _flange_starts(
     robot: RobotDescription,
     start: KinematicParams,
     eff0: EffectParams,
@@ -651,13 +689,22 @@ def _start_offsets(
     dir: NDArray[np.float64] | None,
     payload_kg: NDArray[np.float64] | float,
     temp_c: NDArray[np.float64] | None,
-    more_meas: NDArray[np.float64],
-) -> NDArray[np.float64]:
-    """(K − 1, 3) start offsets of the further targets: the mean of each measured point seen from the
-    start twin's flange (off by about the nominal twin's error, which the iteration removes)."""
+    more_meas: NDArray[np.float64] | None,
+    probe_r: NDArray[np.float64] | None,
+) -> tuple[NDArray[np.float64] | None, NDArray[np.float64] | None]:
+    """The start values of what sits on the flange, seen from the start twin's flange: the further
+    targets' (K − 1, 3) offsets, the mean of each measured point (off by about the nominal twin's
+    error, which the iteration removes), and the probe's (3, 3) rotation on the flange, the mean
+    of the measured rotations; None for what was not measured."""
+    if more_meas is None and probe_r is None:
+        return None, None
     flange = twin_state(robot, start, eff0, a, dir, payload_kg, temp_c).chain.world_T_frame[:, 6]
-    local = np.einsum("nji,nkj->nki", flange[:, :3, :3], more_meas - flange[:, None, :3, 3])
-    return np.asarray(local.mean(axis=0))
+    more_start = None
+    if more_meas is not None:
+        local = np.einsum("nji,nkj->nki", flange[:, :3, :3], more_meas - flange[:, None, :3, 3])
+        more_start = np.asarray(local.mean(axis=0))
+    mount0 = None if probe_r is None else mean_rotation(np.swapaxes(flange[:, :3, :3], 1, 2) @ probe_r)
+    return more_start, mount0
 
 
 def _standard_errors(jac: NDArray[np.float64], residual: NDArray[np.float64]) -> NDArray[np.float64]:
