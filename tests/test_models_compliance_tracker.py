@@ -15,8 +15,8 @@ from benchmarks.seed004_compliance import (
 )
 from comp_daemon.kinematics.forward import gravity_torques_nm
 from comp_daemon.kinematics.kuka_abc import abc_deg_to_matrix
-from comp_daemon.kinematics.params import N_PARAMS, KinematicParams, axes_deg_to_q_rad
-from comp_daemon.models.compliance import ComplianceModel, calibrate_compliance
+from comp_daemon.kinematics.params import N_PARAMS, PARAM_NAMES, KinematicParams, axes_deg_to_q_rad
+from comp_daemon.models.compliance import ComplianceModel, _geometric_unknowns, calibrate_compliance
 from comp_daemon.models.effects import EffectParams, twin_tcp_mm
 from comp_daemon.robot.description import load_robot
 
@@ -159,3 +159,17 @@ def test_bad_input_is_refused_by_name() -> None:
         ComplianceModel(ROBOT, OFFSETS, COMP[:3])
     with pytest.raises(ValueError, match="zero_offset_rad: values must be finite"):
         ComplianceModel(ROBOT, [np.nan] * 6, COMP)
+
+
+def test_geometric_unknowns_beside_the_compliance() -> None:
+    base = ["base_x", "base_y", "base_z", "base_rx", "base_ry", "base_rz"]
+    assert _geometric_unknowns((2, 3), tracker=False, fit_tool=False, geometry=False) == ["theta2", "theta3"]
+    # a tracker frame's registration is refined with the offsets; the tool after them
+    assert _geometric_unknowns((1,), tracker=True, fit_tool=True, geometry=False) == [
+        *base,
+        "theta1",
+        "tool_x",
+        "tool_y",
+        "tool_z",
+    ]
+    assert _geometric_unknowns((1,), tracker=True, fit_tool=False, geometry=True) == list(PARAM_NAMES)

@@ -53,14 +53,12 @@ from comp_daemon.estimation.identifiability import (
     mdh_priority,
 )
 from comp_daemon.estimation.lm import LMResult, improved_lm
-from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.estimation.selection import keep_all
-from comp_daemon.kinematics.forward import gravity_torques_nm, identification_jacobian, tcp_position_mm
+from comp_daemon.kinematics.forward import gravity_torques_nm, identification_jacobian
 from comp_daemon.kinematics.params import (
     N_PARAMS,
     PARAM_NAMES,
     KinematicParams,
-    axes_deg_to_q_rad,
     joint_param_index,
 )
 from comp_daemon.kinematics.so3 import left_jacobian, skew
@@ -77,7 +75,7 @@ from comp_daemon.models.fitting import (
     select_effects,
 )
 from comp_daemon.models.kind import ModelKind
-from comp_daemon.models.kinematic import mdh_payload, params_from_payload
+from comp_daemon.models.kinematic import mdh_payload, params_from_payload, registered_start
 from comp_daemon.models.kinematic_kind import KINEMATIC_PARAMETERS
 from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
@@ -335,24 +333,12 @@ def calibrate_compliance(
     cj = joint_numbers(compliance_joints, "compliance_joints")
     oj = joint_numbers(offset_joints, "offset_joints")
     payload = np.broadcast_to(np.asarray(payload_kg, dtype=float), (n,))
-    nominal = KinematicParams.from_robot(robot)
-    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
-    chosen: Literal["base", "tracker"] = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
-    registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
+    start, chosen, registration = registered_start(robot, a, p_meas, frame)
     mass = MassModel.from_robot(robot)
-
-    geo_names = [f"theta{j}" for j in oj]
-    if chosen == "tracker":
-        geo_names = [*PARAM_NAMES[30:36], *geo_names]
-    if fit_tool:
-        geo_names += list(PARAM_NAMES[36:39])
-    if geometry:
-        geo_names = list(PARAM_NAMES)
+    geo_names = _geometric_unknowns(oj, tracker=chosen == "tracker", fit_tool=fit_tool, geometry=geometry)
     geo_idx = np.array([PARAM_NAMES.index(nm) for nm in geo_names], dtype=np.intp)
     c_names = [f"C{j}" for j in cj]
     all_names = [*geo_names, *c_names]
-
-    start = nominal.with_base(registration)
 
     def unpack(x: NDArray[np.float64]) -> tuple[KinematicParams, NDArray[np.float64], NDArray[np.float64]]:
         return _unpack(start, geo_idx, cj, x)
@@ -386,7 +372,7 @@ def calibrate_compliance(
         residual, jacobian, np.zeros(keep.size), x_scale="jac", max_iter=max_iter, jacobian_x0=first
     )
     params, comp, _ = unpack(expand(result.x))
-    offsets = params.theta_offset_rad - nominal.theta_offset_rad
+    offsets = params.theta_offset_rad - start.theta_offset_rad  # the start's are the nominal zeros
     model = ComplianceModel(
         robot,
         offsets,
@@ -408,6 +394,20 @@ def calibrate_compliance(
         n_rows=n,
         frame=chosen,
     )
+
+
+def _geometric_unknowns(
+    offset_joints: Sequence[int], *, tracker: bool, fit_tool: bool, geometry: bool
+) -> list[str]:
+    """The geometric unknowns beside the compliance: every one of :data:`PARAM_NAMES` with
+    ``geometry``; else the zero offsets ``theta{j}`` of ``offset_joints``, after the base frame's six
+    when the data are in the tracker's frame (its registration refined), and the tool's three with
+    ``fit_tool``."""
+    if geometry:
+        return list(PARAM_NAMES)
+    base = list(PARAM_NAMES[30:36]) if tracker else []
+    tool = list(PARAM_NAMES[36:39]) if fit_tool else []
+    return [*base, *(f"theta{j}" for j in offset_joints), *tool]
 
 
 def fit_compliance_kind(
