@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from comp_daemon.daemon.gratings import approach_points
 from comp_daemon.rt.grating_cal import (
     GratingCalibration,
     GratingCalibrationError,
@@ -119,3 +120,11 @@ def test_bad_artifacts_are_refused_by_field(tmp_path: Path) -> None:
         load_calibration(p)
     with pytest.raises(KeyError, match="A5"):
         cal.for_joint(5)
+
+
+def test_each_pose_is_approached_from_below_and_above_on_the_grating_joints_only() -> None:
+    pose = np.array([10.0, -20.0, 30.0, 0.0, 45.0, -5.0])
+    below, above = approach_points(pose, (2, 3), 0.5)
+    np.testing.assert_array_equal(below, [10.0, -20.5, 29.5, 0.0, 45.0, -5.0])
+    np.testing.assert_array_equal(above, [10.0, -19.5, 30.5, 0.0, 45.0, -5.0])
+    assert pose.tolist() == [10.0, -20.0, 30.0, 0.0, 45.0, -5.0]  # the pose itself is left alone

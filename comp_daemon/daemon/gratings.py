@@ -37,7 +37,13 @@ from comp_daemon.rt.grating_cal import (
 )
 from comp_daemon.rt.loop import CycleSample
 
-__all__ = ["GratingGeometry", "SamplingLoop", "calibrate_gratings", "default_calibration_poses"]
+__all__ = [
+    "GratingGeometry",
+    "SamplingLoop",
+    "approach_points",
+    "calibrate_gratings",
+    "default_calibration_poses",
+]
 
 log = get_logger(__name__)
 
@@ -98,6 +104,19 @@ async def _still_reading(
     raise GratingCalibrationError(f"no still reading after {attempts} attempts: {why}")
 
 
+def approach_points(
+    target_deg: NDArray[np.float64], joints: Sequence[int], approach_deg: float
+) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+    """The two points a calibration pose is approached from: ``approach_deg`` below it and above
+    it on every grating joint (1-based ``joints``), the other axes at the pose's values, so that
+    backlash enters the readings with both signs (module docstring)."""
+    below, above = np.array(target_deg, dtype=float), np.array(target_deg, dtype=float)
+    for j in joints:
+        below[j - 1] -= approach_deg
+        above[j - 1] += approach_deg
+    return below, above
+
+
 async def calibrate_gratings(
     runtime: SamplingLoop,
     motion: MotionPort,
@@ -130,10 +149,7 @@ async def calibrate_gratings(
         progress(0, len(poses))
     for p, pose in enumerate(poses):
         target = np.asarray(pose, dtype=float)
-        for side in (-1.0, 1.0):
-            before = target.copy()
-            for j in joints:
-                before[j - 1] += side * approach_deg
+        for before in approach_points(target, joints, approach_deg):
             await motion.move_to(tuple(before))
             await motion.move_to(tuple(target))
             axes, counts = await _still_reading(
