@@ -320,6 +320,17 @@ class KinematicProblem:
         eff = self.eff0.with_values(self.eff_names, x[n_geo : n_geo + n_eff]) if self.eff_names else self.eff0
         return self.start.apply(dx), eff, dx
 
+    def model(
+        self, x: NDArray[np.float64], registration: NDArray[np.float64], *, with_effects: bool
+    ) -> KinematicModel:
+        """The model this problem's unknowns ``x`` describe (entries after them, an
+        :class:`ObservedProblem`'s, are not the model's): the geometry, the effects (None when
+        not ``with_effects``) and the further targets' offsets."""
+        x_in = x[: self._cols.size + self.more_idx.size]
+        params, eff, _ = self.unpack(x_in)
+        more = None if self.more_meas is None else self.more_targets(x_in)
+        return KinematicModel(self.robot, params, eff if with_effects else None, registration, more)
+
     def more_targets(self, x: NDArray[np.float64]) -> NDArray[np.float64]:
         """(K − 1, 3) the further targets' flange offsets at ``x``."""
         flat = self.more_start.reshape(-1).copy()
@@ -470,6 +481,7 @@ def calibrate_kinematic(
     unknown = [e for e in effects if e not in EFFECTS]
     if unknown:
         raise ValueError(f"unknown effect(s) {', '.join(unknown)} (known: {', '.join(EFFECTS)})")
+    # step 1 (module docstring): the frame the data are in, and the start registered in it
     start, chosen, registration = registered_start(robot, a, p_meas, frame)
     eff_names = effect_param_names(list(effects), effect_joints, n_harmonics) if effects else []
     eff0 = EffectParams.zeros(n_harmonics)
@@ -515,6 +527,7 @@ def calibrate_kinematic(
         )
         return ObservedProblem(inner, obs, extra_idx, mount0) if obs.active else inner
 
+    # step 2: identifiability of the Jacobian at the start
     whole = None  # the Jacobian of the problem with every parameter, at the start (when it is made)
     if more_meas is None and not obs.active:
         _, jac0 = twin_jacobian(robot, start, eff0, eff_names, a, dir_arr, payload_kg, temp_c)
@@ -535,6 +548,7 @@ def calibrate_kinematic(
     problem = problem_of(*layout.split(idx))
     inner = problem.inner if isinstance(problem, ObservedProblem) else problem
 
+    # step 3: the identifiable parameters iterated from the start
     x0 = np.zeros(idx.size)
     # the iteration's first Jacobian: the identified columns of the analysed one, where that is the
     # problem's own (each column is computed on its own: the same numbers)
@@ -548,10 +562,7 @@ def calibrate_kinematic(
         jacobian_x0=first,
         jacobian_at_solution=report_ranks,
     )
-    x_in = result.x[: inner._cols.size + inner.more_idx.size]
-    params, eff, _ = inner.unpack(x_in)
-    more_fit = None if more_meas is None else inner.more_targets(x_in)
-    model = KinematicModel(robot, params, eff if effects else None, registration, more_fit)
+    model = inner.model(result.x, registration, with_effects=bool(effects))
     std = _standard_errors(result.jacobian, result.residual) if report_ranks else np.full(idx.size, np.nan)
     per_point = _squared_errors(result.residual, inner.weights, n, 1 + n_more)
     rms = float(np.sqrt(np.mean(per_point[0])))
