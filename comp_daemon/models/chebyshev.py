@@ -57,13 +57,14 @@ from numpy.typing import NDArray
 from comp_daemon.estimation import steps
 from comp_daemon.estimation.identifiability import IdentifiabilityReport, analyze_identifiability
 from comp_daemon.estimation.lm import LMResult, improved_lm
-from comp_daemon.estimation.registration import detect_frame, rigid_registration
+from comp_daemon.estimation.registration import detect_frame
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, measured_positions
 from comp_daemon.models.covariance import attach_covariance
 from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec, lm_info, report_info
 from comp_daemon.models.kind import ModelKind
+from comp_daemon.models.kinematic import registered_start
 from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
@@ -487,7 +488,7 @@ def fit_chebyshev(
     p_meas = measured_positions(p_measured_mm, n)
     if order < 0:
         raise ValueError(f"Chebyshev order must be >= 0, got {order}")
-    chosen, params = _registered(robot, a, p_meas, frame)
+    params, chosen, _ = registered_start(robot, a, p_meas, frame)
     if range_deg is None:
         range_deg = motion_range_deg(a) if range_source == "data" else robot.axis_limits_deg
     rng = np.asarray(range_deg, dtype=float)
@@ -497,17 +498,6 @@ def fit_chebyshev(
     model = ChebyshevModel(robot, params.world_T_base, order, rng, coef, active)
     rms = float(np.sqrt(np.mean(np.sum(result.residual.reshape(n, 3) ** 2, axis=1))))
     return ChebyshevFit(model=model, frame=chosen, report=report, lm=result, rms_mm=rms, n_rows=n)
-
-
-def _registered(
-    robot: RobotDescription, a: NDArray[np.float64], p_meas: NDArray[np.float64], frame: FrameChoice
-) -> tuple[Literal["base", "tracker"], KinematicParams]:
-    """The frame of the measured TCPs and the nominal geometry with its base registered in it."""
-    nominal = KinematicParams.from_robot(robot)
-    p_nominal = tcp_position_mm(nominal, axes_deg_to_q_rad(a, nominal.sign))
-    chosen = detect_frame(p_nominal, p_meas) if frame == "auto" else frame
-    registration = rigid_registration(p_nominal, p_meas) if chosen == "tracker" else np.eye(4)
-    return chosen, nominal.with_base(registration)
 
 
 def _identify(
@@ -582,7 +572,7 @@ def _fold_sq_errors(
                 out[i, j] = np.sum((fit.model.predict_tcp_mm(a[test]) - p_meas[test]) ** 2)
                 fitted()
         return out
-    _, params = _registered(robot, a[train], p_meas[train], frame)
+    params, _, _ = registered_start(robot, a[train], p_meas[train], frame)
     top_order = max(orders)
     top = chebyshev_setup(params, a[train], range_deg, top_order)
     top_names = coefficient_names(top_order)

@@ -12,12 +12,12 @@ from typing import Any, ClassVar
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.estimation.registration import detect_frame, rigid_registration
 from comp_daemon.kinematics.forward import tcp_position_mm
 from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.models.base import ErrorModel, Query, StoredModel
 from comp_daemon.models.fitting import FitOptions, FittedModel, ModelSpec, rms_mm
 from comp_daemon.models.kind import ModelKind
+from comp_daemon.models.kinematic import registered_start
 from comp_daemon.models.rows import MeasuredRows
 from comp_daemon.robot.description import RobotDescription
 
@@ -53,10 +53,7 @@ def fit_nominal_kind(
     robot: RobotDescription, rows: MeasuredRows, spec: ModelSpec, options: FitOptions
 ) -> FittedModel:
     """The nominal geometry; on tracker data the base frame is registered (rigid fit), nothing else."""
-    nominal = KinematicParams.from_robot(robot)
-    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
-    chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
-    reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
+    _, chosen, reg = registered_start(robot, rows.a_deg, rows.xyz_mm, options.frame)
     model = NominalModel(robot, reg)
     return FittedModel(model, chosen, {"kind": spec.kind, "rows": rows.n, "rms_mm": rms_mm(model, rows)})
 

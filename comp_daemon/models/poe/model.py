@@ -38,9 +38,6 @@ from typing import Any, ClassVar, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.estimation.registration import detect_frame, rigid_registration
-from comp_daemon.kinematics.forward import tcp_position_mm
-from comp_daemon.kinematics.params import KinematicParams, axes_deg_to_q_rad
 from comp_daemon.kinematics.poe import N_POE_PARAMS, POE_PARAM_NAMES, PoeModel
 from comp_daemon.models.base import ErrorModel, Query, StoredModel, as_axes, finite_array
 from comp_daemon.models.covariance import ParameterCovariance
@@ -52,6 +49,7 @@ from comp_daemon.models.fitting import (
     report_info,
 )
 from comp_daemon.models.kind import ModelKind
+from comp_daemon.models.kinematic import registered_start
 from comp_daemon.models.poe.calibration import (
     BASE_NAMES,
     LAYOUTS,
@@ -219,10 +217,7 @@ def fit_poe_kind(
 ) -> FittedModel:
     """The POE calibration: a twist error per joint, the tool offset and the base frame
     (``poe``), or seed 002's errors Δl, Δθ and the base frame (``poe:paper``)."""
-    nominal = KinematicParams.from_robot(robot)
-    p_nom = tcp_position_mm(nominal, axes_deg_to_q_rad(rows.a_deg, nominal.sign))
-    chosen = detect_frame(p_nom, rows.xyz_mm) if options.frame == "auto" else options.frame
-    reg = rigid_registration(p_nom, rows.xyz_mm) if chosen == "tracker" else np.eye(4)
+    _, chosen, reg = registered_start(robot, rows.a_deg, rows.xyz_mm, options.frame)
     pf = fit_poe(robot, rows.a_deg, rows.xyz_mm, reg, "paper" if spec.paper else "twist")
     fit = pf.fit
     keep = fit.report.identifiable_index
