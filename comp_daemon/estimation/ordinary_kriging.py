@@ -189,7 +189,8 @@ class OrdinaryKriging:
             inv, info = scipy.linalg.lapack.dtrtri(fac if lower else fac.T, lower=1)
             if info != 0:
                 raise np.linalg.LinAlgError(f"kriging matrix of component {c}: singular factor ({info})")
-            rinv_diag = np.einsum("ki,ki->i", np.tril(inv), np.tril(inv))
+            inv = np.tril(inv)  # the upper triangle holds what the factorisation left there
+            rinv_diag = np.einsum("ki,ki->i", inv, inv)
             v = self._ones[c]
             q_diag = rinv_diag - v * v / float(v.sum())
             out[:, c] = self.alpha[:, c] / q_diag
