@@ -99,6 +99,7 @@ DEFAULT_NEIGHBOURS = 32  # samples per local neighbourhood (the default above DE
 LOO_MAX_SAMPLES = 500  # the leave-one-out RMS of local models is taken on a random subset
 ANISO_MAX_SAMPLES = 600  # the per-joint weights are searched on at most this many samples
 ANISO_FACTORS = (0.25, 0.5, 2.0, 4.0)  # multipliers tried on each joint weight per sweep
+KEPT_DISTANCES_MAX = 8_000_000  # distances (64 MB) kept between the variograms and the models of a fit
 
 
 def _dir_array(dir: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
@@ -395,18 +396,26 @@ class _KrigingProblem:
     def _distances(self, metric: JointStateMetric) -> NDArray[np.float64]:
         return pairwise_distances(metric.embed(self.a, self.d))
 
-    def _empirical(self, metric: JointStateMetric) -> EmpiricalVariogram:
+    def _empirical(
+        self, metric: JointStateMetric, keep: bool
+    ) -> tuple[EmpiricalVariogram, NDArray[np.float64] | None]:
+        """The empirical variogram under ``metric``; with ``keep``, the dense model's distances too."""
         if self.neighbours is not None:
             w, sep = metric.joint_weights, metric.dir_separation_deg
-            return self._pairs.semivariogram(w, sep, self.n_bins, self.max_lag)
+            return self._pairs.semivariogram(w, sep, self.n_bins, self.max_lag), None
         iu, ju, half_sq = self._increments
-        h = self._distances(metric)[iu, ju]
-        return binned_semivariogram(h, half_sq, n_bins=self.n_bins, max_lag=self.max_lag)
+        dist = self._distances(metric)
+        emp = binned_semivariogram(dist[iu, ju], half_sq, n_bins=self.n_bins, max_lag=self.max_lag)
+        return emp, dist if keep else None
 
     def fits(self, metrics: Sequence[JointStateMetric]) -> Iterator[_MetricFit]:
         """The model under each metric, its empirical variogram and its LOO 3-D RMS (and on how many
-        points), one after the other; the variogram fits of all of them are solved together first."""
-        emps = [self._empirical(m) for m in metrics]
+        points), one after the other; the variogram fits of all of them are solved together first.
+        The distance matrices of the empirical variograms serve the models if they are small
+        (:data:`KEPT_DISTANCES_MAX` entries together), else they are computed again."""
+        n = self.a.shape[0]
+        keep = len(metrics) * n * n <= KEPT_DISTANCES_MAX
+        emps, dists = zip(*(self._empirical(m, keep) for m in metrics), strict=True)
         variograms: list[list[VariogramModel]] = [[] for _ in metrics]
         dims = [12 if m.direction_aware else N_JOINTS for m in metrics]
         for dim in sorted(set(dims)):
@@ -414,9 +423,8 @@ class _KrigingProblem:
             fitted = fit_variograms([emps[i] for i in at], kind=self.kind, dim=dim, nugget=self.nugget)
             for i, vgs in zip(at, fitted, strict=True):
                 variograms[i] = vgs
-        n = self.a.shape[0]
-        for metric, emp, vgs in zip(metrics, emps, variograms, strict=True):
-            dist = None if self.neighbours is not None else self._distances(metric)
+        for metric, emp, vgs, kept in zip(metrics, emps, variograms, dists, strict=True):
+            dist = kept if kept is not None or self.neighbours is not None else self._distances(metric)
             model = KrigingModel(
                 self.base,
                 metric,
