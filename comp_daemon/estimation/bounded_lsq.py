@@ -25,6 +25,7 @@ __all__ = ["trf_fit"]
 
 FloatArray = NDArray[np.float64]
 EPS = float(np.finfo(float).eps)
+Reals = float | FloatArray  # one problem's value, or a row each
 
 
 def _norm(x: FloatArray) -> float:
@@ -225,6 +226,32 @@ def _select_step(
     return ag, ag_h, -ag_value
 
 
+def _judge_step(
+    actual: Reals,
+    predicted: Reals,
+    step_h_norm: Reals,
+    step_norm: Reals,
+    x_norm: Reals,
+    delta: Reals,
+    cost: Reals,
+    ftol: float,
+    xtol: float,
+) -> tuple[FloatArray, NDArray[np.bool_]]:
+    """A trial step judged by its actual against its predicted reduction (their ratio: 1 if both
+    are 0, 0 if no reduction was predicted): the trust radius it leaves (a quarter of the step for a
+    ratio below 0.25, twice the radius above 0.75 for a step near the border, else the radius) and
+    whether the method has converged (``ftol`` on the cost, ``xtol`` on the step). Scalars for one
+    problem, arrays for a row each."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(
+            predicted > 0, actual / predicted, np.where((predicted == 0) & (actual == 0), 1.0, 0.0)
+        )
+    grow = (ratio > 0.75) & (step_h_norm > 0.95 * delta)
+    radius = np.where(ratio < 0.25, 0.25 * step_h_norm, np.where(grow, 2.0 * delta, delta))
+    converged = ((actual < ftol * cost) & (ratio > 0.25)) | (step_norm < xtol * (xtol + x_norm))
+    return radius, converged
+
+
 def _checked_bounds(x0: FloatArray, lb: FloatArray, ub: FloatArray) -> tuple[FloatArray, FloatArray]:
     """The bounds, as float arrays of ``x0``'s shape: finite, lower below upper, ``x0`` within."""
     lb = np.broadcast_to(np.asarray(lb, dtype=float), x0.shape)
@@ -309,24 +336,13 @@ def trf_fit(
                 continue
             cost_new = 0.5 * np.dot(f_new, f_new)
             actual_reduction = cost - cost_new
-            # the trust region's radius from the step's quality
-            if predicted > 0:
-                ratio = actual_reduction / predicted
-            elif predicted == actual_reduction == 0:
-                ratio = 1.0
-            else:
-                ratio = 0.0
-            delta_new = delta
-            if ratio < 0.25:
-                delta_new = 0.25 * step_h_norm
-            elif ratio > 0.75 and step_h_norm > 0.95 * delta:
-                delta_new = delta * 2.0
-            step_norm = _norm(step)
-            ftol_ok = actual_reduction < ftol * cost and ratio > 0.25
-            xtol_ok = step_norm < xtol * (xtol + _norm(x))
-            if ftol_ok or xtol_ok:
+            radius, converged = _judge_step(
+                actual_reduction, predicted, step_h_norm, _norm(step), _norm(x), delta, cost, ftol, xtol
+            )
+            if converged:
                 done = True
                 break
+            delta_new = float(radius)
             alpha *= delta / delta_new
             delta = delta_new
         if actual_reduction > 0:
@@ -603,15 +619,10 @@ def trf_fit_batch(
         with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
             cost_new = 0.5 * np.einsum("km,km->k", f_new, f_new)
             actual = cost[k] - cost_new
-            ratio = np.where(
-                predicted > 0, actual / predicted, np.where((predicted == 0) & (actual == 0), 1.0, 0.0)
+            delta_new, converged = _judge_step(
+                actual, predicted, step_h_norm, _norm_rows(step), _norm_rows(xk), delta_k, cost[k], ftol, xtol
             )
-            grow = (ratio > 0.75) & (step_h_norm > 0.95 * delta_k)
-            delta_new = np.where(ratio < 0.25, 0.25 * step_h_norm, np.where(grow, 2.0 * delta_k, delta_k))
-            done = finite & (
-                ((actual < ftol * cost[k]) & (ratio > 0.25))
-                | (_norm_rows(step) < xtol * (xtol + _norm_rows(xk)))
-            )
+            done = finite & converged
             going = finite & ~done
             alpha[k] = np.where(going, alpha_k * delta_k / delta_new, alpha_k)
         delta[k] = np.where(going, delta_new, np.where(finite, delta_k, 0.25 * step_h_norm))
