@@ -541,33 +541,12 @@ def fit_kriging(
     decision: Decision | None = None
     unbiased: NDArray[np.intp] | None = None
     if anisotropic:
-        chosen_sep = best.model.metric.dir_separation_deg
-        if select_anisotropic:
-            # the weights are searched on one half of the samples and judged on the other
-            half = np.random.default_rng(4).permutation(n)
-            search, held = np.sort(half[: n // 2]), np.sort(half[n // 2 :])
-        else:
-            search, held = np.arange(n), np.zeros(0, dtype=np.intp)
-        searched = problem.rows(search[_subset(search.size, ANISO_MAX_SAMPLES, 3)])
-        w_best, weight_candidates = _search_weights(searched, chosen_sep, weights)
-        if not np.array_equal(w_best, weights) and held.size >= 4:
-            judged = held[_subset(held.size, ANISO_MAX_SAMPLES, 5)]
-            with_w, without = (
-                np.sum(f.loo_residual_mm**2, axis=1)
-                for f in problem.rows(judged).fits([metric(chosen_sep, w_best), metric(chosen_sep)])
-            )
-            decision = judge(
-                "anisotropic ranges",
-                with_w,
-                without,
-                f"leave-one-out on {judged.size} samples not used to choose the weights, "
-                "against the isotropic distance",
-            )
-            if decision.kept:
-                best = next(problem.fits([metric(chosen_sep, w_best)]))
-                unbiased = held
-        elif not np.array_equal(w_best, weights):
-            best = next(problem.fits([metric(chosen_sep, w_best)]))
+        sep = best.model.metric.dir_separation_deg
+        refit, weight_candidates, decision, unbiased = _choose_weights(
+            problem, sep, weights, select_anisotropic
+        )
+        if refit is not None:
+            best = next(problem.fits([JointStateMetric(refit, sep)]))
     return KrigingFit(
         model=best.model,
         empirical=best.empirical,
@@ -581,6 +560,47 @@ def fit_kriging(
         anisotropic_decision=decision,
         unbiased_rows=unbiased,
     )
+
+
+def _choose_weights(
+    problem: _KrigingProblem, sep: NDArray[np.float64], start: NDArray[np.float64], select: bool
+) -> tuple[
+    NDArray[np.float64] | None,
+    tuple[tuple[tuple[float, ...], float], ...],
+    Decision | None,
+    NDArray[np.intp] | None,
+]:
+    """The per-joint weights of fit_kriging's ``anisotropic`` stage: the weights to refit with (None:
+    the isotropic model stays), the candidates tried, the held-out decision and the rows it was
+    taken on. With ``select`` the weights are searched on one half of the samples and judged on
+    the other."""
+    n = problem.a.shape[0]
+    if select:
+        half = np.random.default_rng(4).permutation(n)
+        search, held = np.sort(half[: n // 2]), np.sort(half[n // 2 :])
+    else:
+        search, held = np.arange(n), np.zeros(0, dtype=np.intp)
+    searched = problem.rows(search[_subset(search.size, ANISO_MAX_SAMPLES, 3)])
+    w_best, candidates = _search_weights(searched, sep, start)
+    if np.array_equal(w_best, start):
+        return None, candidates, None, None
+    if held.size < 4:
+        return w_best, candidates, None, None
+    judged = held[_subset(held.size, ANISO_MAX_SAMPLES, 5)]
+    with_w, without = (
+        np.sum(f.loo_residual_mm**2, axis=1)
+        for f in problem.rows(judged).fits([JointStateMetric(w_best, sep), JointStateMetric(start, sep)])
+    )
+    decision = judge(
+        "anisotropic ranges",
+        with_w,
+        without,
+        f"leave-one-out on {judged.size} samples not used to choose the weights, "
+        "against the isotropic distance",
+    )
+    if decision.kept:
+        return w_best, candidates, decision, held
+    return None, candidates, decision, None
 
 
 def _search_weights(
