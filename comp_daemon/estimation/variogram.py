@@ -157,12 +157,19 @@ class VariogramModel:
 
 
 def _correlation(kind: str, h: NDArray[np.float64], a: float) -> NDArray[np.float64]:
-    r = np.abs(h) / a
+    r = np.abs(np.asarray(h, dtype=float))
+    r /= a
     if kind == "spherical":
         return np.where(r < 1.0, 1.0 - 1.5 * r + 0.5 * r**3, 0.0)
+    if np.ndim(r) == 0:
+        return np.exp(-3.0 * r) if kind == "exponential" else np.exp(-3.0 * r * r)
+    # a kriging system's whole distance matrix: the same operations in place, without temporaries
     if kind == "exponential":
-        return np.exp(-3.0 * r)
-    return np.exp(-3.0 * r * r)
+        r *= -3.0
+        return np.exp(r, out=r)
+    g = r * -3.0
+    g *= r
+    return np.exp(g, out=g)
 
 
 def _correlation_da(
