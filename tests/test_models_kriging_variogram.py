@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 import dataclasses
-from typing import Any
+import functools
+from typing import Any, Literal
 
 import numpy as np
 import pytest
@@ -153,7 +154,8 @@ def test_range_derivative_of_the_correlation_is_exact(kind: str) -> None:
 def test_the_variogram_solver_is_scipys_trust_region_reflective_method(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    """Every fit of :func:`fit_variogram` solves its bounded problem with ``bounded_lsq.trf_fit``;
+    """Every fit of :func:`fit_variogram` one by one (``method="each"``) solves its bounded problem
+    with ``bounded_lsq.trf_fit``;
     SciPy's ``least_squares(method="trf", x_scale="jac")`` finds the same point and cost on each,
     on fields with and without structure, both weightings, with and without a nugget, and the
     starts that end on a bound (the reflective steps) among them."""
@@ -181,7 +183,8 @@ def test_the_variogram_solver_is_scipys_trust_region_reflective_method(
         smooth = np.sin(x[:, :1] / rng.uniform(5.0, 40.0)) + np.cos(x[:, 1:2] / rng.uniform(5.0, 40.0))
         z = smooth * (trial % 3) + rng.normal(0.0, 0.3, (60, 1))
         emp = empirical_semivariogram(x, z, n_bins=int(rng.integers(5, 14)))
-        fit_variogram(emp, kind="auto", nugget=trial % 4 != 3, weighting="cressie" if trial % 2 else "npairs")
+        weighting: Literal["cressie", "npairs"] = "cressie" if trial % 2 else "npairs"
+        fit_variogram(emp, kind="auto", nugget=trial % 4 != 3, weighting=weighting, method="each")
     assert seen["calls"] == 12 * 3 * 4  # three kinds, four starting ranges each
     assert seen["on_bound"] > 0
 
@@ -204,3 +207,95 @@ def test_the_bounded_solver_refuses_what_it_cannot_solve() -> None:
         trf_fit(fun, jac, np.zeros(2), hi, lo)
     x, _ = trf_fit(fun, jac, np.array([0.5, 0.5]), lo, hi)
     assert x[1] == pytest.approx(-1.0, abs=1e-6)  # on its bound
+
+
+def _decaying(h: np.ndarray, p: np.ndarray) -> np.ndarray:
+    return p[:, :1] + p[:, 1:2] * (1.0 - np.exp(-h / p[:, 2:3]))
+
+
+def _one_of_batch(fun: Any, jac: Any, i: int, m: int, p: np.ndarray, *, jacobian: bool = False) -> np.ndarray:
+    """Problem ``i`` of a batch on its own: its ``m`` residuals (or Jacobian rows) at ``p``."""
+    return (jac if jacobian else fun)(p[None, :], np.array([i]))[0, :m]
+
+
+def test_the_batch_solver_is_the_single_solver_on_each_problem() -> None:
+    """:func:`trf_fit_batch` on many bounded problems at once (different residual counts, padded;
+    some ending on a bound) finds the point and cost :func:`trf_fit` finds on each alone."""
+    from comp_daemon.estimation.bounded_lsq import trf_fit, trf_fit_batch
+
+    rng = np.random.default_rng(4)
+    n_problems, width = 40, 15
+    m = rng.integers(5, width + 1, n_problems)
+    h = np.sort(rng.uniform(0.5, 20.0, (n_problems, width)), axis=1)
+    truth = np.stack(
+        [
+            rng.uniform(0.0, 0.3, n_problems),
+            rng.uniform(0.5, 2.0, n_problems),
+            rng.uniform(1.0, 8.0, n_problems),
+        ],
+        axis=1,
+    )
+    truth[::4, 0] = 0.0  # these end on the lower bound of the first parameter
+    y = _decaying(h, truth) + rng.normal(0.0, 0.02, h.shape)
+    weight = (np.arange(width)[None, :] < m[:, None]).astype(float)  # zero rows pad the short ones
+    lb, ub = np.array([0.0, 0.01, 0.1]), np.array([1.0, 5.0, 30.0])
+    x0 = np.tile([0.5, 1.0, 10.0], (n_problems, 1))
+
+    def fun(p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        return weight[rows] * (_decaying(h[rows], p) - y[rows])
+
+    def jac(p: np.ndarray, rows: np.ndarray) -> np.ndarray:
+        e = np.exp(-h[rows] / p[:, 2:3])
+        d = np.stack([np.ones_like(e), 1.0 - e, -p[:, 1:2] * e * h[rows] / p[:, 2:3] ** 2], axis=2)
+        return weight[rows][:, :, None] * d
+
+    x, cost = trf_fit_batch(fun, jac, x0, lb, ub, m)
+    on_bound = 0
+    for i in range(n_problems):
+        alone = functools.partial(_one_of_batch, fun, jac, i, int(m[i]))
+        xi, ci = trf_fit(alone, functools.partial(alone, jacobian=True), x0[i], lb, ub)
+        np.testing.assert_allclose(x[i], xi, rtol=1e-8, atol=1e-12)
+        assert cost[i] == pytest.approx(ci, rel=1e-10)
+        on_bound += int(xi[0] < 1e-6)
+    assert on_bound >= 5
+
+
+def _weighted_cost(
+    vg: VariogramModel, lag: np.ndarray, gam: np.ndarray, cnt: np.ndarray, weighting: str
+) -> float:
+    g = vg.gamma(lag)
+    r = np.sqrt(cnt) * (gam / g - 1.0) if weighting == "cressie" else np.sqrt(cnt) * (g - gam) / gam.max()
+    return 0.5 * float(r @ r)
+
+
+def test_batched_variogram_fits_choose_as_the_fits_one_by_one() -> None:
+    """Every component's problems solved together (``method="batch"``) end where the fits one by one
+    end: the same weighted cost, and the same model wherever the bins determine it (a range below the
+    first lag leaves the nugget and sill apart, and the range, free: any such model fits as well)."""
+    from comp_daemon.estimation.variogram import fit_variograms
+
+    rng = np.random.default_rng(3)
+    compared = 0
+    for trial in range(24):
+        x = rng.uniform(0.0, 100.0, (100, 6))
+        z = np.sin(x[:, :2] / rng.uniform(5.0, 40.0, 2)) @ rng.normal(size=(2, 3)) + rng.normal(
+            0.0, 0.1, (100, 3)
+        )
+        emp = empirical_semivariogram(x, z, n_bins=int(rng.integers(6, 14)))
+        if trial % 3 == 0:  # components with different non-empty bins: the batch pads the short ones
+            emp = dataclasses.replace(emp, gamma=emp.gamma.copy())
+            emp.gamma[-1, 1] = np.nan
+        weighting = "cressie" if trial % 2 else "npairs"
+        kw: dict[str, Any] = {"kind": "auto", "dim": 6, "nugget": trial % 4 != 3, "weighting": weighting}
+        batch = fit_variograms([emp], method="batch", **kw)[0]
+        each = fit_variograms([emp], method="each", **kw)[0]
+        for c, (b, e) in enumerate(zip(batch, each, strict=True)):
+            ok = np.isfinite(emp.gamma[:, c]) & (emp.count > 0)
+            lag, gam, cnt = emp.lag[ok], emp.gamma[ok, c], emp.count[ok].astype(float)
+            cost_b, cost_e = (_weighted_cost(v, lag, gam, cnt, weighting) for v in (b, e))
+            assert cost_b == pytest.approx(cost_e, rel=1e-8)
+            if min(b.range, e.range) > lag[0]:
+                assert b.kind == e.kind
+                np.testing.assert_allclose(b.gamma(lag), e.gamma(lag), rtol=1e-6)
+                compared += 1
+    assert compared >= 60

@@ -98,8 +98,8 @@ class OrdinaryKriging:
         n = dist.shape[0]
         factors: list[tuple[NDArray[np.float64], bool]] = []
         ones: list[NDArray[np.float64]] = []
-        iu, ju = np.triu_indices(n, k=1)
-        has_duplicates = bool(np.any(dist[iu, ju] <= 1e-9 * max(float(dist.max()), 1e-300)))
+        # a pair of samples at distance ~0 (the n zeros of the diagonal aside)
+        has_duplicates = int(np.count_nonzero(dist <= 1e-9 * max(float(dist.max()), 1e-300))) > n
         for c, vg in enumerate(self.variograms):
             if has_duplicates and vg.nugget == 0.0:
                 raise ValueError(
@@ -189,7 +189,8 @@ class OrdinaryKriging:
             inv, info = scipy.linalg.lapack.dtrtri(fac if lower else fac.T, lower=1)
             if info != 0:
                 raise np.linalg.LinAlgError(f"kriging matrix of component {c}: singular factor ({info})")
-            rinv_diag = np.einsum("ki,ki->i", np.tril(inv), np.tril(inv))
+            inv = np.tril(inv)  # the upper triangle holds what the factorisation left there
+            rinv_diag = np.einsum("ki,ki->i", inv, inv)
             v = self._ones[c]
             q_diag = rinv_diag - v * v / float(v.sum())
             out[:, c] = self.alpha[:, c] / q_diag

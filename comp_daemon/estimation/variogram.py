@@ -39,7 +39,7 @@ from typing import Any, Literal
 import numpy as np
 from numpy.typing import NDArray
 
-from comp_daemon.estimation.bounded_lsq import trf_fit
+from comp_daemon.estimation.bounded_lsq import trf_fit, trf_fit_batch
 
 __all__ = [
     "VARIOGRAM_MAX_PAIRS",
@@ -50,6 +50,7 @@ __all__ = [
     "binned_semivariogram",
     "empirical_semivariogram",
     "fit_variogram",
+    "fit_variograms",
     "pairwise_distances",
     "valid_models",
 ]
@@ -57,6 +58,9 @@ __all__ = [
 VARIOGRAM_MODELS: tuple[str, ...] = ("spherical", "exponential", "gaussian")
 VARIOGRAM_MAX_PAIRS = 200_000  # JointStatePairs: sample pairs drawn when there are more
 Weighting = Literal["cressie", "npairs"]
+FitMethod = Literal["batch", "each"]
+FIT_METHOD: FitMethod = "batch"  # how fit_variograms solves its problems unless told (see there)
+START_RANGES = (0.15, 0.35, 0.7, 1.5)  # a fit's starting ranges, fractions of the largest lag
 
 
 def valid_models(dim: int) -> tuple[str, ...]:
@@ -153,12 +157,19 @@ class VariogramModel:
 
 
 def _correlation(kind: str, h: NDArray[np.float64], a: float) -> NDArray[np.float64]:
-    r = np.abs(h) / a
+    r = np.abs(np.asarray(h, dtype=float))
+    r /= a
     if kind == "spherical":
         return np.where(r < 1.0, 1.0 - 1.5 * r + 0.5 * r**3, 0.0)
+    if np.ndim(r) == 0:
+        return np.exp(-3.0 * r) if kind == "exponential" else np.exp(-3.0 * r * r)
+    # a kriging system's whole distance matrix: the same operations in place, without temporaries
     if kind == "exponential":
-        return np.exp(-3.0 * r)
-    return np.exp(-3.0 * r * r)
+        r *= -3.0
+        return np.exp(r, out=r)
+    g = r * -3.0
+    g *= r
+    return np.exp(g, out=g)
 
 
 def _correlation_da(
@@ -274,6 +285,25 @@ def binned_semivariogram(
     return EmpiricalVariogram(edges=edges, lag=lag, gamma=gamma, count=count)
 
 
+def _bounds_and_starts(
+    lag: NDArray[np.float64], gam: NDArray[np.float64], nugget: bool
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The parameter bounds ((c0,) c, a) of a fit to the bins and its four starting points (4, n)."""
+    gmax = max(float(gam.max()), 1e-300)
+    hmax = float(lag.max())
+    lo = np.array([0.0, 1e-9 * gmax, 1e-3 * hmax])
+    hi = np.array([gmax, 4.0 * gmax, 4.0 * hmax])
+    if not nugget:
+        lo, hi = lo[1:], hi[1:]
+    c0_start = 0.5 * float(gam[0])
+    starts = []
+    for frac in START_RANGES:
+        start = [c0_start, max(gmax - c0_start, 2.0 * lo[-2]), frac * hmax]
+        p0 = np.array(start if nugget else start[1:])
+        starts.append(np.clip(p0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo)))
+    return lo, hi, np.array(starts)
+
+
 def _fit_one(
     kind: str,
     lag: NDArray[np.float64],
@@ -282,9 +312,9 @@ def _fit_one(
     weighting: Weighting,
     nugget: bool,
 ) -> tuple[VariogramModel, float]:
-    """Best fit of one model kind from a few starting ranges; returns the model and its cost."""
+    """Best fit of one model kind from a few starting ranges, one problem at a time (the
+    ``"each"`` method); returns the model and its cost."""
     gmax = max(float(gam.max()), 1e-300)
-    hmax = float(lag.max())
     floor = 1e-12 * gmax
 
     def split(p: NDArray[np.float64]) -> tuple[float, float, float]:
@@ -311,16 +341,9 @@ def _fit_one(
             return scale[:, None] * dg
         return (sqrt_cnt / gmax)[:, None] * dg
 
-    lo = np.array([0.0, 1e-9 * gmax, 1e-3 * hmax])
-    hi = np.array([gmax, 4.0 * gmax, 4.0 * hmax])
-    if not nugget:
-        lo, hi = lo[1:], hi[1:]
+    lo, hi, starts = _bounds_and_starts(lag, gam, nugget)
     best: tuple[float, NDArray[np.float64]] | None = None
-    c0_start = 0.5 * float(gam[0])
-    for frac in (0.15, 0.35, 0.7, 1.5):
-        start = [c0_start, max(gmax - c0_start, 2.0 * lo[-2]), frac * hmax]
-        p0 = np.array(start if nugget else start[1:])
-        p0 = np.clip(p0, lo + 1e-9 * (hi - lo), hi - 1e-9 * (hi - lo))
+    for p0 in starts:
         # scipy.optimize.least_squares(method="trf", x_scale="jac"), without its per-call cost
         x, cost = trf_fit(resid, jac, p0, lo, hi)
         if best is None or cost < best[0]:
@@ -330,23 +353,84 @@ def _fit_one(
     return VariogramModel(kind, c0, c, a), best[0]
 
 
-def fit_variogram(
-    emp: EmpiricalVariogram,
-    component: int = 0,
-    *,
-    kind: str | Sequence[str] = "auto",
-    dim: int | None = None,
-    nugget: bool = True,
-    weighting: Weighting = "cressie",
-) -> VariogramModel:
-    """Fit a model to one component of an empirical semivariogram (weighted least squares).
+def _fit_batch(
+    bins: Sequence[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+    kinds: tuple[str, ...],
+    weighting: Weighting,
+    nugget: bool,
+) -> list[VariogramModel]:
+    """The best fit to each series of bins (lag, γ̂, count) among ``kinds``: every kind and
+    starting range of every series one problem of a single :func:`trf_fit_batch` (the ``"batch"``
+    method); the same problems, starts and choice (the lowest cost, the first on a tie) as
+    :func:`_fit_one`."""
+    n_starts = len(START_RANGES)
+    per_series = len(kinds) * n_starts
+    width = max(lag.size for lag, _, _ in bins)
+    n_lanes = len(bins) * per_series
+    lag_b, gam_b, w_b = np.empty((n_lanes, width)), np.empty((n_lanes, width)), np.zeros((n_lanes, width))
+    gmax_b, m_b = np.empty(n_lanes), np.empty(n_lanes, dtype=np.intp)
+    kind_b = np.empty(n_lanes, dtype=np.intp)
+    n_par = 3 if nugget else 2
+    x0, lo, hi = np.empty((n_lanes, n_par)), np.empty((n_lanes, n_par)), np.empty((n_lanes, n_par))
+    for i, (lag, gam, cnt) in enumerate(bins):
+        lanes = slice(i * per_series, (i + 1) * per_series)
+        m = lag.size  # shorter series pad with their last bin at zero weight
+        lag_b[lanes] = np.concatenate([lag, np.full(width - m, lag[-1])])
+        gam_b[lanes] = np.concatenate([gam, np.full(width - m, gam[-1])])
+        w_b[lanes, :m] = np.sqrt(cnt)
+        gmax_b[lanes], m_b[lanes] = max(float(gam.max()), 1e-300), m
+        kind_b[lanes] = np.repeat([VARIOGRAM_MODELS.index(k) for k in kinds], n_starts)
+        b_lo, b_hi, starts = _bounds_and_starts(lag, gam, nugget)
+        lo[lanes], hi[lanes], x0[lanes] = b_lo, b_hi, np.tile(starts, (len(kinds), 1))
+    floor_b = 1e-12 * gmax_b
+    gauss_b = kind_b == VARIOGRAM_MODELS.index("gaussian")
+    spherical_b = kind_b == VARIOGRAM_MODELS.index("spherical")
+    any_spherical = bool(spherical_b.any())
 
-    ``kind``: one of :data:`VARIOGRAM_MODELS`, a list of them, or ``"auto"`` — every model valid in
-    ``dim`` dimensions (all three if ``dim`` is None), the one with the lowest weighted residual wins.
-    ``nugget=False`` fixes the nugget at 0.
-    """
-    if not 0 <= component < emp.n_components:
-        raise ValueError(f"component {component} out of range (the variogram has {emp.n_components})")
+    def parts(p: NDArray[np.float64], rows: NDArray[np.intp]) -> tuple[NDArray[np.float64], ...]:
+        """c0, c, a (k, 1), the reduced lags r = h/a and ρ (k, M) of the problems ``rows``."""
+        c0 = p[:, :1] if nugget else np.zeros((p.shape[0], 1))
+        c, a = p[:, -2:-1], p[:, -1:]
+        r = np.abs(lag_b[rows]) / a
+        rho = np.exp(-3.0 * r * np.where(gauss_b[rows, None], r, 1.0))
+        if any_spherical:
+            rho = np.where(spherical_b[rows, None], np.where(r < 1.0, 1.0 - 1.5 * r + 0.5 * r**3, 0.0), rho)
+        return c0, c, a, r, rho
+
+    def resid(p: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.float64]:
+        c0, c, _, _, rho = parts(p, rows)
+        g = c0 + c * (1.0 - rho)
+        if weighting == "cressie":
+            return w_b[rows] * (gam_b[rows] / np.maximum(g, floor_b[rows, None]) - 1.0)
+        return w_b[rows] * (g - gam_b[rows]) / gmax_b[rows, None]
+
+    def jac(p: NDArray[np.float64], rows: NDArray[np.intp]) -> NDArray[np.float64]:
+        c0, c, a, r, rho = parts(p, rows)
+        drho = np.where(gauss_b[rows, None], rho * 6.0 * r * r / a, rho * 3.0 * r / a)
+        if any_spherical:
+            drho = np.where(
+                spherical_b[rows, None], np.where(r < 1.0, 1.5 * (1.0 - r * r) * r / a, 0.0), drho
+            )
+        dg = np.stack([np.ones_like(rho), 1.0 - rho, -c * drho], axis=2)[:, :, 3 - n_par :]
+        if weighting == "cressie":
+            g = c0 + c * (1.0 - rho)
+            floor = floor_b[rows, None]
+            scale = np.where(g > floor, -w_b[rows] * gam_b[rows] / np.maximum(g, floor) ** 2, 0.0)
+            return scale[:, :, None] * dg
+        return (w_b[rows] / gmax_b[rows, None])[:, :, None] * dg
+
+    x, cost = trf_fit_batch(resid, jac, x0, lo, hi, m_b)
+    out = []
+    for i in range(len(bins)):
+        lane = i * per_series + int(np.argmin(cost[i * per_series : (i + 1) * per_series]))
+        p = x[lane]
+        c0, c, a = (float(p[0]), float(p[1]), float(p[2])) if nugget else (0.0, float(p[0]), float(p[1]))
+        out.append(VariogramModel(VARIOGRAM_MODELS[kind_b[lane]], c0, c, a))
+    return out
+
+
+def _kinds(kind: str | Sequence[str], dim: int | None) -> tuple[str, ...]:
+    """The model kinds a fit tries (see :func:`fit_variogram`), checked."""
     if isinstance(kind, str):
         kinds: tuple[str, ...] = (
             (valid_models(dim) if dim is not None else VARIOGRAM_MODELS) if kind == "auto" else (kind,)
@@ -358,8 +442,15 @@ def fit_variogram(
             raise ValueError(f"variogram kind '{k}' unknown (known: {', '.join(VARIOGRAM_MODELS)})")
         if dim is not None and k not in valid_models(dim):
             raise ValueError(f"the {k} model is not a valid variogram in {dim} dimensions")
-    if weighting not in ("cressie", "npairs"):
-        raise ValueError(f"weighting must be 'cressie' or 'npairs', got {weighting!r}")
+    return kinds
+
+
+def _bins(
+    emp: EmpiricalVariogram, component: int
+) -> tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]:
+    """The non-empty bins of one component: lag, γ̂ and pair count (ValueError if too few)."""
+    if not 0 <= component < emp.n_components:
+        raise ValueError(f"component {component} out of range (the variogram has {emp.n_components})")
     g = emp.gamma[:, component]
     ok = (emp.count > 0) & np.isfinite(g)
     if int(ok.sum()) < 3:
@@ -367,8 +458,71 @@ def fit_variogram(
     lag, gam, cnt = emp.lag[ok], g[ok], emp.count[ok].astype(float)
     if not float(gam.max()) > 0.0:
         raise ValueError("the values do not vary: the semivariogram is zero everywhere")
-    fits = [_fit_one(k, lag, gam, cnt, weighting, nugget) for k in kinds]
-    return min(fits, key=lambda f: f[1])[0]
+    return lag, gam, cnt
+
+
+def _fit_series(
+    bins: Sequence[tuple[NDArray[np.float64], NDArray[np.float64], NDArray[np.float64]]],
+    kinds: tuple[str, ...],
+    weighting: Weighting,
+    nugget: bool,
+    method: FitMethod | None,
+) -> list[VariogramModel]:
+    """The best model of ``kinds`` for each series of bins, by ``method`` (see :func:`fit_variograms`)."""
+    if weighting not in ("cressie", "npairs"):
+        raise ValueError(f"weighting must be 'cressie' or 'npairs', got {weighting!r}")
+    method = FIT_METHOD if method is None else method
+    if method == "batch":
+        return _fit_batch(bins, kinds, weighting, nugget)
+    if method != "each":
+        raise ValueError(f"variogram fit method must be 'batch' or 'each', got {method!r}")
+    fits = [[_fit_one(k, lag, gam, cnt, weighting, nugget) for k in kinds] for lag, gam, cnt in bins]
+    return [min(f, key=lambda kc: kc[1])[0] for f in fits]
+
+
+def fit_variograms(
+    emps: Sequence[EmpiricalVariogram],
+    *,
+    kind: str | Sequence[str] = "auto",
+    dim: int | None = None,
+    nugget: bool = True,
+    weighting: Weighting = "cressie",
+    method: FitMethod | None = None,
+) -> list[list[VariogramModel]]:
+    """:func:`fit_variogram` of every component of every empirical variogram: per variogram, one
+    model per component.
+
+    ``method``: ``"batch"`` solves all their problems (each kind from each starting range) together
+    (:func:`comp_daemon.estimation.bounded_lsq.trf_fit_batch`); ``"each"`` one after the other with
+    :func:`comp_daemon.estimation.bounded_lsq.trf_fit`, the reference the batch is tested against
+    (the same choices and models, to rounding where the bins leave a model undetermined). None:
+    :data:`FIT_METHOD`.
+    """
+    kinds = _kinds(kind, dim)
+    bins = [_bins(e, c) for e in emps for c in range(e.n_components)]
+    flat = iter(_fit_series(bins, kinds, weighting, nugget, method))
+    return [[next(flat) for _ in range(e.n_components)] for e in emps]
+
+
+def fit_variogram(
+    emp: EmpiricalVariogram,
+    component: int = 0,
+    *,
+    kind: str | Sequence[str] = "auto",
+    dim: int | None = None,
+    nugget: bool = True,
+    weighting: Weighting = "cressie",
+    method: FitMethod | None = None,
+) -> VariogramModel:
+    """Fit a model to one component of an empirical semivariogram (weighted least squares).
+
+    ``kind``: one of :data:`VARIOGRAM_MODELS`, a list of them, or ``"auto"`` — every model valid in
+    ``dim`` dimensions (all three if ``dim`` is None), the one with the lowest weighted residual wins.
+    ``nugget=False`` fixes the nugget at 0. Each kind is fitted from the starting ranges
+    :data:`START_RANGES` (fractions of the largest lag); ``method`` as :func:`fit_variograms`.
+    """
+    bins = _bins(emp, component)
+    return _fit_series([bins], _kinds(kind, dim), weighting, nugget, method)[0]
 
 
 class JointStatePairs:

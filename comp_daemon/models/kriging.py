@@ -62,8 +62,9 @@ its kinematic base.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass, field, replace
+from functools import cached_property
 from typing import Any, ClassVar, Literal
 
 import numpy as np
@@ -77,8 +78,9 @@ from comp_daemon.estimation.variogram import (
     EmpiricalVariogram,
     JointStatePairs,
     VariogramModel,
+    binned_semivariogram,
     empirical_semivariogram,
-    fit_variogram,
+    fit_variograms,
     pairwise_distances,
     valid_models,
 )
@@ -133,6 +135,7 @@ DEFAULT_NEIGHBOURS = 32  # samples per local neighbourhood (the default above DE
 LOO_MAX_SAMPLES = 500  # the leave-one-out RMS of local models is taken on a random subset
 ANISO_MAX_SAMPLES = 600  # the per-joint weights are searched on at most this many samples
 ANISO_FACTORS = (0.25, 0.5, 2.0, 4.0)  # multipliers tried on each joint weight per sweep
+KEPT_DISTANCES_MAX = 8_000_000  # distances (64 MB) kept between the variograms and the models of a fit
 
 
 def _dir_array(dir: NDArray[np.float64] | None, n: int) -> NDArray[np.float64]:
@@ -374,42 +377,87 @@ def _subset(n: int, most: int, seed: int) -> NDArray[np.intp]:
     return np.sort(np.random.default_rng(seed).choice(n, most, replace=False))
 
 
-def _fit_for_metric(
-    base: ErrorModel,
-    metric: JointStateMetric,
-    a: NDArray[np.float64],
-    d: NDArray[np.float64] | None,
-    residual: NDArray[np.float64],
-    kind: str,
-    n_bins: int,
-    max_lag: float | None,
-    nugget: bool,
-    neighbours: int | None,
-    pairs: JointStatePairs | None = None,
-) -> _MetricFit:
-    """The model under ``metric``, its empirical variogram and its LOO 3-D RMS (and on how many points).
+@dataclass(frozen=True)
+class _KrigingProblem:
+    """What a kriging fit under any metric shares: the base model, the samples and their residual,
+    and how the variograms are fitted (``kind``, bins, nugget) and the system solved (dense, or
+    local ``neighbours``). :meth:`fits` gives the model under each of several metrics."""
 
-    Local models (``neighbours``) take their empirical variogram from ``pairs`` (built here if None).
-    """
-    n = a.shape[0]
-    dist: NDArray[np.float64] | None = None
-    if neighbours is None:
-        dist = pairwise_distances(metric.embed(a, d))
-        emp = empirical_semivariogram(None, residual, n_bins=n_bins, max_lag=max_lag, distances=dist)
-    else:
-        if pairs is None:
-            pairs = JointStatePairs(a, d, residual)
-        emp = pairs.semivariogram(metric.joint_weights, metric.dir_separation_deg, n_bins, max_lag)
-    dim = 12 if metric.direction_aware else N_JOINTS
-    variograms = [fit_variogram(emp, c, kind=kind, dim=dim, nugget=nugget) for c in range(3)]
-    model = KrigingModel(base, metric, a, d, residual, variograms, distances=dist, neighbours=neighbours)
-    if isinstance(model.kriging, OrdinaryKriging):
-        rows = np.arange(n)
-        loo = model.kriging.loo_residuals()
-    else:
-        rows = _subset(n, LOO_MAX_SAMPLES, 2)
-        loo = model.kriging.loo_residuals(rows)
-    return _MetricFit(model, emp, float(np.sqrt(np.mean(np.sum(loo**2, axis=1)))), rows, loo)
+    base: ErrorModel
+    a: NDArray[np.float64]
+    d: NDArray[np.float64] | None
+    residual: NDArray[np.float64]
+    kind: str
+    n_bins: int
+    max_lag: float | None
+    nugget: bool
+    neighbours: int | None
+
+    def rows(self, rows: NDArray[np.intp]) -> _KrigingProblem:
+        """The dense problem on some of the samples."""
+        d = None if self.d is None else self.d[rows]
+        return replace(self, a=self.a[rows], d=d, residual=self.residual[rows], neighbours=None)
+
+    @cached_property
+    def _pairs(self) -> JointStatePairs:
+        """Local models: the sample pairs their empirical variograms are taken on."""
+        return JointStatePairs(self.a, self.d, self.residual)
+
+    @cached_property
+    def _increments(self) -> tuple[NDArray[np.intp], NDArray[np.intp], NDArray[np.float64]]:
+        """Dense models: every pair (i < j) and its half squared residual increment, for any metric."""
+        iu, ju = np.triu_indices(self.a.shape[0], k=1)
+        return iu, ju, 0.5 * (self.residual[iu] - self.residual[ju]) ** 2
+
+    def _distances(self, metric: JointStateMetric) -> NDArray[np.float64]:
+        return pairwise_distances(metric.embed(self.a, self.d))
+
+    def _empirical(
+        self, metric: JointStateMetric, keep: bool
+    ) -> tuple[EmpiricalVariogram, NDArray[np.float64] | None]:
+        """The empirical variogram under ``metric``; with ``keep``, the dense model's distances too."""
+        if self.neighbours is not None:
+            w, sep = metric.joint_weights, metric.dir_separation_deg
+            return self._pairs.semivariogram(w, sep, self.n_bins, self.max_lag), None
+        iu, ju, half_sq = self._increments
+        dist = self._distances(metric)
+        emp = binned_semivariogram(dist[iu, ju], half_sq, n_bins=self.n_bins, max_lag=self.max_lag)
+        return emp, dist if keep else None
+
+    def fits(self, metrics: Sequence[JointStateMetric]) -> Iterator[_MetricFit]:
+        """The model under each metric, its empirical variogram and its LOO 3-D RMS (and on how many
+        points), one after the other; the variogram fits of all of them are solved together first.
+        The distance matrices of the empirical variograms serve the models if they are small
+        (:data:`KEPT_DISTANCES_MAX` entries together), else they are computed again."""
+        n = self.a.shape[0]
+        keep = len(metrics) * n * n <= KEPT_DISTANCES_MAX
+        emps, dists = zip(*(self._empirical(m, keep) for m in metrics), strict=True)
+        variograms: list[list[VariogramModel]] = [[] for _ in metrics]
+        dims = [12 if m.direction_aware else N_JOINTS for m in metrics]
+        for dim in sorted(set(dims)):
+            at = [i for i, d in enumerate(dims) if d == dim]
+            fitted = fit_variograms([emps[i] for i in at], kind=self.kind, dim=dim, nugget=self.nugget)
+            for i, vgs in zip(at, fitted, strict=True):
+                variograms[i] = vgs
+        for metric, emp, vgs, kept in zip(metrics, emps, variograms, dists, strict=True):
+            dist = kept if kept is not None or self.neighbours is not None else self._distances(metric)
+            model = KrigingModel(
+                self.base,
+                metric,
+                self.a,
+                self.d,
+                self.residual,
+                vgs,
+                distances=dist,
+                neighbours=self.neighbours,
+            )
+            if isinstance(model.kriging, OrdinaryKriging):
+                rows = np.arange(n)
+                loo = model.kriging.loo_residuals()
+            else:
+                rows = _subset(n, LOO_MAX_SAMPLES, 2)
+                loo = model.kriging.loo_residuals(rows)
+            yield _MetricFit(model, emp, float(np.sqrt(np.mean(np.sum(loo**2, axis=1)))), rows, loo)
 
 
 @dataclass(frozen=True, slots=True)
@@ -482,23 +530,19 @@ def fit_kriging(
     base_rms = float(np.sqrt(np.mean(np.sum(residual**2, axis=1))))
     weights = np.ones(N_JOINTS) if joint_weights is None else np.asarray(joint_weights, dtype=float)
 
-    pairs = None if neighbours is None else JointStatePairs(a, d, residual)
+    problem = _KrigingProblem(base, a, d, residual, variogram, n_bins, max_lag, nugget, neighbours)
 
-    def evaluate(sep: NDArray[np.float64], w: NDArray[np.float64] = weights) -> _MetricFit:
-        metric = JointStateMetric(w, sep if d is not None else np.zeros(N_JOINTS))
-        return _fit_for_metric(
-            base, metric, a, d, residual, variogram, n_bins, max_lag, nugget, neighbours, pairs
-        )
+    def metric(sep: NDArray[np.float64], w: NDArray[np.float64] = weights) -> JointStateMetric:
+        return JointStateMetric(w, sep if d is not None else np.zeros(N_JOINTS))
 
     candidates: list[tuple[tuple[float, ...], float]] = []
     if isinstance(direction, str):
         if direction not in ("aware", "blind"):
             raise ValueError(f"direction must be 'aware', 'blind' or 6 separations (deg), got {direction!r}")
         grid = [0.0] if direction == "blind" or d is None else [float(g) for g in dir_grid_deg]
+        seps = [np.full(N_JOINTS, g) for g in grid]
         best: _MetricFit | None = None
-        for g in grid:
-            sep = np.full(N_JOINTS, g)
-            result = evaluate(sep)
+        for sep, result in zip(seps, problem.fits([metric(sep) for sep in seps]), strict=True):
             candidates.append((tuple(sep.tolist()), result.loo_rms_mm))
             if best is None or result.loo_rms_mm < best.loo_rms_mm:
                 best = result
@@ -507,45 +551,18 @@ def fit_kriging(
         sep = np.asarray(direction, dtype=float)
         if sep.shape != (N_JOINTS,):
             raise ValueError(f"direction separations: expected 6 values (deg), got shape {sep.shape}")
-        best = evaluate(sep)
+        best = next(problem.fits([metric(sep)]))
         candidates.append((tuple(sep.tolist()), best.loo_rms_mm))
     weight_candidates: tuple[tuple[tuple[float, ...], float], ...] = ()
     decision: Decision | None = None
     unbiased: NDArray[np.intp] | None = None
     if anisotropic:
-        chosen_sep = best.model.metric.dir_separation_deg
-        if select_anisotropic:
-            # the weights are searched on one half of the samples and judged on the other
-            half = np.random.default_rng(4).permutation(n)
-            search, held = np.sort(half[: n // 2]), np.sort(half[n // 2 :])
-        else:
-            search, held = np.arange(n), np.zeros(0, dtype=np.intp)
-        w_best, weight_candidates = _search_weights(
-            base, a, d, residual, chosen_sep, weights, variogram, n_bins, max_lag, nugget, search
+        sep = best.model.metric.dir_separation_deg
+        refit, weight_candidates, decision, unbiased = _choose_weights(
+            problem, sep, weights, select_anisotropic
         )
-        if not np.array_equal(w_best, weights) and held.size >= 4:
-            judged = held[_subset(held.size, ANISO_MAX_SAMPLES, 5)]
-
-            def held_out_loo(w: NDArray[np.float64]) -> NDArray[np.float64]:
-                metric = JointStateMetric(w, chosen_sep)
-                d_h = None if d is None else d[judged]
-                f = _fit_for_metric(
-                    base, metric, a[judged], d_h, residual[judged], variogram, n_bins, max_lag, nugget, None
-                )
-                return np.sum(f.loo_residual_mm**2, axis=1)
-
-            decision = judge(
-                "anisotropic ranges",
-                held_out_loo(w_best),
-                held_out_loo(weights),
-                f"leave-one-out on {judged.size} samples not used to choose the weights, "
-                "against the isotropic distance",
-            )
-            if decision.kept:
-                best = evaluate(chosen_sep, w_best)
-                unbiased = held
-        elif not np.array_equal(w_best, weights):
-            best = evaluate(chosen_sep, w_best)
+        if refit is not None:
+            best = next(problem.fits([JointStateMetric(refit, sep)]))
     return KrigingFit(
         model=best.model,
         empirical=best.empirical,
@@ -561,45 +578,76 @@ def fit_kriging(
     )
 
 
-def _search_weights(
-    base: ErrorModel,
-    a: NDArray[np.float64],
-    d: NDArray[np.float64] | None,
-    residual: NDArray[np.float64],
-    sep: NDArray[np.float64],
-    start: NDArray[np.float64],
-    kind: str,
-    n_bins: int,
-    max_lag: float | None,
-    nugget: bool,
-    rows: NDArray[np.intp],
-) -> tuple[NDArray[np.float64], tuple[tuple[tuple[float, ...], float], ...]]:
-    """Per-joint weights by coordinate search on the dense LOO RMS of a subset of ``rows``
-    (see fit_kriging)."""
-    sub = rows[_subset(rows.size, ANISO_MAX_SAMPLES, 3)]
-    a_s, d_s, r_s = a[sub], None if d is None else d[sub], residual[sub]
+def _choose_weights(
+    problem: _KrigingProblem, sep: NDArray[np.float64], start: NDArray[np.float64], select: bool
+) -> tuple[
+    NDArray[np.float64] | None,
+    tuple[tuple[tuple[float, ...], float], ...],
+    Decision | None,
+    NDArray[np.intp] | None,
+]:
+    """The per-joint weights of fit_kriging's ``anisotropic`` stage: the weights to refit with (None:
+    the isotropic model stays), the candidates tried, the held-out decision and the rows it was
+    taken on. With ``select`` the weights are searched on one half of the samples and judged on
+    the other."""
+    n = problem.a.shape[0]
+    if select:
+        half = np.random.default_rng(4).permutation(n)
+        search, held = np.sort(half[: n // 2]), np.sort(half[n // 2 :])
+    else:
+        search, held = np.arange(n), np.zeros(0, dtype=np.intp)
+    searched = problem.rows(search[_subset(search.size, ANISO_MAX_SAMPLES, 3)])
+    w_best, candidates = _search_weights(searched, sep, start)
+    if np.array_equal(w_best, start):
+        return None, candidates, None, None
+    if held.size < 4:
+        return w_best, candidates, None, None
+    judged = held[_subset(held.size, ANISO_MAX_SAMPLES, 5)]
+    with_w, without = (
+        np.sum(f.loo_residual_mm**2, axis=1)
+        for f in problem.rows(judged).fits([JointStateMetric(w_best, sep), JointStateMetric(start, sep)])
+    )
+    decision = judge(
+        "anisotropic ranges",
+        with_w,
+        without,
+        f"leave-one-out on {judged.size} samples not used to choose the weights, "
+        "against the isotropic distance",
+    )
+    if decision.kept:
+        return w_best, candidates, decision, held
+    return None, candidates, decision, None
 
-    def loo(w: NDArray[np.float64]) -> float:
-        metric = JointStateMetric(w, sep)
+
+def _search_weights(
+    problem: _KrigingProblem, sep: NDArray[np.float64], start: NDArray[np.float64]
+) -> tuple[NDArray[np.float64], tuple[tuple[tuple[float, ...], float], ...]]:
+    """Per-joint weights by coordinate search on the dense LOO RMS of ``problem``'s samples (see
+    fit_kriging). The factors tried on one joint start from the same weights: they are fitted
+    together."""
+
+    def loo(ws: list[NDArray[np.float64]]) -> list[float]:
         try:
-            fitted = _fit_for_metric(base, metric, a_s, d_s, r_s, kind, n_bins, max_lag, nugget, None)
-            return fitted.loo_rms_mm
+            return [f.loo_rms_mm for f in problem.fits([JointStateMetric(w, sep) for w in ws])]
         except ValueError:  # a degenerate metric (e.g. a singular system): not a candidate
-            return float("inf")
+            if len(ws) == 1:
+                return [float("inf")]
+            return [loo([w])[0] for w in ws]
 
     w = np.array(start, dtype=float)
-    best = loo(w)
+    best = loo([w])[0]
     tried: list[tuple[tuple[float, ...], float]] = [(tuple(w.tolist()), best)]
     sweeps = 2
     most = 1 + sweeps * N_JOINTS * len(ANISO_FACTORS)  # fewer if the second sweep is not needed
     for _sweep in range(sweeps):
         improved = False
         for j in range(N_JOINTS):
-            current = w.copy()
+            trials = []
             for f in ANISO_FACTORS:
-                trial = current.copy()
+                trial = w.copy()
                 trial[j] *= f
-                value = loo(trial)
+                trials.append(trial)
+            for trial, value in zip(trials, loo(trials), strict=True):
                 tried.append((tuple(trial.tolist()), value))
                 steps.report("joint-weight candidates", len(tried), most)
                 if value < best:
