@@ -12,8 +12,10 @@ libraries at their default (a thread per core), as the pool did before it set th
 rounds, the job first in even ones): the command (``comp-daemon fit DATA --robot R --model M --out
 …``, or ``comp-daemon diagnose DATA --robot R --json … --report …``, which writes the HTML report a
 diagnosis job renders too) in a child process, its wall and CPU time, against the job started by a
-POST to the service (``/api/fits`` or ``/api/diagnoses``; the service in this process, with its
-default job settings: spawned workers, niced, off the real-time CPU), from the POST to the job's
+POST to the service (``/api/fits`` or ``/api/diagnoses``; the service in this process, its job
+workers spawned with ``--cpus`` and ``--nice`` as ``jobs.cpus`` and ``jobs.nice``: by default on CPU
+0 at nice 10, as ``comp-daemon run`` keeps them off the real-time CPU of a two-core machine; ``--cpus
+''`` leaves them unpinned, as the service alone does), from the POST to the job's
 state ``done``, and the CPU of the service's process and of its workers (from ``/proc``) meanwhile.
 The data set is uploaded once, before the rounds; the first job also starts the pool's worker.
 Round i fits with the folds' seed i in both paths (:data:`FIRST_SEED`).
@@ -157,8 +159,11 @@ def command_line(kind: str, data: str, robot: str, model: str, seed: int, tmp: P
     return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime}
 
 
-async def http_rounds(kind: str, data: Path, robot: str, model: str, rounds: int) -> list[dict[str, Any]]:
-    """``rounds`` pairs of (command line, HTTP job), alternated; each path's wall and CPU time."""
+async def http_rounds(
+    kind: str, data: Path, robot: str, model: str, rounds: int, jobs: dict[str, Any]
+) -> list[dict[str, Any]]:
+    """``rounds`` pairs of (command line, HTTP job), alternated; each path's wall and CPU time.
+    ``jobs``: the service's job settings (``jobs.cpus``, ``jobs.nice``)."""
     import httpx
 
     from comp_daemon.service.api import create_app, open_store
@@ -174,6 +179,7 @@ async def http_rounds(kind: str, data: Path, robot: str, model: str, rounds: int
             store={"data_dir": str(tmp / "data")},
             auth={"tokens": [{"name": "bench", "role": "engineer", "token": token}]},
             robot={"name": robot},
+            jobs=jobs,
         )
         async with contextlib.AsyncExitStack() as stack:
             store = open_store(settings)
@@ -253,7 +259,10 @@ def http_main(opts: argparse.Namespace) -> None:
     what = opts.model if opts.kind == "fit" else "diagnosis"
     print(f"{what} on {opts.data} ({opts.robot}): command line against an HTTP job, {opts.http} rounds")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    rows = asyncio.run(http_rounds(opts.kind, Path(opts.data), opts.robot, opts.model, opts.http))
+    cpus = [int(c) for c in opts.cpus.split(",") if c.strip()]
+    print(f"job workers: cpus {cpus or 'not pinned'}, nice {opts.nice}")
+    jobs = {"cpus": cpus, "nice": opts.nice}
+    rows = asyncio.run(http_rounds(opts.kind, Path(opts.data), opts.robot, opts.model, opts.http, jobs))
     warm = rows[1:] or rows  # the first job also starts the pool's worker
     for key in ("wall_s", "cpu_s"):
         ratios = [r["job"][key] / r["cli"][key] for r in warm]
