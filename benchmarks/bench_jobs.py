@@ -7,15 +7,33 @@ off the real-time CPU) against the same work in the command line's process, on t
 Prints, for each path, the wall time and the CPU time of the process that did the work (the job's
 worker measures its own), and the load average. ``--threads 0`` leaves the worker's numeric
 libraries at their default (a thread per core), as the pool did before it set them.
+
+``--http N`` compares the whole paths instead, N rounds alternated (the command line first in odd
+rounds, the job first in even ones): the command (``comp-daemon fit DATA --robot R --model M --out
+…``, or ``comp-daemon diagnose DATA --robot R --json … --report …``, which writes the HTML report a
+diagnosis job renders too) in a child process, its wall and CPU time, against the job started by a
+POST to the service (``/api/fits`` or ``/api/diagnoses``; the service in this process, its job
+workers spawned with ``--cpus`` and ``--nice`` as ``jobs.cpus`` and ``jobs.nice``: by default on CPU
+0 at nice 10, as ``comp-daemon run`` keeps them off the real-time CPU of a two-core machine; ``--cpus
+''`` leaves them unpinned, as the service alone does), from the POST to the job's
+state ``done``, and the CPU of the service's process and of its workers (from ``/proc``) meanwhile.
+The data set is uploaded once, before the rounds; the first job also starts the pool's worker.
+Round i fits with the folds' seed i in both paths (:data:`FIRST_SEED`).
 """
 
 from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import os
+import secrets
+import statistics
+import subprocess
+import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -36,7 +54,9 @@ def timed_job(
 
         threadpool_limits(limits=os.cpu_count())
 
-    func = {"diagnosis": job_kinds.run_diagnosis, "fit": job_kinds.run_fit}[kind]
+    func: Callable[..., Any] = job_kinds.run_fit
+    if kind == "diagnosis":
+        func = job_kinds.run_diagnosis
     c0, t0 = time.process_time(), time.perf_counter()
     func(*args, progress=progress)
     return {
@@ -90,6 +110,169 @@ async def in_pool(
             store.close()
 
 
+#: the folds' seed of the first round; each round takes the next, in both paths, so that a job's
+#: worker, which keeps the base fits it made (``fitting.selected_base``), does not serve a round
+#: from an earlier one's
+FIRST_SEED = 1
+
+
+def descendants_cpu_s(root: int) -> dict[int, float]:
+    """User + system CPU seconds of every live descendant of process ``root``, by pid (``/proc``)."""
+    tick = os.sysconf("SC_CLK_TCK")
+    parent: dict[int, int] = {}
+    cpu: dict[int, float] = {}
+    for entry in os.listdir("/proc"):
+        if not entry.isdigit():
+            continue
+        try:
+            with open(f"/proc/{entry}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:  # ended meanwhile
+            continue
+        parent[int(entry)] = int(fields[1])
+        cpu[int(entry)] = (int(fields[11]) + int(fields[12])) / tick
+    out = {}
+    for pid in cpu:
+        p = parent.get(pid, 0)
+        while p > 1 and p != root:
+            p = parent.get(p, 0)
+        if p == root:
+            out[pid] = cpu[pid]
+    return out
+
+
+def command_line(kind: str, data: str, robot: str, model: str, seed: int, tmp: Path) -> dict[str, float]:
+    """The command line's whole path in a child process: its wall time and CPU time."""
+    if kind == "fit":
+        argv = ["fit", data, "--robot", robot, "--model", model, "--out", str(tmp / "model.json")]
+    else:
+        argv = ["diagnose", data, "--robot", robot, "--json", str(tmp / "d.json")]
+        argv += ["--report", str(tmp / "d.html")]
+    argv += ["--seed", str(seed)]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen([sys.executable, "-m", "comp_daemon", *argv], stdout=subprocess.DEVNULL)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise SystemExit(f"comp-daemon {' '.join(argv)} failed ({proc.returncode})")
+    return {"wall_s": wall, "cpu_s": usage.ru_utime + usage.ru_stime}
+
+
+async def http_rounds(
+    kind: str, data: Path, robot: str, model: str, rounds: int, jobs: dict[str, Any]
+) -> list[dict[str, Any]]:
+    """``rounds`` pairs of (command line, HTTP job), alternated; each path's wall and CPU time.
+    ``jobs``: the service's job settings (``jobs.cpus``, ``jobs.nice``)."""
+    import httpx
+
+    from comp_daemon.service.api import create_app, open_store
+    from comp_daemon.service.config import load_settings
+
+    token = secrets.token_hex(16)
+    headers = {"Authorization": f"Bearer {token}"}
+    out: list[dict[str, Any]] = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        settings = load_settings(
+            None,
+            store={"data_dir": str(tmp / "data")},
+            auth={"tokens": [{"name": "bench", "role": "engineer", "token": token}]},
+            robot={"name": robot},
+            jobs=jobs,
+        )
+        async with contextlib.AsyncExitStack() as stack:
+            store = open_store(settings)
+            stack.callback(store.close)
+            app = create_app(settings, store)
+            await stack.enter_async_context(app.router.lifespan_context(app))
+            client = await stack.enter_async_context(
+                httpx.AsyncClient(
+                    transport=httpx.ASGITransport(app=app),
+                    base_url="http://cell",
+                    headers=headers,
+                    timeout=60.0,
+                )
+            )
+            t0 = time.perf_counter()
+            up = await client.post(
+                f"/api/datasets?name={data.stem}",
+                content=data.read_bytes(),
+                headers={"Content-Type": "text/csv"},
+            )
+            if up.status_code != 201:
+                raise SystemExit(f"the upload was refused: {up.status_code} {up.text}")
+            print(f"upload     : {time.perf_counter() - t0:.2f} s")
+            dataset_id = int(up.json()["id"])
+            for i in range(rounds):
+                job_first = i % 2 == 1
+                row: dict[str, Any] = {"job_first": job_first}
+                for path in ("job", "cli") if job_first else ("cli", "job"):
+                    if path == "cli":
+                        row["cli"] = await asyncio.to_thread(
+                            command_line, kind, str(data), robot, model, FIRST_SEED + i, tmp
+                        )
+                    else:
+                        row["job"] = await http_job(client, kind, dataset_id, model, FIRST_SEED + i)
+                row["load"] = os.getloadavg()[0]
+                out.append(row)
+                print(f"round {i + 1} {round_line(row)}")
+    return out
+
+
+def round_line(row: dict[str, Any]) -> str:
+    cli, job = row["cli"], row["job"]
+    return (
+        f"({'job' if row['job_first'] else 'command line'} first): command line wall {cli['wall_s']:.2f} s "
+        f"CPU {cli['cpu_s']:.2f} s; job wall {job['wall_s']:.2f} s CPU {job['cpu_s']:.2f} s (workers "
+        f"{job['worker_cpu_s']:.2f} s, service {job['service_cpu_s']:.2f} s); load {row['load']:.2f}"
+    )
+
+
+async def http_job(client: Any, kind: str, dataset_id: int, model: str, seed: int) -> dict[str, float]:
+    """One job through the service, from its POST to its state ``done``: wall and CPU time."""
+    me = os.getpid()
+    before = descendants_cpu_s(me)
+    c0, t0 = time.process_time(), time.perf_counter()
+    if kind == "fit":
+        r = await client.post("/api/fits", json={"dataset_id": dataset_id, "model": model, "seed": seed})
+    else:
+        r = await client.post("/api/diagnoses", json={"dataset_id": dataset_id, "seed": seed})
+    if r.status_code != 202:
+        raise SystemExit(f"the job was refused: {r.status_code} {r.text}")
+    job_id = int(r.json()["id"])
+    while True:
+        job = (await client.get(f"/api/jobs/{job_id}")).json()
+        if job["state"] not in ("queued", "running"):
+            break
+        await asyncio.sleep(0.05)
+    wall, service = time.perf_counter() - t0, time.process_time() - c0
+    if job["state"] != "done":
+        raise SystemExit(f"job {job_id} ended {job['state']}: {job.get('error')}")
+    after = descendants_cpu_s(me)
+    workers = sum(cpu - before.get(pid, 0.0) for pid, cpu in after.items())
+    return {"wall_s": wall, "cpu_s": service + workers, "worker_cpu_s": workers, "service_cpu_s": service}
+
+
+def http_main(opts: argparse.Namespace) -> None:
+    print(machine_line())
+    what = opts.model if opts.kind == "fit" else "diagnosis"
+    print(f"{what} on {opts.data} ({opts.robot}): command line against an HTTP job, {opts.http} rounds")
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    cpus = [int(c) for c in opts.cpus.split(",") if c.strip()]
+    print(f"job workers: cpus {cpus or 'not pinned'}, nice {opts.nice}")
+    jobs = {"cpus": cpus, "nice": opts.nice}
+    rows = asyncio.run(http_rounds(opts.kind, Path(opts.data), opts.robot, opts.model, opts.http, jobs))
+    warm = rows[1:] or rows  # the first job also starts the pool's worker
+    for key in ("wall_s", "cpu_s"):
+        ratios = [r["job"][key] / r["cli"][key] for r in warm]
+        print(
+            f"job / command line, {key[:-2]}: median {statistics.median(ratios):.2f} "
+            f"(rounds {2 if len(rows) > 1 else 1}..{len(rows)}: {', '.join(f'{x:.2f}' for x in ratios)})"
+        )
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
@@ -100,8 +283,14 @@ def main() -> None:
     ap.add_argument("--nice", type=int, default=10)
     ap.add_argument("--threads", type=int, default=1, help="numeric threads of the worker; 0: default")
     ap.add_argument("--skip-cli", action="store_true")
+    ap.add_argument(
+        "--http", type=int, default=0, metavar="N", help="N alternated rounds: command line against HTTP job"
+    )
     opts = ap.parse_args()
     set_numeric_threads(1)
+    if opts.http:
+        http_main(opts)
+        return
     csv_text = Path(opts.data).read_text()
     args = job_args(opts.kind, csv_text, opts.robot, opts.model)
     cpus = [int(c) for c in opts.cpus.split(",") if c.strip()]

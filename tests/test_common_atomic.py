@@ -36,6 +36,20 @@ def test_exclusive_write_never_replaces_an_existing_file(tmp_path) -> None:
     assert [p.name for p in tmp_path.iterdir()] == ["v0001.json"]
 
 
+def test_a_fifo_is_written_into_not_replaced(tmp_path) -> None:
+    # as /dev/null or /dev/stdout: a rename over it would leave a regular file in its place
+    dest = tmp_path / "out.fifo"
+    os.mkfifo(dest)
+    reader = os.open(dest, os.O_RDONLY | os.O_NONBLOCK)
+    try:
+        write_json_atomic(dest, {"a": 1})
+        assert stat.S_ISFIFO(os.stat(dest).st_mode)
+        assert json.loads(os.read(reader, 1 << 16)) == {"a": 1}
+    finally:
+        os.close(reader)
+    assert [p.name for p in tmp_path.iterdir()] == ["out.fifo"]
+
+
 @pytest.fixture()
 def umask_022():
     old = os.umask(0o022)

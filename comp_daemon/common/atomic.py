@@ -3,6 +3,11 @@
 The text goes to a temporary file in the destination's folder, is flushed and fsynced, then
 ``os.replace`` puts it in place (atomic on POSIX within one file system).
 
+A destination that is not a regular file or a folder — a device such as ``/dev/null`` or a
+terminal, a FIFO, a socket, or a link to one (``/dev/stdout``) — is written into instead: a rename
+would put a regular file in its place (``--json /dev/null`` run as root replaced the machine's
+``/dev/null``), and such a destination has no half-written state a reader could see.
+
 The finished file gets the mode an ordinary ``open(path, "w")`` would give it: ``0666`` less the
 process's umask (``0644`` under the usual ``022``), not the ``0600`` of the temporary file. Secrets
 (tokens, keys) pass ``mode=SECRET_MODE``, which no umask widens.
@@ -12,6 +17,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 import tempfile
 from collections.abc import Mapping
 from pathlib import Path
@@ -52,6 +58,10 @@ def write_text_atomic(
     also when another writer creates it meanwhile (the finished file is hard-linked into place).
     """
     dest = Path(path)
+    if not exclusive and _special(dest):
+        with open(dest, "w", encoding="utf-8", newline="\n") as fh:
+            fh.write(text)
+        return dest
     folder = dest.parent if str(dest.parent) else Path(".")
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{dest.name}.", suffix=".tmp")
     try:
@@ -70,6 +80,15 @@ def write_text_atomic(
             os.unlink(tmp)
         raise
     return dest
+
+
+def _special(dest: Path) -> bool:
+    """Whether ``dest`` exists and is (or links to) neither a regular file nor a folder."""
+    try:
+        mode = os.stat(dest).st_mode
+    except OSError:
+        return False
+    return not (stat.S_ISREG(mode) or stat.S_ISDIR(mode))
 
 
 def write_json_atomic(
