@@ -12,10 +12,11 @@ from diagnosis_campaigns import NOISE_FLOOR_MM, make_campaign
 from comp_daemon.cli import main
 from comp_daemon.data.dataset import write_dataset
 from comp_daemon.diagnosis import DiagnoseOptions, diagnose
-from comp_daemon.diagnosis.comparison import AGREE_PCT, DEFAULT_MODELS
+from comp_daemon.diagnosis.comparison import AGREE_PCT
 from comp_daemon.models.fitting import FitOptions
 from comp_daemon.models.registry import fit_spec, parse_model_name
 from comp_daemon.preparation.campaign import PrepareOptions, prepare_campaign
+from comp_daemon.preparation.options import COMPARED_MODELS
 
 #: backlash of joints 2 and 3, eight times the noise floor each
 BACKLASH_2_3: list[tuple[str, int | None, float]] = [
@@ -40,7 +41,7 @@ def test_a_model_with_what_the_ladder_was_not_given_is_named() -> None:
     doc = diagnose(camp.dataset, camp.robot, options).to_json()
     cmp = doc["model_comparison"]
     assert [m["model"] for m in cmp["models"]] == sorted(
-        DEFAULT_MODELS, key=lambda n: next(m["check_rms_mm"] for m in cmp["models"] if m["model"] == n)
+        COMPARED_MODELS, key=lambda n: next(m["check_rms_mm"] for m in cmp["models"] if m["model"] == n)
     )
     assert cmp["ladder_check_rms_mm"] == doc["unexplained_rms_mm"]
     assert cmp["best"] == "kinematic+ratio+backlash"

@@ -57,8 +57,8 @@ def independent_check_rms(ds: Dataset, robot, names: list[str]) -> float:
     # 1e-4 (relative) off the optimum along the weakly determined directions, and where depends on
     # the last bits of the forward kinematics. With a compliance the cost has a flat valley (the
     # compliance against the geometry) along which the solver creeps without meeting its tolerances:
-    # from 200 to 2 000 evaluations its cost falls by 0.05 % and the check RMS moves by 1e-5
-    # (relative), well inside the comparison's 1e-4; 200 evaluations take 12 s instead of 126 s
+    # from 200 to 400 evaluations its cost falls by 0.03 %, and from 200 to 2 000 the check RMS
+    # moves by 1e-5 (relative), well inside the comparison's 1e-4; 200 take 12 s instead of 126 s
     sol = scipy.optimize.least_squares(
         resid,
         np.zeros(len(scale)),

@@ -20,9 +20,8 @@ from test_service_api import auth, make_settings
 from comp_daemon.cli import build_parser, main
 from comp_daemon.data.dataset import write_dataset
 from comp_daemon.diagnosis import DiagnoseOptions
-from comp_daemon.diagnosis.comparison import DEFAULT_MODELS
 from comp_daemon.diagnosis.options import diagnose_options
-from comp_daemon.preparation.options import DiagnosisSettings, FitSettings
+from comp_daemon.preparation.options import COMPARED_MODELS, DiagnosisSettings, FitSettings
 from comp_daemon.service.schemas import DiagnosisIn, FitIn
 
 
@@ -183,7 +182,7 @@ def test_list_options_are_words_on_the_command_line_and_lists_over_http() -> Non
 
 def test_the_settings_defaults_are_the_documented_methods() -> None:
     assert diagnose_options(DiagnosisSettings()) == DiagnoseOptions()
-    assert DiagnosisSettings().compare_models == DEFAULT_MODELS
+    assert DiagnoseOptions().compare_models == DiagnosisSettings().compare_models == COMPARED_MODELS
 
 
 def test_the_service_validates_the_options_without_loading_the_diagnosis() -> None:

@@ -11,10 +11,11 @@ RMS stands beside the ladder's last significant step's (the TCP's rows, the figu
 reports). When the best model is more than :data:`AGREE_PCT` % below the ladder, the diagnosis says
 which and what that model has that the ladder lacks.
 
-The default set (:data:`DEFAULT_MODELS`) is chosen for cost: a kinematic model with ratio and
-backlash on every joint, and isotropic kriging of the kinematic remainder, about 1–2 s together on
-1 000 poses on one core. ``kriging:aniso`` (per-joint ranges) and the stacks cost several seconds
-more each; they are named with ``DiagnoseOptions(compare_models=...)`` (``--compare-models``).
+The default set (:data:`comp_daemon.preparation.options.COMPARED_MODELS`, the one default of both
+doors) is chosen for cost: a kinematic model with ratio and backlash on every joint, and isotropic
+kriging of the kinematic remainder, about 1–2 s together on 1 000 poses on one core.
+``kriging:aniso`` (per-joint ranges, 1.4–1.9 s) and the stacks cost more each; they are named with
+``DiagnoseOptions(compare_models=...)`` (``--compare-models``).
 """
 
 from __future__ import annotations
@@ -40,12 +41,11 @@ from comp_daemon.models.registry import (
 from comp_daemon.preparation.campaign import PreparedCampaign
 from comp_daemon.robot.description import RobotDescription
 
-__all__ = ["AGREE_PCT", "DEFAULT_MODELS", "ModelComparison", "check_model_names", "compare_models"]
+__all__ = ["AGREE_PCT", "ModelComparison", "check_model_names", "compare_models"]
 
 #: the ladder agrees with the models when the best of them is at most this much lower (%)
 AGREE_PCT = 5.0
 #: the models compared by default: cheap, and between them what the vocabulary lacks
-DEFAULT_MODELS: tuple[str, ...] = ("kinematic+ratio+backlash", "kriging")
 #: a remainder length scale below this (deg) says the error varies along that joint
 SHORT_SCALE_DEG = 180.0
 

@@ -16,13 +16,14 @@ from numpy.typing import NDArray
 
 from comp_daemon.data.dataset import DEFAULT_SPLIT_SEED, Dataset
 from comp_daemon.diagnosis.agreement import Agreement
-from comp_daemon.diagnosis.comparison import DEFAULT_MODELS, ModelComparison, check_model_names
+from comp_daemon.diagnosis.comparison import ModelComparison, check_model_names
 from comp_daemon.diagnosis.fitting import FitResult
 from comp_daemon.diagnosis.remainder import RemainderModel
 from comp_daemon.diagnosis.structure import StructureResult
 from comp_daemon.models.effects import EFFECTS
 from comp_daemon.models.rows import DEFAULT_PROBE_SIGMA_DEG, MeasuredRows
 from comp_daemon.preparation.campaign import Directions
+from comp_daemon.preparation.options import COMPARED_MODELS
 from comp_daemon.robot.description import RobotDescription
 
 __all__ = [
@@ -65,7 +66,7 @@ class DiagnoseOptions:
     infer_directions: bool = True  # without dir columns, approach directions from the pose order
     probe_sigma_deg: float = DEFAULT_PROBE_SIGMA_DEG  # a 6-DOF probe's orientation σ per axis
     # compensation models fitted on the same rows and compared with the ladder (empty: none)
-    compare_models: tuple[str, ...] = DEFAULT_MODELS
+    compare_models: tuple[str, ...] = COMPARED_MODELS
 
     def __post_init__(self) -> None:
         if self.frame not in ("auto", "base", "tracker"):
